@@ -1,0 +1,52 @@
+"""Structured (validated) configs of the Hydra apps, registered with Hydra's ConfigStore.
+
+Schemas live in the ``schema/`` group so that the user-facing groups ``problem/`` and
+``solver/`` list only real choices. The YAML files under ``conf/`` extend them; a
+misspelt or mistyped override fails at composition time, before any run directory
+exists.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING
+
+from .problems import PROBLEMS
+from .solvers import SOLVERS
+
+
+@dataclasses.dataclass
+class FitConfig:
+    """Top level of ``experiments/fit.py``."""
+
+    problem: Any = MISSING
+    solver: Any = MISSING
+    resume: bool = False        # continue from the last checkpoint in the run directory
+    progress: bool = True       # one line per outer iteration on the terminal
+    log_every: int = 1          # TensorBoard scalars every n iterations (the last always)
+
+
+@dataclasses.dataclass
+class VerifyConfig:
+    """Top level of ``experiments/verify.py``."""
+
+    problem: Any = MISSING
+    seed: int = 0               # of the random point offset and directions
+    at: str = "initial"         # where to verify: initial | truth
+    perturbation: float = 0.1   # random offset of theta from that point (relative)
+    taylor_tol: float = 0.05    # |rate - 2| allowed
+    dot_tol: float = 1e-10      # relative |<Jv, w> - <v, J^T w>|
+    fd_tol: float = 1e-6        # relative |Jv - central FD|
+
+
+def register_configs() -> None:
+    """Register every schema (idempotent)."""
+    cs = ConfigStore.instance()
+    cs.store(name="fit_schema", node=FitConfig)
+    cs.store(name="verify_schema", node=VerifyConfig)
+    for name, (config_cls, _) in PROBLEMS.items():
+        cs.store(group="schema/problem", name=name, node=config_cls)
+    for name, (config_cls, _) in SOLVERS.items():
+        cs.store(group="schema/solver", name=name, node=config_cls)

@@ -1,0 +1,152 @@
+"""Sparse linear-solve backends: a factorisation object with ``solve``.
+
+``scipy`` (CPU): SuperLU from scipy in *symmetric mode* for SPD systems (minimum
+degree ordering on ``A^T + A`` and diagonal pivoting), the general COLAMD/partial
+pivoting LU otherwise. `torch.sparse.spsolve` has no CPU kernel and CHOLMOD
+(scikit-sparse) has no wheel, so this is the fastest direct solver a plain pip install
+gives; `scripts/bench_factorization.py` measures it against the alternatives.
+
+``cg`` (any device, CUDA included): Jacobi-preconditioned conjugate gradients in
+torch, batched over right-hand sides. It has no factorisation to reuse; its "factor"
+keeps the matrix and preconditioner so that the calling code is the same.
+
+Every factorisation and every solve is counted in :mod:`torchfit.linalg.counters`.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Protocol
+
+import numpy as np
+import scipy.sparse.linalg as spla
+import torch
+from torch import Tensor
+
+from .cg import batched_cg
+from .counters import COUNTERS
+from .pattern import SparsePattern
+
+
+class SingularMatrixError(RuntimeError):
+    """Raised when a system matrix cannot be factorised (or CG breaks down)."""
+
+
+class Factor(Protocol):
+    """A matrix prepared for repeated solves."""
+
+    def solve(self, rhs: Tensor, transpose: bool = False) -> Tensor:
+        """Solve ``A x = rhs`` (or ``A^T x = rhs``); ``rhs`` is ``(n,)`` or ``(n, c)``."""
+
+
+class Backend(Protocol):
+    name: str
+
+    def factorize(self, pattern: SparsePattern, values: Tensor, symmetric: bool) -> Factor:
+        ...
+
+
+def _count_solve(rhs: Tensor) -> None:
+    COUNTERS.solves += 1
+    COUNTERS.rhs_columns += 1 if rhs.dim() == 1 else rhs.shape[1]
+
+
+class ScipyFactor:
+    def __init__(self, lu: "spla.SuperLU", symmetric: bool, dtype: torch.dtype) -> None:
+        self._lu = lu
+        self._symmetric = symmetric
+        self._dtype = dtype
+
+    def solve(self, rhs: Tensor, transpose: bool = False) -> Tensor:
+        if rhs.device.type != "cpu":
+            raise ValueError("the scipy backend runs on the CPU; use backend='cg' for "
+                             f"tensors on {rhs.device}")
+        _count_solve(rhs)
+        trans = "T" if (transpose and not self._symmetric) else "N"
+        x = self._lu.solve(np.ascontiguousarray(rhs.detach().numpy()), trans=trans)
+        return torch.from_numpy(np.asarray(x)).to(self._dtype)
+
+
+@dataclasses.dataclass
+class ScipyBackend:
+    """Direct sparse LU from scipy (SuperLU), symmetric mode for SPD matrices."""
+
+    name: str = "scipy"
+
+    def factorize(self, pattern: SparsePattern, values: Tensor, symmetric: bool) -> ScipyFactor:
+        if values.device.type != "cpu":
+            raise ValueError("the scipy backend runs on the CPU; use backend='cg' for "
+                             f"tensors on {values.device}")
+        if not torch.isfinite(values).all():
+            raise SingularMatrixError("system matrix has NaN or infinite entries")
+        matrix = pattern.to_scipy(values).tocsc()
+        try:
+            if symmetric:
+                # SPD: fill-reducing ordering of A^T + A, no off-diagonal pivoting.
+                lu = spla.splu(matrix, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                               options={"SymmetricMode": True})
+            else:
+                lu = spla.splu(matrix)
+        except RuntimeError as err:
+            raise SingularMatrixError(
+                f"sparse factorisation failed ({err}); the system is singular: check "
+                "that every connected part of the model has a Dirichlet (fixed) node and "
+                "that all stiffnesses are positive") from err
+        COUNTERS.factorizations += 1
+        return ScipyFactor(lu, symmetric, values.dtype)
+
+
+class CGFactor:
+    def __init__(self, pattern: SparsePattern, values: Tensor, rtol: float, max_iter: int) -> None:
+        self._pattern = pattern
+        self._values = values.detach()
+        diag = pattern.diagonal(self._values)
+        if not (diag > 0).all():
+            raise SingularMatrixError("CG backend needs a positive diagonal (an SPD matrix)")
+        self._inv_diag = 1.0 / diag
+        self._rtol = rtol
+        self._max_iter = max_iter
+
+    def solve(self, rhs: Tensor, transpose: bool = False) -> Tensor:
+        # The matrix is symmetric (checked at factorisation), so A^T = A.
+        _count_solve(rhs)
+        columns = rhs.detach().reshape(rhs.shape[0], -1).T  # (c, n)
+        x, converged, iterations = batched_cg(
+            lambda v: self._pattern.matvec(self._values, v), columns,
+            preconditioner=lambda v: self._inv_diag * v, rtol=self._rtol,
+            max_iter=self._max_iter)
+        if not converged:
+            raise SingularMatrixError(
+                f"preconditioned CG did not reach rtol={self._rtol} in {iterations} "
+                "iterations; the matrix may be singular or badly conditioned (use "
+                "backend='scipy' on the CPU)")
+        return x.T.reshape(rhs.shape)
+
+
+@dataclasses.dataclass
+class CGBackend:
+    """Jacobi-preconditioned CG in torch (SPD matrices only), any device."""
+
+    rtol: float = 1e-12
+    max_iter: int | None = None
+    name: str = "cg"
+
+    def factorize(self, pattern: SparsePattern, values: Tensor, symmetric: bool) -> CGFactor:
+        if not symmetric:
+            raise ValueError("the cg backend needs a symmetric positive definite matrix")
+        if not torch.isfinite(values).all():
+            raise SingularMatrixError("system matrix has NaN or infinite entries")
+        COUNTERS.factorizations += 1
+        max_iter = self.max_iter or max(100, 10 * pattern.shape[0])
+        return CGFactor(pattern, values, self.rtol, max_iter)
+
+
+def get_backend(name: str | Backend) -> Backend:
+    """``'scipy'`` or ``'cg'`` (or an object with ``factorize``)."""
+    if not isinstance(name, str):
+        return name
+    if name == "scipy":
+        return ScipyBackend()
+    if name == "cg":
+        return CGBackend()
+    raise ValueError(f"unknown linear-solve backend {name!r}; choose 'scipy' (CPU direct) "
+                     "or 'cg' (torch CG, CPU or CUDA)")

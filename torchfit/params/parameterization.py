@@ -1,0 +1,159 @@
+"""Parameterisations: the map from the optimisation vector ``theta`` to a physical field.
+
+``field = B @ transform(theta)`` where ``B`` is a fixed non-negative linear basis
+(identity for one value per element, a 0/1 label matrix for one value per region,
+interpolation weights for a coarse grid) and ``transform`` is ``exp`` (positivity,
+the default) or the identity. Each parameterisation also exposes
+
+* the TV difference operator ``D`` (``(n_edges, n_params)``, one row ``e_j - e_i`` per
+  pair of neighbouring parameters), which the Split Bregman solver uses without knowing
+  where it comes from;
+* the scale (gauge) direction: the direction in ``theta`` along which the field is
+  multiplied by a constant (``ones`` for ``exp``, ``theta`` itself for the identity).
+  Scale-free problems hand it to the solvers so that they do not drift along it.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+TRANSFORMS = ("exp", "identity")
+
+
+class Parameterization:
+    """``field = basis @ transform(theta)``.
+
+    Args:
+        n_params: length of ``theta``.
+        edges: ``(n_edges, 2)`` pairs of neighbouring parameters (for ``D``); may be
+            empty (no TV possible then).
+        basis: ``(n_field, n_params)`` sparse or dense non-negative matrix, or ``None``
+            for the identity (one parameter per field value).
+        transform: ``'exp'`` (positive field, the default) or ``'identity'``.
+        name: what the field is, for messages and logs (e.g. ``'stiffness'``).
+    """
+
+    def __init__(self, n_params: int, edges: Tensor | np.ndarray | None = None,
+                 basis: Tensor | None = None, transform: str = "exp",
+                 name: str = "field") -> None:
+        if n_params < 1:
+            raise ValueError(f"a parameterisation needs at least one parameter, got {n_params}")
+        if transform not in TRANSFORMS:
+            raise ValueError(f"unknown transform {transform!r}; choose one of {TRANSFORMS}")
+        self.n_params = int(n_params)
+        self.transform = transform
+        self.name = name
+        self.basis = basis
+        self.n_field = self.n_params if basis is None else int(basis.shape[0])
+        if basis is not None and basis.shape[1] != n_params:
+            raise ValueError(f"basis has {basis.shape[1]} columns for {n_params} parameters")
+        edges_t = torch.as_tensor(np.asarray(edges if edges is not None else np.zeros((0, 2))),
+                                  dtype=torch.long).reshape(-1, 2)
+        if edges_t.numel() and (edges_t.min() < 0 or edges_t.max() >= n_params):
+            raise ValueError("parameter adjacency refers to a parameter out of range")
+        self.edges = edges_t
+
+    # -- the map ----------------------------------------------------------------------
+    def __call__(self, theta: Tensor) -> Tensor:
+        """Field ``(n_field,)`` from ``theta`` ``(n_params,)`` (differentiable)."""
+        self.check(theta)
+        values = torch.exp(theta) if self.transform == "exp" else theta
+        if self.basis is None:
+            return values
+        return self.basis.to(values) @ values
+
+    def inverse(self, field: Tensor) -> Tensor:
+        """``theta`` whose image is ``field`` (basis must be the identity or one-hot)."""
+        if self.basis is not None:
+            # Least-squares pre-image of the basis, then the inverse transform.
+            dense = self.basis.to_dense() if self.basis.is_sparse else self.basis
+            values = torch.linalg.lstsq(dense.to(field), field.reshape(-1, 1)).solution.reshape(-1)
+        else:
+            values = field
+        if self.transform == "exp":
+            if not bool((values > 0).all()):
+                raise ValueError(f"the {self.name} must be positive under the exp "
+                                 "parameterisation")
+            return torch.log(values)
+        return values.clone()
+
+    def constant(self, value: float, dtype: torch.dtype = torch.float64,
+                 device: torch.device | str = "cpu") -> Tensor:
+        """``theta`` of a constant field ``value``."""
+        if self.transform == "exp":
+            if not value > 0:
+                raise ValueError(f"the {self.name} must be positive, got {value}")
+            return torch.full((self.n_params,), math.log(value), dtype=dtype, device=device)
+        return torch.full((self.n_params,), float(value), dtype=dtype, device=device)
+
+    def check(self, theta: Tensor) -> None:
+        if theta.shape != (self.n_params,):
+            raise ValueError(f"parameter vector for the {self.name} must have shape "
+                             f"({self.n_params},), got {tuple(theta.shape)}")
+
+    # -- what the solvers may use -----------------------------------------------------
+    def difference_operator(self) -> Tensor:
+        """``D``: sparse ``(n_edges, n_params)`` with rows ``e_j - e_i`` for edges ``(i, j)``."""
+        n_edges = self.edges.shape[0]
+        if n_edges == 0:
+            raise ValueError(f"the {self.name} parameterisation has no neighbouring "
+                             "parameters, so it has no difference operator (TV needs at "
+                             "least two adjacent parameters)")
+        rows = torch.arange(n_edges).repeat_interleave(2)
+        cols = self.edges.reshape(-1)
+        vals = torch.tensor([-1.0, 1.0]).repeat(n_edges)
+        return torch.sparse_coo_tensor(torch.stack([rows, cols]), vals,
+                                       (n_edges, self.n_params)).coalesce()
+
+    def scale_direction(self, theta: Tensor) -> Tensor:
+        """Unit direction in ``theta`` that multiplies the whole field by a constant."""
+        direction = torch.ones_like(theta) if self.transform == "exp" else theta.detach().clone()
+        return direction / torch.linalg.vector_norm(direction)
+
+
+def chain_edges(n: int) -> np.ndarray:
+    """Neighbours ``(i, i + 1)`` of a chain of ``n`` cells, ``(n - 1, 2)``."""
+    idx = np.arange(n - 1)
+    return np.stack([idx, idx + 1], axis=1)
+
+
+def grid_edges(shape: tuple[int, ...]) -> np.ndarray:
+    """Axis neighbours of a regular grid of cells (row-major numbering), ``(n_edges, 2)``."""
+    index = np.arange(int(np.prod(shape))).reshape(shape)
+    pairs = []
+    for axis in range(len(shape)):
+        lo = np.take(index, np.arange(shape[axis] - 1), axis=axis).reshape(-1)
+        hi = np.take(index, np.arange(1, shape[axis]), axis=axis).reshape(-1)
+        pairs.append(np.stack([lo, hi], axis=1))
+    return np.concatenate(pairs, axis=0) if pairs else np.zeros((0, 2), dtype=np.int64)
+
+
+def per_element(n_cells: int, cell_edges: np.ndarray | None = None, transform: str = "exp",
+                name: str = "field") -> Parameterization:
+    """One parameter per element (cell, spring, triangle, tetrahedron)."""
+    return Parameterization(n_cells, cell_edges, None, transform, name)
+
+
+def per_region(labels: Tensor | np.ndarray, cell_edges: np.ndarray | None = None,
+               transform: str = "exp", name: str = "field") -> Parameterization:
+    """One parameter per region of a label map (``labels[c]`` in ``0..n_regions-1``).
+
+    Two regions are neighbours when some pair of neighbouring cells carries their labels.
+    """
+    labels_np = np.asarray(torch.as_tensor(labels).cpu(), dtype=np.int64).reshape(-1)
+    n_regions = int(labels_np.max()) + 1 if labels_np.size else 0
+    used = np.unique(labels_np)
+    if labels_np.size == 0 or labels_np.min() < 0 or used.size != n_regions:
+        raise ValueError("region labels must be 0..n_regions-1 with every region used")
+    basis = torch.sparse_coo_tensor(
+        torch.from_numpy(np.stack([np.arange(labels_np.size), labels_np])),
+        torch.ones(labels_np.size, dtype=torch.float64), (labels_np.size, n_regions)).coalesce()
+    region_edges = np.zeros((0, 2), dtype=np.int64)
+    if cell_edges is not None and len(cell_edges):
+        pairs = labels_np[np.asarray(cell_edges)]
+        pairs = np.sort(pairs[pairs[:, 0] != pairs[:, 1]], axis=1)
+        region_edges = np.unique(pairs, axis=0) if len(pairs) else region_edges
+    return Parameterization(n_regions, region_edges, basis, transform, name)

@@ -1,0 +1,77 @@
+"""Linear springs along one axis (the hanging chain of PROBLEMS.md ``spring1d``).
+
+Positions are scalars measured along gravity. Spring ``e`` joins nodes ``a_e < b_e``
+with stiffness ``k_e`` (force per unit length) and rest length ``L_e``; its tension is
+``T_e = k_e (x_b - x_a - L_e)``. The residual (net force, positive along gravity) is
+
+    R_j = sum_{e: b_e = j} T_e - sum_{e: a_e = j} T_e - f_ext_j,
+
+so ``R = 0`` is equilibrium and ``dR/dx`` is the SPD stiffness matrix. The model is
+linear in ``x`` with a frame-independent tangent: one factorisation serves every load
+case. Everything is vectorised over springs and frames.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..linalg import SparsePattern
+
+
+class SpringChain1D:
+    """Springs on a line with per-frame external nodal forces.
+
+    Args:
+        edges: ``(n_springs, 2)`` node pairs ``(a, b)``.
+        rest_lengths: ``(n_springs,)`` rest lengths (length units).
+        external_forces: ``(F, n_nodes)`` external force on every node in every frame
+            (gravity times mass plus applied loads; force units, along gravity).
+    """
+
+    linear = True
+    symmetric = True
+
+    def __init__(self, edges: Tensor, rest_lengths: Tensor, external_forces: Tensor) -> None:
+        if edges.dim() != 2 or edges.shape[1] != 2:
+            raise ValueError(f"edges must be (n_springs, 2), got {tuple(edges.shape)}")
+        if rest_lengths.shape != (edges.shape[0],):
+            raise ValueError(f"rest_lengths must be ({edges.shape[0]},), got "
+                             f"{tuple(rest_lengths.shape)}")
+        self.edges = edges.long()
+        self.rest_lengths = rest_lengths
+        self.external_forces = external_forces
+        self.n_dofs = int(external_forces.shape[1])
+        self.n_springs = int(edges.shape[0])
+        a, b = self.edges[:, 0], self.edges[:, 1]
+        # Local 2x2 stiffness [[k, -k], [-k, k]] of every spring, flattened row-major.
+        rows = torch.stack([a, a, b, b], dim=1).reshape(-1)
+        cols = torch.stack([a, b, a, b], dim=1).reshape(-1)
+        self.tangent_pattern = SparsePattern(rows, cols, (self.n_dofs, self.n_dofs))
+
+    def tensions(self, x: Tensor, stiffness: Tensor) -> Tensor:
+        """Spring tensions ``(F, n_springs)`` (force units)."""
+        a, b = self.edges[:, 0], self.edges[:, 1]
+        return stiffness * (x[:, b] - x[:, a] - self.rest_lengths)
+
+    def residual(self, x: Tensor, stiffness: Tensor) -> Tensor:
+        """Net force ``(F, n_nodes)`` for positions ``(F, n_nodes)``, stiffness ``(n_springs,)``."""
+        self._check(stiffness)
+        tension = self.tensions(x, stiffness)
+        a, b = self.edges[:, 0], self.edges[:, 1]
+        internal = x.new_zeros(x.shape).index_add(1, b, tension).index_add(1, a, -tension)
+        return internal - self.external_forces.to(x)
+
+    def tangent_values(self, x: Tensor, stiffness: Tensor) -> Tensor:
+        """``dR/dx`` contributions ``(1, 4 n_springs)``: shared by all frames."""
+        self._check(stiffness)
+        return torch.stack([stiffness, -stiffness, -stiffness, stiffness], dim=1).reshape(1, -1)
+
+    def energy(self, x: Tensor, stiffness: Tensor) -> Tensor:
+        """Total potential energy per frame ``(F,)``: springs minus work of external forces."""
+        stretch = x[:, self.edges[:, 1]] - x[:, self.edges[:, 0]] - self.rest_lengths
+        return 0.5 * (stiffness * stretch ** 2).sum(dim=1) - (self.external_forces.to(x) * x).sum(dim=1)
+
+    def _check(self, stiffness: Tensor) -> None:
+        if stiffness.shape != (self.n_springs,):
+            raise ValueError(f"stiffness must have shape ({self.n_springs},), got "
+                             f"{tuple(stiffness.shape)}")

@@ -1,0 +1,124 @@
+"""Iteration records, results and the callback protocol shared by every solver.
+
+A solver emits one :class:`IterationRecord` per outer iteration (iteration 0 is the
+initial point) to every callback; the TensorBoard logger, the progress display, the
+checkpoint writer and the metric evaluator of a run are such callbacks. Callbacks may
+add entries to ``record.extra`` (problem metrics), which later callbacks see.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any, Callable, Iterable, Protocol
+
+from torch import Tensor
+
+from ..linalg import COUNTERS
+
+
+@dataclasses.dataclass
+class IterationRecord:
+    """State after one outer iteration.
+
+    Attributes:
+        iteration: outer iteration (0 = initial point).
+        theta: ``(n,)`` current parameters (detached; do not modify).
+        objective: the value the solver minimises (``0.5 ||r||^2`` for least squares).
+        misfit: ``||r||_2``.
+        step_norm: ``||theta_k - theta_{k-1}||_2`` (0 for a rejected step).
+        cg_iterations: inner CG/CGLS iterations of this outer iteration.
+        damping: Levenberg-Marquardt damping (``nan`` for other solvers).
+        accepted: whether the step was taken.
+        wall_time: seconds since the solver started.
+        factorizations, solves: counters since the solver started.
+        extra: solver- or callback-specific scalars (metrics, TV terms, ...).
+    """
+
+    iteration: int
+    theta: Tensor
+    objective: float
+    misfit: float
+    step_norm: float = 0.0
+    cg_iterations: int = 0
+    damping: float = float("nan")
+    accepted: bool = True
+    wall_time: float = 0.0
+    factorizations: int = 0
+    solves: int = 0
+    extra: dict[str, float] = dataclasses.field(default_factory=dict)
+
+    def scalars(self) -> dict[str, float]:
+        """Every scalar of the record (for loggers), ``extra`` included."""
+        out = {k: float(v) for k, v in dataclasses.asdict(self).items()
+               if k not in ("theta", "extra", "iteration")}
+        out.update({k: float(v) for k, v in self.extra.items()})
+        return out
+
+
+@dataclasses.dataclass
+class SolveResult:
+    """Outcome of a solver run.
+
+    ``stop_reason`` is one of ``discrepancy`` (``||r|| <= tau delta``), ``tolerance``
+    (relative decrease or gradient below tolerance), ``max_iter``, ``line_search``
+    (no decrease possible along the step), ``stalled`` (damping exhausted), or
+    ``interrupted`` (a callback asked to stop).
+    """
+
+    theta: Tensor
+    converged: bool
+    stop_reason: str
+    iterations: int
+    history: list[IterationRecord]
+    wall_time: float
+    factorizations: int
+    solves: int
+
+    def summary(self) -> dict[str, Any]:
+        last = self.history[-1]
+        return {"converged": self.converged, "stop_reason": self.stop_reason,
+                "iterations": self.iterations, "wall_s": self.wall_time,
+                "factorizations": self.factorizations, "solves": self.solves,
+                "misfit": last.misfit, "objective": last.objective}
+
+
+class Callback(Protocol):
+    def __call__(self, record: IterationRecord) -> bool | None:
+        """Called once per outer iteration; return ``True`` to stop the solver."""
+
+
+class StopRequested(Exception):
+    pass
+
+
+class RunClock:
+    """Wall time and counter offsets since the start of a solver run."""
+
+    def __init__(self) -> None:
+        self.start = time.perf_counter()
+        self.counters0 = COUNTERS.snapshot()
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.start
+
+    def counts(self) -> tuple[int, int]:
+        delta = COUNTERS - self.counters0
+        return delta.factorizations, delta.solves
+
+
+def emit(callbacks: Iterable[Callback], record: IterationRecord) -> bool:
+    """Send a record to every callback; ``True`` if one asked to stop."""
+    stop = False
+    for callback in callbacks:
+        stop = bool(callback(record)) or stop
+    return stop
+
+
+def finish(theta: Tensor, converged: bool, reason: str, history: list[IterationRecord],
+           clock: RunClock) -> SolveResult:
+    factorizations, solves = clock.counts()
+    return SolveResult(theta, converged, reason, history[-1].iteration, history,
+                       clock.elapsed(), factorizations, solves)
+
+
+CallbackList = list[Callable[[IterationRecord], Any]]
