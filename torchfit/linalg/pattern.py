@@ -117,7 +117,8 @@ class SparsePattern:
     def to_torch(self, values: Tensor) -> Tensor:
         """One matrix as a ``torch.sparse_csr_tensor`` on the device of ``values``."""
         crow, col, _, _ = self._indices(values.device)
-        return torch.sparse_csr_tensor(crow, col, values, size=self.shape)
+        return torch.sparse_csr_tensor(crow, col, values, size=self.shape,
+                                       check_invariants=False)
 
     def submatrix(self, keep_rows: Tensor, keep_cols: Tensor) -> tuple["SparsePattern", Tensor]:
         """Pattern of ``A[keep_rows][:, keep_cols]`` and the CSR slots it takes.

@@ -106,7 +106,8 @@ class Parameterization:
         cols = self.edges.reshape(-1)
         vals = torch.tensor([-1.0, 1.0]).repeat(n_edges)
         return torch.sparse_coo_tensor(torch.stack([rows, cols]), vals,
-                                       (n_edges, self.n_params)).coalesce()
+                                       (n_edges, self.n_params),
+                                       check_invariants=False).coalesce()
 
     def scale_direction(self, theta: Tensor) -> Tensor:
         """Unit direction in ``theta`` that multiplies the whole field by a constant."""
@@ -150,7 +151,8 @@ def per_region(labels: Tensor | np.ndarray, cell_edges: np.ndarray | None = None
         raise ValueError("region labels must be 0..n_regions-1 with every region used")
     basis = torch.sparse_coo_tensor(
         torch.from_numpy(np.stack([np.arange(labels_np.size), labels_np])),
-        torch.ones(labels_np.size, dtype=torch.float64), (labels_np.size, n_regions)).coalesce()
+        torch.ones(labels_np.size, dtype=torch.float64), (labels_np.size, n_regions),
+        check_invariants=False).coalesce()
     region_edges = np.zeros((0, 2), dtype=np.int64)
     if cell_edges is not None and len(cell_edges):
         pairs = labels_np[np.asarray(cell_edges)]

@@ -122,7 +122,7 @@ class Spring1D(InverseProblem):
                 f"{cfg.noise}")
         require(cfg.sparse_stride >= 1, f"problem.sparse_stride must be >= 1, got "
                 f"{cfg.sparse_stride}")
-        require(cfg.sparse_stride <= cfg.n, f"problem.sparse_stride={cfg.sparse_stride} is "
+        require(cfg.data != "sparse" or cfg.sparse_stride <= cfg.n, f"problem.sparse_stride={cfg.sparse_stride} is "
                 f"larger than the chain (n={cfg.n}): no node would be observed")
         require(len(cfg.loads) >= 1, "problem.loads needs at least one load case (frame)")
         require(all(np.isfinite(float(f)) for f in cfg.loads),

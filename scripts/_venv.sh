@@ -1,0 +1,28 @@
+# Sourced by scripts/fit.sh and scripts/test.sh: create or reuse the project's virtual
+# environment and install torchfit with the pinned versions of constraints.txt.
+# Re-installs only when pyproject.toml or constraints.txt changed.
+# Variables: TORCHFIT_VENV (default <repo>/.venv), PYTHON (default: python3.11 or python3).
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="${TORCHFIT_VENV:-$ROOT/.venv}"
+if [ -z "${PYTHON:-}" ]; then
+  PYTHON="$(command -v python3.11 || command -v python3)"
+fi
+if ! "$PYTHON" -c 'import sys; sys.exit(sys.version_info < (3, 10))'; then
+  echo "torchfit needs Python >= 3.10; set PYTHON=/path/to/python3.10+" >&2
+  exit 1
+fi
+if [ ! -x "$VENV/bin/python" ]; then
+  echo "[torchfit] creating virtual environment $VENV" >&2
+  "$PYTHON" -m venv "$VENV"
+fi
+STAMP="$VENV/.torchfit-install"
+WANT="$(cat "$ROOT/pyproject.toml" "$ROOT/constraints.txt" | sha256sum | cut -d' ' -f1)"
+if [ "$(cat "$STAMP" 2>/dev/null || true)" != "$WANT" ]; then
+  echo "[torchfit] installing torchfit and pinned dependencies into $VENV" >&2
+  # torch is pinned (2.13.0, CPU build): an unpinned torch would pull several GB of CUDA.
+  "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check \
+    -c "$ROOT/constraints.txt" -e "$ROOT[dev]" >&2
+  echo "$WANT" > "$STAMP"
+fi
+TORCHFIT_PYTHON="$VENV/bin/python"

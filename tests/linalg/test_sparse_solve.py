@@ -1,0 +1,149 @@
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import torch
+
+from torchfit.linalg import (CGBackend, FactorCache, SingularMatrixError, SparsePattern,
+                             batched_cg, cgls, counting, get_backend, sparse_solve)
+
+
+def chain_pattern(n: int) -> tuple[SparsePattern, callable]:
+    """Tridiagonal SPD matrix ``sum_i k_i (e_i - e_{i+1})(.)^T + I`` as a function of k."""
+    rows, cols = [], []
+    for i in range(n - 1):
+        rows += [i, i, i + 1, i + 1]
+        cols += [i, i + 1, i, i + 1]
+    rows += list(range(n))
+    cols += list(range(n))
+    pattern = SparsePattern(torch.tensor(rows), torch.tensor(cols), (n, n))
+
+    def values(k: torch.Tensor) -> torch.Tensor:
+        local = torch.stack([k, -k, -k, k], dim=1).reshape(-1)
+        return pattern.assemble(torch.cat([local, torch.ones(n)]))
+
+    return pattern, values
+
+
+def test_pattern_assembles_like_scipy():
+    rng = np.random.default_rng(0)
+    rows = rng.integers(0, 7, 40)
+    cols = rng.integers(0, 5, 40)
+    contrib = rng.standard_normal(40)
+    pattern = SparsePattern(rows, cols, (7, 5))
+    dense = sp.coo_matrix((contrib, (rows, cols)), shape=(7, 5)).toarray()
+    values = pattern.assemble(torch.from_numpy(contrib))
+    assert np.allclose(pattern.to_scipy(values).toarray(), dense)
+    assert np.allclose(pattern.to_torch(values).to_dense().numpy(), dense)
+    x = torch.randn(3, 5)
+    assert torch.allclose(pattern.matvec(values, x), x @ torch.from_numpy(dense).T)
+    y = torch.randn(7)
+    assert torch.allclose(pattern.rmatvec(values, y), torch.from_numpy(dense).T @ y)
+
+
+def test_submatrix_drops_rows_and_columns():
+    pattern, values_of = chain_pattern(6)
+    values = values_of(torch.rand(5) + 1)
+    keep = torch.tensor([1, 2, 4, 5])
+    sub, slots = pattern.submatrix(keep, keep)
+    full = pattern.to_scipy(values).toarray()
+    assert np.allclose(sub.to_scipy(values[slots]).toarray(), full[np.ix_(keep, keep)])
+
+
+def test_pattern_rejects_out_of_range():
+    with pytest.raises(ValueError, match="out of range"):
+        SparsePattern([0, 3], [0, 1], (3, 3))
+
+
+@pytest.mark.parametrize("backend", ["scipy", "cg"])
+def test_sparse_solve_gradients_and_jvp(backend):
+    pattern, values_of = chain_pattern(7)
+    k = (torch.rand(6) + 0.5).requires_grad_()
+    b = torch.randn(7, 2, requires_grad=True)
+    fn = lambda k, b: sparse_solve(pattern, values_of(k), b, backend=backend)  # noqa: E731
+    assert torch.autograd.gradcheck(fn, (k, b))
+    assert torch.autograd.gradcheck(fn, (k, b), check_forward_ad=True, check_backward_ad=False,
+                                    check_undefined_grad=False, check_batched_grad=False)
+
+
+def test_factorization_is_reused_by_backward_jvp_and_new_rhs():
+    pattern, values_of = chain_pattern(50)
+    cache = FactorCache()
+    k = (torch.rand(49) + 1).requires_grad_()
+    with counting() as count:
+        x = sparse_solve(pattern, values_of(k), torch.randn(50), cache=cache)
+        for _ in range(3):
+            torch.autograd.grad(x, k, torch.randn(50), retain_graph=True)
+        sparse_solve(pattern, values_of(k.detach()), torch.randn(50, 4), cache=cache)
+    assert count.factorizations == 1
+    assert count.solves == 1 + 3 + 1
+
+
+def test_solution_matches_scipy_spsolve():
+    pattern, values_of = chain_pattern(30)
+    values = values_of(torch.rand(29) + 1)
+    b = torch.randn(30)
+    ref = sp.linalg.spsolve(pattern.to_scipy(values).tocsc(), b.numpy())
+    for backend in ("scipy", "cg"):
+        x = sparse_solve(pattern, values, b, backend=backend, cache=FactorCache())
+        assert np.allclose(x.numpy(), ref, rtol=1e-10, atol=1e-12)
+
+
+def test_singular_matrix_is_reported():
+    pattern = SparsePattern([0, 0, 1, 1], [0, 1, 0, 1], (2, 2))
+    values = pattern.assemble(torch.tensor([1.0, -1.0, -1.0, 1.0]))
+    with pytest.raises(SingularMatrixError, match="singular"):
+        sparse_solve(pattern, values, torch.ones(2), cache=FactorCache())
+
+
+def test_unknown_backend_names_choices():
+    with pytest.raises(ValueError, match="scipy"):
+        get_backend("cholmod-please")
+
+
+def test_batched_cg_solves_every_column():
+    a = torch.randn(20, 20)
+    spd = a @ a.T + 20 * torch.eye(20)
+    b = torch.randn(3, 20)
+    x, converged, _ = batched_cg(lambda v: v @ spd, b, rtol=1e-13, max_iter=200)
+    assert converged
+    assert torch.allclose(x, torch.linalg.solve(spd, b.T).T, atol=1e-10)
+
+
+def test_cgls_matches_least_squares_and_ridge():
+    a = torch.randn(30, 8)
+    b = torch.randn(30)
+    res = cgls(lambda v: a @ v, lambda w: a.T @ w, b, 8, max_iter=50)
+    assert torch.allclose(res.x, torch.linalg.lstsq(a, b[:, None]).solution[:, 0], atol=1e-10)
+    assert torch.allclose(res.Ax, a @ res.x, atol=1e-10)
+    shift = 0.7
+    ridge = torch.linalg.solve(a.T @ a + shift * torch.eye(8), a.T @ b)
+    res = cgls(lambda v: a @ v, lambda w: a.T @ w, b, 8, shift=shift, max_iter=50)
+    assert torch.allclose(res.x, ridge, atol=1e-10)
+    assert res.stop_reason == "tolerance"
+
+
+def test_cgls_stops_at_residual_target_and_counts_products():
+    a = torch.randn(40, 10)
+    b = torch.randn(40)
+    calls = {"mv": 0, "rmv": 0}
+
+    def mv(v):
+        calls["mv"] += 1
+        return a @ v
+
+    def rmv(w):
+        calls["rmv"] += 1
+        return a.T @ w
+
+    target = 0.95 * float(b.norm())
+    res = cgls(mv, rmv, b, 10, residual_target=target, max_iter=50)
+    assert res.residual_norm <= target
+    assert res.stop_reason == "tolerance"
+    # m iterations cost m products A v and m products A^T w (the first is A^T b).
+    assert calls["mv"] == res.iterations and calls["rmv"] == res.iterations
+
+
+def test_cg_backend_refuses_nonsymmetric():
+    pattern, values_of = chain_pattern(4)
+    with pytest.raises(ValueError, match="symmetric"):
+        CGBackend().factorize(pattern, values_of(torch.ones(3)), symmetric=False)

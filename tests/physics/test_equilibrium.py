@@ -1,0 +1,138 @@
+"""The generic equilibrium: Newton forward, implicit-function adjoint and jvp."""
+import numpy as np
+import pytest
+import torch
+
+from torchfit.linalg import SparsePattern, counting
+from torchfit.physics import Equilibrium, NewtonConvergenceError, NewtonOptions, SpringChain1D
+
+
+class HardeningChain:
+    """Springs with tension ``k (s + c s^3)`` (s = stretch): non-linear, frame-dependent tangent."""
+
+    linear = False
+    symmetric = True
+
+    def __init__(self, n: int, loads: torch.Tensor, c: float = 50.0) -> None:
+        self.n_dofs = n + 1
+        self.c = c
+        self.a = torch.arange(n)
+        self.b = self.a + 1
+        self.rest = torch.full((n,), 1.0 / n)
+        self.external = torch.zeros(loads.numel(), n + 1)
+        self.external[:, 1:] = 0.5 / n
+        self.external[:, n] += loads
+        rows = torch.stack([self.a, self.a, self.b, self.b], 1).reshape(-1)
+        cols = torch.stack([self.a, self.b, self.a, self.b], 1).reshape(-1)
+        self.tangent_pattern = SparsePattern(rows, cols, (n + 1, n + 1))
+
+    def _stretch(self, x):
+        return x[:, self.b] - x[:, self.a] - self.rest
+
+    def residual(self, x, k):
+        s = self._stretch(x)
+        t = k * (s + self.c * s ** 3)
+        return x.new_zeros(x.shape).index_add(1, self.b, t).index_add(1, self.a, -t) - self.external
+
+    def tangent_values(self, x, k):
+        s = self._stretch(x)
+        d = k * (1 + 3 * self.c * s ** 2)
+        return torch.stack([d, -d, -d, d], dim=-1).reshape(x.shape[0], -1)
+
+
+def make_hardening(n=12):
+    model = HardeningChain(n, torch.tensor([0.0, 0.3, 1.0]))
+    eq = Equilibrium(model, torch.tensor([0]), newton=NewtonOptions(rtol=1e-13, atol=1e-14))
+    return model, eq, torch.zeros(3, 1)
+
+
+def test_newton_solves_nonlinear_model_and_counts_factorizations():
+    model, eq, fixed = make_hardening()
+    k = torch.rand(12) + 1.0
+    with counting() as count:
+        x = eq(k, fixed)
+    assert model.residual(x, k)[:, 1:].abs().max() < 1e-12
+    iterations = sum(eq.last_newton_iterations)
+    # one factorisation per frame and Newton iteration, plus one per frame at the solution
+    assert count.factorizations == iterations + 3
+
+
+def test_nonlinear_adjoint_and_jvp_match_finite_differences():
+    _, eq, fixed = make_hardening()
+    k = (torch.rand(12) + 1.0).requires_grad_()
+    assert torch.autograd.gradcheck(lambda k: eq(k, fixed), (k,), atol=1e-7)
+    assert torch.autograd.gradcheck(lambda k: eq(k, fixed), (k,), check_forward_ad=True,
+                                    check_backward_ad=False, check_undefined_grad=False,
+                                    check_batched_grad=False, atol=1e-7)
+
+
+def test_dirichlet_values_are_differentiable():
+    _, eq, _ = make_hardening(6)
+    k = torch.rand(6) + 1.0
+    fixed = torch.tensor([[0.0], [0.1], [-0.2]], requires_grad=True)
+    assert torch.autograd.gradcheck(lambda f: eq(k, f), (fixed,), atol=1e-7)
+
+
+def test_backward_and_jvp_reuse_the_forward_factorization():
+    _, eq, fixed = make_hardening()
+    k = (torch.rand(12) + 1.0).requires_grad_()
+    x = eq(k, fixed)
+    with counting() as count:
+        for _ in range(3):
+            torch.autograd.grad(x, k, torch.randn_like(x), retain_graph=True)
+        import torch.autograd.forward_ad as fwAD
+        with fwAD.dual_level():
+            fwAD.unpack_dual(eq(fwAD.make_dual(k.detach(), torch.randn(12)), fixed)).tangent
+    assert count.factorizations == 0
+    assert count.solves == 3 * 3 + 3   # per-frame factors: one solve per frame per product
+
+
+def test_linear_chain_one_factorization_for_all_frames(vectors_dir):
+    data = np.load(vectors_dir / "spring1d_n64.npz")
+    n = 64
+    external = torch.full((3, n + 1), float(data["gravity"]) / n)
+    external[:, n] += torch.from_numpy(data["loads"])
+    nodes = torch.arange(n + 1)
+    model = SpringChain1D(torch.stack([nodes[:-1], nodes[1:]], 1), torch.full((n,), 1.0 / n),
+                          external)
+    eq = Equilibrium(model, torch.tensor([0]))
+    with counting() as count:
+        x = eq(torch.from_numpy(data["k"]), torch.zeros(3, 1))
+    assert count.factorizations == 1 and count.solves == 1
+    np.testing.assert_allclose(x.numpy(), data["positions"], rtol=0, atol=1e-10)
+
+
+def test_spring_residual_is_gradient_of_energy():
+    n = 5
+    nodes = torch.arange(n + 1)
+    model = SpringChain1D(torch.stack([nodes[:-1], nodes[1:]], 1), torch.full((n,), 0.2),
+                          torch.rand(2, n + 1))
+    x = torch.rand(2, n + 1, requires_grad=True)
+    k = torch.rand(n) + 1
+    (grad,) = torch.autograd.grad(model.energy(x, k).sum(), x)
+    assert torch.allclose(grad, model.residual(x, k))
+    dense = model.tangent_pattern.to_scipy(
+        model.tangent_pattern.assemble(model.tangent_values(x, k))[0]).toarray()
+    hessian = torch.autograd.functional.hessian(lambda y: model.energy(y[None], k)[0], x[0].detach())
+    assert np.allclose(dense, hessian.numpy())
+
+
+def test_no_dirichlet_node_is_a_clear_error():
+    model, _, _ = make_hardening()
+    with pytest.raises(ValueError, match="no Dirichlet"):
+        Equilibrium(model, torch.tensor([], dtype=torch.long))
+
+
+def test_newton_failure_names_frame_and_residual():
+    model, _, fixed = make_hardening()
+    eq = Equilibrium(model, torch.tensor([0]), newton=NewtonOptions(max_iter=1, rtol=1e-14))
+    with pytest.raises(NewtonConvergenceError, match=r"frame \d+: residual norm"):
+        eq(torch.rand(12) + 1.0, fixed)
+
+
+def test_bad_dirichlet_values_are_named():
+    _, eq, _ = make_hardening()
+    with pytest.raises(ValueError, match="shape"):
+        eq(torch.ones(12), torch.zeros(3, 2))
+    with pytest.raises(ValueError, match="frame 1"):
+        eq(torch.ones(12), torch.tensor([[0.0], [float("nan")], [0.0]]))
