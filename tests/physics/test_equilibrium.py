@@ -136,3 +136,26 @@ def test_bad_dirichlet_values_are_named():
         eq(torch.ones(12), torch.zeros(3, 2))
     with pytest.raises(ValueError, match="frame 1"):
         eq(torch.ones(12), torch.tensor([[0.0], [float("nan")], [0.0]]))
+
+
+def test_live_graph_keeps_its_factorization_after_other_points():
+    """A linearisation's J v stays factorisation-free however many points come between."""
+    from torchfit.problems import Spring1D
+
+    problem = Spring1D(n=16)
+    residual = problem.residual()
+    lin = residual.linearize(problem.theta0)
+    for shift in (0.1, 0.2, 0.3):               # more points than the cache holds
+        residual.value(problem.theta0 + shift)
+    with counting() as count:
+        lin.jvp(torch.randn(16))
+        lin.vjp(torch.randn(problem.data.numel()))
+    assert count.factorizations == 0 and count.solves == 2
+    del lin
+    import gc
+    gc.collect()
+    for shift in (0.4, 0.5):                    # push it out of the LRU cache too
+        residual.value(problem.theta0 + shift)
+    with counting() as count:                   # graph gone: the point is solved afresh
+        residual.value(problem.theta0)
+    assert count.factorizations == 1

@@ -104,3 +104,22 @@ def test_registry_rejects_unknown_names_and_settings():
         build_problem("spring2d")
     with pytest.raises(ProblemConfigError, match="bogus"):
         build_problem("spring1d", {"bogus": 1})
+
+
+def test_cg_backend_agrees_with_direct_solver():
+    direct, iterative = Spring1D(n=32), Spring1D(n=32, backend="cg")
+    assert torch.allclose(direct.x_true, iterative.x_true, atol=1e-11)
+    theta = direct.theta0 + 0.1 * torch.randn(32)
+    v, w = torch.randn(32), torch.randn(direct.data.numel())
+    lin_d, lin_i = direct.residual().linearize(theta), iterative.residual().linearize(theta)
+    assert torch.allclose(lin_d.jvp(v), lin_i.jvp(v), atol=1e-10)
+    assert torch.allclose(lin_d.vjp(w), lin_i.vjp(w), atol=1e-8)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_path_matches_cpu():
+    cpu, gpu = Spring1D(n=32), Spring1D(n=32, backend="cg", device="cuda")
+    assert gpu.x_true.device.type == "cuda"
+    assert torch.allclose(cpu.x_true, gpu.x_true.cpu(), atol=1e-10)
+    lin = gpu.residual().linearize(gpu.theta0)
+    assert lin.vjp(lin.r).device.type == "cuda"

@@ -15,12 +15,16 @@ vectorised over elements and frames) and the values of its sparse tangent
 The factorisation of ``K(x*)`` made in forward is kept with the solution. Calling the
 equilibrium again with the same parameters and Dirichlet values (as the solvers'
 ``J v`` products do) returns the stored solution without any new factorisation, so
-every backward and jvp at one parameter vector reuses one factorisation.
+every backward and jvp at one parameter vector reuses one factorisation. Solutions are
+found again while they are among the ``cache_size`` most recent ones *or* while an
+autograd graph that used them is alive (a solver's linearisation holds its graph), so
+evaluating other points in between never forces a refactorisation.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
+import weakref
 from typing import Any, Protocol
 
 import torch
@@ -66,7 +70,7 @@ class NewtonOptions:
     max_backtracks: int = 30
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(eq=False)  # identity semantics: kept in a WeakSet
 class _Solution:
     params: Tensor
     fixed_values: Tensor
@@ -111,6 +115,8 @@ class Equilibrium:
         self.newton = newton or NewtonOptions()
         self.cache_size = cache_size
         self._cache: list[_Solution] = []
+        # Solutions still referenced by a live autograd graph (ctx.solution).
+        self._alive: weakref.WeakSet[_Solution] = weakref.WeakSet()
         # Reduced (free-free) tangent pattern and the slots it takes, built once.
         self.free_pattern, self._free_slots = model.tangent_pattern.submatrix(
             self.free_dofs, self.free_dofs)
@@ -145,15 +151,29 @@ class Equilibrium:
 
     def clear_cache(self) -> None:
         self._cache.clear()
+        self._alive = weakref.WeakSet()
 
     # -- internals --------------------------------------------------------------------
     def _lookup(self, params: Tensor, fixed_values: Tensor) -> _Solution | None:
+        def same(sol: _Solution) -> bool:
+            return (sol.params.shape == params.shape and sol.fixed_values.shape == fixed_values.shape
+                    and torch.equal(sol.params, params) and torch.equal(sol.fixed_values, fixed_values))
+
         for i, sol in enumerate(self._cache):
-            if (sol.params.shape == params.shape and sol.fixed_values.shape == fixed_values.shape
-                    and torch.equal(sol.params, params) and torch.equal(sol.fixed_values, fixed_values)):
+            if same(sol):
                 self._cache.append(self._cache.pop(i))  # most recently used last
                 return sol
+        for sol in list(self._alive):
+            if same(sol):
+                self._remember(sol)
+                return sol
         return None
+
+    def _remember(self, sol: _Solution) -> None:
+        self._cache.append(sol)
+        self._alive.add(sol)
+        while len(self._cache) > self.cache_size:
+            self._cache.pop(0)
 
     def _full(self, x_free: Tensor, fixed_values: Tensor) -> Tensor:
         x = x_free.new_zeros(x_free.shape[0], self.model.n_dofs)
@@ -210,7 +230,7 @@ class Equilibrium:
             # Backtracking on ||R||, per frame; converged frames stay where they are.
             alpha = torch.ones(n_frames, dtype=x.dtype, device=x.device)
             for _ in range(opts.max_backtracks):
-                x_free_trial = x[:, self.free_dofs] + alpha[:, None] * step
+                x_free_trial = x[:, self.free_dofs.to(x.device)] + alpha[:, None] * step
                 x_trial = self._full(x_free_trial, fixed_values)
                 residual_trial = self._free_residual(x_trial, params)
                 norms_trial = torch.linalg.vector_norm(residual_trial, dim=1)
@@ -241,9 +261,7 @@ class Equilibrium:
             return cached
         sol = self._solve_forward(params, fixed_values, x_init)
         sol.params, sol.fixed_values = params.clone(), fixed_values.clone()
-        self._cache.append(sol)
-        while len(self._cache) > self.cache_size:
-            self._cache.pop(0)
+        self._remember(sol)
         self.last_newton_iterations = sol.newton_iterations
         return sol
 

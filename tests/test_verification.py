@@ -1,0 +1,239 @@
+"""Derivative verification (torchfit.verification and experiments/verify.py)."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from torchfit.problems import Spring1D
+from torchfit.solvers.residual import ResidualFunction
+from torchfit.verification import (dot_product_test, finite_difference_test, format_report,
+                                   random_direction, taylor_test, verify)
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def spring():
+    problem = Spring1D()
+    generator = torch.Generator().manual_seed(1234)
+    theta = problem.theta0 + 0.1 * torch.randn(problem.theta0.shape, generator=generator,
+                                               dtype=torch.float64)
+    return problem, problem.residual(), theta
+
+
+class _WrongLinearization:
+    def __init__(self, lin, jvp_scale: float, vjp_scale: float) -> None:
+        self._lin, self._jvp_scale, self._vjp_scale = lin, jvp_scale, vjp_scale
+        self.r, self.theta = lin.r, lin.theta
+
+    def jvp(self, v):
+        return self._jvp_scale * self._lin.jvp(v)
+
+    def vjp(self, w):
+        return self._vjp_scale * self._lin.vjp(w)
+
+
+class WrongResidual:
+    """A residual whose ``J v`` and/or ``J^T w`` are scaled (deliberately wrong)."""
+
+    def __init__(self, residual: ResidualFunction, jvp_scale: float = 1.0,
+                 vjp_scale: float = 1.0) -> None:
+        self._residual, self.data = residual, residual.data
+        self._jvp_scale, self._vjp_scale = jvp_scale, vjp_scale
+
+    def value(self, theta):
+        return self._residual.value(theta)
+
+    def linearize(self, theta):
+        return _WrongLinearization(self._residual.linearize(theta), self._jvp_scale,
+                                   self._vjp_scale)
+
+
+# -- spring1d: the checks pass ------------------------------------------------------------
+def test_spring1d_passes(spring):
+    _, residual, theta = spring
+    report = verify(residual, theta, seed=0)
+    assert not report.taylor.linear
+    assert abs(report.taylor.rate - 2.0) <= 0.05
+    assert report.dot.rel_error <= 1e-10
+    assert report.fd.rel_error <= 1e-6
+    assert report.passed and report.taylor_passed and report.dot_passed and report.fd_passed
+    # The automatic window: a long stable run, large-end and round-off steps excluded.
+    lo, hi = report.taylor.window
+    assert hi - lo >= 8
+    assert all(abs(r - 2.0) <= 0.05 for r in report.taylor.window_rates)
+    assert any(report.taylor.roundoff), "the step range should reach round-off"
+    assert not any(report.taylor.roundoff[lo:hi + 1])
+
+    d = report.to_dict()
+    for key in ("taylor_rate", "dot_product_rel_error", "fd_rel_error", "passed",
+                "taylor_passed", "dot_product_passed", "fd_passed", "taylor"):
+        assert key in d
+    assert d["taylor_rate"] == pytest.approx(report.taylor.rate)
+    assert len(d["taylor"]["steps"]) == len(d["taylor"]["remainders"])
+    json.dumps(d, allow_nan=False)
+
+    text = format_report(report)
+    assert "Taylor rate" in text and "PASSED" in text
+    assert len(text.splitlines()) >= len(report.taylor.steps)
+
+
+def test_steps_are_automatic_and_scale_free(spring):
+    """The step range follows ||theta|| and ||v||: the same rate for a scaled direction."""
+    _, residual, theta = spring
+    lin = residual.linearize(theta)
+    v = random_direction(theta.numel(), torch.Generator().manual_seed(5), theta)
+    a = taylor_test(residual, theta, v, lin=lin)
+    b = taylor_test(residual, theta, 1e3 * v, lin=lin)
+    assert a.steps[0] * 1.0 == pytest.approx(b.steps[0] * 1e3)
+    assert a.steps[0] * float(v.norm()) == pytest.approx(0.1 * float(theta.norm()))
+    assert abs(a.rate - 2) <= 0.05 and abs(b.rate - 2) <= 0.05
+
+
+def test_first_order_remainder_has_rate_one(spring):
+    """Without the J v term the remainder is O(h): the test can tell the orders apart."""
+    _, residual, theta = spring
+    v = random_direction(theta.numel(), torch.Generator().manual_seed(1), theta)
+    first = taylor_test(residual, theta, v, order=1)
+    assert abs(first.rate - 1.0) <= 0.05
+    assert abs(first.rate - 2.0) > 0.05          # would fail a second-order check
+    assert first.expected == 1.0
+
+
+# -- the checks can fail --------------------------------------------------------------------
+def test_wrong_jvp_fails(spring):
+    _, residual, theta = spring
+    report = verify(WrongResidual(residual, jvp_scale=1.01), theta, seed=0)
+    assert abs(report.taylor.rate - 1.0) <= 0.1
+    assert not report.taylor_passed
+    assert not report.fd_passed
+    assert report.fd.rel_error == pytest.approx(0.01 / 1.01, rel=1e-3)
+    assert not report.passed
+    assert report.to_dict()["passed"] is False
+    assert "FAILED" in format_report(report)
+
+
+def test_vjp_not_transpose_fails(spring):
+    _, residual, theta = spring
+    report = verify(WrongResidual(residual, vjp_scale=1.0 + 1e-6), theta, seed=0)
+    assert report.dot.rel_error == pytest.approx(1e-6, rel=1e-3)
+    assert not report.dot_passed
+    assert report.taylor_passed and report.fd_passed      # J v itself is right
+    assert not report.passed
+
+
+def test_dot_product_test_direct(spring):
+    _, residual, theta = spring
+    lin = residual.linearize(theta)
+    g = torch.Generator().manual_seed(2)
+    v = random_direction(theta.numel(), g, theta)
+    w = random_direction(lin.r.numel(), g, lin.r)
+    assert dot_product_test(lin, v, w).rel_error <= 1e-12
+    fd = finite_difference_test(residual, lin, v)
+    assert fd.rel_error <= 1e-6 and fd.jv_norm > 0
+
+
+# -- linear residuals ---------------------------------------------------------------------
+def _linear_residual(seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    a = torch.randn(30, 10, generator=g, dtype=torch.float64)
+    data = torch.randn(30, generator=g, dtype=torch.float64)
+    return ResidualFunction(lambda th: a @ th, data), g
+
+
+@pytest.mark.parametrize("at_zero", [False, True])
+def test_linear_residual_is_reported_as_linear(at_zero):
+    residual, g = _linear_residual()
+    theta = torch.zeros(10, dtype=torch.float64) if at_zero else torch.randn(
+        10, generator=g, dtype=torch.float64)
+    report = verify(residual, theta, seed=3)
+    assert report.taylor.linear
+    assert math.isnan(report.taylor.rate)
+    assert report.taylor_passed and report.passed
+    assert report.to_dict()["taylor_rate"] is None
+    assert report.to_dict()["taylor_linear"] is True
+    assert "linear" in format_report(report)
+
+
+def test_linear_residual_with_wrong_jvp_is_not_linear():
+    residual, g = _linear_residual(1)
+    theta = torch.randn(10, generator=g, dtype=torch.float64)
+    report = verify(WrongResidual(residual, jvp_scale=1.01), theta)
+    assert not report.taylor.linear
+    assert abs(report.taylor.rate - 1.0) <= 0.05
+    assert not report.passed
+
+
+def test_bad_arguments():
+    residual, _ = _linear_residual()
+    theta = torch.ones(10, dtype=torch.float64)
+    with pytest.raises(ValueError, match="direction"):
+        taylor_test(residual, theta, torch.zeros(10, dtype=torch.float64))
+    with pytest.raises(ValueError, match="taylor_tol"):
+        verify(residual, theta, taylor_tol=-1)
+
+
+# -- the Hydra app --------------------------------------------------------------------------
+def _run_app(*overrides: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "experiments/verify.py", *overrides], cwd=REPO,
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_app_spring1d(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = _run_app("problem=spring1d", f"hydra.run.dir={run_dir}")
+    assert proc.returncode == 0, proc.stderr
+    assert "Taylor rate" in proc.stdout
+    result = json.loads((run_dir / "verify.json").read_text())
+    assert abs(result["taylor_rate"] - 2.0) <= 0.05
+    assert result["dot_product_rel_error"] <= 1e-10
+    assert result["fd_rel_error"] <= 1e-6
+    assert result["passed"] is True
+    assert result["config"]["problem"]["name"] == "spring1d"
+    assert result["config"]["at"] == "initial"
+
+
+def test_app_bad_config(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = _run_app("problem=spring1d", "problem.noise=-1", f"hydra.run.dir={run_dir}")
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.startswith("error:") and "problem.noise" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert not (run_dir / "verify.json").exists()
+
+
+def _load_app():
+    spec = importlib.util.spec_from_file_location("verify_app", REPO / "experiments" / "verify.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("override, message", [
+    ({"at": "nowhere"}, "at="),
+    ({"perturbation": -0.5}, "perturbation"),
+    ({"dot_tol": 0.0}, "dot_tol"),
+])
+def test_app_config_checks(override, message):
+    """The app's own settings, checked in-process (the subprocess path is shared above)."""
+    app = _load_app()
+    cfg = OmegaConf.create({"at": "initial", "perturbation": 0.1, "taylor_tol": 0.05,
+                            "dot_tol": 1e-10, "fd_tol": 1e-6, **override})
+    with pytest.raises(app.VerifyConfigError, match=message):
+        app.check_config(cfg)
+
+
+def test_app_misspelt_override_exits_2(tmp_path):
+    run_dir = tmp_path / "run"
+    proc = _run_app("problem.nosie=0.1", f"hydra.run.dir={run_dir}")
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert not (run_dir / "verify.json").exists()
