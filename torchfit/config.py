@@ -26,6 +26,7 @@ class FitConfig:
     resume: bool = False        # continue from the last checkpoint in the run directory
     progress: bool = True       # one line per outer iteration on the terminal
     log_every: int = 1          # TensorBoard scalars every n iterations (the last always)
+    threads: int = 0            # torch CPU threads per job (0: torch's default); 1 in joblib sweeps
 
 
 @dataclasses.dataclass

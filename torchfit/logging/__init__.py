@@ -1,0 +1,22 @@
+"""Logging layer: TensorBoard, progress display, result files, per-iteration metrics.
+
+Everything here observes a run through the solvers' callback protocol
+(:class:`torchfit.solvers.IterationRecord` in, ``None`` out) or writes files after it;
+nothing here computes anything a solver needs. The order of callbacks in a run is
+
+``[MetricsCallback, ProgressPrinter, TensorBoardLogger, CheckpointWriter]``
+
+so that the problem metrics added by :class:`MetricsCallback` to ``record.extra`` are
+seen by the loggers after it.
+"""
+from .metrics import METRIC_KEYS, MetricsCallback
+from .progress import ProgressPrinter
+from .results import (Checkpoint, CheckpointWriter, load_checkpoint, result_dict, save_checkpoint,
+                      save_params, write_json, write_result)
+from .tensorboard import TensorBoardLogger, field_is_chain, tag_for
+
+__all__ = [
+    "Checkpoint", "CheckpointWriter", "METRIC_KEYS", "MetricsCallback", "ProgressPrinter",
+    "TensorBoardLogger", "field_is_chain", "load_checkpoint", "result_dict", "save_checkpoint",
+    "save_params", "tag_for", "write_json", "write_result",
+]

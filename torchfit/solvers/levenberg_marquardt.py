@@ -86,15 +86,15 @@ def levenberg_marquardt(residual: ResidualFunction, theta0: Tensor,
     previous_norm: float | None = None
 
     def record(iteration: int, step_norm: float, cg_iterations: int, accepted: bool,
-               **extra: float) -> bool:
+               used_damping: float, **extra: float) -> bool:
         factorizations, solves = clock.counts()
         rec = IterationRecord(iteration, lin.theta, 0.5 * lin.norm ** 2, lin.norm, step_norm,
-                              cg_iterations, damping, accepted, clock.elapsed(),
+                              cg_iterations, used_damping, accepted, clock.elapsed(),
                               factorizations, solves, dict(extra))
         history.append(rec)
         return emit(callbacks, rec)
 
-    if record(0, 0.0, 0, True, gradient_norm=gradient_norm0):
+    if record(0, 0.0, 0, True, damping, gradient_norm=gradient_norm0):
         return finish(theta, False, "interrupted", history, clock)
     for iteration in range(1, cfg.max_iter + 1):
         gradient_norm = float(torch.linalg.vector_norm(gradient))
@@ -104,6 +104,7 @@ def levenberg_marquardt(residual: ResidualFunction, theta0: Tensor,
             return finish(theta, True, reason, history, clock)
         if damping > cfg.damping_max * damping0:
             return finish(theta, False, "stalled", history, clock)
+        used_damping = damping
         inner = _damped_solve(lin, gradient, damping, residual, theta, cfg)
         direction = inner.x
         jd = inner.Ax
@@ -128,7 +129,7 @@ def levenberg_marquardt(residual: ResidualFunction, theta0: Tensor,
             damping *= growth
             growth *= 2.0
             accepted = False
-        stop = record(iteration, step_norm, inner.iterations, accepted,
+        stop = record(iteration, step_norm, inner.iterations, accepted, used_damping,
                       gain_ratio=gain if math.isfinite(gain) else -1.0,
                       gradient_norm=float(torch.linalg.vector_norm(gradient)))
         if stop:

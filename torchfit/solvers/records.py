@@ -27,7 +27,8 @@ class IterationRecord:
         misfit: ``||r||_2``.
         step_norm: ``||theta_k - theta_{k-1}||_2`` (0 for a rejected step).
         cg_iterations: inner CG/CGLS iterations of this outer iteration.
-        damping: Levenberg-Marquardt damping (``nan`` for other solvers).
+        damping: Levenberg-Marquardt damping used for this iteration's step (``nan``
+            for other solvers; at iteration 0 the initial damping).
         accepted: whether the step was taken.
         wall_time: seconds since the solver started.
         factorizations, solves: counters since the solver started.

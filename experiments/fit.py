@@ -1,0 +1,257 @@
+"""Fit a problem's material field with a solver (the main Hydra job of torchfit).
+
+Usage (from the repository root)::
+
+    python experiments/fit.py                                   # spring1d, Gauss-Newton
+    python experiments/fit.py problem.noise=1e-4 solver=levenberg_marquardt
+    python experiments/fit.py --cfg job                         # show the resolved config
+    python experiments/fit.py -m hydra/launcher=joblib problem.noise=0,1e-4,1e-3 \
+        solver=gauss_newton,levenberg_marquardt                 # sweep, one job per process
+
+Outputs, in the Hydra run directory (``outputs/<problem>/<solver>/<time>/`` by default;
+one directory per job under ``multirun/`` for ``-m``):
+
+* ``result.json``: final metrics of PROBLEMS.md, iterations, wall seconds,
+  factorisations, solves, converged flag, stop reason, problem sizes, the resolved
+  config and the per-iteration history (see :mod:`torchfit.logging.results`);
+* ``params.pt`` (``theta`` and the field), ``field.npy``, and ``field.png`` for a 1-D
+  field;
+* ``checkpoint.pt``: the parameters after the last outer iteration, rewritten every
+  iteration;
+* ``tb/``: TensorBoard events (tags in :mod:`torchfit.logging.tensorboard`);
+* ``.hydra/`` and ``fit.log`` from Hydra.
+
+Resume: re-run in the same directory with ``resume=true``::
+
+    python experiments/fit.py hydra.run.dir=outputs/spring1d/gauss_newton/<time> resume=true
+
+starts from the parameters of ``checkpoint.pt`` there (iteration numbers, TensorBoard
+steps and the checkpoint continue the count; solver state such as the
+Levenberg-Marquardt damping starts afresh). Hydra composes the config anew, so repeat
+the first run's ``problem``/``solver`` overrides (a checkpoint of another size is
+refused; changed problem settings are reported as a warning). Without a checkpoint it
+starts from the problem's initial guess.
+
+Every setting is validated before any output is written; an invalid one prints
+``error: <message>`` on standard error, removes the run directory if it holds only
+Hydra's own files, and exits with status 2, as does a config that Hydra cannot compose
+(an unknown option such as ``problem=nope``, a misspelt or mistyped override). In a
+multirun (``-m``) an invalid job does the same but returns NaN instead of exiting, so
+that the sweep's other jobs still run (a sweeper such as Optuna counts NaN as a failed
+trial). The task function returns the final misfit (the value a sweeper minimises).
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import shutil
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+# Import the package of this checkout even when it is run without being installed.
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+import hydra  # noqa: E402
+import torch  # noqa: E402
+from hydra.core.hydra_config import HydraConfig  # noqa: E402
+from hydra.types import RunMode  # noqa: E402
+from omegaconf import DictConfig, OmegaConf  # noqa: E402
+from omegaconf.errors import OmegaConfBaseException  # noqa: E402
+
+import torchfit  # noqa: E402,F401  (float64 default)
+from torchfit.config import register_configs  # noqa: E402
+from torchfit.linalg import SingularMatrixError  # noqa: E402
+from torchfit.logging import (CheckpointWriter, MetricsCallback, ProgressPrinter,  # noqa: E402
+                              TensorBoardLogger, field_is_chain, load_checkpoint, save_params,
+                              write_result)
+from torchfit.logging.results import CHECKPOINT_FILE  # noqa: E402
+from torchfit.logging.tensorboard import field_figure  # noqa: E402
+from torchfit.physics.equilibrium import NewtonConvergenceError  # noqa: E402
+from torchfit.problems import InverseProblem, build_problem  # noqa: E402
+from torchfit.solvers import SOLVERS, SolveResult  # noqa: E402
+
+register_configs()
+log = logging.getLogger("fit")
+
+#: Errors that mean "the settings are wrong", reported as one line without traceback.
+SETUP_ERRORS = (ValueError, OmegaConfBaseException, SingularMatrixError, NewtonConvergenceError)
+
+
+@dataclasses.dataclass
+class Job:
+    """Everything validated before the first output file is written."""
+
+    config: dict[str, Any]
+    problem: InverseProblem
+    solver: Callable[..., SolveResult]
+    solver_config: Any
+    theta0: torch.Tensor
+    start_iteration: int
+    resumed: bool
+
+
+def solver_config(section: dict[str, Any]) -> tuple[Callable[..., SolveResult], Any]:
+    """Solver function and validated config dataclass of ``cfg.solver``."""
+    name = section.get("name")
+    if name not in SOLVERS:
+        raise ValueError(f"unknown solver {name!r}; choose one of {sorted(SOLVERS)}")
+    config_cls, solve = SOLVERS[name]
+    fields = {f.name for f in dataclasses.fields(config_cls)}
+    unknown = sorted(set(section) - fields)
+    if unknown:
+        raise ValueError(f"unknown setting(s) {unknown} for solver {name}")
+    config = config_cls(**section)
+    config.validate()
+    return solve, config
+
+
+def prepare(cfg: DictConfig, run_dir: Path) -> Job:
+    """Resolve and validate the whole config; build problem and solver; read a checkpoint.
+
+    Writes nothing. Raises one of :data:`SETUP_ERRORS` on an invalid setting.
+    """
+    config = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+    assert isinstance(config, dict)
+    if int(config["log_every"]) < 1:
+        raise ValueError(f"log_every must be >= 1, got {config['log_every']}")
+    if int(config["threads"]) < 0:
+        raise ValueError(f"threads must be >= 0 (0: torch's default), got {config['threads']}")
+    if int(config["threads"]) > 0:
+        # Parallel sweep jobs (joblib) should not each use every core.
+        torch.set_num_threads(int(config["threads"]))
+    problem_section = dict(config["problem"])
+    solve, solver_cfg = solver_config(dict(config["solver"]))
+    problem = build_problem(str(problem_section.get("name")), problem_section)
+    theta0, start, resumed = problem.theta0, 0, False
+    if config["resume"]:
+        path = run_dir / CHECKPOINT_FILE
+        if path.is_file():
+            ckpt = load_checkpoint(path, problem.parameterization.n_params, problem.name)
+            saved = ckpt.problem_config
+            changed = sorted(k for k in set(saved) | set(problem_section)
+                             if saved.get(k) != problem_section.get(k)) if saved else []
+            if changed:
+                log.warning("resuming from a checkpoint of different problem settings %s: "
+                            "it is only the initial guess of this fit", changed)
+            theta0 = ckpt.theta.to(problem.theta0)
+            start, resumed = ckpt.iteration, True
+        else:
+            log.warning("resume=true but %s does not exist; starting from the initial guess",
+                        path)
+    return Job(config, problem, solve, solver_cfg, theta0, start, resumed)
+
+
+def report_invalid(message: str, run_dir: Path) -> None:
+    """Report an invalid setting in one line and remove a run directory left empty."""
+    print("error: " + " ".join(message.split()), file=sys.stderr, flush=True)
+    remove_if_only_hydra(run_dir)
+
+
+def remove_if_only_hydra(run_dir: Path) -> bool:
+    """Delete ``run_dir`` if it holds nothing but ``.hydra/`` and ``*.log`` files."""
+    if not run_dir.is_dir():
+        return False
+    for entry in run_dir.iterdir():
+        if entry.name == ".hydra" and entry.is_dir():
+            continue
+        if entry.suffix == ".log" and entry.is_file():
+            continue
+        return False
+    # Close Hydra's handler of <job>.log before deleting it (later jobs of a sweep in
+    # this process get their own handlers from Hydra).
+    for handler in list(logging.getLogger().handlers):
+        filename = getattr(handler, "baseFilename", None)
+        if filename and Path(filename).resolve().parent == run_dir.resolve():
+            logging.getLogger().removeHandler(handler)
+            handler.close()
+    shutil.rmtree(run_dir, ignore_errors=True)
+    return True
+
+
+def run(job: Job, run_dir: Path) -> float:
+    """Fit, write every output, return the final misfit."""
+    problem, config = job.problem, job.config
+    described = problem.describe()
+    log.info("problem %s: %s parameters, %s data, noise level %s%s", described["name"],
+             described["n_params"], described["n_data"], described["noise_level"],
+             f"; resuming from iteration {job.start_iteration}" if job.resumed else "")
+    metrics_cb = MetricsCallback(problem)
+    tb = TensorBoardLogger(run_dir / "tb", log_every=int(config["log_every"]),
+                           step_offset=job.start_iteration)
+    tb.log_config(OmegaConf.to_yaml(config))
+    callbacks: list[Callable[..., Any]] = [metrics_cb]
+    if config["progress"]:
+        callbacks.append(ProgressPrinter(step_offset=job.start_iteration))
+    callbacks += [tb, CheckpointWriter(run_dir / CHECKPOINT_FILE, job.start_iteration,
+                                       problem.name, config["problem"])]
+    try:
+        result = job.solver(problem.residual(), job.theta0, job.solver_config, callbacks)
+    except KeyboardInterrupt:
+        tb.close()
+        print(f"interrupted; continue with: python experiments/fit.py "
+              f"hydra.run.dir={run_dir} resume=true (and the same overrides)",
+              file=sys.stderr, flush=True)
+        sys.exit(130)
+    except BaseException:
+        tb.close()
+        raise
+
+    metrics = problem.metrics(result.theta)
+    hparams = {"problem": config["problem"], "solver": config["solver"]}
+    tb.finish(problem, result.theta, metrics, hparams)
+    field = problem.field(result.theta)
+    save_params(run_dir, result.theta, field, problem.field_name)
+    if field_is_chain(problem):
+        fig = field_figure(field, problem.field_true, problem.field_name,
+                           title=f"{problem.name}: fitted {problem.field_name}")
+        fig.savefig(run_dir / "field.png")
+    result_path = write_result(run_dir, result, metrics, described, config,
+                               step_offset=job.start_iteration)
+    plot = " field.png," if field_is_chain(problem) else ""
+
+    summary = ", ".join(f"{k} {metrics[k]:.3e}" for k in ("misfit", "k_err_rel",
+                                                           "k_err_rel_aligned") if k in metrics)
+    print(f"{result.stop_reason} after {result.iterations} iterations "
+          f"({'converged' if result.converged else 'not converged'}) in {result.wall_time:.2f} s, "
+          f"{result.factorizations} factorizations, {result.solves} solves: {summary}")
+    print(f"results: {result_path} (beside it: params.pt, field.npy,{plot} {CHECKPOINT_FILE})")
+    print(f"tensorboard --logdir {(run_dir / 'tb').resolve()}", flush=True)
+    return float(metrics["misfit"])
+
+
+_task_started = False
+
+
+@hydra.main(config_path="../conf", config_name="fit", version_base="1.3")
+def main(cfg: DictConfig) -> float:
+    global _task_started
+    _task_started = True
+    hydra_cfg = HydraConfig.get()
+    run_dir = Path(hydra_cfg.runtime.output_dir).resolve()
+    try:
+        job = prepare(cfg, run_dir)
+    except SETUP_ERRORS as e:
+        report_invalid(str(e), run_dir)
+        if hydra_cfg.mode == RunMode.MULTIRUN:
+            # Let the sweep's other jobs run; NaN is a failed trial for a sweeper.
+            return math.nan
+        sys.exit(2)
+    return run(job, run_dir)
+
+
+if __name__ == "__main__":
+    try:
+        main()
+    except SystemExit as exit_:
+        # Hydra exits 1 when the config cannot be composed (unknown group option,
+        # misspelt or mistyped override) before the task runs: a bad configuration too,
+        # so the same status 2 as the settings rejected by the task (as experiments/verify.py).
+        multirun = any(a in ("-m", "--multirun") for a in sys.argv[1:])
+        if exit_.code == 1 and not _task_started and not multirun:
+            print("error: invalid configuration (see Hydra's message above)", file=sys.stderr)
+            sys.exit(2)
+        raise
