@@ -287,23 +287,17 @@ class _EquilibriumFunction(torch.autograd.Function):
         eq: Equilibrium = ctx.eq
         sol: _Solution = ctx.solution
         free = eq.free_dofs.to(grad_x.device)
-        fixed = eq.fixed_dofs.to(grad_x.device)
         lam = eq._solve(sol.factors, grad_x[:, free], transpose=True)
         need_params, need_fixed = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-        grad_params = grad_fixed = None
         with torch.enable_grad():
-            params = sol.params.detach().requires_grad_(need_params)
-            fixed_values = sol.fixed_values.detach().requires_grad_(need_fixed)
-            x = eq._full(sol.x[:, free].detach(), fixed_values)
-            residual = eq._free_residual(x, params)
-            inputs = [t for t, need in ((params, need_params), (fixed_values, need_fixed)) if need]
-            grads = torch.autograd.grad(residual, inputs, grad_outputs=-lam, allow_unused=True)
-        grads = [torch.zeros_like(t) if g is None else g for t, g in zip(inputs, grads)]
-        if need_params:
-            grad_params = grads.pop(0)
+            residual, leaves = _residual_at_solution(eq, sol, need_params, need_fixed)
+            grads = torch.autograd.grad(residual, leaves, grad_outputs=-lam, allow_unused=True)
+        grads = [torch.zeros_like(t) if g is None else g for t, g in zip(leaves, grads)]
+        grad_params = grads.pop(0) if need_params else None
+        grad_fixed = None
         if need_fixed:
             # Dirichlet values move the fixed dofs directly and the free ones through R.
-            grad_fixed = grads.pop(0) + grad_x[:, fixed]
+            grad_fixed = grads.pop(0) + grad_x[:, eq.fixed_dofs.to(grad_x.device)]
         return grad_params, grad_fixed, None, None
 
     @staticmethod
@@ -311,26 +305,39 @@ class _EquilibriumFunction(torch.autograd.Function):
         eq: Equilibrium = ctx.eq
         sol: _Solution = ctx.solution
         free = eq.free_dofs.to(sol.x.device)
-        if d_params is None:
-            d_params = torch.zeros_like(sol.params)
-        if d_fixed is None:
-            d_fixed = torch.zeros_like(sol.fixed_values)
-        x_free = sol.x[:, free]
-
+        tangents = [d for d in (d_params, d_fixed) if d is not None]
         # (dR/dparams) v + (dR/dfixed) d_fixed by the transpose-of-transpose trick:
         # forward-mode AD cannot nest inside this jvp, and two reverse passes through
         # the element-vectorised residual cost no solve.
         with torch.enable_grad():
-            params = sol.params.detach().requires_grad_(True)
-            fixed_values = sol.fixed_values.detach().requires_grad_(True)
-            residual = eq._free_residual(eq._full(x_free, fixed_values), params)
+            residual, leaves = _residual_at_solution(eq, sol, d_params is not None,
+                                                     d_fixed is not None)
             probe = torch.zeros_like(residual, requires_grad=True)
-            g_params, g_fixed = torch.autograd.grad(residual, (params, fixed_values), probe,
-                                                    create_graph=True, allow_unused=True)
-            pairing = sum((g * d).sum() for g, d in ((g_params, d_params), (g_fixed, d_fixed))
-                          if g is not None)
-            (d_residual,) = torch.autograd.grad(pairing, probe, allow_unused=True)
+            grads = torch.autograd.grad(residual, leaves, probe, create_graph=True,
+                                        allow_unused=True)
+            pairing = sum((g * d).sum() for g, d in zip(grads, tangents) if g is not None)
+            d_residual = None
+            if isinstance(pairing, Tensor) and pairing.requires_grad:
+                (d_residual,) = torch.autograd.grad(pairing, probe, allow_unused=True)
         if d_residual is None:
-            d_residual = torch.zeros_like(x_free)
-        dx_free = -eq._solve(sol.factors, d_residual)
-        return eq._full(dx_free, d_fixed)
+            d_residual = torch.zeros_like(residual)
+        dx_free = -eq._solve(sol.factors, d_residual.detach())
+        return eq._full(dx_free, torch.zeros_like(sol.fixed_values) if d_fixed is None else d_fixed)
+
+
+def _residual_at_solution(eq: Equilibrium, sol: _Solution, wrt_params: bool,
+                          wrt_fixed: bool) -> tuple[Tensor, list[Tensor]]:
+    """``R_free(x*, params)`` with leaves for the inputs asked for (call under enable_grad).
+
+    The stored full solution is used as is unless the Dirichlet values must be
+    differentiated, which avoids rebuilding ``x`` in the common case.
+    """
+    params = sol.params.detach().requires_grad_(wrt_params)
+    leaves = [params] if wrt_params else []
+    if wrt_fixed:
+        fixed_values = sol.fixed_values.detach().requires_grad_(True)
+        x = eq._full(sol.x[:, eq.free_dofs.to(sol.x.device)].detach(), fixed_values)
+        leaves.append(fixed_values)
+    else:
+        x = sol.x.detach()
+    return eq._free_residual(x, params), leaves
