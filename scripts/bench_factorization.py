@@ -28,9 +28,7 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import os
-import platform
 import statistics
 import sys
 import time
@@ -39,7 +37,6 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-import scipy
 import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
@@ -49,6 +46,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from benchtools import emit_report, machine_info  # noqa: E402
 from torchfit.linalg import CGBackend, ScipyBackend, SingularMatrixError, SparsePattern  # noqa: E402
 
 TORCHFIT_CHOICE = "superlu_mmd_at_plus_a_symmetric"
@@ -197,7 +195,6 @@ def bench_matrix(name: str, pattern: SparsePattern, values: torch.Tensor, args: 
 
     # torchfit's ScipyBackend: the same SuperLU plus torch -> CSR -> CSC glue.
     backend = ScipyBackend()
-    b2_t = torch.from_numpy(b2)
     run("torchfit_ScipyBackend", lambda: direct_method(
         lambda: backend.factorize(pattern, values, True),
         lambda f, r: f.solve(torch.from_numpy(r)).numpy(),
@@ -415,11 +412,6 @@ def summarize(res: dict[str, Any]) -> None:
         res[f"best_by_{key}"] = entry
 
 
-def machine_info() -> dict[str, Any]:
-    return {"python": platform.python_version(), "platform": platform.platform(),
-            "torch": torch.__version__, "numpy": np.__version__, "scipy": scipy.__version__,
-            "torch_num_threads": torch.get_num_threads(), "cpu_count": os.cpu_count(),
-            "loadavg": [round(x, 2) for x in os.getloadavg()]}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -459,11 +451,7 @@ def main(argv: list[str] | None = None) -> int:
                                     **bench_matrix(name, pattern, values, args)}
         gc.collect()
     report["machine"]["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    emit_report(report, args.out)
     return 0
 
 

@@ -34,9 +34,7 @@ from __future__ import annotations
 import argparse
 import cProfile
 import gc
-import json
 import os
-import platform
 import pstats
 import statistics
 import sys
@@ -44,8 +42,6 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
-import scipy
 import scipy.sparse.linalg as spla
 import torch
 import torch.autograd.forward_ad as fwAD
@@ -54,6 +50,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from benchtools import emit_report, loadavg, machine_info  # noqa: E402
 from torchfit.linalg import counting  # noqa: E402
 from torchfit.problems import Spring1D  # noqa: E402
 from torchfit.solvers.gauss_newton import GaussNewtonConfig, gauss_newton  # noqa: E402
@@ -63,34 +60,8 @@ ACCEPTANCE_N = 100_000
 
 
 # -- helpers ------------------------------------------------------------------------------
-def machine_info() -> dict[str, Any]:
-    try:
-        affinity = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not on Linux
-        affinity = None
-    return {
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "torch": torch.__version__,
-        "numpy": np.__version__,
-        "scipy": scipy.__version__,
-        "torch_num_threads": torch.get_num_threads(),
-        "torch_num_interop_threads": torch.get_num_interop_threads(),
-        "cpu_count": os.cpu_count(),
-        "cpu_affinity": affinity,
-        "openmp": torch.backends.openmp.is_available(),
-        "mkl": torch.backends.mkl.is_available(),
-        "env": {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS",
-                                                 "OPENBLAS_NUM_THREADS")},
-    }
 
 
-def loadavg() -> list[float] | None:
-    try:
-        return [round(x, 2) for x in os.getloadavg()]
-    except OSError:  # pragma: no cover
-        return None
 
 
 def stats(times: list[float]) -> dict[str, Any]:
@@ -469,11 +440,7 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(args.threads)
     report = run(args.sizes, args.repeats, args.gn_repeats, args.seed, args.profile,
                  args.profile_top)
-    text = json.dumps(report, indent=2)
-    print(text)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    emit_report(report, args.out)
     return 0
 
 

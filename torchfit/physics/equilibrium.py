@@ -304,7 +304,6 @@ class _EquilibriumFunction(torch.autograd.Function):
     def jvp(ctx: Any, d_params: Tensor | None, d_fixed: Tensor | None, *_: Any) -> Tensor:  # type: ignore[override]
         eq: Equilibrium = ctx.eq
         sol: _Solution = ctx.solution
-        free = eq.free_dofs.to(sol.x.device)
         tangents = [d for d in (d_params, d_fixed) if d is not None]
         # (dR/dparams) v + (dR/dfixed) d_fixed by the transpose-of-transpose trick:
         # forward-mode AD cannot nest inside this jvp, and two reverse passes through
