@@ -1,0 +1,175 @@
+"""``poisson2d``: the seed's stretched square, ``div(k grad x) = 0`` by finite differences.
+
+Rest square ``[0, s]^2`` with ``N x N`` nodes and one stiffness per cell. For each
+position component the 5-point scheme ``sum_q k_pq (x_q - x_p) = 0`` holds at every
+non-Dirichlet node, ``k_pq`` being the mean of the (one or two) cells touching edge
+``pq``; left and right columns are Dirichlet with ``x = X / s``, top and bottom are
+free (zero flux). The scheme is the weighted graph Laplacian of the grid edges, i.e. a
+network of zero-rest-length scalar springs, so the physics is
+:class:`~torchfit.physics.SpringChain1D` with edge weights ``k_pq``. The two components are two right-hand sides of the same matrix
+``A(k)``: they are solved as two "frames" of one linear equilibrium, sharing one
+factorisation.
+
+Scale-free: ``x(a k) = x(k)``; metrics report ``k_err_rel_aligned`` and the solvers get
+the constant direction of ``log k`` as the gauge, so they never move along it.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..params import grid_edges, per_element
+from ..physics import Equilibrium, SpringChain1D
+from .base import InverseProblem, ProblemConfigError, add_noise, node_frame_index, require
+
+PATTERNS = ("blocks", "ipam")
+DATA_MODES = ("dense", "sparse")
+
+
+@dataclasses.dataclass
+class Poisson2DConfig:
+    """Settings of ``problem=poisson2d`` (defaults are the canonical values)."""
+
+    name: str = "poisson2d"
+    N: int = 64                      # nodes per side
+    s: float = 0.5                   # side of the rest square
+    pattern: str = "blocks"          # blocks | ipam
+    data: str = "dense"              # dense | sparse
+    sparse_stride: int = 4           # sparse: nodes (i, j) with i, j multiples of the stride
+    noise: float = 0.0               # sigma on every observed coordinate
+    seed: int = 0
+    k0: float = 1.0                  # initial guess, constant
+    transform: str = "exp"           # exp | identity
+    backend: str = "scipy"           # scipy | cg
+    device: str = "cpu"
+
+
+def blocks_field(centres: np.ndarray) -> np.ndarray:
+    """The ``blocks`` truth at cell centres normalised to the unit square."""
+    cx, cy = centres[:, 0], centres[:, 1]
+    k = np.ones(len(centres))
+    k[(cx >= 0.20) & (cx <= 0.45) & (cy >= 0.20) & (cy <= 0.80)] = 5.0
+    k[(cx >= 0.60) & (cx <= 0.85) & (cy >= 0.30) & (cy <= 0.60)] = 0.25
+    return k
+
+
+def ipam_field(centres: np.ndarray) -> np.ndarray:
+    """The ``ipam`` truth: ``5`` on the ink of the word IPAM, ``1`` elsewhere."""
+    from ..mesh.raster import ipam_mask
+
+    return np.where(ipam_mask(centres), 5.0, 1.0)
+
+
+class Poisson2D(InverseProblem):
+    """Fit per-cell ``k`` from the positions of the stretched square."""
+
+    name = "poisson2d"
+    field_name = "k"
+    scale_free = True
+
+    def __init__(self, cfg: Poisson2DConfig | None = None, **overrides: object) -> None:
+        cfg = dataclasses.replace(cfg or Poisson2DConfig(), **overrides)
+        self.cfg = cfg
+        self._validate(cfg)
+        N, s = cfg.N, cfg.s
+        self.device = torch.device(cfg.device)
+        dtype = torch.float64
+        # Node (i, j) at (i h, j h), numbered i * N + j; cell (ci, cj) numbered ci * (N-1) + cj.
+        h = s / (N - 1)
+        ii, jj = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
+        self.rest_positions = torch.from_numpy(
+            np.stack([ii.ravel() * h, jj.ravel() * h], axis=1)).to(dtype)
+        ci, cj = np.meshgrid(np.arange(N - 1), np.arange(N - 1), indexing="ij")
+        self.cell_centres = torch.from_numpy(
+            np.stack([(ci.ravel() + 0.5) * h, (cj.ravel() + 0.5) * h], axis=1)).to(dtype)
+        edges, edge_cells = self._edge_cells(N)
+        self.edge_cells = torch.from_numpy(edge_cells).to(self.device)   # (n_edges, 2)
+        n_nodes = N * N
+        self.model = SpringChain1D(torch.from_numpy(edges).to(self.device),
+                                   torch.zeros(len(edges), dtype=dtype, device=self.device),
+                                   torch.zeros(2, n_nodes, dtype=dtype, device=self.device))
+        left_right = np.concatenate([np.arange(N), np.arange((N - 1) * N, N * N)])
+        fixed = torch.from_numpy(np.sort(left_right))
+        self.equilibrium = Equilibrium(self.model, fixed, backend=cfg.backend)
+        # Dirichlet: x = X / s on the left and right columns, per component ("frame").
+        self.fixed_values = (self.rest_positions[fixed].T / s).contiguous().to(self.device)
+        self.parameterization = per_element((N - 1) ** 2, grid_edges((N - 1, N - 1)),
+                                            cfg.transform, name="stiffness")
+
+        is_free = np.ones(n_nodes, dtype=bool)
+        is_free[left_right] = False
+        if cfg.data == "dense":
+            observed = np.nonzero(is_free)[0]
+        else:
+            on_lattice = (ii.ravel() % cfg.sparse_stride == 0) & (jj.ravel() % cfg.sparse_stride == 0)
+            observed = np.nonzero(is_free & on_lattice)[0]
+        require(observed.size > 0, f"problem.sparse_stride={cfg.sparse_stride} leaves no "
+                "non-Dirichlet node observed; lower it")
+        self.observed_nodes = torch.from_numpy(observed)
+        self.theta0 = self.parameterization.constant(cfg.k0, dtype, self.device)
+        normalised = self.cell_centres.numpy() / s
+        truth = blocks_field(normalised) if cfg.pattern == "blocks" else ipam_field(normalised)
+        self.field_true = torch.from_numpy(truth).to(dtype).to(self.device)
+        self.x_true = self.simulate(self.field_true).detach()
+        self.data, self.noise_level = add_noise(self.observe(self.x_true), cfg.noise, cfg.seed)
+        self.frame_of, self.node_of = node_frame_index(1, self.observed_nodes, 2)
+
+    @staticmethod
+    def _validate(cfg: Poisson2DConfig) -> None:
+        require(isinstance(cfg.N, int) and cfg.N >= 3,
+                f"problem.N must be an integer >= 3 (nodes per side), got {cfg.N!r}")
+        require(cfg.s > 0, f"problem.s must be positive, got {cfg.s}")
+        require(cfg.pattern in PATTERNS,
+                f"problem.pattern={cfg.pattern!r} does not exist; choose one of {PATTERNS}")
+        require(cfg.data in DATA_MODES,
+                f"problem.data={cfg.data!r} does not exist; choose one of {DATA_MODES}")
+        require(cfg.noise >= 0, f"problem.noise must be >= 0 (a standard deviation), got "
+                f"{cfg.noise}")
+        require(cfg.sparse_stride >= 1, f"problem.sparse_stride must be >= 1, got "
+                f"{cfg.sparse_stride}")
+        require(cfg.data != "sparse" or cfg.sparse_stride < cfg.N - 1,
+                f"problem.sparse_stride={cfg.sparse_stride} is larger than the grid "
+                f"(N={cfg.N}): no interior column would be observed")
+        require(cfg.k0 > 0, f"problem.k0 must be positive, got {cfg.k0}")
+
+    @staticmethod
+    def _edge_cells(N: int) -> tuple[np.ndarray, np.ndarray]:
+        """Grid edges ``(n_edges, 2)`` (node pairs) and the two cells touching each.
+
+        An edge on the top or bottom boundary touches one cell, listed twice, so that
+        ``k_pq = (k[c0] + k[c1]) / 2`` is the mean of the cells touching it in every case.
+        """
+        node = np.arange(N * N).reshape(N, N)
+        cell = np.arange((N - 1) ** 2).reshape(N - 1, N - 1)
+        # Edges along x ((i, j) - (i+1, j)): cells (i, j-1) and (i, j), clipped at the border.
+        i, j = (a.ravel() for a in np.meshgrid(np.arange(N - 1), np.arange(N), indexing="ij"))
+        along_x = np.stack([node[i, j], node[i + 1, j]], axis=1)
+        cells_x = np.stack([cell[i, np.clip(j - 1, 0, N - 2)], cell[i, np.clip(j, 0, N - 2)]], axis=1)
+        # Edges along y ((i, j) - (i, j+1)): cells (i-1, j) and (i, j), clipped at the border.
+        i, j = (a.ravel() for a in np.meshgrid(np.arange(N), np.arange(N - 1), indexing="ij"))
+        along_y = np.stack([node[i, j], node[i, j + 1]], axis=1)
+        cells_y = np.stack([cell[np.clip(i - 1, 0, N - 2), j], cell[np.clip(i, 0, N - 2), j]], axis=1)
+        return np.concatenate([along_x, along_y]), np.concatenate([cells_x, cells_y])
+
+    # -- the forward model ------------------------------------------------------------
+    def simulate(self, stiffness: Tensor) -> Tensor:
+        """Node positions ``(1, N*N, 2)`` of the stretched square for per-cell ``k``."""
+        n_cells = (self.cfg.N - 1) ** 2
+        if stiffness.shape != (n_cells,):
+            raise ProblemConfigError(f"stiffness must have shape ({n_cells},) (one per cell), "
+                                     f"got {tuple(stiffness.shape)}")
+        weights = 0.5 * (stiffness[self.edge_cells[:, 0]] + stiffness[self.edge_cells[:, 1]])
+        components = self.equilibrium(weights, self.fixed_values)      # (2, N*N)
+        return components.T[None]
+
+    def observe(self, x: Tensor) -> Tensor:
+        """Both components of the observed nodes, ``(2 * n_observed,)``."""
+        return x[:, self.observed_nodes.to(x.device), :].reshape(-1)
+
+    def field_image(self, field: Tensor) -> np.ndarray:
+        """The per-cell field as an ``(N-1, N-1)`` image, row 0 at the top (y up)."""
+        n = self.cfg.N - 1
+        return field.detach().cpu().numpy().reshape(n, n).T[::-1]
