@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Any, Callable, Iterable, Protocol
+from typing import Any, Iterable, Protocol
 
 from torch import Tensor
 
@@ -88,10 +88,6 @@ class Callback(Protocol):
         """Called once per outer iteration; return ``True`` to stop the solver."""
 
 
-class StopRequested(Exception):
-    pass
-
-
 class RunClock:
     """Wall time and counter offsets since the start of a solver run."""
 
@@ -121,5 +117,3 @@ def finish(theta: Tensor, converged: bool, reason: str, history: list[IterationR
     return SolveResult(theta, converged, reason, history[-1].iteration, history,
                        clock.elapsed(), factorizations, solves)
 
-
-CallbackList = list[Callable[[IterationRecord], Any]]
