@@ -14,7 +14,7 @@ def nearest(points: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return index
 
 
-@pytest.mark.parametrize("pattern", ["blocks"])
+@pytest.mark.parametrize("pattern", ["blocks", "ipam"])
 def test_reproduces_independent_vectors(vectors_dir, pattern):
     data = np.load(vectors_dir / f"poisson2d_N16_{pattern}.npz")
     problem = Poisson2D(N=int(data["N"]), s=float(data["s"]), pattern=pattern)
