@@ -16,6 +16,11 @@ one directory per job under ``multirun/`` for ``-m``):
   config and the per-iteration history (see :mod:`torchfit.logging.results`);
 * ``params.pt`` (``theta`` and the field), ``field.npy``, and ``field.png`` for a 1-D
   field;
+* for a 2-D field (membrane2d): ``snapshots.png`` (the field after the iterations
+  ``snapshot_iterations``, default 1, 5, 10, 40, beside the per-frame position error),
+  ``frame_errors.png`` (per-frame error against the iteration), ``sheet_frame<f>.png``
+  (the deformed mesh of frame ``sheet_frame``) and ``frames.npz`` (rest points, cells,
+  fitted and true positions of every frame);
 * ``checkpoint.pt``: the parameters after the last outer iteration, rewritten every
   iteration;
 * ``tb/``: TensorBoard events (tags in :mod:`torchfit.logging.tensorboard`);
@@ -65,14 +70,15 @@ from omegaconf.errors import OmegaConfBaseException  # noqa: E402
 import torchfit  # noqa: E402,F401  (float64 default)
 from torchfit.config import register_configs  # noqa: E402
 from torchfit.linalg import SingularMatrixError  # noqa: E402
-from torchfit.logging import (CheckpointWriter, MetricsCallback, ProgressPrinter,  # noqa: E402
-                              TensorBoardLogger, field_is_chain, load_checkpoint, save_params,
-                              write_result)
+from torchfit.linalg.threads import set_blas_threads  # noqa: E402
+from torchfit.logging import (CheckpointWriter, FieldSnapshots, MetricsCallback,  # noqa: E402
+                              ProgressPrinter, TensorBoardLogger, field_is_chain, load_checkpoint,
+                              save_params, supports_field_images, write_result)
 from torchfit.logging.results import CHECKPOINT_FILE  # noqa: E402
 from torchfit.logging.tensorboard import field_figure  # noqa: E402
 from torchfit.physics.equilibrium import NewtonConvergenceError  # noqa: E402
 from torchfit.problems import InverseProblem, build_problem  # noqa: E402
-from torchfit.solvers import SOLVERS, SolveResult  # noqa: E402
+from torchfit.solvers import SOLVERS, SolveResult, check_difference_operator  # noqa: E402
 
 register_configs()
 log = logging.getLogger("fit")
@@ -92,6 +98,7 @@ class Job:
     theta0: torch.Tensor
     start_iteration: int
     resumed: bool
+    solver_inputs: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
 def solver_config(section: dict[str, Any]) -> tuple[Callable[..., SolveResult], Any]:
@@ -109,6 +116,29 @@ def solver_config(section: dict[str, Any]) -> tuple[Callable[..., SolveResult], 
     return solve, config
 
 
+def solver_inputs(solve: Callable[..., SolveResult], solver_name: str,
+                  problem: InverseProblem) -> dict[str, Any]:
+    """Extra inputs of a solver beyond the residual: the TV difference operator ``D`` and
+    its row groups for solvers marked ``needs_difference_operator`` (split Bregman).
+
+    ``D`` comes from the problem's parameterisation, never from the solver; raises
+    ``ValueError`` naming the parameterisation when it has none or when it is empty.
+    """
+    if not getattr(solve, "needs_difference_operator", False):
+        return {}
+    param = problem.parameterization
+    operator = getattr(param, "difference_operator", None)
+    if operator is None:
+        raise ValueError(f"solver={solver_name} needs the difference operator D of the "
+                         f"parameterisation, but the {problem.name} parameterisation "
+                         f"({type(param).__name__}) has none")
+    D = operator()
+    groups_of = getattr(param, "difference_groups", None)
+    groups = groups_of() if groups_of is not None else None
+    check_difference_operator(D, int(problem.theta0.numel()), groups)
+    return {"D": D, "groups": groups}
+
+
 def prepare(cfg: DictConfig, run_dir: Path) -> Job:
     """Resolve and validate the whole config; build problem and solver; read a checkpoint.
 
@@ -120,12 +150,24 @@ def prepare(cfg: DictConfig, run_dir: Path) -> Job:
         raise ValueError(f"log_every must be >= 1, got {config['log_every']}")
     if int(config["threads"]) < 0:
         raise ValueError(f"threads must be >= 0 (0: torch's default), got {config['threads']}")
+    if int(config["snapshot_every"]) < 0:
+        raise ValueError(f"snapshot_every must be >= 0 (0: only snapshot_iterations), got "
+                         f"{config['snapshot_every']}")
+    if any(int(i) < 0 for i in config["snapshot_iterations"]):
+        raise ValueError(f"snapshot_iterations must be >= 0, got {config['snapshot_iterations']}")
     if int(config["threads"]) > 0:
-        # Parallel sweep jobs (joblib) should not each use every core.
+        # Parallel sweep jobs (joblib) should not each use every core; the same for the
+        # BLAS/LAPACK of scipy (the banded backend), whose idle threads spin on a busy machine.
         torch.set_num_threads(int(config["threads"]))
+        set_blas_threads(int(config["threads"]))
     problem_section = dict(config["problem"])
     solve, solver_cfg = solver_config(dict(config["solver"]))
     problem = build_problem(str(problem_section.get("name")), problem_section)
+    n_frames = int(getattr(problem, "n_frames", 0) or 0)
+    frame = config.get("sheet_frame")
+    if frame is not None and n_frames and not -n_frames <= int(frame) < n_frames:
+        raise ValueError(f"sheet_frame={frame} is not a frame of {problem.name} "
+                         f"(0..{n_frames - 1})")
     theta0, start, resumed = problem.theta0, 0, False
     if config["resume"]:
         path = run_dir / CHECKPOINT_FILE
@@ -142,7 +184,8 @@ def prepare(cfg: DictConfig, run_dir: Path) -> Job:
         else:
             log.warning("resume=true but %s does not exist; starting from the initial guess",
                         path)
-    return Job(config, problem, solve, solver_cfg, theta0, start, resumed)
+    inputs = solver_inputs(solve, str(config["solver"].get("name")), problem)
+    return Job(config, problem, solve, solver_cfg, theta0, start, resumed, inputs)
 
 
 def report_invalid(message: str, run_dir: Path) -> None:
@@ -186,10 +229,17 @@ def run(job: Job, run_dir: Path) -> float:
     callbacks: list[Callable[..., Any]] = [metrics_cb]
     if config["progress"]:
         callbacks.append(ProgressPrinter(step_offset=job.start_iteration))
-    callbacks += [tb, CheckpointWriter(run_dir / CHECKPOINT_FILE, job.start_iteration,
-                                       problem.name, config["problem"])]
+    callbacks.append(tb)
+    snapshots = None
+    if supports_field_images(problem):
+        snapshots = FieldSnapshots(problem, tb, run_dir, config["snapshot_iterations"],
+                                   int(config["snapshot_every"]), config.get("sheet_frame"))
+        callbacks.append(snapshots)
+    callbacks.append(CheckpointWriter(run_dir / CHECKPOINT_FILE, job.start_iteration,
+                                      problem.name, config["problem"]))
     try:
-        result = job.solver(problem.residual(), job.theta0, job.solver_config, callbacks)
+        result = job.solver(problem.residual(), job.theta0, job.solver_config, callbacks,
+                            **job.solver_inputs)
     except KeyboardInterrupt:
         tb.close()
         print(f"interrupted; continue with: python experiments/fit.py "
@@ -202,9 +252,13 @@ def run(job: Job, run_dir: Path) -> float:
 
     metrics = problem.metrics(result.theta)
     hparams = {"problem": config["problem"], "solver": config["solver"]}
+    pictures = snapshots.finish() if snapshots is not None else []
     tb.finish(problem, result.theta, metrics, hparams)
     field = problem.field(result.theta)
     save_params(run_dir, result.theta, field, problem.field_name)
+    if getattr(problem, "mesh", None) is not None:
+        save_frames(run_dir / "frames.npz", problem, field)
+        pictures.append(run_dir / "frames.npz")
     if field_is_chain(problem):
         fig = field_figure(field, problem.field_true, problem.field_name,
                            title=f"{problem.name}: fitted {problem.field_name}")
@@ -212,6 +266,7 @@ def run(job: Job, run_dir: Path) -> float:
     result_path = write_result(run_dir, result, metrics, described, config,
                                step_offset=job.start_iteration)
     plot = " field.png," if field_is_chain(problem) else ""
+    plot += "".join(f" {p.name}," for p in pictures)
 
     summary = ", ".join(f"{k} {metrics[k]:.3e}" for k in ("misfit", "k_err_rel",
                                                            "k_err_rel_aligned") if k in metrics)
@@ -221,6 +276,19 @@ def run(job: Job, run_dir: Path) -> float:
     print(f"results: {result_path} (beside it: params.pt, field.npy,{plot} {CHECKPOINT_FILE})")
     print(f"tensorboard --logdir {(run_dir / 'tb').resolve()}", flush=True)
     return float(metrics["misfit"])
+
+
+def save_frames(path: Path, problem: InverseProblem, field: torch.Tensor) -> None:
+    """The simulated frames of a mesh problem: rest points, cells, fitted and true positions."""
+    import numpy as np
+
+    with torch.no_grad():
+        x = problem.simulate(field).detach().cpu().numpy()
+    arrays = {"rest_points": problem.mesh.points, "cells": problem.mesh.cells, "positions": x,
+              "field": field.detach().cpu().numpy()}
+    if problem.x_true is not None:
+        arrays["true_positions"] = problem.x_true.detach().cpu().numpy()
+    np.savez_compressed(path, **arrays)
 
 
 _task_started = False

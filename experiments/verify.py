@@ -24,6 +24,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from torchfit.config import register_configs
+from torchfit.linalg.threads import set_blas_threads
 from torchfit.problems import InverseProblem, ProblemConfigError, build_problem
 from torchfit.verification import verify
 
@@ -55,6 +56,8 @@ def check_config(cfg: DictConfig) -> None:
         value = cfg[name]
         if not (math.isfinite(value) and value > 0):
             raise VerifyConfigError(f"{name} must be a positive number, got {value}")
+    if int(cfg.get("threads", 0)) < 0:
+        raise VerifyConfigError(f"threads must be >= 0 (0: default), got {cfg.threads}")
 
 
 def base_point(problem: InverseProblem, at: str) -> torch.Tensor:
@@ -87,6 +90,10 @@ def main(cfg: DictConfig) -> None:
     _task_started = True
     try:
         check_config(cfg)
+        threads = int(cfg.get("threads", 0))
+        if threads > 0:
+            torch.set_num_threads(threads)
+            set_blas_threads(threads)
         problem = build_problem(cfg.problem.name, cfg.problem)
         theta = perturbed(problem, base_point(problem, cfg.at), float(cfg.perturbation),
                           int(cfg.seed))

@@ -8,7 +8,7 @@ exists.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, List, Optional
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
@@ -26,7 +26,12 @@ class FitConfig:
     resume: bool = False        # continue from the last checkpoint in the run directory
     progress: bool = True       # one line per outer iteration on the terminal
     log_every: int = 1          # TensorBoard scalars every n iterations (the last always)
-    threads: int = 0            # torch CPU threads per job (0: torch's default); 1 in joblib sweeps
+    threads: int = 0            # torch and BLAS CPU threads per job (0: default); 1 in joblib sweeps
+    # 2-D fields (membrane2d): the field image after these iterations (snapshots.png, the
+    # seed's figure) and every snapshot_every iterations in TensorBoard (0: only those).
+    snapshot_iterations: List[int] = dataclasses.field(default_factory=lambda: [1, 5, 10, 40])
+    snapshot_every: int = 10
+    sheet_frame: Optional[int] = None   # frame whose deformed mesh is drawn (None: the problem's)
 
 
 @dataclasses.dataclass
@@ -40,6 +45,8 @@ class VerifyConfig:
     taylor_tol: float = 0.05    # |rate - 2| allowed
     dot_tol: float = 1e-10      # relative |<Jv, w> - <v, J^T w>|
     fd_tol: float = 1e-6        # relative |Jv - central FD|
+    solver: Any = None          # unused; a problem's default solver (membrane2d) may fill it
+    threads: int = 0            # torch and BLAS CPU threads (0: default), as in fit
 
 
 def register_configs() -> None:

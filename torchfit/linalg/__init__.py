@@ -1,13 +1,13 @@
 """Sparse linear algebra: patterns, differentiable solves, factorisation reuse, Krylov."""
-from .backends import (Backend, CGBackend, Factor, ScipyBackend, SingularMatrixError,
-                       get_backend)
+from .backends import (BandedBackend, Backend, CGBackend, Factor, ScipyBackend,
+                       SingularMatrixError, get_backend)
 from .cg import CGLSResult, batched_cg, cgls
 from .counters import COUNTERS, SolveCounters, counting, reset_counters
 from .pattern import SparsePattern
 from .sparse_solve import DEFAULT_CACHE, FactorCache, sparse_solve
 
 __all__ = [
-    "Backend", "CGBackend", "CGLSResult", "COUNTERS", "DEFAULT_CACHE", "Factor",
+    "BandedBackend", "Backend", "CGBackend", "CGLSResult", "COUNTERS", "DEFAULT_CACHE", "Factor",
     "FactorCache", "ScipyBackend", "SingularMatrixError", "SolveCounters", "SparsePattern",
     "batched_cg", "cgls", "counting", "get_backend", "reset_counters", "sparse_solve",
 ]

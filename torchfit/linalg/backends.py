@@ -10,6 +10,13 @@ gives; `scripts/bench_factorization.py` measures it against the alternatives.
 torch, batched over right-hand sides. It has no factorisation to reuse; its "factor"
 keeps the matrix and preconditioner so that the calling code is the same.
 
+``banded`` (CPU): LAPACK banded Cholesky (``cholesky_banded``) after a reverse
+Cuthill-McKee ordering computed once per pattern. For long, thin meshes (the
+membrane2d sheet: bandwidth 53 for 4,750 unknowns) it factorises about 3x and solves
+about 2x faster than SuperLU. Matrices that are not symmetric positive definite (an
+indefinite tangent during Newton) and patterns whose band is too wide fall back to the
+``scipy`` backend.
+
 Every factorisation and every solve is counted in :mod:`torchfit.linalg.counters`.
 """
 from __future__ import annotations
@@ -17,17 +24,22 @@ from __future__ import annotations
 import dataclasses
 from typing import Protocol
 
+import weakref
+
 import numpy as np
+import scipy.linalg as sla
 import scipy.sparse.linalg as spla
+from scipy.sparse.csgraph import reverse_cuthill_mckee
 import torch
 from torch import Tensor
 
+from ..errors import SimulationError
 from .cg import batched_cg
 from .counters import COUNTERS
 from .pattern import SparsePattern
 
 
-class SingularMatrixError(RuntimeError):
+class SingularMatrixError(SimulationError):
     """Raised when a system matrix cannot be factorised (or CG breaks down)."""
 
 
@@ -140,13 +152,100 @@ class CGBackend:
         return CGFactor(pattern, values, self.rtol, max_iter)
 
 
+class BandedFactor:
+    """Banded Cholesky factor of ``P A P^T`` (upper form) with the RCM permutation ``P``."""
+
+    def __init__(self, band: np.ndarray, perm: np.ndarray, dtype: torch.dtype) -> None:
+        self._band = band
+        self._perm = perm
+        self._dtype = dtype
+
+    def solve(self, rhs: Tensor, transpose: bool = False) -> Tensor:
+        # A is symmetric: A^T x = b is the same solve.
+        if rhs.device.type != "cpu":
+            raise ValueError("the banded backend runs on the CPU; use backend='cg' for "
+                             f"tensors on {rhs.device}")
+        _count_solve(rhs)
+        b = rhs.detach().numpy()
+        x = np.empty_like(b)
+        x[self._perm] = sla.cho_solve_banded((self._band, False), b[self._perm],
+                                             check_finite=False)
+        return torch.from_numpy(x).to(self._dtype)
+
+
+class _BandPlan:
+    """Per pattern: RCM permutation and where every CSR slot of the upper triangle goes."""
+
+    def __init__(self, pattern: SparsePattern) -> None:
+        n = pattern.shape[0]
+        structure = pattern.to_scipy(torch.ones(pattern.nnz, dtype=torch.float64))
+        self.perm = np.asarray(reverse_cuthill_mckee(structure.tocsr(), symmetric_mode=True),
+                               dtype=np.int64)
+        inverse = np.empty(n, dtype=np.int64)
+        inverse[self.perm] = np.arange(n)
+        rows = inverse[pattern.row_indices.numpy()]
+        cols = inverse[pattern.col_indices.numpy()]
+        upper = rows <= cols
+        self.slots = np.nonzero(upper)[0]
+        self.bandwidth = int((cols - rows)[upper].max()) if upper.any() else 0
+        # upper form of LAPACK: ab[u + i - j, j] = A[i, j] for i <= j
+        self.flat_index = (self.bandwidth + rows[upper] - cols[upper]) * n + cols[upper]
+        self.n = n
+
+
+@dataclasses.dataclass
+class BandedBackend:
+    """RCM + LAPACK banded Cholesky for SPD matrices with a narrow band (CPU).
+
+    Falls back to :class:`ScipyBackend` when the matrix is not symmetric, not positive
+    definite, or its RCM bandwidth exceeds ``max_bandwidth_fraction`` of its size.
+    """
+
+    max_bandwidth_fraction: float = 0.1
+    name: str = "banded"
+
+    def __post_init__(self) -> None:
+        self._plans: "weakref.WeakKeyDictionary[SparsePattern, _BandPlan]" = weakref.WeakKeyDictionary()
+        self._fallback = ScipyBackend()
+
+    def plan(self, pattern: SparsePattern) -> _BandPlan:
+        plan = self._plans.get(pattern)
+        if plan is None:
+            plan = _BandPlan(pattern)
+            self._plans[pattern] = plan
+        return plan
+
+    def factorize(self, pattern: SparsePattern, values: Tensor, symmetric: bool) -> Factor:
+        if values.device.type != "cpu":
+            raise ValueError("the banded backend runs on the CPU; use backend='cg' for "
+                             f"tensors on {values.device}")
+        if not symmetric:
+            return self._fallback.factorize(pattern, values, symmetric)
+        plan = self.plan(pattern)
+        if plan.bandwidth > max(8, self.max_bandwidth_fraction * plan.n):
+            return self._fallback.factorize(pattern, values, symmetric)
+        if not torch.isfinite(values).all():
+            raise SingularMatrixError("system matrix has NaN or infinite entries")
+        band = np.zeros((plan.bandwidth + 1, plan.n))
+        band.reshape(-1)[plan.flat_index] = values.detach().numpy()[plan.slots]
+        try:
+            factor = sla.cholesky_banded(band, lower=False, overwrite_ab=True, check_finite=False)
+        except np.linalg.LinAlgError:
+            # not positive definite (e.g. an indefinite Newton tangent): pivoted LU
+            return self._fallback.factorize(pattern, values, symmetric)
+        COUNTERS.factorizations += 1
+        return BandedFactor(factor, plan.perm, values.dtype)
+
+
 def get_backend(name: str | Backend) -> Backend:
-    """``'scipy'`` or ``'cg'`` (or an object with ``factorize``)."""
+    """``'scipy'``, ``'banded'`` or ``'cg'`` (or an object with ``factorize``)."""
     if not isinstance(name, str):
         return name
     if name == "scipy":
         return ScipyBackend()
+    if name == "banded":
+        return BandedBackend()
     if name == "cg":
         return CGBackend()
-    raise ValueError(f"unknown linear-solve backend {name!r}; choose 'scipy' (CPU direct) "
-                     "or 'cg' (torch CG, CPU or CUDA)")
+    raise ValueError(f"unknown linear-solve backend {name!r}; choose 'scipy' (CPU direct), "
+                     "'banded' (CPU banded Cholesky, SPD) or 'cg' (torch CG, CPU or CUDA)")

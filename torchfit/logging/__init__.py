@@ -13,10 +13,12 @@ from .metrics import METRIC_KEYS, MetricsCallback
 from .progress import ProgressPrinter
 from .results import (Checkpoint, CheckpointWriter, load_checkpoint, result_dict, save_checkpoint,
                       save_params, write_json, write_result)
-from .tensorboard import TensorBoardLogger, field_is_chain, tag_for
+from .tensorboard import (FieldSnapshots, TensorBoardLogger, field_is_chain, supports_field_images,
+                          tag_for)
 
 __all__ = [
-    "Checkpoint", "CheckpointWriter", "METRIC_KEYS", "MetricsCallback", "ProgressPrinter",
-    "TensorBoardLogger", "field_is_chain", "load_checkpoint", "result_dict", "save_checkpoint",
-    "save_params", "tag_for", "write_json", "write_result",
+    "Checkpoint", "CheckpointWriter", "FieldSnapshots", "METRIC_KEYS", "MetricsCallback",
+    "ProgressPrinter", "TensorBoardLogger", "field_is_chain", "load_checkpoint", "result_dict",
+    "save_checkpoint", "save_params", "supports_field_images", "tag_for", "write_json",
+    "write_result",
 ]

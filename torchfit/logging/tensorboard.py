@@ -21,6 +21,14 @@ Tag scheme (one TensorBoard section per prefix)
                    (``field/k_true``); for a 1-D field (a chain) an image
                    ``field/<name>_profile`` of fitted vs true per cell.
 ``config``         at the start: the resolved config as text.
+``field/<name>``   (2-D fields, :class:`FieldSnapshots`) ``field/<name>_image``: the field as an
+                   image (scaled onto the truth for a scale-free problem, fixed colour range)
+                   after the snapshot iterations (default 1, 5, 10, 40) and every
+                   ``snapshot_every`` iterations; ``field/<name>_true_image`` once.
+``frames/<key>``   per-frame position errors against the truth, one curve per frame:
+                   ``frames/u_err_inf/frame_<f>``, ``frames/u_err_2/frame_<f>``.
+``sheet/frame_<f>``  the deformed mesh of one frame coloured by the field, with the target
+                   wireframe, at iteration 0 and the snapshot iterations.
 =================  ===========================================================================
 
 Scalars are written in double precision (new-style tensor summaries of the ``scalars``
@@ -52,6 +60,7 @@ from torch.utils.tensorboard.summary import hparams as _hparams_summary
 
 from ..solvers import IterationRecord
 from .metrics import METRIC_KEYS
+from .plots import aligned, colorize, frame_errors_figure, sheet_figure, snapshots_figure
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problems import InverseProblem
@@ -254,3 +263,184 @@ class TensorBoardLogger:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def supports_field_images(problem: "InverseProblem") -> bool:
+    """Whether the problem can draw its field as an image (``field_image(field)``)."""
+    return callable(getattr(problem, "field_image", None))
+
+
+class FieldSnapshots:
+    """Callback drawing a 2-D field during a fit (TensorBoard images and run-dir PNGs).
+
+    Needs a problem with ``field_image(field) -> (H, W)`` (row 0 at the top); uses, when
+    present, ``frame_errors(x) -> {'u_err_inf': (F,), 'u_err_2': (F,)}``,
+    ``frame_names()``, ``mesh`` (``points``, ``cells``, ``extent``), ``x_true`` and
+    ``default_sheet_frame``.
+
+    Args:
+        problem: the inverse problem.
+        tb: the run's :class:`TensorBoardLogger` (its writer and step offset are used).
+        run_dir: where :meth:`finish` writes ``snapshots.png``, ``frame_errors.png`` and
+            ``sheet_frame<f>.png`` (``None``: no files).
+        snapshot_iterations: iterations kept for ``snapshots.png`` (the seed's figure)
+            and drawn in TensorBoard.
+        every: also draw every ``every`` iterations (0: never).
+        sheet_frame: frame whose deformed mesh is drawn (default: the problem's choice).
+    """
+
+    def __init__(self, problem: "InverseProblem", tb: TensorBoardLogger, run_dir: str | Path | None = None,
+                 snapshot_iterations: tuple[int, ...] | list[int] = (1, 5, 10, 40),
+                 every: int = 10, sheet_frame: int | None = None) -> None:
+        if not supports_field_images(problem):
+            raise ValueError(f"problem {problem.name!r} cannot draw its field as an image")
+        if every < 0:
+            raise ValueError(f"snapshot interval must be >= 0, got {every}")
+        if any(int(i) < 0 for i in snapshot_iterations):
+            raise ValueError(f"snapshot iterations must be >= 0, got {list(snapshot_iterations)}")
+        self.problem = problem
+        self.tb = tb
+        self.run_dir = None if run_dir is None else Path(run_dir)
+        self.snapshot_iterations = sorted({int(i) for i in snapshot_iterations})
+        self.every = int(every)
+        truth = problem.field_true
+        self.truth = None if truth is None else truth.detach().cpu().numpy()
+        self.name = getattr(problem, "field_name", "k")
+        values = self.truth if self.truth is not None else None
+        self.vmin = 0.0 if values is None else float(min(0.0, values.min()))
+        self.vmax = None if values is None else float(values.max()) * 1.15
+        self.n_frames = int(getattr(problem, "n_frames", 0) or 0)
+        frame = getattr(problem, "default_sheet_frame", 0) if sheet_frame is None else sheet_frame
+        if self.n_frames and not -self.n_frames <= int(frame) < self.n_frames:
+            raise ValueError(f"sheet_frame={frame} is not a frame of {problem.name} "
+                             f"(0..{self.n_frames - 1})")
+        self.sheet_frame = int(frame) % self.n_frames if self.n_frames else 0
+        self.snapshots: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
+        self.error_history: dict[int, np.ndarray] = {}
+        self._last: tuple[int, Tensor] | None = None
+        self._wrote_truth = False
+
+    # -- helpers ------------------------------------------------------------------------
+    def _field(self, theta: Tensor) -> np.ndarray:
+        field = self.problem.field(theta).detach().cpu().numpy()
+        scaled, _ = aligned(field, self.truth if self.problem.scale_free else None)
+        return scaled
+
+    def _image(self, field: np.ndarray) -> np.ndarray:
+        return np.asarray(self.problem.field_image(torch.as_tensor(field)))
+
+    def _range(self, image: np.ndarray) -> tuple[float, float]:
+        if self.vmax is not None:
+            return self.vmin, self.vmax
+        return float(image.min()), float(image.max())
+
+    def _state(self, theta: Tensor) -> Tensor | None:
+        with torch.no_grad():   # a cache hit: the solver has just evaluated this point
+            return self.problem.simulate(self.problem.field(theta)).detach()
+
+    def _errors(self, x: Tensor | None) -> dict[str, np.ndarray] | None:
+        frame_errors = getattr(self.problem, "frame_errors", None)
+        if x is None or frame_errors is None or getattr(self.problem, "x_true", None) is None:
+            return None
+        return frame_errors(x)
+
+    def _sheet(self, field: np.ndarray, x: Tensor | None, title: str):
+        mesh = getattr(self.problem, "mesh", None)
+        if mesh is None or x is None or x.shape[-1] != 2:
+            return None
+        f = self.sheet_frame
+        target = None
+        if getattr(self.problem, "x_true", None) is not None:
+            target = self.problem.x_true[f].detach().cpu().numpy()
+        return sheet_figure(x[f].cpu().numpy(), mesh.cells, field, target=target,
+                            rest=mesh.points, vmin=self.vmin, vmax=self.vmax, name=self.name,
+                            title=title)
+
+    def wants_image(self, step: int) -> bool:
+        return step in self.snapshot_iterations or step == 0 or \
+            (self.every > 0 and step % self.every == 0)
+
+    # -- the callback -------------------------------------------------------------------
+    def __call__(self, record: IterationRecord) -> None:
+        step = self.tb.step_of(record)
+        writer = self.tb.writer
+        if not self._wrote_truth and self.truth is not None:
+            image = self._image(self.truth)
+            writer.add_image(f"field/{self.name}_true_image",
+                             colorize(image, *self._range(image)), self.tb.step_offset,
+                             dataformats="HWC")
+            self._wrote_truth = True
+        x = self._state(record.theta)
+        errors = self._errors(x)
+        if errors is not None:
+            for key, values in errors.items():
+                for f, value in enumerate(values):
+                    writer.add_scalar(f"frames/{key}/frame_{f}", float(value), step,
+                                      new_style=True, double_precision=True)
+            self.error_history[step] = np.asarray(errors["u_err_inf"])
+        self._last = (step, record.theta)
+        if self.wants_image(step):
+            field = self._field(record.theta)
+            image = self._image(field)
+            writer.add_image(f"field/{self.name}_image", colorize(image, *self._range(image)),
+                             step, dataformats="HWC")
+            if step in self.snapshot_iterations or step == 0:
+                # the mesh figure (a matplotlib render, ~0.3 s) only at the snapshots
+                figure = self._sheet(field, x, f"frame {self.sheet_frame}, iteration {step}")
+                if figure is not None:
+                    writer.add_figure(f"sheet/frame_{self.sheet_frame}", figure, step, close=False)
+            if step in self.snapshot_iterations:
+                self.snapshots[step] = (image, None if errors is None else
+                                        np.asarray(errors["u_err_inf"]))
+        return None
+
+    # -- end of the run -----------------------------------------------------------------
+    def finish(self) -> list[Path]:
+        """Write ``snapshots.png``, ``frame_errors.png`` and ``sheet_frame<f>.png``."""
+        if self.run_dir is None or self._last is None:
+            return []
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        written: list[Path] = []
+        last_step, last_theta = self._last
+        field = self._field(last_theta)
+        image = self._image(field)
+        x = self._state(last_theta)
+        errors = self._errors(x)
+        panels: list[tuple[str, np.ndarray]] = []
+        panel_errors: list[np.ndarray | None] = []
+        if self.truth is not None:
+            panels.append((f"true {self.name}", self._image(self.truth)))
+            panel_errors.append(None)
+        for step in self.snapshot_iterations:
+            if step in self.snapshots:
+                snap, err = self.snapshots[step]
+                panels.append((f"iteration {step}", snap))
+                panel_errors.append(err)
+        if last_step not in self.snapshots:
+            panels.append((f"iteration {last_step} (last)", image))
+            panel_errors.append(None if errors is None else np.asarray(errors["u_err_inf"]))
+        mesh = getattr(self.problem, "mesh", None)
+        extent_box = getattr(mesh, "extent", None)
+        extent = (extent_box[0][0], extent_box[0][1], extent_box[1][0], extent_box[1][1]) \
+            if extent_box is not None else (0.0, float(image.shape[1]), 0.0, float(image.shape[0]))
+        vmin, vmax = self._range(image)
+        scaled = " (scaled onto the truth)" if self.problem.scale_free and self.truth is not None else ""
+        fig = snapshots_figure(panels, extent, vmin, vmax, self.name, panel_errors,
+                               title=f"{self.problem.name}: {self.name}{scaled}")
+        path = self.run_dir / "snapshots.png"
+        fig.savefig(path)
+        written.append(path)
+        if self.error_history:
+            labels = self.problem.frame_names() if hasattr(self.problem, "frame_names") else None
+            fig = frame_errors_figure(self.error_history, labels,
+                                      title=f"{self.problem.name}: position error per frame")
+            path = self.run_dir / "frame_errors.png"
+            fig.savefig(path)
+            written.append(path)
+        fig = self._sheet(field, x, f"{self.problem.name}: frame {self.sheet_frame} after "
+                                    f"{last_step} iterations")
+        if fig is not None:
+            path = self.run_dir / f"sheet_frame{self.sheet_frame}.png"
+            fig.savefig(path)
+            written.append(path)
+        return written

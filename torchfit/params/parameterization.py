@@ -7,7 +7,9 @@ the default) or the identity. Each parameterisation also exposes
 
 * the TV difference operator ``D`` (``(n_edges, n_params)``, one row ``e_j - e_i`` per
   pair of neighbouring parameters), which the Split Bregman solver uses without knowing
-  where it comes from;
+  where it comes from, and optionally the grouping of its rows for isotropic TV
+  (:meth:`Parameterization.difference_groups`: the axis differences of one grid cell
+  form one group, see :func:`grid_groups`);
 * the scale (gauge) direction: the direction in ``theta`` along which the field is
   multiplied by a constant (``ones`` for ``exp``, ``theta`` itself for the identity).
   Scale-free problems hand it to the solvers so that they do not drift along it.
@@ -34,11 +36,14 @@ class Parameterization:
             for the identity (one parameter per field value).
         transform: ``'exp'`` (positive field, the default) or ``'identity'``.
         name: what the field is, for messages and logs (e.g. ``'stiffness'``).
+        groups: ``(n_edges,)`` group index of every edge for isotropic TV (the
+            differences along each axis from one grid cell), or ``None`` (no grouping:
+            isotropic and anisotropic TV coincide).
     """
 
     def __init__(self, n_params: int, edges: Tensor | np.ndarray | None = None,
                  basis: Tensor | None = None, transform: str = "exp",
-                 name: str = "field") -> None:
+                 name: str = "field", groups: Tensor | np.ndarray | None = None) -> None:
         if n_params < 1:
             raise ValueError(f"a parameterisation needs at least one parameter, got {n_params}")
         if transform not in TRANSFORMS:
@@ -55,6 +60,16 @@ class Parameterization:
         if edges_t.numel() and (edges_t.min() < 0 or edges_t.max() >= n_params):
             raise ValueError("parameter adjacency refers to a parameter out of range")
         self.edges = edges_t
+        if groups is not None:
+            groups_t = torch.as_tensor(np.asarray(groups), dtype=torch.long).reshape(-1)
+            if groups_t.numel() != edges_t.shape[0]:
+                raise ValueError(f"groups must give one group index per edge ({edges_t.shape[0]}), "
+                                 f"got {groups_t.numel()}")
+            if groups_t.numel() and groups_t.min() < 0:
+                raise ValueError("groups must be >= 0")
+            self.groups: Tensor | None = groups_t
+        else:
+            self.groups = None
 
     # -- the map ----------------------------------------------------------------------
     def __call__(self, theta: Tensor) -> Tensor:
@@ -109,6 +124,11 @@ class Parameterization:
                                        (n_edges, self.n_params),
                                        check_invariants=False).coalesce()
 
+    def difference_groups(self) -> Tensor | None:
+        """Group index ``(n_edges,)`` of every row of :meth:`difference_operator` for
+        isotropic TV (``None`` when the parameterisation has no such grouping)."""
+        return None if self.groups is None else self.groups.clone()
+
     def scale_direction(self, theta: Tensor) -> Tensor:
         """Unit direction in ``theta`` that multiplies the whole field by a constant."""
         direction = torch.ones_like(theta) if self.transform == "exp" else theta.detach().clone()
@@ -132,10 +152,32 @@ def grid_edges(shape: tuple[int, ...]) -> np.ndarray:
     return np.concatenate(pairs, axis=0) if pairs else np.zeros((0, 2), dtype=np.int64)
 
 
+def grid_groups(shape: tuple[int, ...]) -> np.ndarray:
+    """Isotropic-TV groups of :func:`grid_edges` (same edge order), ``(n_edges,)``.
+
+    Every edge ``(lo, hi)`` of ``grid_edges(shape)`` is the forward difference along one
+    axis from cell ``lo``; grouping by ``lo`` puts the x-, y- (and z-) differences of one
+    cell together, so that ``sum_g ||(D theta)_g||`` is the usual isotropic TV with
+    forward differences (cells on the far boundary have fewer components: Neumann).
+    """
+    return grid_edges(shape)[:, 0].copy()
+
+
 def per_element(n_cells: int, cell_edges: np.ndarray | None = None, transform: str = "exp",
-                name: str = "field") -> Parameterization:
-    """One parameter per element (cell, spring, triangle, tetrahedron)."""
-    return Parameterization(n_cells, cell_edges, None, transform, name)
+                name: str = "field", groups: np.ndarray | None = None) -> Parameterization:
+    """One parameter per element (cell, spring, triangle, tetrahedron).
+
+    ``groups`` (one per edge) groups the rows of ``D`` for isotropic TV, e.g.
+    :func:`grid_groups` for ``cell_edges = grid_edges(shape)``.
+    """
+    return Parameterization(n_cells, cell_edges, None, transform, name, groups)
+
+
+def per_grid_cell(shape: tuple[int, ...], transform: str = "exp",
+                  name: str = "field") -> Parameterization:
+    """One parameter per cell of a regular grid (row-major), with its isotropic-TV groups."""
+    return Parameterization(int(np.prod(shape)), grid_edges(shape), None, transform, name,
+                            grid_groups(shape))
 
 
 def per_region(labels: Tensor | np.ndarray, cell_edges: np.ndarray | None = None,

@@ -19,17 +19,36 @@ every backward and jvp at one parameter vector reuses one factorisation. Solutio
 found again while they are among the ``cache_size`` most recent ones *or* while an
 autograd graph that used them is alive (a solver's linearisation holds its graph), so
 evaluating other points in between never forces a refactorisation.
+
+Extensions a model may offer (all optional, detected once):
+
+* ``tangent_values(x, params, projected=True)``: a positive semi-definite modification
+  of the tangent (e.g. the eigenvalue-clamped Hessian of stable neo-Hookean). Newton
+  uses it for its search direction while a frame is far from equilibrium; the
+  factorisation kept for the adjoint and jvp is always the exact ``dR/dx`` at ``x*``.
+* ``param_derivative(x, params)``: an object with ``jvp(v) -> (F, n_dofs)`` (``dR/dparams
+  v``) and ``vjp(w (F, n_dofs)) -> (n_params,)``. When present, backward and jvp use it
+  instead of reverse-mode autograd of the residual (it is built once per solution).
+
+Warm start: with ``warm_start=True`` (the default), a new parameter vector with the
+same Dirichlet values as the most recently used solution starts Newton from that
+solution (Levenberg-Marquardt and Gauss-Newton evaluate nearby points one after the
+other). Convergence is still judged against the reference residual of the cold start,
+so results agree with a cold start to the Newton tolerance; a warm start that fails
+falls back to the cold start.
 """
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 import weakref
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 import torch
 from torch import Tensor
 
+from ..errors import SimulationError
 from ..linalg import SparsePattern
 from ..linalg.backends import Backend, Factor, SingularMatrixError, get_backend
 
@@ -53,10 +72,14 @@ class EquilibriumModel(Protocol):
         """Net force ``(F, n_dofs)`` at positions ``x`` ``(F, n_dofs)``."""
 
     def tangent_values(self, x: Tensor, params: Tensor) -> Tensor:
-        """``dR/dx`` contributions ``(F or 1, tangent_pattern.n_contrib)``."""
+        """``dR/dx`` contributions ``(F or 1, tangent_pattern.n_contrib)``.
+
+        A model may accept a keyword ``projected: bool = False`` (see the module
+        docstring); models without it are called without it.
+        """
 
 
-class NewtonConvergenceError(RuntimeError):
+class NewtonConvergenceError(SimulationError):
     """Newton did not bring a frame to equilibrium; the message names frame and residual."""
 
 
@@ -65,9 +88,22 @@ class NewtonOptions:
     """Newton settings (residual norms are per frame, in force units)."""
 
     max_iter: int = 50
-    rtol: float = 1e-10      # relative to the residual norm at the start of the frame
+    rtol: float = 1e-10      # relative to the residual norm at the (cold) start of the frame
     atol: float = 1e-12      # absolute floor
     max_backtracks: int = 30
+    # Models with a projected (PSD) tangent: a frame uses it while far from equilibrium
+    # and switches to the exact tangent (quadratic convergence) once its residual is below
+    # exact_below * reference or a projected step reduced it by less than the factor
+    # `stagnation` (projected Newton only converges linearly where the projection is
+    # active). A step whose line search fails switches to the other tangent.
+    exact_below: float = 0.1
+    stagnation: float = 0.5
+    # A warm start (from the last solution) that has not converged after this many
+    # iterations gives way to the cold start.
+    warm_max_iter: int = 10
+    # Give up early on a frame whose residual has not halved in this many iterations
+    # (a diverging or stalled Newton; 0 disables the check).
+    stall_iter: int = 10
 
 
 @dataclasses.dataclass(eq=False)  # identity semantics: kept in a WeakSet
@@ -77,6 +113,9 @@ class _Solution:
     x: Tensor                  # (F, n_dofs), full positions
     factors: list[Factor]      # one shared factor (linear model) or one per frame
     newton_iterations: list[int]
+    reference: Tensor | None = None        # (F,) residual norms of the cold start
+    param_derivative: Any = None           # model.param_derivative at x*, built lazily
+    warm_started: bool = False
 
 
 class Equilibrium:
@@ -91,11 +130,14 @@ class Equilibrium:
         cache_size: number of (parameters, solution, factorisations) kept; 2 lets a
             Levenberg-Marquardt trial point be evaluated without dropping the current
             point's factorisation.
+        warm_start: start Newton from the last solution with the same Dirichlet values.
+        linear_refinement: iterative-refinement steps after the solve of a linear model.
     """
 
     def __init__(self, model: EquilibriumModel, fixed_dofs: Tensor, backend: str | Backend = "scipy",
                  newton: NewtonOptions | None = None, cache_size: int = 2,
-                 allow_no_dirichlet: bool = False) -> None:
+                 allow_no_dirichlet: bool = False, warm_start: bool = True,
+                 linear_refinement: int = 0) -> None:
         fixed = torch.as_tensor(fixed_dofs, dtype=torch.long).reshape(-1)
         if fixed.numel() == 0 and not allow_no_dirichlet:
             raise ValueError("the system has no Dirichlet (fixed) degree of freedom, so its "
@@ -121,21 +163,30 @@ class Equilibrium:
         self.free_pattern, self._free_slots = model.tangent_pattern.submatrix(
             self.free_dofs, self.free_dofs)
         self.last_newton_iterations: list[int] = []
+        self.last_warm_started = False
+        self.warm_start = bool(warm_start)
+        # Linear models: steps of iterative refinement after the solve (one residual and
+        # one solve with the same factor each; removes the round-off of a far start).
+        self.linear_refinement = int(linear_refinement)
+        self._accepts_projected = _accepts_keyword(model.tangent_values, "projected")
+        self._has_param_derivative = callable(getattr(model, "param_derivative", None))
 
     # -- public -----------------------------------------------------------------------
     @property
     def n_fixed(self) -> int:
         return int(self.fixed_dofs.numel())
 
-    def __call__(self, params: Tensor, fixed_values: Tensor, x_init: Tensor | None = None) -> Tensor:
+    def __call__(self, params: Tensor, fixed_values: Tensor,
+                 x_init: Tensor | Callable[[], Tensor] | None = None) -> Tensor:
         """Positions at equilibrium, ``(F, n_dofs)``.
 
         Args:
             params: the model's physical field, e.g. ``(n_springs,)`` stiffness.
             fixed_values: ``(F, n_fixed)`` prescribed Dirichlet values per frame (ordered
                 as the sorted ``fixed_dofs``); differentiable too.
-            x_init: ``(F, n_dofs)`` start of Newton (non-linear models); defaults to
-                zeros with the Dirichlet values inserted.
+            x_init: ``(F, n_dofs)`` cold start of Newton (non-linear models), or a
+                function returning it (called only when no warm start is used);
+                defaults to zeros with the Dirichlet values inserted.
         """
         if fixed_values.dim() != 2 or fixed_values.shape[1] != self.n_fixed:
             raise ValueError(f"Dirichlet values must have shape (frames, {self.n_fixed}), got "
@@ -144,10 +195,43 @@ class Equilibrium:
             bad = torch.nonzero(~torch.isfinite(fixed_values))[0].tolist()
             raise ValueError(f"Dirichlet value of frame {bad[0]}, fixed dof "
                              f"{int(self.fixed_dofs[bad[1]])} is NaN or infinite")
-        if x_init is not None and x_init.shape != (fixed_values.shape[0], self.model.n_dofs):
-            raise ValueError(f"x_init must have shape {(fixed_values.shape[0], self.model.n_dofs)}, "
-                             f"got {tuple(x_init.shape)}")
+        if isinstance(x_init, Tensor):
+            self._check_x_init(x_init, fixed_values.shape[0])
         return _EquilibriumFunction.apply(params, fixed_values, x_init, self)
+
+    def _check_x_init(self, x_init: Tensor, n_frames: int) -> None:
+        if x_init.shape != (n_frames, self.model.n_dofs):
+            raise ValueError(f"x_init must have shape {(n_frames, self.model.n_dofs)}, "
+                             f"got {tuple(x_init.shape)}")
+
+    def linearized_start(self, params: Tensor, fixed_values: Tensor, x_ref: Tensor) -> Tensor:
+        """One Newton step from ``x_ref`` that moves the Dirichlet dofs to their values.
+
+        ``x = x_ref + dx`` with ``dx`` equal to ``fixed_values - x_ref`` on the Dirichlet
+        dofs and ``K_ff dx_f = -(R_f(x_ref) + K_fd dx_d)`` on the free ones (exact tangent
+        at ``x_ref``). From the rest shape of an elastic body this is the linear-elastic
+        solution: a good cold start for Newton. ``x_ref`` is ``(1, n_dofs)`` (one
+        factorisation for every frame) or ``(F, n_dofs)``. No gradient flows through it.
+        """
+        with torch.no_grad():
+            n_frames = fixed_values.shape[0]
+            if x_ref.dim() != 2 or x_ref.shape[0] not in (1, n_frames) \
+                    or x_ref.shape[1] != self.model.n_dofs:
+                raise ValueError(f"x_ref must have shape (1 or {n_frames}, {self.model.n_dofs}), "
+                                 f"got {tuple(x_ref.shape)}")
+            params = params.detach()
+            fixed = self.fixed_dofs.to(x_ref.device)
+            free = self.free_dofs.to(x_ref.device)
+            contributions = self._tangent(x_ref, params)
+            values = self.model.tangent_pattern.assemble(contributions)
+            dx = x_ref.new_zeros(n_frames, self.model.n_dofs)
+            dx[:, fixed] = fixed_values.detach() - x_ref[:, fixed]
+            coupling = self.model.tangent_pattern.matvec(values, dx)[:, free]
+            residual = self.model.residual(x_ref, params)[:, free]
+            factors = [self.backend.factorize(self.free_pattern, v[self._free_slots.to(v.device)],
+                                              self.model.symmetric) for v in values]
+            dx[:, free] = -self._solve(factors, (residual + coupling).expand(n_frames, -1))
+            return x_ref + dx
 
     def clear_cache(self) -> None:
         self._cache.clear()
@@ -183,9 +267,19 @@ class Equilibrium:
     def _free_residual(self, x: Tensor, params: Tensor) -> Tensor:
         return self.model.residual(x, params)[:, self.free_dofs.to(x.device)]
 
+    def _tangent(self, x: Tensor, params: Tensor, projected: bool = False) -> Tensor:
+        """Tangent contributions ``(F or 1, n_contrib)`` (exact unless ``projected``)."""
+        if projected and self._accepts_projected:
+            return self.model.tangent_values(x, params, projected=True)
+        return self.model.tangent_values(x, params)
+
+    def _free_values(self, contributions: Tensor) -> Tensor:
+        slots = self._free_slots.to(contributions.device)
+        return self.model.tangent_pattern.assemble(contributions)[..., slots]
+
     def _factorize(self, x: Tensor, params: Tensor) -> list[Factor]:
-        contributions = self.model.tangent_values(x, params)
-        values = self.model.tangent_pattern.assemble(contributions)[..., self._free_slots.to(x.device)]
+        """Factors of the exact tangent: one shared or one per frame."""
+        values = self._free_values(self._tangent(x, params))
         return [self.backend.factorize(self.free_pattern, v, self.model.symmetric) for v in values]
 
     def _solve(self, factors: list[Factor], rhs: Tensor, transpose: bool = False) -> Tensor:
@@ -195,43 +289,108 @@ class Equilibrium:
         return torch.stack([f.solve(r, transpose=transpose).to(rhs.device)
                             for f, r in zip(factors, rhs)])
 
-    def _solve_forward(self, params: Tensor, fixed_values: Tensor, x_init: Tensor | None) -> _Solution:
+    def _cold_start(self, params: Tensor, fixed_values: Tensor,
+                    x_init: Tensor | Callable[[], Tensor] | None) -> Tensor:
         n_frames = fixed_values.shape[0]
         free = self.free_dofs.to(params.device)
         if x_init is None:
             x_free = params.new_zeros(n_frames, free.numel())
         else:
+            if callable(x_init) and not isinstance(x_init, Tensor):
+                x_init = x_init()
+                self._check_x_init(x_init, n_frames)
             x_free = x_init.detach()[:, free]
-        x = self._full(x_free, fixed_values)
+        return self._full(x_free, fixed_values)
+
+    def _warm_source(self, fixed_values: Tensor) -> _Solution | None:
+        """The most recently used solution with the same Dirichlet values, if any."""
+        if not self.warm_start or self.model.linear or not self._cache:
+            return None
+        sol = self._cache[-1]
+        if sol.fixed_values.shape == fixed_values.shape and sol.reference is not None \
+                and torch.equal(sol.fixed_values, fixed_values):
+            return sol
+        return None
+
+    def _solve_forward(self, params: Tensor, fixed_values: Tensor,
+                       x_init: Tensor | Callable[[], Tensor] | None) -> _Solution:
+        n_frames = fixed_values.shape[0]
         if self.model.linear:
+            # Any start gives the solution in one step: skip a start that must be computed.
+            x = self._cold_start(params, fixed_values, x_init if isinstance(x_init, Tensor) else None)
+            x_free = x[:, self.free_dofs.to(x.device)]
             residual = self._free_residual(x, params)
             factors = self._factorize(x, params)
             x = self._full(x_free - self._solve(factors, residual), fixed_values)
+            for _ in range(self.linear_refinement):
+                x_free = x[:, self.free_dofs.to(x.device)]
+                x = self._full(x_free - self._solve(factors, self._free_residual(x, params)),
+                               fixed_values)
             if not torch.isfinite(x).all():
                 raise SingularMatrixError("the linear solve produced non-finite positions; "
                                           "check that all stiffnesses are positive and finite")
             return _Solution(params, fixed_values, x, factors, [1] * n_frames)
-        return self._newton(params, fixed_values, x)
+        source = self._warm_source(fixed_values)
+        if source is not None:
+            try:
+                sol = self._newton(params, fixed_values, source.x.detach().clone(),
+                                   source.reference, max_iter=min(self.newton.warm_max_iter,
+                                                                  self.newton.max_iter))
+                sol.warm_started = True
+                return sol
+            except (NewtonConvergenceError, SingularMatrixError):
+                pass   # the cold start below decides (and reports a failure)
+        return self._newton(params, fixed_values, self._cold_start(params, fixed_values, x_init))
 
-    def _newton(self, params: Tensor, fixed_values: Tensor, x: Tensor) -> _Solution:
+    def _newton(self, params: Tensor, fixed_values: Tensor, x: Tensor,
+                reference: Tensor | None = None, max_iter: int | None = None) -> _Solution:
         opts = self.newton
+        max_iter = opts.max_iter if max_iter is None else max_iter
         n_frames = x.shape[0]
+        free = self.free_dofs.to(x.device)
         residual = self._free_residual(x, params)
         norms = torch.linalg.vector_norm(residual, dim=1)
-        targets = torch.clamp(opts.rtol * norms, min=opts.atol)
+        if reference is None:
+            reference = norms.clone()
+        targets = torch.clamp(opts.rtol * reference, min=opts.atol)
         iterations = [0] * n_frames
-        for _ in range(opts.max_iter):
+        can_project = self._accepts_projected
+        # Per frame: exact tangent (True) or the model's projected one (False).
+        exact = ~(norms > opts.exact_below * reference) if can_project else \
+            torch.ones(n_frames, dtype=torch.bool, device=x.device)
+        history = [norms]
+        stalled = False
+        for _ in range(max_iter):
             active = norms > targets
             if not bool(active.any()):
                 break
-            factors = self._factorize(x, params)
-            step = self._solve(factors, -residual)
-            step = torch.where(active[:, None], step, torch.zeros_like(step))
+            if opts.stall_iter and len(history) > opts.stall_iter:
+                before = history[-1 - opts.stall_iter]
+                if bool((active & ~(norms <= 0.5 * before)).any()):
+                    stalled = True
+                    break
+            frames = torch.nonzero(active).reshape(-1)
+            use_exact = exact[frames]
+            contributions = None
+            if bool(use_exact.any()):
+                contributions = self._tangent(x[frames], params)
+            if not bool(use_exact.all()):
+                projected = self._tangent(x[frames], params, projected=True)
+                contributions = projected if contributions is None else torch.where(
+                    use_exact[:, None], contributions.expand_as(projected), projected)
+            values = self._free_values(contributions)
+            if values.shape[0] == 1 and frames.numel() > 1:
+                factors = [self.backend.factorize(self.free_pattern, values[0],
+                                                  self.model.symmetric)]
+            else:
+                factors = [self.backend.factorize(self.free_pattern, v, self.model.symmetric)
+                           for v in values]
+            step = torch.zeros_like(residual)
+            step[frames] = self._solve(factors, -residual[frames])
             # Backtracking on ||R||, per frame; converged frames stay where they are.
             alpha = torch.ones(n_frames, dtype=x.dtype, device=x.device)
             for _ in range(opts.max_backtracks):
-                x_free_trial = x[:, self.free_dofs.to(x.device)] + alpha[:, None] * step
-                x_trial = self._full(x_free_trial, fixed_values)
+                x_trial = self._full(x[:, free] + alpha[:, None] * step, fixed_values)
                 residual_trial = self._free_residual(x_trial, params)
                 norms_trial = torch.linalg.vector_norm(residual_trial, dim=1)
                 ok = (norms_trial <= (1 - 1e-4 * alpha) * norms) | ~active | (norms_trial <= targets)
@@ -239,19 +398,32 @@ class Equilibrium:
                 if bool(ok.all()):
                     break
                 alpha = torch.where(ok, alpha, alpha * 0.5)
-            for f in torch.nonzero(active).reshape(-1).tolist():
+            if can_project:
+                # A failed line search tries the other tangent next; close to equilibrium
+                # the exact one (quadratic convergence).
+                failed = active & ~ok
+                slow = ~exact & (norms_trial > opts.stagnation * norms)
+                near = norms_trial <= opts.exact_below * reference
+                exact = torch.where(failed, ~exact, exact | near | slow)
+            for f in frames.tolist():
                 iterations[f] += 1
-            x, residual, norms = x_trial, residual_trial, norms_trial
+            finite = torch.isfinite(norms_trial)
+            keep = ~finite[:, None]
+            x = torch.where(keep, x, x_trial)
+            residual = torch.where(keep, residual, residual_trial)
+            norms = torch.where(finite, norms_trial, norms)
+            history.append(norms)
         if bool((norms > targets).any()) or not torch.isfinite(norms).all():
             frame = int(torch.argmax(torch.nan_to_num(norms / targets, nan=math.inf)))
+            why = (f"its residual stopped decreasing (not halved in {opts.stall_iter} iterations)"
+                   if stalled else f"after {max_iter} iterations")
             raise NewtonConvergenceError(
                 f"Newton did not converge in frame {frame}: residual norm "
-                f"{float(norms[frame]):.3e} > tolerance {float(targets[frame]):.3e} after "
-                f"{opts.max_iter} iterations; raise newton.max_iter, reduce the load step, or "
-                "check the material parameters")
-        # The adjoint needs the tangent at the solution itself.
+                f"{float(norms[frame]):.3e} > tolerance {float(targets[frame]):.3e}, {why}; "
+                f"raise newton.max_iter, reduce the load step, or check the material parameters")
+        # The adjoint needs the exact tangent at the solution itself.
         factors = self._factorize(x, params)
-        return _Solution(params, fixed_values, x, factors, iterations)
+        return _Solution(params, fixed_values, x, factors, iterations, reference)
 
     def solution(self, params: Tensor, fixed_values: Tensor, x_init: Tensor | None) -> _Solution:
         params = params.detach()
@@ -263,7 +435,13 @@ class Equilibrium:
         sol.params, sol.fixed_values = params.clone(), fixed_values.clone()
         self._remember(sol)
         self.last_newton_iterations = sol.newton_iterations
+        self.last_warm_started = sol.warm_started
         return sol
+
+    def _param_derivative(self, sol: _Solution) -> Any:
+        if sol.param_derivative is None:
+            sol.param_derivative = self.model.param_derivative(sol.x.detach(), sol.params)
+        return sol.param_derivative
 
 
 class _EquilibriumFunction(torch.autograd.Function):
@@ -289,6 +467,9 @@ class _EquilibriumFunction(torch.autograd.Function):
         free = eq.free_dofs.to(grad_x.device)
         lam = eq._solve(sol.factors, grad_x[:, free], transpose=True)
         need_params, need_fixed = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        if eq._has_param_derivative and need_params and not need_fixed:
+            lam_full = lam.new_zeros(lam.shape[0], eq.model.n_dofs).index_copy(1, free, lam)
+            return -eq._param_derivative(sol).vjp(lam_full), None, None, None
         with torch.enable_grad():
             residual, leaves = _residual_at_solution(eq, sol, need_params, need_fixed)
             grads = torch.autograd.grad(residual, leaves, grad_outputs=-lam, allow_unused=True)
@@ -304,6 +485,11 @@ class _EquilibriumFunction(torch.autograd.Function):
     def jvp(ctx: Any, d_params: Tensor | None, d_fixed: Tensor | None, *_: Any) -> Tensor:  # type: ignore[override]
         eq: Equilibrium = ctx.eq
         sol: _Solution = ctx.solution
+        if eq._has_param_derivative and d_params is not None and d_fixed is None:
+            free = eq.free_dofs.to(sol.x.device)
+            d_residual = eq._param_derivative(sol).jvp(d_params)[:, free]
+            dx_free = -eq._solve(sol.factors, d_residual.detach())
+            return eq._full(dx_free, torch.zeros_like(sol.fixed_values))
         tangents = [d for d in (d_params, d_fixed) if d is not None]
         # (dR/dparams) v + (dR/dfixed) d_fixed by the transpose-of-transpose trick:
         # forward-mode AD cannot nest inside this jvp, and two reverse passes through
@@ -340,3 +526,13 @@ def _residual_at_solution(eq: Equilibrium, sol: _Solution, wrt_params: bool,
     else:
         x = sol.x.detach()
     return eq._free_residual(x, params), leaves
+
+
+def _accepts_keyword(function: Callable[..., Any], name: str) -> bool:
+    """Whether ``function`` takes a keyword argument ``name`` (or ``**kwargs``)."""
+    try:
+        parameters = inspect.signature(function).parameters
+    except (TypeError, ValueError):  # pragma: no cover - builtins
+        return False
+    return name in parameters or any(p.kind is inspect.Parameter.VAR_KEYWORD
+                                     for p in parameters.values())

@@ -5,12 +5,14 @@ from typing import Any, Callable
 
 from .base import InverseProblem, ProblemConfigError
 from .poisson2d import Poisson2D, Poisson2DConfig
+from .membrane2d import Membrane2D, Membrane2DConfig
 from .spring1d import Spring1D, Spring1DConfig
 
 #: config name -> (config dataclass, problem class)
 PROBLEMS: dict[str, tuple[type, Callable[..., InverseProblem]]] = {
     "spring1d": (Spring1DConfig, Spring1D),
     "poisson2d": (Poisson2DConfig, Poisson2D),
+    "membrane2d": (Membrane2DConfig, Membrane2D),
 }
 
 
@@ -31,6 +33,7 @@ def build_problem(name: str, cfg: Any = None) -> InverseProblem:
     return problem_cls(cfg)
 
 
-__all__ = ["InverseProblem", "PROBLEMS", "Poisson2D", "Poisson2DConfig", "ProblemConfigError",
+__all__ = ["InverseProblem", "Membrane2D", "Membrane2DConfig", "PROBLEMS", "Poisson2D",
+           "Poisson2DConfig", "ProblemConfigError",
            "Spring1D", "Spring1DConfig",
            "build_problem"]

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..params import grid_edges, per_element
+from ..params import grid_edges, grid_groups, per_element
 from ..physics import Equilibrium, SpringChain1D
 from .base import InverseProblem, ProblemConfigError, add_noise, node_frame_index, require
 
@@ -97,7 +97,8 @@ class Poisson2D(InverseProblem):
         # Dirichlet: x = X / s on the left and right columns, per component ("frame").
         self.fixed_values = (self.rest_positions[fixed].T / s).contiguous().to(self.device)
         self.parameterization = per_element((N - 1) ** 2, grid_edges((N - 1, N - 1)),
-                                            cfg.transform, name="stiffness")
+                                            cfg.transform, name="stiffness",
+                                            groups=grid_groups((N - 1, N - 1)))
 
         is_free = np.ones(n_nodes, dtype=bool)
         is_free[left_right] = False

@@ -24,7 +24,7 @@ from torch import Tensor
 
 from ..linalg import cgls
 from .records import Callback, IterationRecord, RunClock, SolveResult, emit, finish
-from .residual import Linearization, ResidualFunction
+from .residual import Linearization, ResidualFunction, try_linearize
 
 
 class SolverConfigError(ValueError):
@@ -46,6 +46,8 @@ class GaussNewtonConfig:
     eta_max: float = 0.1            # REGINN: largest relative linear residual asked of CGLS
     eta_min: float = 1e-6           # smallest (fast local convergence without noise)
     cg_max_iter: int = 200          # CGLS iterations per outer iteration
+    cg_rtol: float = 0.0            # also stop CGLS when ||J^T (r + J d)|| <= cg_rtol ||J^T r||
+                                    # (0: off; for penalised problems whose minimum ||r|| > 0)
     rtol: float = 1e-4              # stop when ||r|| decreased by less than this fraction
     gtol: float = 1e-12             # stop when ||J^T r|| <= gtol * ||J^T r_0||
     atol: float = 0.0               # stop when ||r|| <= atol
@@ -59,6 +61,7 @@ class GaussNewtonConfig:
                  f"need 0 < solver.eta_min <= solver.eta_max < 1, got {self.eta_min}, "
                  f"{self.eta_max}")
         _require(self.cg_max_iter >= 1, f"solver.cg_max_iter must be >= 1, got {self.cg_max_iter}")
+        _require(0 <= self.cg_rtol < 1, f"solver.cg_rtol must be in [0, 1), got {self.cg_rtol}")
         _require(self.rtol >= 0 and self.gtol >= 0 and self.atol >= 0,
                  "solver.rtol, solver.gtol and solver.atol must be >= 0")
         _require(0 < self.armijo < 0.5, f"solver.armijo must be in (0, 0.5), got {self.armijo}")
@@ -125,7 +128,8 @@ def gauss_newton(residual: ResidualFunction, theta0: Tensor,
             target = max(target, residual.noise_level)
         project = residual.projector(theta)
         inner = cgls(lin.jvp, lin.vjp, -lin.r, theta.numel(), residual_target=target,
-                     max_iter=cfg.cg_max_iter, project=project, rmatvec_b=-gradient)
+                     max_iter=cfg.cg_max_iter, project=project, rmatvec_b=-gradient,
+                     **({"normal_rtol": cfg.cg_rtol} if cfg.cg_rtol > 0 else {}))
         direction = inner.x
         slope = float(torch.dot(lin.r, inner.Ax))  # d/da 0.5||r + a J d||^2 at a = 0
         if slope >= 0 or not math.isfinite(slope):
@@ -134,8 +138,8 @@ def gauss_newton(residual: ResidualFunction, theta0: Tensor,
         step = 1.0
         trial: Linearization | None = None
         for _ in range(cfg.max_backtracks + 1):
-            candidate = residual.linearize(theta + step * direction)
-            if math.isfinite(candidate.norm) and \
+            candidate = try_linearize(residual, theta + step * direction)
+            if candidate is not None and math.isfinite(candidate.norm) and \
                     0.5 * candidate.norm ** 2 <= 0.5 * lin.norm ** 2 + cfg.armijo * step * slope:
                 trial = candidate
                 break

@@ -27,7 +27,7 @@ from torch import Tensor
 from ..linalg import cgls
 from .gauss_newton import SolverConfigError, _require, _stop_reason
 from .records import Callback, IterationRecord, RunClock, SolveResult, emit, finish
-from .residual import Linearization, ResidualFunction
+from .residual import Linearization, ResidualFunction, try_linearize
 
 
 @dataclasses.dataclass
@@ -109,10 +109,10 @@ def levenberg_marquardt(residual: ResidualFunction, theta0: Tensor,
         direction = inner.x
         jd = inner.Ax
         predicted = -float(torch.dot(lin.r, jd)) - 0.5 * float(torch.dot(jd, jd))
-        candidate = residual.linearize(theta + direction)
-        actual = 0.5 * lin.norm ** 2 - 0.5 * candidate.norm ** 2
+        candidate = try_linearize(residual, theta + direction)
+        actual = 0.5 * lin.norm ** 2 - 0.5 * candidate.norm ** 2 if candidate is not None else -math.inf
         gain = actual / predicted if predicted > 0 else -math.inf
-        if math.isfinite(candidate.norm) and gain > 0:
+        if candidate is not None and math.isfinite(candidate.norm) and gain > 0:
             step_norm = float(torch.linalg.vector_norm(direction))
             previous_norm = lin.norm
             theta, lin = candidate.theta, candidate

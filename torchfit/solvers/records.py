@@ -61,8 +61,9 @@ class SolveResult:
     """Outcome of a solver run.
 
     ``stop_reason`` is one of ``discrepancy`` (``||r|| <= tau delta``), ``tolerance``
-    (relative decrease or gradient below tolerance), ``max_iter``, ``line_search``
-    (no decrease possible along the step), ``stalled`` (damping exhausted), or
+    (relative decrease or gradient below tolerance, or a split Bregman fixed point),
+    ``max_iter``, ``line_search`` (no decrease possible along the step), ``stalled``
+    (damping exhausted, or split Bregman rejected too many outer steps in a row), or
     ``interrupted`` (a callback asked to stop).
     """
 

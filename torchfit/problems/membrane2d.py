@@ -1,0 +1,230 @@
+"""``membrane2d``: the elastic sheet spelling IPAM (PROBLEMS.md, the seed's PhysBAM 2-D test).
+
+Rest rectangle ``[0, width] x [0, height]`` (``2 x 0.5``), structured triangulation of
+``nx x ny`` cells (``96 x 24``) each split into two triangles, plane strain. One Young's
+modulus per triangle, Poisson ratio ``nu`` fixed; constitutive model ``corotated`` by
+default (``linear``, ``stable_neo_hookean`` / ``neo_hookean`` too). Truth: ``E = 1``,
+``E = 10`` on the triangles whose centroid lies on the ink of the word IPAM in the 5x7
+font of PROBLEMS.md (:func:`torchfit.mesh.ipam_mask`, box ``[0.10, 0.90) x [0.35, 0.65)``
+of the sheet normalised to the unit square).
+
+Animation, 8 frames, each an independent quasistatic equilibrium: the left edge is held
+at rest, the right edge (rest ``x = width``) is prescribed:
+
+====  =========================================================================
+0, 1  stretch: ``x = width (1 + s)``, ``s = 10 %, 20 %``
+2, 3  shear at 20 % stretch: ``x = 1.2 width``, ``y = Y + 0.1, + 0.2``
+4, 5  bend: the right edge rotated about its rest centre ``(width, height / 2)``
+      by ``10, 20`` degrees (counter-clockwise), no stretch
+6, 7  compress: ``x = width (1 + s)``, ``s = -5 %, -10 %``
+====  =========================================================================
+
+Every load is a prescribed displacement, so ``x(a E) = x(E)``: scale-free (metrics
+report ``k_err_rel_aligned``; solvers get the gauge direction). Data ``dense``: both
+coordinates of every free vertex (neither edge) in every frame.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..mesh import ipam_mask, normalized_points, rectangle_triangles
+from ..params import per_element
+from ..physics import NewtonOptions
+from ..physics.elasticity import (MATERIALS, ALIASES, QuasistaticElasticity,
+                                  SimplicialElasticity, get_material)
+from .base import InverseProblem, ProblemConfigError, add_noise, require
+
+DATA_MODES = ("dense",)
+BACKENDS = ("banded", "scipy", "cg")
+
+#: The animation of PROBLEMS.md: (kind, value) per frame.
+FRAMES: tuple[tuple[str, float], ...] = (
+    ("stretch", 0.10), ("stretch", 0.20),
+    ("shear", 0.10), ("shear", 0.20),
+    ("bend", 10.0), ("bend", 20.0),
+    ("stretch", -0.05), ("stretch", -0.10),
+)
+SHEAR_STRETCH = 0.20
+
+
+@dataclasses.dataclass
+class Membrane2DConfig:
+    """Settings of ``problem=membrane2d`` (defaults are the canonical values)."""
+
+    name: str = "membrane2d"
+    nx: int = 96                        # cells along x (2 nx ny triangles)
+    ny: int = 24                        # cells along y
+    width: float = 2.0
+    height: float = 0.5
+    nu: float = 0.3                     # Poisson ratio, fixed (plane strain)
+    model: str = "corotated"            # linear | corotated | stable_neo_hookean (neo_hookean)
+    E_background: float = 1.0
+    E_ink: float = 10.0                 # on the letters IPAM
+    data: str = "dense"                 # dense: every free vertex, every frame
+    noise: float = 0.0                  # sigma of the Gaussian noise on every observed value
+    seed: int = 0
+    E0: float = 1.0                     # initial guess, constant
+    transform: str = "exp"              # exp (E = exp(theta)) | identity
+    backend: str = "banded"             # linear solves: banded (CPU, SPD) | scipy | cg
+    device: str = "cpu"
+    newton_rtol: float = 1e-11          # relative to the residual of the cold start
+    newton_atol: float = 1e-13          # absolute floor (force units)
+    newton_max_iter: int = 50
+
+
+def animation(right_rest: Tensor, width: float, height: float) -> Tensor:
+    """Positions ``(8, n, 2)`` of the right-edge vertices ``right_rest`` ``(n, 2)`` per frame."""
+    frames = []
+    centre = torch.tensor([width, 0.5 * height], dtype=right_rest.dtype, device=right_rest.device)
+    for kind, value in FRAMES:
+        p = right_rest.clone()
+        if kind == "stretch":
+            p[:, 0] = width * (1.0 + value)
+        elif kind == "shear":
+            p[:, 0] = width * (1.0 + SHEAR_STRETCH)
+            p[:, 1] = right_rest[:, 1] + value
+        else:  # bend
+            angle = math.radians(value)
+            rotation = torch.tensor([[math.cos(angle), -math.sin(angle)],
+                                     [math.sin(angle), math.cos(angle)]], dtype=p.dtype,
+                                    device=p.device)
+            p = centre + (right_rest - centre) @ rotation.T
+        frames.append(p)
+    return torch.stack(frames)
+
+
+class Membrane2D(InverseProblem):
+    """The IPAM sheet as an inverse problem (fit one Young's modulus per triangle)."""
+
+    name = "membrane2d"
+    field_name = "E"
+    scale_free = True
+    default_sheet_frame = 5            # bend by 20 degrees: the most telling frame to draw
+
+    def __init__(self, cfg: Membrane2DConfig | None = None, **overrides: object) -> None:
+        cfg = dataclasses.replace(cfg or Membrane2DConfig(), **overrides)
+        self.cfg = cfg
+        self._validate(cfg)
+        self.device = torch.device(cfg.device)
+        dtype = torch.float64
+        self.mesh = rectangle_triangles(cfg.nx, cfg.ny, cfg.width, cfg.height)
+        self.model = SimplicialElasticity(torch.from_numpy(self.mesh.points),
+                                          torch.from_numpy(self.mesh.cells), cfg.model,
+                                          nu=cfg.nu, dtype=dtype, device=self.device)
+        left = self.mesh.boundary_vertices("left")
+        right = self.mesh.boundary_vertices("right")
+        self.left_vertices = torch.as_tensor(left)
+        self.right_vertices = torch.as_tensor(right)
+        dirichlet = np.concatenate([left, right])
+        newton = NewtonOptions(max_iter=cfg.newton_max_iter, rtol=cfg.newton_rtol,
+                               atol=cfg.newton_atol)
+        self.quasistatic = QuasistaticElasticity(self.model, dirichlet, backend=cfg.backend,
+                                                 newton=newton)
+        rest = self.model.rest.points
+        right_frames = animation(rest[self.right_vertices], cfg.width, cfg.height)
+        n_frames = right_frames.shape[0]
+        left_frames = rest[self.left_vertices].expand(n_frames, -1, -1)
+        self.dirichlet_positions = torch.cat([left_frames, right_frames], dim=1).contiguous()
+        self.n_frames = n_frames
+        self.observed_vertices = self.quasistatic.free_vertices.to(self.device)
+        self.parameterization = per_element(self.model.n_cells, self.mesh.adjacency(),
+                                            cfg.transform, name="Young's modulus")
+        self.theta0 = self.parameterization.constant(cfg.E0, dtype, self.device)
+        self.ink = torch.as_tensor(ipam_mask(normalized_points(self.mesh.centroids(),
+                                                               self.mesh.extent)),
+                                   device=self.device)
+        self.field_true = torch.where(self.ink, cfg.E_ink, cfg.E_background).to(dtype)
+        self.x_true = self.simulate(self.field_true).detach()
+        self.data, self.noise_level = add_noise(self.observe(self.x_true), cfg.noise, cfg.seed)
+
+    @staticmethod
+    def _validate(cfg: Membrane2DConfig) -> None:
+        require(isinstance(cfg.nx, int) and isinstance(cfg.ny, int) and cfg.nx >= 1
+                and cfg.ny >= 1, f"problem.nx and problem.ny must be integers >= 1 (cells per "
+                f"side), got {cfg.nx!r}, {cfg.ny!r}")
+        require(cfg.nx >= 2, f"problem.nx={cfg.nx}: the sheet needs at least two cells along "
+                "x so that some vertex is free")
+        require(cfg.width > 0 and cfg.height > 0 and math.isfinite(cfg.width)
+                and math.isfinite(cfg.height),
+                f"problem.width and problem.height must be positive, got {cfg.width}, {cfg.height}")
+        require(-1.0 < cfg.nu < 0.5, f"problem.nu={cfg.nu} is outside (-1, 0.5) (Poisson ratio "
+                "of an isotropic material; 0.5 would be incompressible)")
+        known = sorted(MATERIALS) + sorted(ALIASES)
+        require(cfg.model in known, f"problem.model={cfg.model!r} is not a constitutive model; "
+                f"choose one of {known}")
+        require(cfg.data in DATA_MODES, f"problem.data={cfg.data!r} is not a data mode; "
+                f"choose one of {DATA_MODES}")
+        require(cfg.noise >= 0, f"problem.noise must be >= 0 (a standard deviation), got "
+                f"{cfg.noise}")
+        for key in ("E_background", "E_ink", "E0"):
+            value = getattr(cfg, key)
+            require(value > 0 and math.isfinite(value),
+                    f"problem.{key} must be a positive Young's modulus, got {value}")
+        require(cfg.backend in BACKENDS, f"problem.backend={cfg.backend!r} is not a linear-solve "
+                f"backend; choose one of {BACKENDS}")
+        require(cfg.device == "cpu" or cfg.backend == "cg",
+                f"problem.device={cfg.device!r} needs problem.backend=cg (the direct backends run "
+                "on the CPU)")
+        require(cfg.newton_rtol >= 0 and cfg.newton_atol > 0 and cfg.newton_max_iter >= 1,
+                "problem.newton_rtol must be >= 0, problem.newton_atol > 0 and "
+                "problem.newton_max_iter >= 1")
+
+    # -- the forward model ------------------------------------------------------------------
+    def simulate(self, E: Tensor) -> Tensor:
+        """Vertex positions ``(8, n_vertices, 2)`` of every frame for ``E`` ``(n_triangles,)``."""
+        if E.shape != (self.model.n_cells,):
+            raise ProblemConfigError(f"Young's modulus must have shape ({self.model.n_cells},) "
+                                     f"(one per triangle), got {tuple(E.shape)}")
+        return self.quasistatic(E, self.dirichlet_positions.to(E))
+
+    def observe(self, x: Tensor) -> Tensor:
+        """Both coordinates of every free vertex, frame-major ``(F * n_free * 2,)``."""
+        return x[:, self.observed_vertices.to(x.device), :].reshape(-1)
+
+    # -- what the loggers draw -------------------------------------------------------------
+    def field_image(self, field: Tensor, pixels_per_cell: int = 4) -> np.ndarray:
+        """The per-triangle field as an image ``(ny p, nx p)``, row 0 at the top (max y).
+
+        Each cell is ``p x p`` pixels; a pixel takes the triangle under its centre (on
+        the diagonal: the one below it).
+        """
+        p = int(pixels_per_cell)
+        values = field.detach().cpu().numpy().reshape(self.cfg.ny, self.cfg.nx, 2)
+        centres = (np.arange(p) + 0.5) / p
+        u = np.broadcast_to(centres[None, :], (p, p))          # along x inside the cell
+        v = np.broadcast_to(centres[:, None], (p, p))          # along y
+        upper = (v > u).astype(np.int64)                       # above the diagonal
+        image = values[:, :, upper]                            # (ny, nx, p, p): [j, i, v, u]
+        image = image.transpose(0, 2, 1, 3).reshape(self.cfg.ny * p, self.cfg.nx * p)
+        return image[::-1].copy()
+
+    def frame_errors(self, x: Tensor) -> dict[str, np.ndarray]:
+        """Per-frame position errors against the noise-free truth: ``u_err_inf``, ``u_err_2``."""
+        du = (x.detach() - self.x_true).reshape(x.shape[0], -1)
+        return {"u_err_inf": du.abs().amax(dim=1).cpu().numpy(),
+                "u_err_2": torch.linalg.vector_norm(du, dim=1).cpu().numpy()}
+
+    def frame_names(self) -> list[str]:
+        """Short labels of the frames (for plots)."""
+        names = []
+        for kind, value in FRAMES:
+            if kind == "stretch":
+                names.append(f"{'stretch' if value > 0 else 'compress'} {abs(value):.0%}")
+            elif kind == "shear":
+                names.append(f"shear {value:g} at {SHEAR_STRETCH:.0%}")
+            else:
+                names.append(f"bend {value:g} deg")
+        return names
+
+    def describe(self) -> dict[str, Any]:
+        out = super().describe()
+        out.update({"model": get_material(self.cfg.model).name, "nu": self.model.nu,
+                    "n_triangles": self.model.n_cells, "n_vertices": self.model.n_vertices,
+                    "n_frames": self.n_frames, "n_ink": int(self.ink.sum())})
+        return out

@@ -1,0 +1,224 @@
+"""Stacked residuals ``R(theta) = [sqrt(w_1) r_1(theta); sqrt(w_2) r_2(theta); ...]``.
+
+A penalised least-squares problem ``sum_i w_i / 2 ||r_i(theta)||^2`` is itself a least
+squares problem ``1/2 ||R(theta)||^2``, so the existing Gauss-Newton and
+Levenberg-Marquardt solvers minimise it unchanged once the blocks are stacked into one
+residual object with the interface they use (``linearize(theta)`` returning ``r``,
+``norm``, ``jvp``, ``vjp``; ``noise_level``; ``projector(theta)``; ``value(theta)``).
+
+Split Bregman's inner problem ``mu/2 ||r(theta)||^2 + beta/2 ||D theta - t||^2`` is such
+a stack of the (non-linear) model residual and a :class:`LinearResidual`; the linear
+block costs sparse products only, never a solve.
+
+:class:`CachedResidual` keeps the linearisations of the last few points: an outer loop
+that hands the end point of one inner solve to the next (split Bregman) re-linearises
+there for free instead of running the simulator again, so every distinct parameter
+vector is simulated (and factorised) once.
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable, Protocol, Sequence
+
+import torch
+from torch import Tensor
+
+
+class LinearizationLike(Protocol):
+    theta: Tensor
+    r: Tensor
+    norm: float
+
+    def jvp(self, v: Tensor) -> Tensor: ...
+
+    def vjp(self, w: Tensor) -> Tensor: ...
+
+
+class ResidualLike(Protocol):
+    noise_level: float | None
+
+    def linearize(self, theta: Tensor) -> LinearizationLike: ...
+
+    def value(self, theta: Tensor) -> Tensor: ...
+
+    def projector(self, theta: Tensor) -> Callable[[Tensor], Tensor] | None: ...
+
+
+def _sparse(matrix: Tensor) -> Tensor:
+    if matrix.layout == torch.sparse_coo:
+        return matrix.coalesce()
+    if matrix.layout == torch.strided:
+        return matrix.to_sparse().coalesce()
+    return matrix.to_sparse_coo().coalesce()
+
+
+class _LinearLinearization:
+    def __init__(self, owner: "LinearResidual", theta: Tensor) -> None:
+        self._owner = owner
+        self.theta = theta.detach()
+        self.r = owner.value(self.theta)
+        self.norm = float(torch.linalg.vector_norm(self.r))
+
+    def jvp(self, v: Tensor) -> Tensor:
+        return self._owner.matvec(v)
+
+    def vjp(self, w: Tensor) -> Tensor:
+        return self._owner.rmatvec(w)
+
+
+class LinearResidual:
+    """``r(theta) = A theta - target`` for a (sparse) matrix ``A``; products are exact and free.
+
+    Args:
+        A: ``(m, n)`` sparse (COO/CSR) or dense matrix.
+        target: ``(m,)`` or ``None`` (zeros). May be replaced between solves
+            (:attr:`target` is a plain attribute).
+    """
+
+    noise_level = None
+
+    def __init__(self, A: Tensor, target: Tensor | None = None) -> None:
+        self.A = _sparse(A)
+        self.At = self.A.t().coalesce()
+        self.target = target if target is not None else self.A.new_zeros(self.A.shape[0])
+
+    @property
+    def size(self) -> int:
+        return int(self.A.shape[0])
+
+    def matvec(self, v: Tensor) -> Tensor:
+        return torch.mv(self.A, v)
+
+    def rmatvec(self, w: Tensor) -> Tensor:
+        return torch.mv(self.At, w)
+
+    def value(self, theta: Tensor) -> Tensor:
+        return self.matvec(theta.detach()) - self.target
+
+    def linearize(self, theta: Tensor) -> _LinearLinearization:
+        return _LinearLinearization(self, theta)
+
+    def projector(self, theta: Tensor) -> None:
+        return None
+
+
+class CachedResidual:
+    """A residual that remembers the linearisations of the last few points it was asked for.
+
+    ``linearize(theta)`` at one of the ``size`` most recent points (``torch.equal``)
+    returns the stored object: no simulation, no factorisation. An outer loop that
+    hands the end point of one inner solve to the next re-linearises there for free,
+    also when the inner solver tried (and rejected) other points after accepting it.
+    Everything else is delegated.
+
+    Attributes:
+        evaluations: number of linearisations actually computed, a counter the tests
+            compare with the solve counters.
+    """
+
+    def __init__(self, residual: ResidualLike, size: int = 3) -> None:
+        self.residual = residual
+        self.noise_level = residual.noise_level
+        self.size = max(1, int(size))
+        self._recent: list[LinearizationLike] = []
+        self.evaluations = 0
+
+    def _find(self, theta: Tensor) -> LinearizationLike | None:
+        for lin in reversed(self._recent):
+            if lin.theta.shape == theta.shape and torch.equal(lin.theta, theta):
+                return lin
+        return None
+
+    def linearize(self, theta: Tensor) -> LinearizationLike:
+        found = self._find(theta)
+        if found is not None:
+            self.restore(found)
+            return found
+        lin = self.residual.linearize(theta)
+        self.evaluations += 1
+        self.restore(lin)
+        return lin
+
+    def restore(self, lin: LinearizationLike) -> None:
+        """Make ``lin`` (a linearisation of this residual) the most recent one."""
+        self._recent = [x for x in self._recent if x is not lin][-(self.size - 1):] \
+            if self.size > 1 else []
+        self._recent.append(lin)
+
+    def value(self, theta: Tensor) -> Tensor:
+        found = self._find(theta)
+        return found.r if found is not None else self.residual.value(theta)
+
+    def projector(self, theta: Tensor) -> Callable[[Tensor], Tensor] | None:
+        return self.residual.projector(theta)
+
+
+class StackedLinearization:
+    """Linearisation of a :class:`StackedResidual` at one ``theta``."""
+
+    def __init__(self, parts: Sequence[LinearizationLike], scales: Sequence[float],
+                 theta: Tensor) -> None:
+        self.parts = list(parts)
+        self.scales = list(scales)
+        self.theta = theta.detach()
+        self.sizes = [int(p.r.numel()) for p in self.parts]
+        self.r = torch.cat([s * p.r for s, p in zip(self.scales, self.parts)])
+        self.norm = float(torch.linalg.vector_norm(self.r))
+
+    def jvp(self, v: Tensor) -> Tensor:
+        return torch.cat([s * p.jvp(v) for s, p in zip(self.scales, self.parts)])
+
+    def vjp(self, w: Tensor) -> Tensor:
+        out = None
+        for s, p, w_i in zip(self.scales, self.parts, torch.split(w, self.sizes)):
+            term = s * p.vjp(w_i)
+            out = term if out is None else out + term
+        assert out is not None
+        return out
+
+
+class StackedResidual:
+    """``R(theta) = [sqrt(w_1) r_1(theta); ...]``, minimised as ``1/2 ||R||^2``.
+
+    Args:
+        blocks: residuals (each with ``linearize``/``value``/``projector``).
+        weights: ``w_i > 0`` per block.
+        projector_from: index of the block whose ``projector`` (gauge) the stack uses;
+            the caller guarantees the other blocks do not depend on that direction
+            (difference operators annihilate the constant gauge of ``theta = log k``).
+
+    The stack's ``noise_level`` is ``None``: a penalised problem has no discrepancy level
+    of its own, its solvers stop on relative decrease.
+    """
+
+    noise_level = None
+
+    def __init__(self, blocks: Sequence[ResidualLike], weights: Sequence[float],
+                 projector_from: int | None = 0) -> None:
+        if len(blocks) != len(weights) or not blocks:
+            raise ValueError("need one weight per block and at least one block")
+        for w in weights:
+            if not (w > 0 and math.isfinite(w)):
+                raise ValueError(f"block weights must be positive and finite, got {w}")
+        self.blocks = list(blocks)
+        self.weights = [float(w) for w in weights]
+        self.projector_from = projector_from
+
+    @property
+    def scales(self) -> list[float]:
+        return [math.sqrt(w) for w in self.weights]
+
+    def linearize(self, theta: Tensor) -> StackedLinearization:
+        theta = theta.detach()
+        return StackedLinearization([b.linearize(theta) for b in self.blocks], self.scales, theta)
+
+    def value(self, theta: Tensor) -> Tensor:
+        return torch.cat([s * b.value(theta) for s, b in zip(self.scales, self.blocks)])
+
+    def projector(self, theta: Tensor) -> Callable[[Tensor], Tensor] | None:
+        if self.projector_from is None:
+            return None
+        return self.blocks[self.projector_from].projector(theta)
+
+
+__all__ = ["CachedResidual", "LinearResidual", "StackedLinearization", "StackedResidual"]
