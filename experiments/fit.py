@@ -60,6 +60,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+import matplotlib  # noqa: E402
+
+matplotlib.use("Agg")   # pictures are files and TensorBoard images; never open a window
 import hydra  # noqa: E402
 import torch  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
@@ -72,10 +75,10 @@ from torchfit.config import register_configs  # noqa: E402
 from torchfit.linalg import SingularMatrixError  # noqa: E402
 from torchfit.linalg.threads import set_blas_threads  # noqa: E402
 from torchfit.logging import (CheckpointWriter, FieldSnapshots, MetricsCallback,  # noqa: E402
-                              ProgressPrinter, TensorBoardLogger, field_is_chain, load_checkpoint,
-                              save_params, supports_field_images, write_result)
-from torchfit.logging.results import CHECKPOINT_FILE  # noqa: E402
-from torchfit.logging.tensorboard import field_figure  # noqa: E402
+                              PlotGuard, ProgressPrinter, TensorBoardLogger, field_is_chain,
+                              load_checkpoint, save_params, supports_field_images, write_result,
+                              write_run_pngs)
+from torchfit.logging.results import CHECKPOINT_FILE, history_rows  # noqa: E402
 from torchfit.physics.equilibrium import NewtonConvergenceError  # noqa: E402
 from torchfit.problems import InverseProblem, build_problem  # noqa: E402
 from torchfit.solvers import SOLVERS, SolveResult, check_difference_operator  # noqa: E402
@@ -231,9 +234,11 @@ def run(job: Job, run_dir: Path) -> float:
         callbacks.append(ProgressPrinter(step_offset=job.start_iteration))
     callbacks.append(tb)
     snapshots = None
+    guard = PlotGuard()     # a failed drawing is warned about once, never fails the fit
     if supports_field_images(problem):
         snapshots = FieldSnapshots(problem, tb, run_dir, config["snapshot_iterations"],
-                                   int(config["snapshot_every"]), config.get("sheet_frame"))
+                                   int(config["snapshot_every"]), config.get("sheet_frame"),
+                                   guard=guard)
         callbacks.append(snapshots)
     callbacks.append(CheckpointWriter(run_dir / CHECKPOINT_FILE, job.start_iteration,
                                       problem.name, config["problem"]))
@@ -253,20 +258,19 @@ def run(job: Job, run_dir: Path) -> float:
     metrics = problem.metrics(result.theta)
     hparams = {"problem": config["problem"], "solver": config["solver"]}
     pictures = snapshots.finish() if snapshots is not None else []
-    tb.finish(problem, result.theta, metrics, hparams)
+    final = {**metrics, "iterations": result.iterations, "wall_s": result.wall_time}
+    tb.finish(problem, result.theta, final, hparams, guard)
     field = problem.field(result.theta)
     save_params(run_dir, result.theta, field, problem.field_name)
     if getattr(problem, "mesh", None) is not None:
         save_frames(run_dir / "frames.npz", problem, field)
         pictures.append(run_dir / "frames.npz")
-    if field_is_chain(problem):
-        fig = field_figure(field, problem.field_true, problem.field_name,
-                           title=f"{problem.name}: fitted {problem.field_name}")
-        fig.savefig(run_dir / "field.png")
     result_path = write_result(run_dir, result, metrics, described, config,
                                step_offset=job.start_iteration)
-    plot = " field.png," if field_is_chain(problem) else ""
-    plot += "".join(f" {p.name}," for p in pictures)
+    pictures = write_run_pngs(run_dir, problem, result.theta,
+                              history_rows(result.history, job.start_iteration), guard,
+                              field_is_chain(problem)) + pictures
+    plot = "".join(f" {p.name}," for p in pictures)
 
     summary = ", ".join(f"{k} {metrics[k]:.3e}" for k in ("misfit", "k_err_rel",
                                                            "k_err_rel_aligned") if k in metrics)

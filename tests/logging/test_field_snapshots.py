@@ -27,7 +27,7 @@ def test_snapshots_images_scalars_and_files(tmp_path):
     assert image.shape == (4 * 4, 16 * 4) and errors.shape == (8,)
     acc = EventAccumulator(str(tmp_path / "tb"), size_guidance={"images": 0, "tensors": 0})
     acc.Reload()
-    assert [e.step for e in acc.Images("field/E_image")] == [0, 1, 3]
+    assert [e.step for e in acc.Images("field/E_image")] == [0, 1, 3, 4]
     assert [e.step for e in acc.Images("sheet/frame_7")] == [0, 1, 3]
     assert len(acc.Tensors("frames/u_err_inf/frame_7")) == 5
 

@@ -10,6 +10,7 @@ so that the problem metrics added by :class:`MetricsCallback` to ``record.extra`
 seen by the loggers after it.
 """
 from .metrics import METRIC_KEYS, MetricsCallback
+from .pictures import PlotGuard, write_run_pngs
 from .progress import ProgressPrinter
 from .results import (Checkpoint, CheckpointWriter, load_checkpoint, result_dict, save_checkpoint,
                       save_params, write_json, write_result)
@@ -18,7 +19,7 @@ from .tensorboard import (FieldSnapshots, TensorBoardLogger, field_is_chain, sup
 
 __all__ = [
     "Checkpoint", "CheckpointWriter", "FieldSnapshots", "METRIC_KEYS", "MetricsCallback",
-    "ProgressPrinter", "TensorBoardLogger", "field_is_chain", "load_checkpoint", "result_dict",
+    "PlotGuard", "ProgressPrinter", "TensorBoardLogger", "field_is_chain", "load_checkpoint", "result_dict",
     "save_checkpoint", "save_params", "supports_field_images", "tag_for", "write_json",
-    "write_result",
+    "write_result", "write_run_pngs",
 ]

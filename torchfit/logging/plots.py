@@ -130,3 +130,115 @@ def frame_errors_figure(history: Mapping[int, np.ndarray], labels: Sequence[str]
     if title:
         ax.set_title(title, fontsize=9)
     return fig
+
+
+# -- images and run-directory figures (field.png, error_curves.png) ----------------------
+
+#: Colour map of signed error images: blue negative, white zero, red positive.
+ERROR_CMAP = "RdBu_r"
+
+
+def upscale(image: np.ndarray, min_size: int = 256, max_factor: int = 16) -> np.ndarray:
+    """Repeat every pixel ``f x f`` times (nearest neighbour) so that the longer side of
+    ``image`` reaches ``min_size`` pixels; ``f`` is an integer in ``[1, max_factor]``.
+
+    TensorBoard shows an image at its own pixel size; a 31 x 31 field would be a stamp.
+    Works on ``(H, W)`` and ``(H, W, C)``.
+    """
+    longest = max(int(image.shape[0]), int(image.shape[1]), 1)
+    factor = int(min(max_factor, max(1, -(-min_size // longest))))
+    if factor == 1:
+        return image
+    return np.repeat(np.repeat(image, factor, axis=0), factor, axis=1)
+
+
+def symmetric_range(values: np.ndarray) -> tuple[float, float]:
+    """``(-m, m)`` with ``m = max |values|`` (``(-1, 1)`` for an all-zero array)."""
+    m = float(np.max(np.abs(values))) if np.size(values) else 0.0
+    m = m if m > 0 and np.isfinite(m) else 1.0
+    return -m, m
+
+
+def field_panels_figure(fitted: np.ndarray, truth: np.ndarray | None, error: np.ndarray | None,
+                        extent: tuple[float, float, float, float], vmin: float, vmax: float,
+                        name: str = "k", fitted_label: str | None = None,
+                        error_label: str | None = None, title: str | None = None):
+    """Truth / fit / error images side by side, each with its colour bar.
+
+    Args:
+        fitted, truth, error: ``(H, W)`` images, row 0 at the top; ``truth`` and
+            ``error`` may be ``None`` (user data without a truth).
+        extent: ``(x0, x1, y0, y1)`` of the domain.
+        vmin, vmax: colour range shared by truth and fit.
+        error_label: title of the error panel (say "aligned" for a scale-free problem).
+    """
+    from matplotlib.figure import Figure
+
+    panels: list[tuple[str, np.ndarray, str, float, float]] = []
+    if truth is not None:
+        panels.append((f"true {name}", truth, "viridis", vmin, vmax))
+    panels.append((fitted_label or f"fitted {name}", fitted, "viridis", vmin, vmax))
+    if error is not None:
+        lo, hi = symmetric_range(error)
+        panels.append((error_label or f"{name} - {name}_true", error, ERROR_CMAP, lo, hi))
+    height, width = float(extent[3] - extent[2]), float(extent[1] - extent[0])
+    aspect = height / width if width > 0 else 1.0
+    panel_w = 3.6
+    fig = Figure(figsize=(panel_w * len(panels), min(8.0, panel_w * aspect + 0.9)), dpi=100,
+                 layout="constrained")
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    for ax, (label, image, cmap, lo, hi) in zip(axes, panels):
+        shown = ax.imshow(image, extent=extent, vmin=lo, vmax=hi, cmap=cmap,
+                          interpolation="nearest", aspect="equal")
+        ax.set_title(label, fontsize=9)
+        ax.tick_params(labelsize=7)
+        bar = fig.colorbar(shown, ax=ax, shrink=0.85, location="bottom", pad=0.02, aspect=25)
+        bar.ax.tick_params(labelsize=7)
+        if cmap == ERROR_CMAP:
+            bar.formatter.set_powerlimits((-2, 3))
+            bar.update_ticks()
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return fig
+
+
+def error_curves_figure(history: Sequence[Mapping[str, float]], keys: Sequence[str],
+                        title: str | None = None):
+    """One log-scale panel per key against the iteration (shared x axis).
+
+    Args:
+        history: one mapping per recorded iteration with ``iteration`` and the keys
+            (``result.json``'s ``history`` rows); missing, non-finite or non-positive
+            values are left out of the curve.
+        keys: what to draw, one panel each, top to bottom (e.g. ``misfit``,
+            ``k_err_rel_aligned``, ``tv``).
+    """
+    from matplotlib.figure import Figure
+
+    keys = list(keys)
+    fig = Figure(figsize=(6.4, 1.0 + 1.9 * max(1, len(keys))), dpi=100, layout="constrained")
+    axes = fig.subplots(max(1, len(keys)), 1, sharex=True, squeeze=False)[:, 0]
+    steps = np.array([float(row.get("iteration", i)) for i, row in enumerate(history)])
+    for i, (ax, key) in enumerate(zip(axes, keys)):
+        values = np.array([float(row.get(key, np.nan)) for row in history], dtype=np.float64)
+        keep = np.isfinite(values) & (values > 0)
+        ax.semilogy(steps[keep], values[keep], marker="." if keep.sum() < 40 else None,
+                    lw=1.3, color=f"C{i}")
+        ax.set_ylabel(key, fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3, which="both")
+        if keep.any():
+            ax.set_title(f"{key}: {values[keep][0]:.3g} -> {values[keep][-1]:.3g}", fontsize=8,
+                         loc="left")
+    axes[-1].set_xlabel("iteration")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return fig
+
+
+def save_png(fig, path) -> None:
+    """Render ``fig`` with the Agg canvas (no display, no pyplot state) into ``path``."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(fig)
+    fig.savefig(path)

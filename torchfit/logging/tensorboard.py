@@ -21,10 +21,19 @@ Tag scheme (one TensorBoard section per prefix)
                    (``field/k_true``); for a 1-D field (a chain) an image
                    ``field/<name>_profile`` of fitted vs true per cell.
 ``config``         at the start: the resolved config as text.
-``field/<name>``   (2-D fields, :class:`FieldSnapshots`) ``field/<name>_image``: the field as an
-                   image (scaled onto the truth for a scale-free problem, fixed colour range)
-                   after the snapshot iterations (default 1, 5, 10, 40) and every
-                   ``snapshot_every`` iterations; ``field/<name>_true_image`` once.
+``field/<name>_*``  (2-D fields, :class:`FieldSnapshots`: poisson2d, membrane2d) images,
+                   upscaled so the longer side has >= 256 pixels:
+                   ``field/<name>_true_image`` once (first step); ``field/<name>_image``, the
+                   fit (for a scale-free problem multiplied by the best global scale onto
+                   the truth; fixed colour range ``[min(0, truth), 1.15 max truth]``) and
+                   ``field/<name>_error_aligned_image`` (``field/<name>_error_image`` when
+                   not scale-free), ``a k - k_true``, blue < 0 < red, range ``+-max|error|``
+                   of that image, at iteration 0, the snapshot iterations (default 1, 5,
+                   10, 40), every ``snapshot_every`` iterations (default 10) and the last
+                   iteration; ``field/<name>_panels`` at the last iteration: truth, fit and
+                   error with colour bars (the run directory's ``field.png``).
+``final/<key>``    once, at the last step: ``final/iterations``, ``final/wall_s`` (HParams
+                   metrics that have no per-iteration curve).
 ``frames/<key>``   per-frame position errors against the truth, one curve per frame:
                    ``frames/u_err_inf/frame_<f>``, ``frames/u_err_2/frame_<f>``.
 ``sheet/frame_<f>``  the deformed mesh of one frame coloured by the field, with the target
@@ -42,13 +51,17 @@ callback can choose its own section. The step of every scalar is the outer itera
 ``log_every = n`` the iterations ``0, n, 2n, ...`` and always the last one are written
 (the last one when :meth:`TensorBoardLogger.close` or :meth:`finish` is called).
 
-:meth:`TensorBoardLogger.log_hparams` writes the HParams summary into the same run
-(no timestamped sub-run as ``SummaryWriter.add_hparams`` would make); its metrics are
-the per-iteration tags above, so the HParams dashboard shows their final values.
+:meth:`TensorBoardLogger.log_hparams` writes the HParams session (start info with every
+``problem.*`` and ``solver.*`` setting, end info) into the same run, without a per-run
+experiment summary, so that TensorBoard builds the experiment from all runs of a sweep
+(see that method); the metric columns are the scalar tags, e.g. ``fit/misfit``,
+``metrics/k_err_rel_aligned``, ``metrics/k_err_rel``, ``metrics/u_err_2``,
+``final/iterations``, ``final/wall_s``, with their final values.
 """
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping
 
@@ -56,11 +69,16 @@ import numpy as np
 import torch
 from torch import Tensor
 from torch.utils.tensorboard import SummaryWriter
-from torch.utils.tensorboard.summary import hparams as _hparams_summary
+from tensorboard.compat.proto import summary_pb2
+from tensorboard.plugins.hparams import api_pb2, plugin_data_pb2
+from tensorboard.plugins.hparams import metadata as _hparams_metadata
+from tensorboard.plugins.hparams import summary_v2 as _hparams_v2
 
 from ..solvers import IterationRecord
 from .metrics import METRIC_KEYS
-from .plots import aligned, colorize, frame_errors_figure, sheet_figure, snapshots_figure
+from .pictures import PlotGuard, supports_field_images
+from .plots import (ERROR_CMAP, aligned, colorize, frame_errors_figure, save_png, sheet_figure,
+                    snapshots_figure, symmetric_range, upscale)
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problems import InverseProblem
@@ -92,14 +110,6 @@ def field_is_chain(problem: "InverseProblem") -> bool:
     return edges.shape == expected.shape and bool(torch.equal(edges.cpu(), expected))
 
 
-def _hparam_value(value: Any) -> bool | int | float | str:
-    if isinstance(value, (bool, int, float, str)):
-        return value
-    if value is None:
-        return "None"
-    return str(value)
-
-
 def flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     """``{'solver': {'tau': 1.5}} -> {'solver.tau': 1.5}`` (lists stay whole)."""
     out: dict[str, Any] = {}
@@ -110,6 +120,36 @@ def flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
         else:
             out[name] = value
     return out
+
+
+def metric_tag(key: str) -> str:
+    """Tag of a final metric of the HParams session: the per-iteration tag of a record key
+    (``misfit`` -> ``fit/misfit``, ``k_err_rel`` -> ``metrics/k_err_rel``), else
+    ``final/<key>`` (``iterations``, ``wall_s``: one value per run)."""
+    if "/" in key or key in FIT_KEYS or key in METRIC_KEYS:
+        return tag_for(key)
+    return f"final/{key}"
+
+
+def hparam_values(hparams: Mapping[str, Any]) -> dict[str, bool | int | float | str]:
+    """Flattened settings as HParams values: bools, numbers and strings as they are,
+    other values (lists) as their text; ``None`` ("automatic", e.g. Split Bregman's
+    ``mu``) is left out, so that a sweep mixing ``None`` and numbers keeps a numeric
+    column (blank where automatic)."""
+    out: dict[str, bool | int | float | str] = {}
+    for key, value in flatten(hparams).items():
+        if value is None:
+            continue
+        out[key] = value if isinstance(value, (bool, int, float, str)) else str(value)
+    return out
+
+
+def _hparams_summary_pb(tag: str, data: plugin_data_pb2.HParamsPluginData) -> summary_pb2.Summary:
+    """A summary holding hparams plugin data (what ``summary_v2`` writes, without TF)."""
+    summary = summary_pb2.Summary()
+    summary.value.add(tag=tag, metadata=_hparams_metadata.create_summary_metadata(data),
+                      tensor=_hparams_metadata.NULL_TENSOR)
+    return summary
 
 
 def field_figure(field: Tensor, truth: Tensor | None = None, name: str = "k",
@@ -161,6 +201,8 @@ class TensorBoardLogger:
         self._last_step: int | None = None
         self._written = 0
         self._closed = False
+        self._tag_steps: dict[str, int] = {}    # tag -> last step written
+        self.start_time = time.time()
 
     # -- per iteration ------------------------------------------------------------------
     def step_of(self, record: IterationRecord) -> int:
@@ -179,8 +221,9 @@ class TensorBoardLogger:
         for key, value in record.scalars().items():
             if not math.isfinite(value):
                 continue
-            self.writer.add_scalar(tag_for(key), value, step, new_style=True,
-                                   double_precision=True)
+            tag = tag_for(key)
+            self.writer.add_scalar(tag, value, step, new_style=True, double_precision=True)
+            self._tag_steps[tag] = step
         self._last_step = step
         self._written += 1
         if self._written % self.flush_every == 0:
@@ -218,26 +261,46 @@ class TensorBoardLogger:
     def log_hparams(self, hparams: Mapping[str, Any], metrics: Mapping[str, float]) -> None:
         """HParams session of this run: ``hparams`` (flattened config) vs final ``metrics``.
 
-        ``metrics`` are record keys (``misfit``, ``k_err_rel``, ...); the HParams dashboard
-        shows the last value of their per-iteration tags, which are written here too so
-        that the final value is present whatever ``log_every`` was.
+        Writes the session start info (every flattened setting, see :func:`hparam_values`)
+        and the session end info of the hparams plugin, and no experiment summary: the
+        plugin then builds the experiment from the session infos of every run under the
+        logdir (the union of their settings, a type per setting that fits every run),
+        so a sweep over solvers or problems shows every setting. Its metric columns are
+        the runs' scalar tags: ``metrics`` that are record keys (``misfit``,
+        ``k_err_rel_aligned``, ...) are their per-iteration tags, whose last value the
+        dashboard shows (written again at the last step if that step lacks them); any
+        other key (``iterations``, ``wall_s``) is written once as ``final/<key>``.
         """
         self.flush_pending()
         step = self._final_step(None)
-        values = {k: _hparam_value(v) for k, v in flatten(hparams).items()}
-        finite = {k: float(v) for k, v in metrics.items() if math.isfinite(float(v))}
-        tags = {tag_for(k): v for k, v in finite.items()}
-        exp, ssi, sei = _hparams_summary(values, tags)
+        for key, value in metrics.items():
+            value = float(value)
+            tag = metric_tag(key)
+            if math.isfinite(value) and self._tag_steps.get(tag) != step:
+                self.writer.add_scalar(tag, value, step, new_style=True, double_precision=True)
+                self._tag_steps[tag] = step
+        values = hparam_values(hparams)
         file_writer = self.writer._get_file_writer()
-        for summary in (exp, ssi, sei):
-            file_writer.add_summary(summary, step)
+        file_writer.add_summary(_hparams_v2.hparams_pb(values, start_time_secs=self.start_time),
+                                step)
+        end = plugin_data_pb2.SessionEndInfo(status=api_pb2.STATUS_SUCCESS,
+                                             end_time_secs=time.time())
+        file_writer.add_summary(_hparams_summary_pb(_hparams_metadata.SESSION_END_INFO_TAG,
+                                                    plugin_data_pb2.HParamsPluginData(
+                                                        session_end_info=end)), step)
 
     def finish(self, problem: "InverseProblem", theta: Tensor, metrics: Mapping[str, float],
-               hparams: Mapping[str, Any] | None = None) -> None:
-        """End of a run: pending iteration, field histogram/plot, hparams, then close."""
+               hparams: Mapping[str, Any] | None = None, guard: PlotGuard | None = None) -> None:
+        """End of a run: pending iteration, field histogram/plot, hparams, then close.
+
+        ``metrics``: the final metrics of the HParams session (:meth:`log_hparams`);
+        ``guard`` reports a failure to draw the field once instead of raising.
+        """
         self.flush_pending()
         field = problem.field(theta)
-        self.log_field(field, problem.field_true, problem.field_name, field_is_chain(problem))
+        (guard or PlotGuard()).run(f"TensorBoard field/{problem.field_name}", self.log_field,
+                                   field, problem.field_true, problem.field_name,
+                                   field_is_chain(problem))
         if hparams is not None:
             self.log_hparams(hparams, metrics)
         self.close()
@@ -265,9 +328,11 @@ class TensorBoardLogger:
         self.close()
 
 
-def supports_field_images(problem: "InverseProblem") -> bool:
-    """Whether the problem can draw its field as an image (``field_image(field)``)."""
-    return callable(getattr(problem, "field_image", None))
+def error_image_tag(problem: "InverseProblem") -> str:
+    """Tag of the error image: ``field/<name>_error_aligned_image`` for a scale-free problem
+    (the fit is scaled onto the truth first), ``field/<name>_error_image`` otherwise."""
+    kind = "error_aligned" if problem.scale_free else "error"
+    return f"field/{problem.field_name}_{kind}_image"
 
 
 class FieldSnapshots:
@@ -278,6 +343,19 @@ class FieldSnapshots:
     ``frame_names()``, ``mesh`` (``points``, ``cells``, ``extent``), ``x_true`` and
     ``default_sheet_frame``.
 
+    TensorBoard images (nearest-neighbour upscaled by an integer factor so that the longer
+    side has at least ``image_min_size`` pixels):
+
+    * ``field/<name>_true_image`` once, at the first step;
+    * ``field/<name>_image`` (the fit; for a scale-free problem multiplied by the best
+      scale onto the truth, fixed colour range ``[min(0, truth), 1.15 max truth]``) and
+      ``field/<name>_error_aligned_image`` (``field/<name>_error_image`` when not
+      scale-free: ``a k - k_true``, blue negative, red positive, symmetric range
+      ``+-max|error|`` of that image) at iteration 0, the ``snapshot_iterations``, every
+      ``every`` iterations and the last iteration (written by :meth:`finish`);
+    * ``field/<name>_panels`` at the last iteration: truth, fit and error with colour bars
+      (the run directory's ``field.png``).
+
     Args:
         problem: the inverse problem.
         tb: the run's :class:`TensorBoardLogger` (its writer and step offset are used).
@@ -287,36 +365,48 @@ class FieldSnapshots:
             and drawn in TensorBoard.
         every: also draw every ``every`` iterations (0: never).
         sheet_frame: frame whose deformed mesh is drawn (default: the problem's choice).
+        guard: reports a drawing failure once instead of failing the fit (shared with
+            the run's other pictures).
+        image_min_size: pixels of the longer side of a TensorBoard image (at least).
     """
 
     def __init__(self, problem: "InverseProblem", tb: TensorBoardLogger, run_dir: str | Path | None = None,
                  snapshot_iterations: tuple[int, ...] | list[int] = (1, 5, 10, 40),
-                 every: int = 10, sheet_frame: int | None = None) -> None:
+                 every: int = 10, sheet_frame: int | None = None,
+                 guard: PlotGuard | None = None, image_min_size: int = 256) -> None:
         if not supports_field_images(problem):
             raise ValueError(f"problem {problem.name!r} cannot draw its field as an image")
         if every < 0:
             raise ValueError(f"snapshot interval must be >= 0, got {every}")
         if any(int(i) < 0 for i in snapshot_iterations):
             raise ValueError(f"snapshot iterations must be >= 0, got {list(snapshot_iterations)}")
+        if image_min_size < 1:
+            raise ValueError(f"image_min_size must be >= 1 pixel, got {image_min_size}")
         self.problem = problem
         self.tb = tb
         self.run_dir = None if run_dir is None else Path(run_dir)
         self.snapshot_iterations = sorted({int(i) for i in snapshot_iterations})
         self.every = int(every)
+        self.guard = guard or PlotGuard()
+        self.image_min_size = int(image_min_size)
         truth = problem.field_true
         self.truth = None if truth is None else truth.detach().cpu().numpy()
         self.name = getattr(problem, "field_name", "k")
-        values = self.truth if self.truth is not None else None
-        self.vmin = 0.0 if values is None else float(min(0.0, values.min()))
-        self.vmax = None if values is None else float(values.max()) * 1.15
+        self.error_tag = error_image_tag(problem)
+        self.vmin = 0.0 if self.truth is None else float(min(0.0, self.truth.min()))
+        self.vmax = None if self.truth is None else float(self.truth.max()) * 1.15
         self.n_frames = int(getattr(problem, "n_frames", 0) or 0)
         frame = getattr(problem, "default_sheet_frame", 0) if sheet_frame is None else sheet_frame
         if self.n_frames and not -self.n_frames <= int(frame) < self.n_frames:
             raise ValueError(f"sheet_frame={frame} is not a frame of {problem.name} "
                              f"(0..{self.n_frames - 1})")
         self.sheet_frame = int(frame) % self.n_frames if self.n_frames else 0
+        # The state x is needed only for per-frame errors and the deformed-mesh figure.
+        self._needs_state = callable(getattr(problem, "frame_errors", None)) or \
+            getattr(problem, "mesh", None) is not None
         self.snapshots: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
         self.error_history: dict[int, np.ndarray] = {}
+        self.imaged_steps: list[int] = []
         self._last: tuple[int, Tensor] | None = None
         self._wrote_truth = False
 
@@ -334,7 +424,12 @@ class FieldSnapshots:
             return self.vmin, self.vmax
         return float(image.min()), float(image.max())
 
+    def _rgb(self, image: np.ndarray, vmin: float, vmax: float, cmap: str = "viridis") -> np.ndarray:
+        return upscale(colorize(image, vmin, vmax, cmap), self.image_min_size)
+
     def _state(self, theta: Tensor) -> Tensor | None:
+        if not self._needs_state:
+            return None
         with torch.no_grad():   # a cache hit: the solver has just evaluated this point
             return self.problem.simulate(self.problem.field(theta)).detach()
 
@@ -360,16 +455,33 @@ class FieldSnapshots:
         return step in self.snapshot_iterations or step == 0 or \
             (self.every > 0 and step % self.every == 0)
 
+    def _write_truth(self) -> None:
+        image = self._image(self.truth)
+        self.tb.writer.add_image(f"field/{self.name}_true_image",
+                                 self._rgb(image, *self._range(image)), self.tb.step_offset,
+                                 dataformats="HWC")
+
+    def _write_images(self, step: int, theta: Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """Field and error images of ``theta`` at ``step``; returns ``(field, image)``."""
+        field = self._field(theta)
+        image = self._image(field)
+        writer = self.tb.writer
+        writer.add_image(f"field/{self.name}_image", self._rgb(image, *self._range(image)),
+                         step, dataformats="HWC")
+        if self.truth is not None:
+            error = image - self._image(self.truth)
+            writer.add_image(self.error_tag, self._rgb(error, *symmetric_range(error), ERROR_CMAP),
+                             step, dataformats="HWC")
+        self.imaged_steps.append(step)
+        return field, image
+
     # -- the callback -------------------------------------------------------------------
     def __call__(self, record: IterationRecord) -> None:
         step = self.tb.step_of(record)
         writer = self.tb.writer
         if not self._wrote_truth and self.truth is not None:
-            image = self._image(self.truth)
-            writer.add_image(f"field/{self.name}_true_image",
-                             colorize(image, *self._range(image)), self.tb.step_offset,
-                             dataformats="HWC")
             self._wrote_truth = True
+            self.guard.run(f"TensorBoard image field/{self.name}_true_image", self._write_truth)
         x = self._state(record.theta)
         errors = self._errors(x)
         if errors is not None:
@@ -380,28 +492,54 @@ class FieldSnapshots:
             self.error_history[step] = np.asarray(errors["u_err_inf"])
         self._last = (step, record.theta)
         if self.wants_image(step):
-            field = self._field(record.theta)
-            image = self._image(field)
-            writer.add_image(f"field/{self.name}_image", colorize(image, *self._range(image)),
-                             step, dataformats="HWC")
-            if step in self.snapshot_iterations or step == 0:
-                # the mesh figure (a matplotlib render, ~0.3 s) only at the snapshots
-                figure = self._sheet(field, x, f"frame {self.sheet_frame}, iteration {step}")
-                if figure is not None:
-                    writer.add_figure(f"sheet/frame_{self.sheet_frame}", figure, step, close=False)
-            if step in self.snapshot_iterations:
-                self.snapshots[step] = (image, None if errors is None else
-                                        np.asarray(errors["u_err_inf"]))
+            self.guard.run(f"TensorBoard images of iteration {step}", self._snapshot, step,
+                           record.theta, x, errors)
         return None
+
+    def _snapshot(self, step: int, theta: Tensor, x: Tensor | None,
+                  errors: dict[str, np.ndarray] | None) -> None:
+        field, image = self._write_images(step, theta)
+        if step in self.snapshot_iterations or step == 0:
+            # the mesh figure (a matplotlib render, ~0.3 s) only at the snapshots
+            figure = self._sheet(field, x, f"frame {self.sheet_frame}, iteration {step}")
+            if figure is not None:
+                self.tb.writer.add_figure(f"sheet/frame_{self.sheet_frame}", figure, step,
+                                          close=False)
+        if step in self.snapshot_iterations:
+            self.snapshots[step] = (image, None if errors is None else
+                                    np.asarray(errors["u_err_inf"]))
 
     # -- end of the run -----------------------------------------------------------------
     def finish(self) -> list[Path]:
-        """Write ``snapshots.png``, ``frame_errors.png`` and ``sheet_frame<f>.png``."""
-        if self.run_dir is None or self._last is None:
+        """Last iteration's images and the ``field/<name>_panels`` figure in TensorBoard;
+        ``snapshots.png``, ``frame_errors.png`` and ``sheet_frame<f>.png`` in ``run_dir``.
+
+        Returns the files written (a drawing that failed is reported once and left out).
+        """
+        if self._last is None:
+            return []
+        last_step, last_theta = self._last
+        if last_step not in self.imaged_steps:
+            self.guard.run(f"TensorBoard images of iteration {last_step}", self._write_images,
+                           last_step, last_theta)
+        from .pictures import field_panels
+
+        panels = self.guard.run(f"TensorBoard figure field/{self.name}_panels", field_panels,
+                                self.problem, self.problem.field(last_theta),
+                                f"{self.problem.name}: {self.name} after {last_step} iterations")
+        if panels is not None:
+            self.guard.run(f"TensorBoard figure field/{self.name}_panels",
+                           self.tb.writer.add_figure, f"field/{self.name}_panels", panels,
+                           last_step, close=False)
+        if self.run_dir is None:
             return []
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        written = self.guard.run("snapshots.png / frame_errors.png / sheet figure",
+                                 self._write_files, last_step, last_theta)
+        return written or []
+
+    def _write_files(self, last_step: int, last_theta: Tensor) -> list[Path]:
         written: list[Path] = []
-        last_step, last_theta = self._last
         field = self._field(last_theta)
         image = self._image(field)
         x = self._state(last_theta)
@@ -428,19 +566,19 @@ class FieldSnapshots:
         fig = snapshots_figure(panels, extent, vmin, vmax, self.name, panel_errors,
                                title=f"{self.problem.name}: {self.name}{scaled}")
         path = self.run_dir / "snapshots.png"
-        fig.savefig(path)
+        save_png(fig, path)
         written.append(path)
         if self.error_history:
             labels = self.problem.frame_names() if hasattr(self.problem, "frame_names") else None
             fig = frame_errors_figure(self.error_history, labels,
                                       title=f"{self.problem.name}: position error per frame")
             path = self.run_dir / "frame_errors.png"
-            fig.savefig(path)
+            save_png(fig, path)
             written.append(path)
         fig = self._sheet(field, x, f"{self.problem.name}: frame {self.sheet_frame} after "
                                     f"{last_step} iterations")
         if fig is not None:
             path = self.run_dir / f"sheet_frame{self.sheet_frame}.png"
-            fig.savefig(path)
+            save_png(fig, path)
             written.append(path)
         return written
