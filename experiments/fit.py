@@ -14,16 +14,24 @@ one directory per job under ``multirun/`` for ``-m``):
 * ``result.json``: final metrics of PROBLEMS.md, iterations, wall seconds,
   factorisations, solves, converged flag, stop reason, problem sizes, the resolved
   config and the per-iteration history (see :mod:`torchfit.logging.results`);
-* ``params.pt`` (``theta`` and the field), ``field.npy``, and ``field.png`` for a 1-D
-  field;
-* for a 2-D field (membrane2d): ``snapshots.png`` (the field after the iterations
-  ``snapshot_iterations``, default 1, 5, 10, 40, beside the per-frame position error),
-  ``frame_errors.png`` (per-frame error against the iteration), ``sheet_frame<f>.png``
-  (the deformed mesh of frame ``sheet_frame``) and ``frames.npz`` (rest points, cells,
-  fitted and true positions of every frame);
+* ``params.pt`` (``theta`` and the field), ``field.npy``;
+* ``field.png`` (a 2-D field: truth / fit / aligned error with colour bars; a chain: ``k``
+  per cell, truth and fit) and ``error_curves.png`` (misfit, ``k_err_rel_aligned`` or
+  ``k_err_rel``, and ``tv`` for Split Bregman, against the iteration), see
+  :mod:`torchfit.logging.pictures`; a picture that fails is warned about once, the fit
+  goes on;
+* for a 2-D field (poisson2d, membrane2d): ``snapshots.png`` (the field after the
+  iterations ``snapshot_iterations``, default 1, 5, 10, 40; for membrane2d beside the
+  per-frame position error); for membrane2d also ``frame_errors.png`` (per-frame error
+  against the iteration), ``sheet_frame<f>.png`` (the deformed mesh of frame
+  ``sheet_frame``) and ``frames.npz`` (rest points, cells, fitted and true positions of
+  every frame);
 * ``checkpoint.pt``: the parameters after the last outer iteration, rewritten every
   iteration;
-* ``tb/``: TensorBoard events (tags in :mod:`torchfit.logging.tensorboard`);
+* ``tb/``: TensorBoard events (tags in :mod:`torchfit.logging.tensorboard`): per-iteration
+  scalars, field and error images every ``snapshot_every`` iterations and at the end,
+  hparams (``problem.*``, ``solver.*`` against the final metrics, ``final/iterations``
+  and ``final/wall_s`` among them);
 * ``.hydra/`` and ``fit.log`` from Hydra.
 
 Resume: re-run in the same directory with ``resume=true``::

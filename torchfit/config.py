@@ -27,8 +27,9 @@ class FitConfig:
     progress: bool = True       # one line per outer iteration on the terminal
     log_every: int = 1          # TensorBoard scalars every n iterations (the last always)
     threads: int = 0            # torch and BLAS CPU threads per job (0: default); 1 in joblib sweeps
-    # 2-D fields (membrane2d): the field image after these iterations (snapshots.png, the
-    # seed's figure) and every snapshot_every iterations in TensorBoard (0: only those).
+    # 2-D fields (poisson2d, membrane2d): the field and error images after these iterations
+    # (snapshots.png, the seed's figure), every snapshot_every iterations and at the last
+    # one in TensorBoard (snapshot_every=0: only those).
     snapshot_iterations: List[int] = dataclasses.field(default_factory=lambda: [1, 5, 10, 40])
     snapshot_every: int = 10
     sheet_frame: Optional[int] = None   # frame whose deformed mesh is drawn (None: the problem's)

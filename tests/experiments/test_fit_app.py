@@ -54,8 +54,9 @@ def test_noisy_gauss_newton_result(noisy_gn):
     assert result["config"]["problem"]["noise"] == 1e-4
     assert result["config"]["solver"]["name"] == "gauss_newton"
     assert len(result["history"]) == result["iterations"] + 1
-    for name in ("params.pt", "field.npy", "checkpoint.pt"):
+    for name in ("params.pt", "field.npy", "checkpoint.pt", "field.png", "error_curves.png"):
         assert (run_dir / name).is_file(), name
+    assert "field.png, error_curves.png" in proc.stdout
     lines = proc.stdout.splitlines()
     assert f"tensorboard --logdir {(run_dir / 'tb').resolve()}" in lines
     assert "Traceback" not in proc.stderr

@@ -43,7 +43,7 @@ def test_smoke_result_and_files(small_run):
     assert result["problem"]["n_params"] == 128 and result["problem"]["scale_free"] is True
     assert result["history"][-1]["misfit"] < result["history"][0]["misfit"]
     for name in ("snapshots.png", "frame_errors.png", "sheet_frame5.png", "frames.npz",
-                 "params.pt", "field.npy", "checkpoint.pt"):
+                 "params.pt", "field.npy", "checkpoint.pt", "field.png", "error_curves.png"):
         assert (run_dir / name).is_file(), name
     frames = np.load(run_dir / "frames.npz")
     assert frames["positions"].shape == (8, 85, 2) == frames["true_positions"].shape
@@ -58,7 +58,10 @@ def test_smoke_tensorboard_images_and_frame_errors(small_run):
     tags = acc.Tags()
     assert {"field/E_image", "field/E_true_image", "sheet/frame_5"} <= set(tags["images"])
     # iteration 0, the snapshot iterations 1 and 2 and every 2nd
-    assert [e.step for e in acc.Images("field/E_image")] == [0, 1, 2]
+    # and the last one
+    assert [e.step for e in acc.Images("field/E_image")] == [0, 1, 2, 3]
+    assert [e.step for e in acc.Images("field/E_error_aligned_image")] == [0, 1, 2, 3]
+    assert [e.step for e in acc.Images("field/E_panels")] == [3]
     for f in range(8):
         assert f"frames/u_err_inf/frame_{f}" in tags["tensors"]
         assert [e.step for e in acc.Tensors(f"frames/u_err_2/frame_{f}")] == [0, 1, 2, 3]
