@@ -2,15 +2,13 @@
 event files, and the seed's snapshot figure."""
 from __future__ import annotations
 
-import pytest
-from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
 import io
 import logging
 
 import numpy as np
-import torch
+import pytest
 from PIL import Image
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from torchfit.logging import (FieldSnapshots, MetricsCallback, PlotGuard, TensorBoardLogger,
                               supports_field_images)
