@@ -163,7 +163,8 @@ def field_panels_figure(fitted: np.ndarray, truth: np.ndarray | None, error: np.
                         extent: tuple[float, float, float, float], vmin: float, vmax: float,
                         name: str = "k", fitted_label: str | None = None,
                         error_label: str | None = None, title: str | None = None):
-    """Truth / fit / error images side by side, each with its colour bar.
+    """Truth / fit / error images side by side (one above the other for a domain more
+    than twice as wide as high), each with its colour bar.
 
     Args:
         fitted, truth, error: ``(H, W)`` images, row 0 at the top; ``truth`` and
@@ -183,16 +184,25 @@ def field_panels_figure(fitted: np.ndarray, truth: np.ndarray | None, error: np.
         panels.append((error_label or f"{name} - {name}_true", error, ERROR_CMAP, lo, hi))
     height, width = float(extent[3] - extent[2]), float(extent[1] - extent[0])
     aspect = height / width if width > 0 else 1.0
-    panel_w = 3.6
-    fig = Figure(figsize=(panel_w * len(panels), min(8.0, panel_w * aspect + 0.9)), dpi=100,
-                 layout="constrained")
-    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    if aspect >= 0.5:       # squarish (poisson2d): side by side, colour bars below
+        panel_w = 3.6
+        fig = Figure(figsize=(panel_w * len(panels), min(8.0, panel_w * aspect + 0.9)),
+                     dpi=100, layout="constrained")
+        axes = fig.subplots(1, len(panels), squeeze=False)[0]
+        bar_location = "bottom"
+    else:                   # a wide strip (membrane2d): one above the other, bars beside
+        panel_w = 8.0
+        fig = Figure(figsize=(panel_w + 1.2, len(panels) * (panel_w * aspect + 0.5) + 0.4),
+                     dpi=100, layout="constrained")
+        axes = fig.subplots(len(panels), 1, squeeze=False)[:, 0]
+        bar_location = "right"
     for ax, (label, image, cmap, lo, hi) in zip(axes, panels):
         shown = ax.imshow(image, extent=extent, vmin=lo, vmax=hi, cmap=cmap,
                           interpolation="nearest", aspect="equal")
         ax.set_title(label, fontsize=9)
         ax.tick_params(labelsize=7)
-        bar = fig.colorbar(shown, ax=ax, shrink=0.85, location="bottom", pad=0.02, aspect=25)
+        bar = fig.colorbar(shown, ax=ax, shrink=0.85, location=bar_location, pad=0.02,
+                           aspect=25 if bar_location == "bottom" else 10)
         bar.ax.tick_params(labelsize=7)
         if cmap == ERROR_CMAP:
             bar.formatter.set_powerlimits((-2, 3))

@@ -22,7 +22,7 @@ Tag scheme (one TensorBoard section per prefix)
                    ``field/<name>_profile`` of fitted vs true per cell.
 ``config``         at the start: the resolved config as text.
 ``field/<name>_*``  (2-D fields, :class:`FieldSnapshots`: poisson2d, membrane2d) images,
-                   upscaled so the longer side has >= 256 pixels:
+                   upscaled (at most 16x) so the longer side has >= 256 pixels:
                    ``field/<name>_true_image`` once (first step); ``field/<name>_image``, the
                    fit (for a scale-free problem multiplied by the best global scale onto
                    the truth; fixed colour range ``[min(0, truth), 1.15 max truth]``) and
