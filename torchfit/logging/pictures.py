@@ -155,7 +155,8 @@ def error_curve_keys(history: Sequence[Mapping[str, float]]) -> list[str]:
     """What ``error_curves.png`` draws: ``misfit``, the field error, ``tv`` if recorded."""
     present = set().union(*(row.keys() for row in history)) if history else set()
     keys = ["misfit"]
-    # k_err_rel_aligned exists only for a scale-free problem, where k_err_rel says nothing.
+    # k_err_rel_aligned exists only for a scale-free problem, whose k_err_rel mostly
+    # measures the arbitrary global scale of the fit.
     for key in ("k_err_rel_aligned", "k_err_rel"):
         if key in present:
             keys.append(key)
