@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from typing import Callable, Iterable
 
 import torch
@@ -102,6 +103,16 @@ def _stop_reason(norm: float, previous_norm: float | None, gradient_norm: float,
     return None
 
 
+def compressed_rows(matrix: Tensor) -> Tensor:
+    """``matrix`` (sparse COO or CSR) as CSR: ``torch.mv`` on CSR is ~7x faster than on
+    COO on the CPU (0.3 vs 2 ms for ``D^T D v`` at 4k parameters), which matters at one
+    product per CGLS iteration."""
+    with warnings.catch_warnings():   # "sparse CSR support is in beta": mv is all we use
+        warnings.simplefilter("ignore", UserWarning)
+        return matrix.coalesce().to_sparse_csr() if matrix.layout == torch.sparse_coo \
+            else matrix.to_sparse_csr()
+
+
 class DifferencePreconditioner:
     """``M v = D^T D v + s v`` for CGLS (graph Laplacian of the parameter neighbours).
 
@@ -128,8 +139,8 @@ class DifferencePreconditioner:
         from .split_bregman import check_difference_operator   # (it imports this module)
 
         D, _, _ = check_difference_operator(D, n_params, dtype=like.dtype, device=like.device)
-        self._D, self._Dt = D, D.t().coalesce()
-        self.degree = float(torch.sparse.sum(D * D, dim=0).to_dense().max())
+        self._D, self._Dt = compressed_rows(D), compressed_rows(D.t())
+        self.degree = float(torch.sparse.sum(D * D, dim=0).to_dense().max())   # D: COO here
         self.shift = 0.0
 
     def __call__(self, v: Tensor) -> Tensor:
