@@ -28,7 +28,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
-from typing import Callable, Iterable
+from typing import Iterable
 
 import torch
 from torch import Tensor
