@@ -128,14 +128,19 @@ def solver_config(section: dict[str, Any]) -> tuple[Callable[..., SolveResult], 
 
 
 def solver_inputs(solve: Callable[..., SolveResult], solver_name: str,
-                  problem: InverseProblem) -> dict[str, Any]:
+                  problem: InverseProblem, config: Any = None) -> dict[str, Any]:
     """Extra inputs of a solver beyond the residual: the TV difference operator ``D`` and
-    its row groups for solvers marked ``needs_difference_operator`` (split Bregman).
+    its row groups for solvers marked ``needs_difference_operator`` (split Bregman; a
+    callable mark is asked with the solver ``config``: Gauss-Newton needs ``D`` only for
+    ``preconditioner=difference``).
 
     ``D`` comes from the problem's parameterisation, never from the solver; raises
     ``ValueError`` naming the parameterisation when it has none or when it is empty.
     """
-    if not getattr(solve, "needs_difference_operator", False):
+    needs = getattr(solve, "needs_difference_operator", False)
+    if callable(needs):
+        needs = config is not None and needs(config)
+    if not needs:
         return {}
     param = problem.parameterization
     operator = getattr(param, "difference_operator", None)
@@ -195,7 +200,7 @@ def prepare(cfg: DictConfig, run_dir: Path) -> Job:
         else:
             log.warning("resume=true but %s does not exist; starting from the initial guess",
                         path)
-    inputs = solver_inputs(solve, str(config["solver"].get("name")), problem)
+    inputs = solver_inputs(solve, str(config["solver"].get("name")), problem, solver_cfg)
     return Job(config, problem, solve, solver_cfg, theta0, start, resumed, inputs)
 
 

@@ -147,3 +147,41 @@ def test_cg_backend_refuses_nonsymmetric():
     pattern, values_of = chain_pattern(4)
     with pytest.raises(ValueError, match="symmetric"):
         CGBackend().factorize(pattern, values_of(torch.ones(3)), symmetric=False)
+
+
+def test_preconditioned_cgls_finds_the_same_least_squares_solution_faster():
+    # Columns of very different scale: CGLS needs many iterations, the column-scaling
+    # preconditioner M = diag(1 / ||a_j||^2) (an exact inverse of diag(A^T A)) few.
+    torch.manual_seed(0)
+    scales = torch.logspace(0, 4, 12)
+    a = torch.randn(60, 12) * scales
+    b = torch.randn(60)
+    exact = torch.linalg.lstsq(a, b[:, None]).solution[:, 0]
+    column_norm_sq = (a * a).sum(dim=0)
+    plain = cgls(lambda v: a @ v, lambda w: a.T @ w, b, 12, max_iter=500, normal_rtol=1e-12)
+    pre = cgls(lambda v: a @ v, lambda w: a.T @ w, b, 12, max_iter=500, normal_rtol=1e-12,
+               preconditioner=lambda v: v / column_norm_sq)
+    assert torch.allclose(pre.x, exact, rtol=1e-8, atol=1e-12)
+    assert torch.allclose(pre.Ax, a @ pre.x, atol=1e-9)
+    assert pre.iterations < plain.iterations
+
+
+def test_preconditioner_with_null_space_keeps_iterates_out_of_it():
+    # M = I - 11^T/n (singular): iterates stay orthogonal to the constant vector and
+    # minimise ||A x - b|| over that subspace.
+    torch.manual_seed(1)
+    a = torch.randn(30, 6)
+    b = torch.randn(30)
+    centre = lambda v: v - v.mean()  # noqa: E731
+    res = cgls(lambda v: a @ v, lambda w: a.T @ w, b, 6, max_iter=100, preconditioner=centre)
+    basis = torch.linalg.qr(torch.eye(6) - 1.0 / 6)[0][:, :5]     # orthonormal, sums to zero
+    best = basis @ torch.linalg.lstsq(a @ basis, b[:, None]).solution[:, 0]
+    assert abs(float(res.x.sum())) < 1e-12
+    assert torch.allclose(res.x, best, atol=1e-9)
+
+
+def test_preconditioned_cgls_refuses_a_shift():
+    a = torch.randn(5, 3)
+    with pytest.raises(ValueError, match="shift = 0"):
+        cgls(lambda v: a @ v, lambda w: a.T @ w, torch.randn(5), 3, shift=0.1,
+             preconditioner=lambda v: v)

@@ -75,8 +75,15 @@ class CGLSResult:
 def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor], b: Tensor,
          n: int, shift: float = 0.0, residual_target: float = 0.0, max_iter: int = 100,
          project: Callable[[Tensor], Tensor] | None = None,
-         rmatvec_b: Tensor | None = None, normal_rtol: float = 1e-14) -> CGLSResult:
+         rmatvec_b: Tensor | None = None, normal_rtol: float = 1e-14,
+         preconditioner: Callable[[Tensor], Tensor] | None = None) -> CGLSResult:
     """CGLS for ``min ||A x - b||^2 + shift ||x||^2`` from ``x = 0``.
+
+    With a ``preconditioner`` ``M`` (symmetric positive semi-definite, ``n -> n``) this
+    is CGLS on ``A S`` with ``S S^T = M`` (right preconditioning, PCGLS): the iterates
+    minimise ``||A x - b||`` over the Krylov space of ``M A^T A``, which converges fast
+    when ``M`` approximates ``(A^T A)^+``. ``M`` never needs to be factored; its null
+    space is never entered (a gauge direction can be kept out this way too).
 
     Stops when the least-squares residual ``||A x - b||`` drops to
     ``residual_target`` (the REGINN-style relative rule of Gauss-Newton), when the
@@ -92,16 +99,27 @@ def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor]
         project: optional orthogonal projector applied to search directions (keeps
             iterates out of a known null space, e.g. the stiffness scale).
         rmatvec_b: ``A^T b`` if the caller already has it (saves one product).
+        normal_rtol: stop when the (preconditioned) normal-equation residual
+            ``(s^T M s)^(1/2)``, ``s = A^T (b - A x) - shift x``, is this fraction of
+            its initial value.
+        preconditioner: ``v (n,) -> M v`` (see above); only with ``shift = 0``.
     Returns:
         :class:`CGLSResult`; ``m`` iterations cost ``m`` matvecs and ``m`` rmatvecs
         (plus one rmatvec for ``A^T b`` unless given).
     """
+    if preconditioner is not None and shift != 0.0:
+        raise ValueError("cgls: a preconditioner needs shift = 0 (damped least squares "
+                         "would have to be preconditioned in the metric of M)")
     project = project or (lambda v: v)
+
+    def apply_m(v: Tensor) -> Tensor:          # v is already projected
+        return v if preconditioner is None else project(preconditioner(v))
     x = b.new_zeros(n)
     r = b.clone()                       # b - A x
     s = project(rmatvec_b.clone() if rmatvec_b is not None else rmatvec(r))
-    p = s.clone()
-    gamma = torch.dot(s, s)
+    z = apply_m(s)
+    p = z.clone()
+    gamma = torch.dot(s, z)
     gamma0 = gamma
     Ax = torch.zeros_like(b)
     r_norm = float(torch.linalg.vector_norm(r))
@@ -131,7 +149,8 @@ def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor]
         if iterations == max_iter:
             break
         s = project(rmatvec(r) - shift * x)
-        gamma_new = torch.dot(s, s)
-        p = s + (gamma_new / gamma) * p
+        z = apply_m(s)
+        gamma_new = torch.dot(s, z)
+        p = z + (gamma_new / gamma) * p
         gamma = gamma_new
     return CGLSResult(x, iterations, r_norm, Ax, stop)

@@ -66,6 +66,15 @@ class SpringChain1D:
         self._check(stiffness)
         return torch.stack([stiffness, -stiffness, -stiffness, stiffness], dim=1).reshape(1, -1)
 
+    def param_derivative(self, x: Tensor, stiffness: Tensor) -> "SpringParamDerivative":
+        """``dR/dk`` at positions ``x`` ``(F, n_nodes)`` as products (``R`` is linear in ``k``).
+
+        Used by :class:`~torchfit.physics.Equilibrium` for its backward and jvp: an
+        explicit scatter instead of (double) autograd through :meth:`residual`.
+        """
+        self._check(stiffness)
+        return SpringParamDerivative(self, x.detach())
+
     def energy(self, x: Tensor, stiffness: Tensor) -> Tensor:
         """Total potential energy per frame ``(F,)``: springs minus work of external forces."""
         stretch = x[:, self.edges[:, 1]] - x[:, self.edges[:, 0]] - self.rest_lengths
@@ -75,3 +84,28 @@ class SpringChain1D:
         if stiffness.shape != (self.n_springs,):
             raise ValueError(f"stiffness must have shape ({self.n_springs},), got "
                              f"{tuple(stiffness.shape)}")
+
+
+class SpringParamDerivative:
+    """``dR/dk`` of :class:`SpringChain1D` at fixed positions.
+
+    Column ``e`` is the tension of spring ``e`` at unit stiffness (its stretch
+    ``x_b - x_a - L_e``, per frame) pushed onto node ``b`` and pulled from node ``a``.
+    """
+
+    def __init__(self, springs: SpringChain1D, x: Tensor) -> None:
+        self._a = springs.edges[:, 0].to(x.device)
+        self._b = springs.edges[:, 1].to(x.device)
+        self._n_dofs = springs.n_dofs
+        self.stretch = x[:, self._b] - x[:, self._a] - springs.rest_lengths.to(x)   # (F, n_springs)
+
+    def jvp(self, v: Tensor) -> Tensor:
+        """``(dR/dk) v`` ``(F, n_nodes)`` for ``v`` ``(n_springs,)``."""
+        tension = self.stretch * v.to(self.stretch)
+        out = tension.new_zeros(tension.shape[0], self._n_dofs)
+        return out.index_add_(1, self._b, tension).index_add_(1, self._a, -tension)
+
+    def vjp(self, w: Tensor) -> Tensor:
+        """``(dR/dk)^T w`` ``(n_springs,)`` for ``w`` ``(F, n_nodes)`` (summed over frames)."""
+        w = w.to(self.stretch)
+        return (self.stretch * (w[:, self._b] - w[:, self._a])).sum(dim=0)

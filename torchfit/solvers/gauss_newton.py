@@ -9,6 +9,16 @@ for a linear residual below the noise level). A backtracking (Armijo) line searc
 ``||r|| <= tau delta`` when the noise level ``delta`` is known, else when the relative
 decrease, the gradient or the residual becomes negligible.
 
+Optional parameter-space preconditioning (``preconditioner=difference``, needs the
+parameterisation's difference operator ``D``): CGLS runs on ``J S`` with
+``S S^T = D^T D + s I`` (:class:`DifferencePreconditioner`). For fields seen through an
+elliptic solve (poisson2d) ``J^T J`` behaves like an inverse Laplacian on the
+parameters, and unpreconditioned CGLS stalls on the rough modes (N = 64, dense,
+noise-free: 200 CGLS iterations per outer step for a 10% linear-residual decrease).
+The shift ``s`` starts at ``preconditioner_shift`` (in units of the largest diagonal of
+``D^T D``) and falls with ``||r_k|| / ||r_0||``: without it the first steps, far from
+the solution, are rough, large, and rejected by the line search.
+
 Cost of one accepted full step with ``m`` CG iterations: one factorisation (the new
 point) and at most ``2m + 1`` solves (``J^T r``, ``m`` products ``J v``, ``m - 1``
 products ``J^T w``, the solve of the new point).
@@ -17,6 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from typing import Iterable
 
 import torch
@@ -25,6 +36,9 @@ from torch import Tensor
 from ..linalg import cgls
 from .records import Callback, IterationRecord, RunClock, SolveResult, emit, finish
 from .residual import Linearization, ResidualFunction, try_linearize
+
+
+PRECONDITIONERS = ("none", "difference")
 
 
 class SolverConfigError(ValueError):
@@ -53,6 +67,9 @@ class GaussNewtonConfig:
     atol: float = 0.0               # stop when ||r|| <= atol
     armijo: float = 1e-4            # sufficient-decrease constant of the line search
     max_backtracks: int = 12        # step halvings before giving up
+    preconditioner: str = "none"    # CGLS in parameter space: none | difference (D^T D + s I)
+    preconditioner_shift: float = 4.0  # s at theta0, in units of the largest diagonal of
+                                       # D^T D; scaled by ||r_k|| / ||r_0|| as r falls
 
     def validate(self) -> None:
         _require(self.max_iter >= 0, f"solver.max_iter must be >= 0, got {self.max_iter}")
@@ -66,6 +83,11 @@ class GaussNewtonConfig:
                  "solver.rtol, solver.gtol and solver.atol must be >= 0")
         _require(0 < self.armijo < 0.5, f"solver.armijo must be in (0, 0.5), got {self.armijo}")
         _require(self.max_backtracks >= 0, "solver.max_backtracks must be >= 0")
+        _require(self.preconditioner_shift >= 0,
+                 f"solver.preconditioner_shift must be >= 0, got {self.preconditioner_shift}")
+        _require(self.preconditioner in PRECONDITIONERS,
+                 f"solver.preconditioner={self.preconditioner!r}; choose one of "
+                 f"{PRECONDITIONERS}")
 
 
 def _stop_reason(norm: float, previous_norm: float | None, gradient_norm: float,
@@ -81,9 +103,54 @@ def _stop_reason(norm: float, previous_norm: float | None, gradient_norm: float,
     return None
 
 
+def compressed_rows(matrix: Tensor) -> Tensor:
+    """``matrix`` (sparse COO or CSR) as CSR: ``torch.mv`` on CSR is ~7x faster than on
+    COO on the CPU (0.3 vs 2 ms for ``D^T D v`` at 4k parameters), which matters at one
+    product per CGLS iteration."""
+    with warnings.catch_warnings():   # "sparse CSR support is in beta": mv is all we use
+        warnings.simplefilter("ignore", UserWarning)
+        return matrix.coalesce().to_sparse_csr() if matrix.layout == torch.sparse_coo \
+            else matrix.to_sparse_csr()
+
+
+class DifferencePreconditioner:
+    """``M v = D^T D v + s v`` for CGLS (graph Laplacian of the parameter neighbours).
+
+    Why it fits: for a field seen through an elliptic solve (``J = -A^{-1} (dR/dk)``) the
+    Gauss-Newton matrix ``J^T J`` acts like an inverse Laplacian on the parameters
+    (smooth changes of ``k`` are seen strongly, rough ones weakly), so ``D^T D`` is a
+    cheap approximate inverse: on poisson2d (``N = 32``) it takes the condition number
+    of the CGLS operator from 723 to 78. The shift ``s`` bounds how much a rough mode is
+    favoured over a smooth one (at most ``(||D||^2 + s) / s``): far from the solution the
+    linear model is poor for rough changes, so the solver starts with a large shift
+    (close to unpreconditioned CGLS) and lowers it as the misfit falls.
+
+    Args:
+        D: ``(n_edges, n_params)`` sparse difference operator of the parameterisation.
+        n_params: number of parameters.
+        like: a tensor with the dtype and device of ``theta``.
+    Attributes:
+        degree: the largest diagonal entry of ``D^T D`` (most neighbours of a parameter),
+            the unit of :attr:`shift`.
+        shift: ``s`` relative to :attr:`degree` (set by the solver).
+    """
+
+    def __init__(self, D: Tensor, n_params: int, like: Tensor) -> None:
+        from .split_bregman import check_difference_operator   # (it imports this module)
+
+        D, _, _ = check_difference_operator(D, n_params, dtype=like.dtype, device=like.device)
+        self._D, self._Dt = compressed_rows(D), compressed_rows(D.t())
+        self.degree = float(torch.sparse.sum(D * D, dim=0).to_dense().max())   # D: COO here
+        self.shift = 0.0
+
+    def __call__(self, v: Tensor) -> Tensor:
+        return torch.mv(self._Dt, torch.mv(self._D, v)) + (self.shift * self.degree) * v
+
+
 def gauss_newton(residual: ResidualFunction, theta0: Tensor,
                  config: GaussNewtonConfig | None = None,
-                 callbacks: Iterable[Callback] = ()) -> SolveResult:
+                 callbacks: Iterable[Callback] = (), *, D: Tensor | None = None,
+                 groups: Tensor | None = None) -> SolveResult:
     """Minimise ``0.5 ||r(theta)||^2`` from ``theta0``.
 
     Args:
@@ -92,11 +159,20 @@ def gauss_newton(residual: ResidualFunction, theta0: Tensor,
         config: :class:`GaussNewtonConfig`.
         callbacks: called with an :class:`IterationRecord` after every outer iteration
             (iteration 0 is the initial point); a callback returning ``True`` stops.
+        D: ``(n_edges, n)`` sparse difference operator of the parameterisation, needed by
+            ``preconditioner='difference'`` (keyword; ignored otherwise).
+        groups: accepted for call compatibility with split Bregman; unused.
     Returns:
         :class:`SolveResult` whose ``stop_reason`` says which rule stopped it.
     """
     cfg = config or GaussNewtonConfig()
     cfg.validate()
+    preconditioner = None
+    if cfg.preconditioner == "difference":
+        if D is None:
+            raise SolverConfigError("solver.preconditioner=difference needs the "
+                                    "parameterisation's difference operator D (keyword D=)")
+        preconditioner = DifferencePreconditioner(D, theta0.numel(), theta0)
     callbacks = list(callbacks)
     clock = RunClock()
     theta = theta0.detach().clone()
@@ -106,6 +182,7 @@ def gauss_newton(residual: ResidualFunction, theta0: Tensor,
     history: list[IterationRecord] = []
     eta = cfg.eta_max
     previous_norm: float | None = None
+    norm0 = lin.norm
 
     def record(iteration: int, step_norm: float, cg_iterations: int, **extra: float) -> bool:
         factorizations, solves = clock.counts()
@@ -127,8 +204,13 @@ def gauss_newton(residual: ResidualFunction, theta0: Tensor,
         if residual.noise_level is not None:
             target = max(target, residual.noise_level)
         project = residual.projector(theta)
+        if preconditioner is not None:
+            # Shift continuation (like Levenberg-Marquardt damping): smooth steps while the
+            # linear model is poor, full Laplacian preconditioning near the solution.
+            preconditioner.shift = cfg.preconditioner_shift * lin.norm / max(norm0, 1e-300)
         inner = cgls(lin.jvp, lin.vjp, -lin.r, theta.numel(), residual_target=target,
                      max_iter=cfg.cg_max_iter, project=project, rmatvec_b=-gradient,
+                     preconditioner=preconditioner,
                      **({"normal_rtol": cfg.cg_rtol} if cfg.cg_rtol > 0 else {}))
         direction = inner.x
         slope = float(torch.dot(lin.r, inner.Ax))  # d/da 0.5||r + a J d||^2 at a = 0
@@ -163,3 +245,11 @@ def gauss_newton(residual: ResidualFunction, theta0: Tensor,
     reason = _stop_reason(lin.norm, previous_norm, float(torch.linalg.vector_norm(gradient)),
                           gradient_norm0, residual.noise_level, cfg)
     return finish(theta, reason is not None, reason or "max_iter", history, clock)
+
+
+def _needs_difference_operator(config: GaussNewtonConfig) -> bool:
+    return config.preconditioner == "difference"
+
+
+#: experiments/fit.py hands this solver the parameterisation's ``D`` when its config asks.
+gauss_newton.needs_difference_operator = _needs_difference_operator  # type: ignore[attr-defined]

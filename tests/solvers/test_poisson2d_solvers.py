@@ -1,0 +1,129 @@
+"""Solvers on poisson2d (issue 4): preconditioned Gauss-Newton, discrepancy stop, TV.
+
+Reduced grids run by default; the acceptance sizes (N = 64) are marked slow. The
+figures they guard were measured with the settings used here (see the issue report).
+"""
+import math
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchfit.problems import Poisson2D
+from torchfit.solvers import GaussNewtonConfig, SolverConfigError, gauss_newton, split_bregman
+from torchfit.solvers.gauss_newton import DifferencePreconditioner
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def fit(problem, solver, config=None):
+    D = problem.parameterization.difference_operator()
+    start = time.perf_counter()
+    if solver is gauss_newton:
+        result = gauss_newton(problem.residual(), problem.theta0, config, D=D)
+    else:
+        result = split_bregman(problem.residual(), problem.theta0, config, D=D,
+                               groups=problem.parameterization.difference_groups())
+    seconds = time.perf_counter() - start
+    return result, problem.metrics(result.theta), seconds
+
+
+def test_difference_preconditioner_is_the_shifted_graph_laplacian():
+    problem = Poisson2D(N=5)                                  # 4 x 4 cells
+    D = problem.parameterization.difference_operator()
+    M = DifferencePreconditioner(D, 16, problem.theta0)
+    assert M.degree == 4.0                                    # an interior cell
+    M.shift = 0.5
+    v = torch.randn(16, dtype=torch.float64)
+    dense = D.to_dense()
+    assert torch.allclose(M(v), dense.T @ dense @ v + 2.0 * v, atol=1e-12)
+    M.shift = 0.0
+    assert float(M(torch.ones(16, dtype=torch.float64)).abs().max()) < 1e-12   # the gauge
+
+
+def test_preconditioner_needs_D_and_a_known_name():
+    problem = Poisson2D(N=6)
+    with pytest.raises(SolverConfigError, match="difference operator D"):
+        gauss_newton(problem.residual(), problem.theta0,
+                     GaussNewtonConfig(preconditioner="difference"))
+    with pytest.raises(SolverConfigError, match="solver.preconditioner"):
+        gauss_newton(problem.residual(), problem.theta0, GaussNewtonConfig(preconditioner="ilu"))
+    with pytest.raises(SolverConfigError, match="preconditioner_shift"):
+        gauss_newton(problem.residual(), problem.theta0,
+                     GaussNewtonConfig(preconditioner_shift=-1.0))
+
+
+def test_fit_app_hands_D_to_gauss_newton_only_when_preconditioned():
+    sys.path.insert(0, str(REPO / "experiments"))
+    try:
+        import fit as fit_app
+    finally:
+        sys.path.remove(str(REPO / "experiments"))
+    problem = Poisson2D(N=6)
+    assert fit_app.solver_inputs(gauss_newton, "gauss_newton", problem, GaussNewtonConfig()) == {}
+    inputs = fit_app.solver_inputs(gauss_newton, "gauss_newton", problem,
+                                   GaussNewtonConfig(preconditioner="difference"))
+    assert inputs["D"].shape == (2 * 5 * 4, 25)
+
+
+def test_preconditioned_gauss_newton_is_accurate_with_far_fewer_cgls_iterations():
+    problem = Poisson2D(N=20)
+    plain, plain_metrics, _ = fit(problem, gauss_newton, GaussNewtonConfig(max_iter=12))
+    pre, pre_metrics, _ = fit(problem, gauss_newton,
+                              GaussNewtonConfig(max_iter=12, preconditioner="difference"))
+    assert pre_metrics["k_err_rel_aligned"] < 1e-6
+    assert pre_metrics["k_err_rel_aligned"] < 0.1 * plain_metrics["k_err_rel_aligned"]
+    cg = lambda result: sum(r.cg_iterations for r in result.history)  # noqa: E731
+    assert cg(pre) < cg(plain)
+    # The gauge: mean log k never moves (the preconditioner and the projector agree).
+    assert float(pre.theta.mean()) == pytest.approx(float(problem.theta0.mean()), abs=1e-12)
+    # One factorisation per distinct parameter vector: the start and one per trial point.
+    trials = sum(1 for r in pre.history[1:]) + sum(
+        round(-math.log2(r.extra["step_length"])) for r in pre.history[1:])
+    assert pre.factorizations == 1 + trials
+
+
+def test_noisy_dense_reduced_grid_tv_beats_gauss_newton_at_the_discrepancy():
+    problem = Poisson2D(N=24, noise=1e-3)
+    gn, gn_metrics, _ = fit(problem, gauss_newton)
+    assert gn.stop_reason == "discrepancy"
+    assert gn.history[-1].misfit <= 1.5 * problem.noise_level
+    sb, sb_metrics, _ = fit(problem, split_bregman)
+    assert sb.stop_reason == "discrepancy"
+    assert sb_metrics["k_err_rel_aligned"] <= 0.05
+    assert sb_metrics["k_err_rel_aligned"] * 3 <= gn_metrics["k_err_rel_aligned"]
+
+
+@pytest.mark.slow
+def test_acceptance_A_dense_noise_free_n64_preconditioned_gauss_newton():
+    problem = Poisson2D(N=64)
+    result, metrics, seconds = fit(problem, gauss_newton,
+                                   GaussNewtonConfig(preconditioner="difference", atol=3e-8))
+    print(f"A: {seconds:.2f} s, {result.iterations} iterations, "
+          f"k_err_rel_aligned {metrics['k_err_rel_aligned']:.2e}")
+    assert metrics["k_err_rel_aligned"] <= 1e-5
+    # Measured: 10 iterations, 1186 CGLS iterations to 8.6e-6 (unpreconditioned: 50
+    # iterations, 9,000 CGLS iterations to 1.2e-5).
+    assert result.iterations <= 14
+    assert sum(r.cg_iterations for r in result.history) <= 2000
+
+
+@pytest.mark.slow
+def test_acceptance_B_noisy_dense_n64():
+    problem = Poisson2D(N=64, noise=1e-3)
+    gn, gn_metrics, _ = fit(problem, gauss_newton)
+    assert gn.stop_reason == "discrepancy"
+    sb, sb_metrics, _ = fit(problem, split_bregman)
+    assert sb_metrics["k_err_rel_aligned"] <= 0.05
+    assert sb_metrics["k_err_rel_aligned"] * 3 <= gn_metrics["k_err_rel_aligned"]
+
+
+@pytest.mark.slow
+def test_acceptance_C_sparse_noise_free_n64():
+    problem = Poisson2D(N=64, data="sparse")
+    _, gn_metrics, _ = fit(problem, gauss_newton)
+    sb, sb_metrics, _ = fit(problem, split_bregman)
+    assert sb_metrics["k_err_rel_aligned"] <= 0.03
+    assert sb_metrics["k_err_rel_aligned"] * 5 <= gn_metrics["k_err_rel_aligned"]
