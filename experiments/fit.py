@@ -7,6 +7,7 @@ Usage (from the repository root)::
     python experiments/fit.py --cfg job                         # show the resolved config
     python experiments/fit.py -m hydra/launcher=joblib problem.noise=0,1e-4,1e-3 \
         solver=gauss_newton,levenberg_marquardt                 # sweep, one job per process
+    python experiments/fit.py -m experiment=seed_table          # a sweep preset (conf/experiment/)
 
 Outputs, in the Hydra run directory (``outputs/<problem>/<solver>/<time>/`` by default;
 one directory per job under ``multirun/`` for ``-m``):
