@@ -13,8 +13,8 @@ not scale-free), iterations, solver wall seconds, factorisations and the stop re
 A job that did not produce a usable result is a row marked ``failed: <reason>``, never a
 missing row:
 
-* no ``result.json`` in its directory (the job raised or was killed; the last error line of
-  its log is the reason when there is one);
+* no ``result.json`` in its directory (the job raised or was killed, or is still running;
+  the last error line of its log is the reason when there is one);
 * a ``result.json`` whose misfit is not finite (written as ``null``) or that says
   ``"failed": true``;
 * no directory at all: ``experiments/fit.py`` removes the directory of a job whose
@@ -107,7 +107,7 @@ def read_job(job_dir: Path) -> JobRow:
     if not result_path.is_file():
         reason = "no result.json"
         if (job_dir / "checkpoint.pt").is_file():
-            reason += " (stopped during the fit, checkpoint.pt left)"
+            reason += " (still running, or stopped during the fit: checkpoint.pt left)"
         error = _last_error_line(job_dir)
         row.failure = f"{reason}: {error}" if error else reason
         return row
@@ -178,8 +178,8 @@ def collect(sweep_dir: Path) -> list[JobRow]:
     for num, overrides in expected.items():
         if num not in by_num:
             rows.append(JobRow(num, overrides, None, failure=(
-                "no job directory (invalid settings: see the sweep's error: lines; or the "
-                "sweep has not run it)")))
+                "no job directory (invalid settings: see the sweep's error: lines; or not "
+                "run yet)")))
     return sorted(rows, key=lambda job: (job.num, str(job.directory)))
 
 
@@ -265,7 +265,7 @@ def markdown_table(rows: Sequence[JobRow], sweep_dir: Path) -> str:
         cells.append(stop_cell(row).replace("|", "\\|"))
         lines.append("| " + " | ".join(cells) + " |")
     n_failed = sum(row.failed for row in rows)
-    lines += ["", f"{len(rows)} jobs, {n_failed} failed."]
+    lines += ["", f"{len(rows)} jobs, {n_failed} failed or unfinished."]
     best = optuna_best(sweep_dir)
     if best:
         lines.append(best)

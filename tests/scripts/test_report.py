@@ -90,12 +90,12 @@ def test_fake_sweep_table(fake_sweep, tmp_path):
     assert [r[:3] for r in rows[2:]] == [["1", "gauss_newton", "0.001"],
                                          ["2", "split_bregman", "0"],
                                          ["3", "split_bregman", "0.001"]]
-    assert rows[2][-1] == ("failed: no result.json (stopped during the fit, checkpoint.pt "
-                           "left): simulation failed at iteration 3")
+    assert rows[2][-1] == ("failed: no result.json (still running, or stopped during the "
+                           "fit: checkpoint.pt left): simulation failed at iteration 3")
     assert rows[3][-1] == "failed: non-finite misfit in result.json"
     assert rows[4][-1].startswith("failed: no job directory (invalid settings")
     assert all(cell == "–" for r in rows[2:] for cell in r[3:-1])
-    assert "4 jobs, 3 failed." in proc.stdout
+    assert "4 jobs, 3 failed or unfinished." in proc.stdout
 
     with open(out_csv, newline="") as f:
         records = list(csv.DictReader(f))
@@ -156,4 +156,4 @@ def test_real_joblib_sweep(tmp_path):
         assert row[rows[0].index("k_err_rel")] == f"{res['k_err_rel']:.2e}"
         assert row[rows[0].index("iterations")] == str(res["iterations"])
         assert row[rows[0].index("factorizations")] == str(res["factorizations"])
-    assert "3 jobs, 1 failed." in rep.stdout
+    assert "3 jobs, 1 failed or unfinished." in rep.stdout
