@@ -42,7 +42,7 @@ Every setting is validated before any output is written; an invalid one prints
 ``error: <message>`` on standard error, removes the run directory if it holds only
 Hydra's own files, and exits with status 2, as does a config that Hydra cannot compose
 (an unknown option such as ``problem=nope``, a misspelt or mistyped override). In a
-multirun (``-m``) an invalid job does the same but returns NaN instead of exiting, so
+multirun (``-m``) an invalid job does the same but returns ``+inf`` instead of exiting, so
 that the sweep's other jobs still run. The task function returns the value a sweeper
 minimises: the key ``objective_metric`` of ``result.json`` (default ``misfit``; e.g.
 ``objective_metric=k_err_rel_aligned`` for the Optuna preset ``experiment=sb_tuning``), or
