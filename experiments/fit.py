@@ -7,6 +7,7 @@ Usage (from the repository root)::
     python experiments/fit.py --cfg job                         # show the resolved config
     python experiments/fit.py -m hydra/launcher=joblib problem.noise=0,1e-4,1e-3 \
         solver=gauss_newton,levenberg_marquardt                 # sweep, one job per process
+    python experiments/fit.py -m experiment=seed_table          # a sweep preset (conf/experiment/)
 
 Outputs, in the Hydra run directory (``outputs/<problem>/<solver>/<time>/`` by default;
 one directory per job under ``multirun/`` for ``-m``):
@@ -49,9 +50,12 @@ Every setting is validated before any output is written; an invalid one prints
 ``error: <message>`` on standard error, removes the run directory if it holds only
 Hydra's own files, and exits with status 2, as does a config that Hydra cannot compose
 (an unknown option such as ``problem=nope``, a misspelt or mistyped override). In a
-multirun (``-m``) an invalid job does the same but returns NaN instead of exiting, so
-that the sweep's other jobs still run (a sweeper such as Optuna counts NaN as a failed
-trial). The task function returns the final misfit (the value a sweeper minimises).
+multirun (``-m``) an invalid job does the same but returns ``+inf`` instead of exiting, so
+that the sweep's other jobs still run. The task function returns the value a sweeper
+minimises: the key ``objective_metric`` of ``result.json`` (default ``misfit``; e.g.
+``objective_metric=k_err_rel_aligned`` for the Optuna preset ``experiment=sb_tuning``), or
+``+inf`` for an invalid job or a non-finite value (hydra-optuna-sweeper 1.3 aborts the
+whole study on a NaN return; ``inf`` is simply the worst trial).
 """
 from __future__ import annotations
 
@@ -169,6 +173,10 @@ def prepare(cfg: DictConfig, run_dir: Path) -> Job:
     if int(config["snapshot_every"]) < 0:
         raise ValueError(f"snapshot_every must be >= 0 (0: only snapshot_iterations), got "
                          f"{config['snapshot_every']}")
+    objective = str(config["objective_metric"])
+    if objective not in OBJECTIVE_METRICS:
+        raise ValueError(f"objective_metric={objective!r} is not a key of result.json; choose one "
+                         f"of {list(OBJECTIVE_METRICS)}")
     if any(int(i) < 0 for i in config["snapshot_iterations"]):
         raise ValueError(f"snapshot_iterations must be >= 0, got {config['snapshot_iterations']}")
     if int(config["threads"]) > 0:
@@ -200,8 +208,39 @@ def prepare(cfg: DictConfig, run_dir: Path) -> Job:
         else:
             log.warning("resume=true but %s does not exist; starting from the initial guess",
                         path)
+    if objective not in reported_metrics(problem):
+        raise ValueError(f"objective_metric={objective} is not reported by {problem.name}; choose "
+                         f"one of {reported_metrics(problem)}")
     inputs = solver_inputs(solve, str(config["solver"].get("name")), problem, solver_cfg)
     return Job(config, problem, solve, solver_cfg, theta0, start, resumed, inputs)
+
+
+#: The numeric keys of result.json that ``objective_metric`` may name.
+OBJECTIVE_METRICS = ("misfit", "u_err_inf", "u_err_2", "k_err_inf", "k_err_2", "k_err_rel",
+                     "k_err_rel_aligned", "iterations", "wall_s", "factorizations", "solves")
+
+
+def reported_metrics(problem: InverseProblem) -> list[str]:
+    """The keys of :data:`OBJECTIVE_METRICS` that ``problem`` reports (as
+    :meth:`InverseProblem.metrics`: state errors need the true state, field errors the true
+    field, the aligned error a scale-free problem)."""
+    absent = set()
+    if problem.x_true is None:
+        absent |= {"u_err_inf", "u_err_2"}
+    if problem.field_true is None:
+        absent |= {"k_err_inf", "k_err_2", "k_err_rel", "k_err_rel_aligned"}
+    if not problem.scale_free:
+        absent.add("k_err_rel_aligned")
+    return [key for key in OBJECTIVE_METRICS if key not in absent]
+
+
+def objective_value(metrics: dict[str, float], result: SolveResult, key: str) -> float:
+    """The task function's return value: ``metrics[key]`` or the solver count ``key``;
+    ``+inf`` when it is not finite (so that a sweeper ranks the trial last)."""
+    counts = {"iterations": result.iterations, "wall_s": result.wall_time,
+              "factorizations": result.factorizations, "solves": result.solves}
+    value = float(metrics[key] if key in metrics else counts[key])
+    return value if math.isfinite(value) else math.inf
 
 
 def report_invalid(message: str, run_dir: Path) -> None:
@@ -232,7 +271,7 @@ def remove_if_only_hydra(run_dir: Path) -> bool:
 
 
 def run(job: Job, run_dir: Path) -> float:
-    """Fit, write every output, return the final misfit."""
+    """Fit, write every output, return the objective (:func:`objective_value`)."""
     problem, config = job.problem, job.config
     described = problem.describe()
     log.info("problem %s: %s parameters, %s data, noise level %s%s", described["name"],
@@ -292,7 +331,7 @@ def run(job: Job, run_dir: Path) -> float:
           f"{result.factorizations} factorizations, {result.solves} solves: {summary}")
     print(f"results: {result_path} (beside it: params.pt, field.npy,{plot} {CHECKPOINT_FILE})")
     print(f"tensorboard --logdir {(run_dir / 'tb').resolve()}", flush=True)
-    return float(metrics["misfit"])
+    return objective_value(metrics, result, str(config["objective_metric"]))
 
 
 def save_frames(path: Path, problem: InverseProblem, field: torch.Tensor) -> None:
@@ -322,8 +361,9 @@ def main(cfg: DictConfig) -> float:
     except SETUP_ERRORS as e:
         report_invalid(str(e), run_dir)
         if hydra_cfg.mode == RunMode.MULTIRUN:
-            # Let the sweep's other jobs run; NaN is a failed trial for a sweeper.
-            return math.nan
+            # Let the sweep's other jobs run; inf, not NaN: hydra-optuna-sweeper 1.3 hands
+            # the value to optuna's tell() and aborts the study on a NaN.
+            return math.inf
         sys.exit(2)
     return run(job, run_dir)
 

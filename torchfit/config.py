@@ -33,6 +33,9 @@ class FitConfig:
     snapshot_iterations: List[int] = dataclasses.field(default_factory=lambda: [1, 5, 10, 40])
     snapshot_every: int = 10
     sheet_frame: Optional[int] = None   # frame whose deformed mesh is drawn (None: the problem's)
+    # What the task function returns, i.e. what a sweeper such as Optuna minimises: a key of
+    # result.json (a metric of PROBLEMS.md, or iterations, wall_s, factorizations, solves).
+    objective_metric: str = "misfit"
 
 
 @dataclasses.dataclass

@@ -90,6 +90,7 @@ def test_levenberg_marquardt_noise_free(tmp_path):
     ("problem.n=0", ["problem.n"]),
     ("problem.fixed_nodes=[]", ["problem.fixed_nodes", "singular", "Dirichlet"]),
     ("solver.tau=0.5", ["solver.tau"]),
+    ("objective_metric=k_err", ["objective_metric", "k_err_rel"]),
 ])
 def test_invalid_setting_is_one_clear_line(tmp_path, override, expect):
     run_dir = tmp_path / "run"
