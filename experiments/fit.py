@@ -117,14 +117,18 @@ def solver_config(section: dict[str, Any]) -> tuple[Callable[..., SolveResult], 
 
 
 def solver_inputs(solve: Callable[..., SolveResult], solver_name: str,
-                  problem: InverseProblem) -> dict[str, Any]:
-    """Extra inputs of a solver beyond the residual: the TV difference operator ``D`` and
-    its row groups for solvers marked ``needs_difference_operator`` (split Bregman).
+                  problem: InverseProblem, solver_cfg: Any = None) -> dict[str, Any]:
+    """Extra inputs of a solver beyond the residual: the difference operator ``D`` and
+    its row groups for solvers marked ``needs_difference_operator`` (split Bregman's TV)
+    and for those marked ``accepts_difference_operator`` whose config asks for it
+    (Levenberg-Marquardt with ``preconditioner=difference``).
 
     ``D`` comes from the problem's parameterisation, never from the solver; raises
     ``ValueError`` naming the parameterisation when it has none or when it is empty.
     """
-    if not getattr(solve, "needs_difference_operator", False):
+    wanted = getattr(solve, "accepts_difference_operator", False) and \
+        getattr(solver_cfg, "preconditioner", "none") == "difference"
+    if not (getattr(solve, "needs_difference_operator", False) or wanted):
         return {}
     param = problem.parameterization
     operator = getattr(param, "difference_operator", None)
@@ -184,7 +188,7 @@ def prepare(cfg: DictConfig, run_dir: Path) -> Job:
         else:
             log.warning("resume=true but %s does not exist; starting from the initial guess",
                         path)
-    inputs = solver_inputs(solve, str(config["solver"].get("name")), problem)
+    inputs = solver_inputs(solve, str(config["solver"].get("name")), problem, solver_cfg)
     return Job(config, problem, solve, solver_cfg, theta0, start, resumed, inputs)
 
 
