@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from typing import Callable, Iterable
 
 import torch
@@ -157,21 +158,25 @@ def levenberg_marquardt(residual: ResidualFunction, theta0: Tensor,
         if laplacian is not None and precondition is None and inner.stop_reason == "max_iter":
             laplacian_active = True
         direction = inner.x
-        jd = inner.Ax
+        # the model's residual at the trial point: r + J d (linear model)
+        model_residual = lin.r + inner.Ax
         cg_iterations = inner.iterations
         acceleration_ratio = math.nan
         if cfg.geodesic_acceleration:
-            accel = _geodesic_acceleration(lin, direction, jd, damping, residual, theta, cfg,
-                                           precondition)
+            accel = _geodesic_acceleration(lin, direction, inner.Ax, damping, residual, theta,
+                                           cfg, precondition)
             if accel is None:           # no simulation at the probe point: a failed step
                 acceleration_ratio = math.inf
             else:
+                second, accel = accel
                 acceleration_ratio = 2.0 * float(torch.linalg.vector_norm(accel.x)) / max(
                     float(torch.linalg.vector_norm(direction)), 1e-300)
                 cg_iterations += accel.iterations
                 direction = direction + 0.5 * accel.x
-                jd = jd + 0.5 * accel.Ax
-        predicted = -float(torch.dot(lin.r, jd)) - 0.5 * float(torch.dot(jd, jd))
+                # second-order model of the path theta + v + a / 2:
+                # r + J v + (r_vv + J a) / 2
+                model_residual = model_residual + 0.5 * (second + accel.Ax)
+        predicted = 0.5 * lin.norm ** 2 - 0.5 * float(torch.dot(model_residual, model_residual))
         # Transtrum's safeguard: a correction comparable with the step means the
         # quadratic model of the path is not trustworthy either; reject without a trial.
         candidate = try_linearize(residual, theta + direction) \
@@ -221,13 +226,14 @@ def _damped_solve(lin: Linearization, gradient: Tensor, damping: float,
 def _geodesic_acceleration(lin: Linearization, velocity: Tensor, j_velocity: Tensor,
                            damping: float, residual: ResidualFunction, theta: Tensor,
                            cfg: LevenbergMarquardtConfig,
-                           precondition: Callable[[Tensor], Tensor] | None) -> CGLSResult | None:
+                           precondition: Callable[[Tensor], Tensor] | None
+                           ) -> tuple[Tensor, CGLSResult] | None:
     """Transtrum and Sethna's geodesic acceleration ``a`` of the damped step ``v``.
 
     ``a`` solves ``min ||J a + r_vv||^2 + lam ||a||^2`` with the second directional
     derivative ``r_vv ~ (2 / h) ((r(theta + h v) - r) / h - J v)`` (one simulation
-    without a graph, ``h = geodesic_step``); the trial step is ``v + a / 2``. ``None``
-    when the simulation fails at ``theta + h v``.
+    without a graph, ``h = geodesic_step``); the trial step is ``v + a / 2``. Returns
+    ``(r_vv, a)``, or ``None`` when the simulation fails at ``theta + h v``.
     """
     h = cfg.geodesic_step
     try:
@@ -237,9 +243,10 @@ def _geodesic_acceleration(lin: Linearization, velocity: Tensor, j_velocity: Ten
     if not bool(torch.isfinite(shifted).all()):
         return None
     second = (2.0 / h) * ((shifted - lin.r) / h - j_velocity)
-    return cgls(lin.jvp, lin.vjp, -second, theta.numel(), shift=damping, residual_target=0.0,
-                max_iter=cfg.geodesic_cg_max_iter, project=residual.projector(theta),
-                normal_rtol=cfg.cg_rtol, preconditioner=precondition)
+    return second, cgls(lin.jvp, lin.vjp, -second, theta.numel(), shift=damping,
+                        residual_target=0.0, max_iter=cfg.geodesic_cg_max_iter,
+                        project=residual.projector(theta), normal_rtol=cfg.cg_rtol,
+                        preconditioner=precondition)
 
 
 def _graph_laplacian(D: Tensor | None, theta: Tensor) -> Callable[[Tensor], Tensor]:
@@ -254,10 +261,14 @@ def _graph_laplacian(D: Tensor | None, theta: Tensor) -> Callable[[Tensor], Tens
                                 f"{tuple(getattr(D, 'shape', ()))}")
     D = (D if D.layout == torch.sparse_coo else D.to_sparse()).coalesce()
     D = D.to(dtype=theta.dtype, device=theta.device)
-    Dt = D.t().coalesce()
+    # Formed once: one sparse product per CGLS iteration instead of two (torch computes
+    # the sparse-sparse product through its beta CSR kernels; the warning says only that).
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        L = torch.sparse.mm(D.t().coalesce(), D).coalesce()
 
     def laplacian(v: Tensor) -> Tensor:
-        return torch.sparse.mm(Dt, torch.sparse.mm(D, v[:, None]))[:, 0]
+        return torch.sparse.mm(L, v[:, None])[:, 0]
 
     return laplacian
 
