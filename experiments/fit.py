@@ -135,8 +135,8 @@ def solver_inputs(solve: Callable[..., SolveResult], solver_name: str,
                   problem: InverseProblem, config: Any = None) -> dict[str, Any]:
     """Extra inputs of a solver beyond the residual: the TV difference operator ``D`` and
     its row groups for solvers marked ``needs_difference_operator`` (split Bregman; a
-    callable mark is asked with the solver ``config``: Gauss-Newton needs ``D`` only for
-    ``preconditioner=difference``).
+    callable mark is asked with the solver ``config``: Gauss-Newton and
+    Levenberg-Marquardt need ``D`` only for ``preconditioner=difference``).
 
     ``D`` comes from the problem's parameterisation, never from the solver; raises
     ``ValueError`` naming the parameterisation when it has none or when it is empty.

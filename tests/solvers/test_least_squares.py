@@ -133,6 +133,13 @@ def test_gauge_direction_is_never_moved_along():
     (GaussNewtonConfig(cg_max_iter=0), "cg_max_iter"),
     (LevenbergMarquardtConfig(damping_init=0.0), "damping_init"),
     (LevenbergMarquardtConfig(decrease=2.0), "decrease"),
+    (LevenbergMarquardtConfig(preconditioner="ilu"), "solver.preconditioner"),
+    (LevenbergMarquardtConfig(damping_update="fletcher"), "solver.damping_update"),
+    (LevenbergMarquardtConfig(geodesic_step=0.0), "solver.geodesic_step"),
+    (LevenbergMarquardtConfig(preconditioner_shift=0.0), "preconditioner_shift"),
+    (LevenbergMarquardtConfig(preconditioner_probes=0), "preconditioner_probes"),
+    # the difference preconditioner without the difference operator D
+    (LevenbergMarquardtConfig(preconditioner="difference"), "needs the difference operator D"),
 ])
 def test_bad_solver_settings_are_named(config, match):
     problem = Spring1D(n=4)

@@ -51,9 +51,9 @@ import torch
 from torchfit.params import (Parameterization, grid_edges, grid_groups, per_element,
                              per_grid_cell)
 from torchfit.problems import Spring1D
-from torchfit.solvers import (SOLVERS, GroupTV, ResidualFunction, SolverConfigError,
-                              SplitBregmanConfig, check_difference_operator, gauss_newton,
-                              split_bregman)
+from torchfit.solvers import (SOLVERS, GroupTV, LevenbergMarquardtConfig, ResidualFunction,
+                              SolverConfigError, SplitBregmanConfig, check_difference_operator,
+                              gauss_newton, levenberg_marquardt, split_bregman)
 from torchfit.solvers.stacked import CachedResidual, LinearResidual, StackedResidual
 
 REPO = Path(__file__).resolve().parents[2]
@@ -315,6 +315,16 @@ def test_fit_app_refuses_a_parameterisation_without_difference_operator():
     with pytest.raises(ValueError, match="split_bregman needs the difference operator D.*custom"):
         fit_app.solver_inputs(split_bregman, "split_bregman", Problem())
     assert fit_app.solver_inputs(gauss_newton, "gauss_newton", Problem()) == {}
+    # Levenberg-Marquardt asks for D only with its difference preconditioner
+    assert fit_app.solver_inputs(levenberg_marquardt, "levenberg_marquardt", Problem(),
+                                 LevenbergMarquardtConfig()) == {}
+    with pytest.raises(ValueError, match="levenberg_marquardt needs the difference operator D"):
+        fit_app.solver_inputs(levenberg_marquardt, "levenberg_marquardt", Problem(),
+                              LevenbergMarquardtConfig(preconditioner="difference"))
+    spring = Spring1D(n=6)
+    inputs = fit_app.solver_inputs(levenberg_marquardt, "levenberg_marquardt", spring,
+                                   LevenbergMarquardtConfig(preconditioner="difference"))
+    assert inputs["D"].shape == (5, 6)
 
 
 def test_registered_with_its_config():

@@ -77,13 +77,7 @@ def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor]
          project: Callable[[Tensor], Tensor] | None = None,
          rmatvec_b: Tensor | None = None, normal_rtol: float = 1e-14,
          preconditioner: Callable[[Tensor], Tensor] | None = None) -> CGLSResult:
-    """CGLS for ``min ||A x - b||^2 + shift ||x||^2`` from ``x = 0``.
-
-    With a ``preconditioner`` ``M`` (symmetric positive semi-definite, ``n -> n``) this
-    is CGLS on ``A S`` with ``S S^T = M`` (right preconditioning, PCGLS): the iterates
-    minimise ``||A x - b||`` over the Krylov space of ``M A^T A``, which converges fast
-    when ``M`` approximates ``(A^T A)^+``. ``M`` never needs to be factored; its null
-    space is never entered (a gauge direction can be kept out this way too).
+    """(Preconditioned) CGLS for ``min ||A x - b||^2 + shift ||x||^2`` from ``x = 0``.
 
     Stops when the least-squares residual ``||A x - b||`` drops to
     ``residual_target`` (the REGINN-style relative rule of Gauss-Newton), when the
@@ -99,28 +93,26 @@ def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor]
         project: optional orthogonal projector applied to search directions (keeps
             iterates out of a known null space, e.g. the stiffness scale).
         rmatvec_b: ``A^T b`` if the caller already has it (saves one product).
-        normal_rtol: stop when the (preconditioned) normal-equation residual
-            ``(s^T M s)^(1/2)``, ``s = A^T (b - A x) - shift x``, is this fraction of
-            its initial value.
-        preconditioner: ``v (n,) -> M v`` (see above); only with ``shift = 0``.
+        preconditioner: ``s (n,) -> M s (n,)`` with ``M`` SPD, an approximation of
+            ``(A^T A + shift I)^{-1}``: CG on the normal equations in the ``M^{-1}`` inner
+            product. The iterates solve the same problem; only the Krylov space changes
+            (``None``: ``M = I``, plain CGLS). The stopping rules use the unpreconditioned
+            normal residual, so a preconditioner never loosens them.
     Returns:
         :class:`CGLSResult`; ``m`` iterations cost ``m`` matvecs and ``m`` rmatvecs
         (plus one rmatvec for ``A^T b`` unless given).
     """
-    if preconditioner is not None and shift != 0.0:
-        raise ValueError("cgls: a preconditioner needs shift = 0 (damped least squares "
-                         "would have to be preconditioned in the metric of M)")
     project = project or (lambda v: v)
-
-    def apply_m(v: Tensor) -> Tensor:          # v is already projected
-        return v if preconditioner is None else project(preconditioner(v))
+    precondition = (lambda v: project(preconditioner(v))) if preconditioner is not None \
+        else (lambda v: v)
     x = b.new_zeros(n)
     r = b.clone()                       # b - A x
-    s = project(rmatvec_b.clone() if rmatvec_b is not None else rmatvec(r))
-    z = apply_m(s)
+    s = project(rmatvec_b.clone() if rmatvec_b is not None else rmatvec(r))   # normal residual
+    z = precondition(s)
     p = z.clone()
-    gamma = torch.dot(s, z)
-    gamma0 = gamma
+    gamma = torch.dot(s, z)             # s^T M s (s^T s without a preconditioner)
+    s_norm2_0 = float(torch.dot(s, s))
+    s_norm2 = s_norm2_0
     Ax = torch.zeros_like(b)
     r_norm = float(torch.linalg.vector_norm(r))
     if r_norm <= residual_target:
@@ -128,7 +120,7 @@ def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor]
     stop = "max_iter"
     iterations = 0
     for iterations in range(1, max_iter + 1):
-        if float(gamma) <= normal_rtol ** 2 * float(gamma0):
+        if s_norm2 <= normal_rtol ** 2 * s_norm2_0:
             stop = "tolerance"
             iterations -= 1
             break
@@ -149,7 +141,8 @@ def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor]
         if iterations == max_iter:
             break
         s = project(rmatvec(r) - shift * x)
-        z = apply_m(s)
+        z = precondition(s) if preconditioner is not None else s
+        s_norm2 = float(torch.dot(s, s))
         gamma_new = torch.dot(s, z)
         p = z + (gamma_new / gamma) * p
         gamma = gamma_new
