@@ -72,6 +72,9 @@ class CGLSResult:
     stop_reason: str
 
 
+_ROUNDOFF = 1e-14     # relative M-norm of the normal residual at which CGLS always stops
+
+
 def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor], b: Tensor,
          n: int, shift: float = 0.0, residual_target: float = 0.0, max_iter: int = 100,
          project: Callable[[Tensor], Tensor] | None = None,
@@ -111,6 +114,7 @@ def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor]
     z = precondition(s)
     p = z.clone()
     gamma = torch.dot(s, z)             # s^T M s (s^T s without a preconditioner)
+    gamma0 = float(gamma)
     s_norm2_0 = float(torch.dot(s, s))
     s_norm2 = s_norm2_0
     Ax = torch.zeros_like(b)
@@ -120,7 +124,9 @@ def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor]
     stop = "max_iter"
     iterations = 0
     for iterations in range(1, max_iter + 1):
-        if s_norm2 <= normal_rtol ** 2 * s_norm2_0:
+        # The M-norm test ends the iteration at round-off, where CG breaks down: with a
+        # singular M (a gauge kept out by the preconditioner) ||s|| never gets small.
+        if s_norm2 <= normal_rtol ** 2 * s_norm2_0 or float(gamma) <= _ROUNDOFF ** 2 * gamma0:
             stop = "tolerance"
             iterations -= 1
             break
