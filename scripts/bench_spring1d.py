@@ -50,8 +50,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from benchtools import emit_report, loadavg, machine_info  # noqa: E402
-from torchfit.linalg import counting  # noqa: E402
+from benchtools import (ProblemBench, emit_report, loadavg, machine_info,  # noqa: E402
+                        stats, timed)
 from torchfit.problems import Spring1D  # noqa: E402
 from torchfit.solvers.gauss_newton import GaussNewtonConfig, gauss_newton  # noqa: E402
 
@@ -62,35 +62,6 @@ ACCEPTANCE_N = 100_000
 # -- helpers ------------------------------------------------------------------------------
 
 
-
-
-def stats(times: list[float]) -> dict[str, Any]:
-    return {"median_s": statistics.median(times), "min_s": min(times),
-            "max_s": max(times), "repeats": len(times),
-            "all_s": [round(t, 6) for t in times]}
-
-
-def timed(fn: Callable[[], Any]) -> tuple[float, Any, dict[str, int]]:
-    """Run ``fn`` once; return (seconds, result, counter delta)."""
-    gc.disable()  # as timeit does: no collector pauses inside the timed call
-    try:
-        with counting() as delta:
-            start = time.perf_counter()
-            out = fn()
-            elapsed = time.perf_counter() - start
-            counts = delta.as_dict()  # the delta is live: snapshot it inside the block
-    finally:
-        gc.enable()
-    return elapsed, out, counts
-
-
-def same_counts(all_counts: list[dict[str, int]]) -> dict[str, Any]:
-    """The counts of one repeat, flagged if repeats disagree (they must not)."""
-    first = all_counts[0]
-    out: dict[str, Any] = dict(first)
-    if any(c != first for c in all_counts[1:]):
-        out["inconsistent_across_repeats"] = all_counts
-    return out
 
 
 def top_functions(profile: cProfile.Profile, limit: int, calls: int) -> list[dict[str, Any]]:
@@ -123,71 +94,16 @@ def profiled(fn: Callable[[], Any], calls: int, limit: int,
 
 
 # -- the benchmark of one size ------------------------------------------------------------
-class Bench:
+class Bench(ProblemBench):
     def __init__(self, n: int, repeats: int, gn_repeats: int, seed: int) -> None:
-        self.n = n
-        self.repeats = repeats
-        self.gn_repeats = gn_repeats
+        self.n, self.gn_repeats = n, gn_repeats
         start = time.perf_counter()
-        self.problem = Spring1D(n=n)
-        self.build_s = time.perf_counter() - start
-        self.eq = self.problem.equilibrium
-        gen = torch.Generator().manual_seed(seed)
-        theta0 = self.problem.theta0
-        # A generic (non-constant) point: the initial guess plus a small perturbation.
-        self.theta = (theta0 + 0.1 * torch.randn(theta0.shape, generator=gen,
-                                                  dtype=theta0.dtype)).detach()
-        n_frames = self.problem.n_frames
-        self.g = torch.randn((n_frames, n + 1, 1), generator=gen, dtype=theta0.dtype)
-        self.v = torch.randn(theta0.shape, generator=gen, dtype=theta0.dtype)
-        self.w = torch.randn(self.problem.data.shape, generator=gen, dtype=theta0.dtype)
+        problem = Spring1D(n=n)
+        super().__init__(problem, repeats, seed, (problem.n_frames, n + 1, 1),
+                         time.perf_counter() - start)
         # A start close to the truth, where the full Gauss-Newton step is accepted.
-        truth = self.problem.parameterization.inverse(self.problem.field_true)
-        self.theta_near = (truth + 0.05 * torch.randn(truth.shape, generator=gen,
-                                                      dtype=truth.dtype)).detach()
-
-    # forward + backward ------------------------------------------------------------
-    def _forward(self, theta: torch.Tensor) -> torch.Tensor:
-        return self.problem.simulate(self.problem.parameterization(theta))
-
-    def forward_backward(self) -> dict[str, Any]:
-        fwd_t, bwd_t, fwd_c, bwd_c = [], [], [], []
-        gc.collect()
-        for rep in range(self.repeats + 1):  # repeat 0 warms up
-            self.eq.clear_cache()
-            theta = self.theta.clone().requires_grad_(True)
-            t_f, x, c_f = timed(lambda: self._forward(theta))
-            t_b, (grad,), c_b = timed(lambda: torch.autograd.grad(x, theta, self.g))
-            assert grad.shape == theta.shape and bool(torch.isfinite(grad).all())
-            if rep:
-                fwd_t.append(t_f), bwd_t.append(t_b), fwd_c.append(c_f), bwd_c.append(c_b)
-        forward = {**stats(fwd_t), "counts": same_counts(fwd_c)}
-        backward = {**stats(bwd_t), "counts": same_counts(bwd_c)}
-        ratio = backward["median_s"] / forward["median_s"]
-        ratio_min = backward["min_s"] / forward["min_s"]
-        return {"forward": forward, "backward": backward,
-                "backward_over_forward": ratio, "backward_over_forward_min": ratio_min}
-
-    # J v and J^T w -----------------------------------------------------------------
-    def products(self) -> dict[str, Any]:
-        residual = self.problem.residual()
-        self.eq.clear_cache()
-        t_lin, lin, c_lin = timed(lambda: residual.linearize(self.theta))
-        out: dict[str, Any] = {"linearize": {"seconds": t_lin, "counts": c_lin}}
-        for name, fn in (("jvp", lambda: lin.jvp(self.v)), ("vjp", lambda: lin.vjp(self.w))):
-            times, counts = [], []
-            gc.collect()
-            for rep in range(self.repeats + 1):
-                t, y, c = timed(fn)
-                assert bool(torch.isfinite(y).all())
-                if rep:
-                    times.append(t), counts.append(c)
-            out[name] = {**stats(times), "counts": same_counts(counts)}
-        # Adjoint consistency <w, J v> = <J^T w, v> (a cheap correctness check).
-        lhs = float(torch.dot(self.w, lin.jvp(self.v)))
-        rhs = float(torch.dot(lin.vjp(self.w), self.v))
-        out["adjoint_check_rel_err"] = abs(lhs - rhs) / max(abs(lhs), abs(rhs), 1e-300)
-        return out
+        truth = problem.parameterization.inverse(problem.field_true)
+        self.theta_near = (truth + 0.05 * self.randn(truth.shape)).detach()
 
     # one Gauss-Newton step -------------------------------------------------------------
     def _gn_once(self, start: torch.Tensor, warm: bool) -> dict[str, Any]:
