@@ -33,7 +33,7 @@ def fit(problem, solver, config=None):
 def test_difference_preconditioner_is_the_shifted_graph_laplacian():
     problem = Poisson2D(N=5)                                  # 4 x 4 cells
     D = problem.parameterization.difference_operator()
-    M = DifferencePreconditioner(D, 16, problem.theta0)
+    M = DifferencePreconditioner(D, problem.theta0)
     assert M.degree == 4.0                                    # an interior cell
     M.shift = 0.5
     v = torch.randn(16, dtype=torch.float64)

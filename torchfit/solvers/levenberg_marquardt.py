@@ -46,7 +46,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import warnings
 from typing import Callable, Iterable
 
 import torch
@@ -56,6 +55,7 @@ from ..errors import SimulationError
 from ..linalg import CGLSResult, cgls
 from .gauss_newton import SolverConfigError, _require, _stop_reason
 from .records import Callback, IterationRecord, RunClock, SolveResult, emit, finish
+from .preconditioners import GraphLaplacian
 from .residual import Linearization, ResidualFunction, try_linearize
 
 
@@ -130,7 +130,7 @@ def levenberg_marquardt(residual: ResidualFunction, theta0: Tensor,
     cfg.validate()
     callbacks = list(callbacks)
     theta = theta0.detach().clone()
-    laplacian = _graph_laplacian(D, theta) if cfg.preconditioner == "difference" else None
+    laplacian = GraphLaplacian(D, theta) if cfg.preconditioner == "difference" else None
     laplacian_active = False
     generator = torch.Generator().manual_seed(cfg.seed)
     clock = RunClock()
@@ -267,31 +267,7 @@ def _geodesic_acceleration(lin: Linearization, velocity: Tensor, j_velocity: Ten
                         preconditioner=precondition)
 
 
-def _graph_laplacian(D: Tensor | None, theta: Tensor) -> Callable[[Tensor], Tensor]:
-    """``v (n,) -> D^T D v``; a clear error when ``D`` is missing or does not fit ``theta``."""
-    if D is None:
-        raise SolverConfigError("solver.preconditioner=difference needs the difference operator "
-                                "D of the parameterisation (pass D=parameterization."
-                                "difference_operator()), or set solver.preconditioner=none")
-    if not isinstance(D, Tensor) or D.dim() != 2 or D.shape[1] != theta.numel():
-        raise SolverConfigError(f"D (the difference operator) must be a 2-D tensor with "
-                                f"{theta.numel()} columns (one per parameter), got shape "
-                                f"{tuple(getattr(D, 'shape', ()))}")
-    D = (D if D.layout == torch.sparse_coo else D.to_sparse()).coalesce()
-    D = D.to(dtype=theta.dtype, device=theta.device)
-    # Formed once: one sparse product per CGLS iteration instead of two (torch computes
-    # the sparse-sparse product through its beta CSR kernels; the warning says only that).
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
-        L = torch.sparse.mm(D.t().coalesce(), D).coalesce()
-
-    def laplacian(v: Tensor) -> Tensor:
-        return torch.sparse.mm(L, v[:, None])[:, 0]
-
-    return laplacian
-
-
-def _preconditioner(lin: Linearization, laplacian: Callable[[Tensor], Tensor] | None,
+def _preconditioner(lin: Linearization, laplacian: GraphLaplacian | None,
                     cfg: LevenbergMarquardtConfig,
                     generator: torch.Generator) -> Callable[[Tensor], Tensor] | None:
     """``s -> C^{-1} (D^T D + eps I) C^{-1} s`` at this linearisation (``None``: no preconditioner).

@@ -23,7 +23,7 @@ from typing import Callable, Protocol, Sequence
 import torch
 from torch import Tensor
 
-from .gauss_newton import compressed_rows
+from .preconditioners import compressed_rows
 
 
 class LinearizationLike(Protocol):

@@ -1,0 +1,57 @@
+"""Parameter-space preconditioners for CGLS built from the parameterisation's ``D``.
+
+For a field seen through an elliptic solve (``J = -A^{-1} dR/dk``) the Gauss-Newton
+matrix ``J^T J`` acts like an inverse Laplacian on the parameters: smooth changes of the
+field are seen strongly, rough ones weakly. The graph Laplacian ``D^T D`` of the
+parameter neighbours (``D`` the difference operator the caller hands over; solvers never
+build it) is then a cheap approximate inverse. Gauss-Newton and Levenberg-Marquardt
+shift and scale it in their own ways; the Laplacian itself lives here, once.
+"""
+from __future__ import annotations
+
+import warnings
+
+import torch
+from torch import Tensor
+
+from .gauss_newton import SolverConfigError
+
+
+def compressed_rows(matrix: Tensor) -> Tensor:
+    """``matrix`` (sparse COO or CSR) as CSR: ``torch.mv`` on CSR is ~7x faster than on
+    COO on the CPU (0.3 vs 2 ms for ``D^T D v`` at 4k parameters), which matters at one
+    product per CGLS iteration."""
+    with warnings.catch_warnings():   # "sparse CSR support is in beta": mv is all we use
+        warnings.simplefilter("ignore", UserWarning)
+        return matrix.coalesce().to_sparse_csr() if matrix.layout == torch.sparse_coo \
+            else matrix.to_sparse_csr()
+
+
+class GraphLaplacian:
+    """``v (n,) -> D^T D v``, with ``D^T D`` formed once (CSR).
+
+    Args:
+        D: ``(n_edges, n)`` sparse difference operator of the parameterisation, or
+            ``None`` (a clear error: the preconditioner needs it).
+        like: a tensor with ``n`` entries and the dtype and device of ``theta``.
+    Attributes:
+        degree: the largest diagonal entry of ``D^T D`` (most neighbours of a parameter).
+    """
+
+    def __init__(self, D: Tensor | None, like: Tensor) -> None:
+        from .split_bregman import check_difference_operator   # (it imports gauss_newton)
+
+        if D is None:
+            raise SolverConfigError(
+                "solver.preconditioner=difference needs the difference operator D of the "
+                "parameterisation (pass D=parameterization.difference_operator()), or set "
+                "solver.preconditioner=none")
+        D, _, _ = check_difference_operator(D, like.numel(), dtype=like.dtype, device=like.device)
+        with warnings.catch_warnings():   # the sparse-sparse product goes through beta kernels
+            warnings.simplefilter("ignore", UserWarning)
+            laplacian = torch.sparse.mm(D.t().coalesce(), D).coalesce()
+        self.degree = float(torch.sparse.sum(D * D, dim=0).to_dense().max())
+        self._L = compressed_rows(laplacian)
+
+    def __call__(self, v: Tensor) -> Tensor:
+        return torch.mv(self._L, v)
