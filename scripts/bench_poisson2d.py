@@ -39,7 +39,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import torch.autograd.forward_ad as fwAD
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
@@ -74,29 +73,13 @@ class Bench(ProblemBench):
         evaluated ``J^T w`` after its last ``J v``), as on small grids, where the
         linear-residual target is out of reach.
         """
-        residual = self.problem.residual()
-        evaluated: list[torch.Tensor] = []
-        forward = residual.forward
-
-        def recording_forward(theta: torch.Tensor) -> torch.Tensor:
-            primal = fwAD.unpack_dual(theta).primal.detach()
-            if not any(torch.equal(primal, seen) for seen in evaluated):
-                evaluated.append(primal.clone())
-            return forward(theta)
-
-        start = self.problem.theta0
-        self.eq.clear_cache()
-        residual.linearize(start)  # a running fit has its current point factorised
-        residual.forward = recording_forward
-        config = dataclasses.replace(self.solver, max_iter=1)
         inputs = {"D": self.problem.parameterization.difference_operator()} \
-            if config.preconditioner == "difference" else {}
-        t, result, counts = timed(lambda: gauss_newton(residual, start, config, **inputs))
+            if self.solver.preconditioner == "difference" else {}
+        step = self.one_gn_step(self.problem.theta0, True, self.solver, **inputs)
+        t, counts, result = step["seconds"], step["counts"], step["result"]
         last = result.history[-1]
-        m = int(last.cg_iterations)
-        distinct = len(evaluated)
-        new = distinct - int(any(torch.equal(start, e) for e in evaluated))
-        trials = distinct - 1
+        m, new, trials = (step["cg_iterations_m"], step["new_theta_evaluated"],
+                          step["line_search_trials_t"])
         return {"seconds": t, "counts": counts, "cg_iterations_m": m,
                 "seconds_per_cg_iteration": t / max(m, 1),
                 "new_theta_evaluated": new, "line_search_trials_t": trials,

@@ -44,16 +44,15 @@ from typing import Any, Callable
 
 import scipy.sparse.linalg as spla
 import torch
-import torch.autograd.forward_ad as fwAD
 
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from benchtools import (ProblemBench, emit_report, loadavg, machine_info,  # noqa: E402
-                        stats, timed)
+                        stats)
 from torchfit.problems import Spring1D  # noqa: E402
-from torchfit.solvers.gauss_newton import GaussNewtonConfig, gauss_newton  # noqa: E402
+from torchfit.solvers.gauss_newton import GaussNewtonConfig  # noqa: E402
 
 BACKWARD_RATIO_TARGET = 0.3
 ACCEPTANCE_N = 100_000
@@ -107,28 +106,11 @@ class Bench(ProblemBench):
 
     # one Gauss-Newton step -------------------------------------------------------------
     def _gn_once(self, start: torch.Tensor, warm: bool) -> dict[str, Any]:
-        residual = self.problem.residual()
-        evaluated: list[torch.Tensor] = []
-        forward = residual.forward
-
-        def recording_forward(theta: torch.Tensor) -> torch.Tensor:
-            primal = fwAD.unpack_dual(theta).primal.detach()
-            if not any(torch.equal(primal, seen) for seen in evaluated):
-                evaluated.append(primal.clone())
-            return forward(theta)
-
-        self.eq.clear_cache()
-        if warm:
-            # A running fit has its current point evaluated and factorised already.
-            residual.linearize(start)
-        residual.forward = recording_forward
-        t, result, counts = timed(lambda: gauss_newton(residual, start,
-                                                       GaussNewtonConfig(max_iter=1)))
+        step = self.one_gn_step(start, warm, GaussNewtonConfig())
+        t, counts, result = step["seconds"], step["counts"], step["result"]
         last = result.history[-1]
-        m = int(last.cg_iterations)
-        distinct = len(evaluated)
-        new = distinct - int(warm and any(torch.equal(start, e) for e in evaluated))
-        trials = distinct - 1  # every point but the start is a line-search trial
+        m, distinct, new, trials = (step["cg_iterations_m"], step["distinct_theta_evaluated"],
+                                    step["new_theta_evaluated"], step["line_search_trials_t"])
         return {
             "seconds": t, "counts": counts, "cg_iterations_m": m,
             "distinct_theta_evaluated": distinct, "new_theta_evaluated": new,

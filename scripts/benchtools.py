@@ -5,6 +5,7 @@ notes and CI logs quote measured numbers, never guesses.
 """
 from __future__ import annotations
 
+import dataclasses
 import gc
 import json
 import os
@@ -17,8 +18,10 @@ from typing import Any, Callable
 import numpy as np
 import scipy
 import torch
+import torch.autograd.forward_ad as fwAD
 
 from torchfit.linalg import counting
+from torchfit.solvers.gauss_newton import GaussNewtonConfig, gauss_newton
 
 
 def machine_info() -> dict[str, Any]:
@@ -160,3 +163,35 @@ class ProblemBench:
         rhs = float(torch.dot(lin.vjp(self.w), self.v))
         out["adjoint_check_rel_err"] = abs(lhs - rhs) / max(abs(lhs), abs(rhs), 1e-300)
         return out
+
+    def one_gn_step(self, start: torch.Tensor, warm: bool, config: GaussNewtonConfig,
+                    **inputs: Any) -> dict[str, Any]:
+        """One Gauss-Newton step from ``start``, timed and counted.
+
+        ``warm``: ``start`` is evaluated and factorised first, as in a running fit.
+        Returns seconds, counts, the result, ``m`` (CGLS iterations), the number of new
+        parameter vectors simulated and ``t`` (line-search trial points).
+        """
+        residual = self.problem.residual()
+        evaluated: list[torch.Tensor] = []
+        forward = residual.forward
+
+        def recording_forward(theta: torch.Tensor) -> torch.Tensor:
+            primal = fwAD.unpack_dual(theta).primal.detach()
+            if not any(torch.equal(primal, seen) for seen in evaluated):
+                evaluated.append(primal.clone())
+            return forward(theta)
+
+        self.eq.clear_cache()
+        if warm:
+            residual.linearize(start)
+        residual.forward = recording_forward
+        config = dataclasses.replace(config, max_iter=1)
+        t, result, counts = timed(lambda: gauss_newton(residual, start, config, **inputs))
+        distinct = len(evaluated)
+        return {"seconds": t, "counts": counts, "result": result,
+                "cg_iterations_m": int(result.history[-1].cg_iterations),
+                "distinct_theta_evaluated": distinct,
+                "new_theta_evaluated": distinct - int(warm and any(torch.equal(start, e)
+                                                                   for e in evaluated)),
+                "line_search_trials_t": distinct - 1}  # every point but the start
