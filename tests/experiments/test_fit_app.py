@@ -10,15 +10,13 @@ from pathlib import Path
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 from tensorboard.util import tensor_util
+from conftest import run_fit_app
 
 REPO = Path(__file__).resolve().parents[2]
 
 
 def fit(run_dir: Path, *overrides: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
-    return subprocess.run([sys.executable, "experiments/fit.py", f"hydra.run.dir={run_dir}",
-                           *overrides], cwd=REPO, env=env, capture_output=True, text=True,
-                          timeout=timeout)
+    return run_fit_app(run_dir, *overrides, timeout=timeout)
 
 
 def ok(proc: subprocess.CompletedProcess) -> subprocess.CompletedProcess:

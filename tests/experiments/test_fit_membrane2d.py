@@ -10,16 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+from conftest import run_fit_app
 
 REPO = Path(__file__).resolve().parents[2]
 
 
 def fit(run_dir: Path, *overrides: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
-    proc = subprocess.run([sys.executable, "experiments/fit.py", f"hydra.run.dir={run_dir}",
-                           *overrides], cwd=REPO, env=env, capture_output=True, text=True,
-                          timeout=timeout)
-    return proc
+    return run_fit_app(run_dir, *overrides, timeout=timeout)
 
 
 @pytest.fixture(scope="module")

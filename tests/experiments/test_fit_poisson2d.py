@@ -3,9 +3,7 @@ scalars and hparams (read back from the event files) and its PNGs."""
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -13,15 +11,13 @@ from PIL import Image
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 from tensorboard.plugins.hparams import metadata as hparams_metadata
 from tensorboard.util import tensor_util
+from conftest import run_fit_app
 
 REPO = Path(__file__).resolve().parents[2]
 
 
 def fit(run_dir: Path, *overrides: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
-    return subprocess.run([sys.executable, "experiments/fit.py", f"hydra.run.dir={run_dir}",
-                           *overrides], cwd=REPO, env=env, capture_output=True, text=True,
-                          timeout=timeout)
+    return run_fit_app(run_dir, *overrides, timeout=timeout)
 
 
 @pytest.fixture(scope="module")

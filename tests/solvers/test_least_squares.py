@@ -10,6 +10,8 @@ from torchfit.problems import Spring1D
 from torchfit.solvers import (GaussNewtonConfig, LevenbergMarquardtConfig, ResidualFunction,
                               SolverConfigError, gauss_newton, levenberg_marquardt)
 
+from conftest import CountingResidual
+
 SOLVERS = {"gauss_newton": gauss_newton, "levenberg_marquardt": levenberg_marquardt}
 
 
@@ -42,16 +44,6 @@ def test_noisy_dense_stops_by_discrepancy(name):
     assert problem.metrics(result.theta)["k_err_rel"] <= 0.05
 
 
-class CountingResidual(ResidualFunction):
-    """Records every parameter vector at which the residual is linearised."""
-
-    def __init__(self, inner: ResidualFunction) -> None:
-        super().__init__(inner.forward, inner.data, inner.noise_level, inner.gauge)
-        self.points: list[torch.Tensor] = []
-
-    def linearize(self, theta):
-        self.points.append(theta.detach().clone())
-        return super().linearize(theta)
 
 
 def distinct(points):

@@ -39,7 +39,6 @@ from __future__ import annotations
 import ast
 import json
 import math
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -55,6 +54,7 @@ from torchfit.solvers import (SOLVERS, GroupTV, LevenbergMarquardtConfig, Residu
                               SolverConfigError, SplitBregmanConfig, check_difference_operator,
                               gauss_newton, levenberg_marquardt, split_bregman)
 from torchfit.solvers.stacked import CachedResidual, LinearResidual, StackedResidual
+from conftest import CountingResidual, run_fit_app
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -91,16 +91,6 @@ def test_spring1d_dense_noise_1e4_beats_gauss_newton_fivefold():
 
 
 # -- records, counters ---------------------------------------------------------------------
-class CountingResidual(ResidualFunction):
-    """Records every parameter vector at which the model is linearised."""
-
-    def __init__(self, inner: ResidualFunction) -> None:
-        super().__init__(inner.forward, inner.data, inner.noise_level, inner.gauge)
-        self.points: list[torch.Tensor] = []
-
-    def linearize(self, theta):
-        self.points.append(theta.detach().clone())
-        return super().linearize(theta)
 
 
 def test_one_factorization_per_distinct_parameter_vector_in_every_outer_iteration():
@@ -557,10 +547,7 @@ def test_isotropic_matches_skimage_denoise_tv_chambolle(skimage_restoration):
 
 # -- the Hydra app ---------------------------------------------------------------------------
 def fit(run_dir: Path, *overrides: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
-    return subprocess.run([sys.executable, "experiments/fit.py", f"hydra.run.dir={run_dir}",
-                           *overrides], cwd=REPO, env=env, capture_output=True, text=True,
-                          timeout=timeout)
+    return run_fit_app(run_dir, *overrides, timeout=timeout)
 
 
 def test_fit_app_split_bregman_end_to_end(tmp_path):
