@@ -13,7 +13,7 @@ import torch
 from omegaconf import OmegaConf
 
 from torchfit.problems import Spring1D
-from torchfit.solvers.residual import ResidualFunction
+from torchfit.residual import ResidualFunction
 from torchfit.verification import (dot_product_test, finite_difference_test, format_report,
                                    random_direction, taylor_test, verify)
 

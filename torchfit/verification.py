@@ -1,6 +1,6 @@
 """Derivative verification: every Jacobian product has a check (hIPPYlib style).
 
-Problem-agnostic: the checks see only a :class:`~torchfit.solvers.residual.ResidualFunction`
+Problem-agnostic: the checks see only a :class:`~torchfit.residual.ResidualFunction`
 (``value(theta)`` and ``linearize(theta)`` with ``r``, ``jvp(v)`` and ``vjp(w)``), so they
 apply to every problem, parameterisation and simulator alike.
 

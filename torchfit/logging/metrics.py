@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from ..solvers import IterationRecord
+from ..records import IterationRecord
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problems import InverseProblem

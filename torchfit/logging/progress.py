@@ -16,7 +16,7 @@ import math
 import sys
 from typing import TextIO
 
-from ..solvers import IterationRecord
+from ..records import IterationRecord
 
 _HEADER = (f"{'iter':>5} {'misfit':>11} {'objective':>11} {'k_err_rel':>11} {'cg':>5} "
            f"{'damping':>10} {'|step|':>10} {'solves':>7} {'wall s':>8}")

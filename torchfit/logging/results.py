@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..solvers import IterationRecord, SolveResult
+from ..records import IterationRecord, SolveResult
 
 RESULT_FILE = "result.json"
 PARAMS_FILE = "params.pt"

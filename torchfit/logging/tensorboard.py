@@ -74,7 +74,7 @@ from tensorboard.plugins.hparams import api_pb2, plugin_data_pb2
 from tensorboard.plugins.hparams import metadata as _hparams_metadata
 from tensorboard.plugins.hparams import summary_v2 as _hparams_v2
 
-from ..solvers import IterationRecord
+from ..records import IterationRecord
 from .metrics import METRIC_KEYS
 from .pictures import PlotGuard, supports_field_images
 from .plots import (ERROR_CMAP, aligned, colorize, frame_errors_figure, save_png, sheet_figure,

@@ -7,13 +7,13 @@ observation and the metrics of PROBLEMS.md. It contains no solver logic: solvers
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Any, Protocol, Sequence, runtime_checkable
 
 import torch
 from torch import Tensor
 
 from ..params import Parameterization
-from ..solvers.residual import ResidualFunction
+from ..residual import ResidualFunction
 
 
 class ProblemConfigError(ValueError):
@@ -54,6 +54,35 @@ def add_noise(clean: Tensor, sigma: float, seed: int) -> tuple[Tensor, float | N
     generator = torch.Generator().manual_seed(int(seed))
     noise = torch.randn(clean.shape, generator=generator, dtype=clean.dtype).to(clean.device)
     return clean + sigma * noise, sigma * math.sqrt(clean.numel())
+
+
+@runtime_checkable
+class FieldImageProblem(Protocol):
+    """A problem whose field can be drawn as a 2-D image (poisson2d, membrane2d)."""
+
+    def field_image(self, field: Tensor) -> Any:
+        """``(n_field,)`` values -> ``(H, W)`` array, row 0 at the top."""
+
+
+@runtime_checkable
+class FramedProblem(Protocol):
+    """A problem with several frames (load cases, animation frames) and per-frame errors."""
+
+    n_frames: int
+    default_sheet_frame: int
+
+    def frame_errors(self, x: Tensor) -> dict[str, Any]:
+        """``{'u_err_inf': (F,), 'u_err_2': (F,)}`` of the state ``x`` against the truth."""
+
+    def frame_names(self) -> list[str]:
+        """One short label per frame."""
+
+
+@runtime_checkable
+class MeshProblem(Protocol):
+    """A problem on a simplicial mesh (``mesh.points``, ``mesh.cells``, ``mesh.extent``)."""
+
+    mesh: Any
 
 
 class InverseProblem:

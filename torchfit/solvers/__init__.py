@@ -4,8 +4,8 @@ This package imports nothing from ``physics``, ``mesh`` or ``problems``.
 """
 from .gauss_newton import GaussNewtonConfig, SolverConfigError, gauss_newton
 from .levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
-from .records import Callback, IterationRecord, SolveResult
-from .residual import Linearization, ResidualFunction
+from ..records import Callback, IterationRecord, SolveResult
+from ..residual import Linearization, ResidualFunction
 from .split_bregman import GroupTV, SplitBregmanConfig, check_difference_operator, split_bregman
 
 #: config name -> (config dataclass, solver function)

@@ -33,8 +33,9 @@ import torch
 from torch import Tensor
 
 from ..linalg import cgls
-from .records import Callback, IterationRecord, RunClock, SolveResult, emit, finish
-from .residual import Linearization, ResidualFunction, try_linearize
+from ..records import Callback, IterationRecord, SolveResult
+from .base import RunClock, emit, finish
+from ..residual import Linearization, ResidualFunction, try_linearize
 
 
 PRECONDITIONERS = ("none", "difference")

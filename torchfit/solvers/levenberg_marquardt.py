@@ -54,9 +54,10 @@ from torch import Tensor
 from ..errors import SimulationError
 from ..linalg import CGLSResult, cgls
 from .gauss_newton import SolverConfigError, _require, _stop_reason
-from .records import Callback, IterationRecord, RunClock, SolveResult, emit, finish
+from ..records import Callback, IterationRecord, SolveResult
+from .base import RunClock, emit, finish
 from .preconditioners import GraphLaplacian
-from .residual import Linearization, ResidualFunction, try_linearize
+from ..residual import Linearization, ResidualFunction, try_linearize
 
 
 PRECONDITIONERS = ("none", "difference")

@@ -133,8 +133,9 @@ from torch import Tensor
 from ..linalg import cgls
 from .gauss_newton import GaussNewtonConfig, SolverConfigError, _require, gauss_newton
 from .levenberg_marquardt import LevenbergMarquardtConfig, levenberg_marquardt
-from .records import Callback, IterationRecord, RunClock, SolveResult, emit, finish
-from .residual import ResidualFunction
+from ..records import Callback, IterationRecord, SolveResult
+from .base import RunClock, emit, finish
+from ..residual import ResidualFunction
 from .stacked import CachedResidual, LinearResidual, StackedResidual
 
 INNER_SOLVERS = ("gauss_newton", "levenberg_marquardt")

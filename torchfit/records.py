@@ -8,12 +8,9 @@ add entries to ``record.extra`` (problem metrics), which later callbacks see.
 from __future__ import annotations
 
 import dataclasses
-import time
-from typing import Any, Iterable, Protocol
+from typing import Any, Protocol
 
 from torch import Tensor
-
-from ..linalg import COUNTERS
 
 
 @dataclasses.dataclass
@@ -87,34 +84,3 @@ class SolveResult:
 class Callback(Protocol):
     def __call__(self, record: IterationRecord) -> bool | None:
         """Called once per outer iteration; return ``True`` to stop the solver."""
-
-
-class RunClock:
-    """Wall time and counter offsets since the start of a solver run."""
-
-    def __init__(self) -> None:
-        self.start = time.perf_counter()
-        self.counters0 = COUNTERS.snapshot()
-
-    def elapsed(self) -> float:
-        return time.perf_counter() - self.start
-
-    def counts(self) -> tuple[int, int]:
-        delta = COUNTERS - self.counters0
-        return delta.factorizations, delta.solves
-
-
-def emit(callbacks: Iterable[Callback], record: IterationRecord) -> bool:
-    """Send a record to every callback; ``True`` if one asked to stop."""
-    stop = False
-    for callback in callbacks:
-        stop = bool(callback(record)) or stop
-    return stop
-
-
-def finish(theta: Tensor, converged: bool, reason: str, history: list[IterationRecord],
-           clock: RunClock) -> SolveResult:
-    factorizations, solves = clock.counts()
-    return SolveResult(theta, converged, reason, history[-1].iteration, history,
-                       clock.elapsed(), factorizations, solves)
-

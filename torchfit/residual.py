@@ -15,7 +15,7 @@ import torch
 import torch.autograd.forward_ad as fwAD
 from torch import Tensor
 
-from ..errors import SimulationError
+from .errors import SimulationError
 
 
 class Linearization:
