@@ -13,14 +13,16 @@ not scale-free), iterations, solver wall seconds, factorisations and the stop re
 A job that did not produce a usable result is a row marked ``failed: <reason>``, never a
 missing row:
 
-* no ``result.json`` in its directory (the job raised or was killed, or is still running;
-  the last error line of its log is the reason when there is one);
-* a ``result.json`` whose misfit is not finite (written as ``null``) or that says
-  ``"failed": true``;
-* no directory at all: ``experiments/fit.py`` removes the directory of a job whose
-  settings are invalid (its ``error:`` line went to the sweep's standard error). The jobs
-  a sweep should have run are known from ``multirun.yaml`` (Hydra's basic sweeper: the
-  same cartesian product it launched) or from the sweeper's ``n_trials`` (Optuna).
+* a ``result.json`` that says ``"status": "failed"``: the job's settings were invalid or
+  its fit raised; its ``error`` line is the reason (``experiments/fit.py`` writes it);
+* no ``result.json`` in its directory (the job was killed, or is still running; the last
+  error line of its log is the reason when there is one);
+* a ``result.json`` whose misfit is not finite (written as ``null``);
+* no directory at all, for a sweeper that says how many trials it runs (Optuna's
+  ``n_trials`` in ``multirun.yaml``): not run yet.
+
+The report reads files only (``result.json``, ``.hydra/*.yaml``, ``multirun.yaml``); it
+imports nothing of Hydra.
 
 With Hydra's Optuna sweeper the best trial of ``optimization_results.yaml`` is named
 below the table. Exit status 2 with one ``error:`` line when the directory does not exist
@@ -116,8 +118,8 @@ def read_job(job_dir: Path) -> JobRow:
     except (OSError, ValueError) as e:
         row.failure = f"unreadable result.json ({e})"
         return row
-    if row.result.get("failed"):
-        row.failure = str(row.result.get("error") or row.result.get("failed"))
+    if row.result.get("status") == "failed":
+        row.failure = str(row.result.get("error") or "failed")
     elif not _finite(row.result.get("misfit")):
         row.failure = "non-finite misfit in result.json"
     return row
@@ -127,38 +129,13 @@ def _finite(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
-def _sweep_config(sweep_dir: Path, jobs: Sequence[JobRow]) -> Optional[dict[str, Any]]:
-    """The sweep's Hydra config: ``multirun.yaml`` (basic sweeper), else a job's hydra.yaml."""
+def expected_trials(sweep_dir: Path) -> int:
+    """The number of trials a sweeper was asked for (``n_trials`` of Optuna and sweepers
+    alike, read from ``multirun.yaml``); 0 when it does not say."""
     multirun = sweep_dir / "multirun.yaml"
-    if multirun.is_file():
-        return _load_yaml(multirun)
-    for job in jobs:
-        if job.directory is not None:
-            return _load_yaml(job.directory / ".hydra" / "hydra.yaml")
-    return None
-
-
-def expected_jobs(sweep_dir: Path, jobs: Sequence[JobRow]) -> dict[int, dict[str, str]]:
-    """Job number -> overrides of every job the sweep launched (or will launch), as far as
-    the sweep's config tells; ``{}`` when it does not."""
-    config = _sweep_config(sweep_dir, jobs)
-    hydra_cfg = (config or {}).get("hydra", {})
-    sweeper = hydra_cfg.get("sweeper") or {}
-    target = str(sweeper.get("_target_", ""))
-    if target.endswith("BasicSweeper") and (sweep_dir / "multirun.yaml").is_file():
-        # Hydra's own expansion (the same calls as BasicSweeper.sweep) gives the job order.
-        from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
-        from hydra.core.override_parser.overrides_parser import OverridesParser
-
-        params = [f"{k}={v}" for k, v in (sweeper.get("params") or {}).items()]
-        arguments = list(hydra_cfg.get("overrides", {}).get("task") or [])
-        parsed = OverridesParser.create().parse_overrides(params + arguments)
-        batches = BasicSweeper.split_arguments(parsed, None)
-        return {num: parse_overrides(lines) for num, lines in enumerate(batches[0])}
-    n_trials = sweeper.get("n_trials")
-    if isinstance(n_trials, int) and n_trials > 0:      # Optuna (and sweepers alike)
-        return {num: {} for num in range(n_trials)}
-    return {}
+    config = _load_yaml(multirun) if multirun.is_file() else None
+    n_trials = ((config or {}).get("hydra", {}).get("sweeper") or {}).get("n_trials")
+    return n_trials if isinstance(n_trials, int) and n_trials > 0 else 0
 
 
 def collect(sweep_dir: Path) -> list[JobRow]:
@@ -170,16 +147,14 @@ def collect(sweep_dir: Path) -> list[JobRow]:
                        if ".submitit" not in p.parts})
     found = [read_job(d) for d in job_dirs]
     by_num = {job.num: job for job in found if job.num >= 0}
-    expected = expected_jobs(sweep_dir, found)
+    expected = expected_trials(sweep_dir)
     if not found and not expected:
         raise ReportError(f"{sweep_dir} holds no jobs (no <job>/.hydra/hydra.yaml, no "
                           f"multirun.yaml); pass the directory of a multirun (-m) sweep")
     rows = list(found)
-    for num, overrides in expected.items():
+    for num in range(expected):
         if num not in by_num:
-            rows.append(JobRow(num, overrides, None, failure=(
-                "no job directory (invalid settings: see the sweep's error: lines; or not "
-                "run yet)")))
+            rows.append(JobRow(num, {}, None, failure="no job directory (not run yet)"))
     return sorted(rows, key=lambda job: (job.num, str(job.directory)))
 
 

@@ -8,6 +8,7 @@ exists.
 from __future__ import annotations
 
 import dataclasses
+import enum
 from typing import Any, List, Optional
 
 from hydra.core.config_store import ConfigStore
@@ -38,13 +39,20 @@ class FitConfig:
     objective_metric: str = "misfit"
 
 
+class VerifyPoint(str, enum.Enum):
+    """Where ``experiments/verify.py`` checks the derivatives."""
+
+    initial = "initial"
+    truth = "truth"
+
+
 @dataclasses.dataclass
 class VerifyConfig:
     """Top level of ``experiments/verify.py``."""
 
     problem: Any = MISSING
     seed: int = 0               # of the random point offset and directions
-    at: str = "initial"         # where to verify: initial | truth
+    at: VerifyPoint = VerifyPoint.initial   # where to verify: initial | truth
     perturbation: float = 0.1   # random offset of theta from that point (relative)
     taylor_tol: float = 0.05    # |rate - 2| allowed
     dot_tol: float = 1e-10      # relative |<Jv, w> - <v, J^T w>|
@@ -58,7 +66,7 @@ def register_configs() -> None:
     cs = ConfigStore.instance()
     cs.store(name="fit_schema", node=FitConfig)
     cs.store(name="verify_schema", node=VerifyConfig)
-    for name, (config_cls, _) in PROBLEMS.items():
-        cs.store(group="schema/problem", name=name, node=config_cls)
-    for name, (config_cls, _) in SOLVERS.items():
-        cs.store(group="schema/solver", name=name, node=config_cls)
+    for name, entry in PROBLEMS.items():
+        cs.store(group="schema/problem", name=name, node=entry.config_class)
+    for name, entry in SOLVERS.items():
+        cs.store(group="schema/solver", name=name, node=entry.config_class)

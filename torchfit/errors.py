@@ -11,3 +11,11 @@ class SimulationError(RuntimeError):
     as a failed step (Levenberg-Marquardt rejects the step, Gauss-Newton's line search
     shortens it) instead of stopping the run.
     """
+
+
+class ConfigurationError(ValueError):
+    """A setting is invalid; the message is one line naming the setting and what is allowed.
+
+    The problem, solver and run layers raise subclasses of it; applications report it
+    without a traceback and run nothing.
+    """

@@ -1,0 +1,110 @@
+"""What the two Hydra apps share: exit statuses, one-line errors, and leaving nothing behind.
+
+Exit statuses of ``experiments/fit.py`` and ``experiments/verify.py``:
+
+* 0: done (verify: every check passed);
+* 1: the work ran and failed (a derivative check failed; the simulation failed during a
+  fit: the traceback is in the job's log);
+* 2: bad input, nothing run: an invalid setting or an override Hydra cannot compose, or a
+  run directory that cannot be written (``error: <one line>`` on standard error). The run
+  directory is left as it was: removed when the run created it, and a refused resume puts
+  the earlier run's ``.hydra/`` back;
+* 130: interrupted (Ctrl-C).
+"""
+from __future__ import annotations
+
+import logging
+import shutil
+import sys
+from pathlib import Path
+from typing import Any, Callable, NoReturn
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:       # the package of this checkout, installed or not
+    sys.path.insert(0, str(REPO))
+
+from omegaconf.errors import OmegaConfBaseException  # noqa: E402
+
+from torchfit.errors import ConfigurationError  # noqa: E402
+
+#: Exceptions that mean "the input is wrong" (exit 2, one line, nothing left behind).
+BAD_INPUT = (ConfigurationError, OmegaConfBaseException, OSError)
+
+
+def one_line(error: BaseException | str) -> str:
+    return " ".join(str(error).split())
+
+
+class RunDirGuard:
+    """Remembers what a run directory held before Hydra wrote into it, to restore it when the
+    job is refused (Hydra writes ``.hydra/`` and opens ``<job>.log`` before the task runs)."""
+
+    def __init__(self, argv: list[str]) -> None:
+        self.saved: dict[Path, bytes] = {}
+        run_dir = next((a.split("=", 1)[1] for a in argv if a.startswith("hydra.run.dir=")), None)
+        if run_dir is not None and (Path(run_dir) / ".hydra").is_dir():
+            self.saved = {p: p.read_bytes() for p in (Path(run_dir) / ".hydra").iterdir()
+                          if p.is_file()}
+
+    def undo(self, run_dir: Path) -> None:
+        """Leave ``run_dir`` as it was before this job."""
+        if self.saved and all(p.parent.parent.resolve() == run_dir.resolve() for p in self.saved):
+            for path, content in self.saved.items():
+                path.write_bytes(content)
+            return
+        remove_if_only_hydra(run_dir)
+
+
+def remove_if_only_hydra(run_dir: Path) -> None:
+    """Delete ``run_dir`` if it holds nothing but Hydra's ``.hydra/`` and ``*.log`` files."""
+    if not run_dir.is_dir() or any(not ((e.name == ".hydra" and e.is_dir()) or
+                                        (e.suffix == ".log" and e.is_file()))
+                                   for e in run_dir.iterdir()):
+        return
+    for handler in list(logging.getLogger().handlers):    # Hydra's handler of <job>.log
+        filename = getattr(handler, "baseFilename", None)
+        if filename and Path(filename).resolve().parent == run_dir.resolve():
+            logging.getLogger().removeHandler(handler)
+            handler.close()
+    shutil.rmtree(run_dir, ignore_errors=True)
+
+
+def refuse(message: BaseException | str, run_dir: Path, guard: RunDirGuard) -> NoReturn:
+    print("error: " + one_line(message), file=sys.stderr, flush=True)
+    guard.undo(run_dir)
+    sys.exit(2)
+
+
+def output_root(argv: list[str], default: str) -> Path:
+    """The directory Hydra will create: ``hydra.run.dir`` / ``hydra.sweep.dir`` when given
+    (without interpolations), else the default root of the config (``outputs``,
+    ``multirun``) in the current directory."""
+    key = "hydra.sweep.dir=" if any(a in ("-m", "--multirun") for a in argv) else "hydra.run.dir="
+    given = next((a.split("=", 1)[1] for a in argv if a.startswith(key)), None)
+    if given is None or "${" in given:
+        return Path(default if key == "hydra.run.dir=" else "multirun")
+    return Path(given)
+
+
+def run_hydra_app(main: Callable[[], Any], started: Callable[[], bool],
+                  default_root: str = "outputs") -> None:
+    """Call a ``@hydra.main`` function. A run directory that cannot be written is one
+    ``error:`` line (Hydra would report it as a traceback); a config Hydra cannot compose
+    (unknown option, misspelt or mistyped override: Hydra exits 1 before the task) exits 2
+    like every other bad input."""
+    from torchfit.fit import RunDirectoryError, check_writable
+
+    argv = sys.argv[1:]
+    try:
+        check_writable(output_root(argv, default_root).resolve())
+    except RunDirectoryError as error:
+        print("error: " + one_line(error), file=sys.stderr, flush=True)
+        sys.exit(2)
+    try:
+        main()
+    except SystemExit as exit_:
+        multirun = any(a in ("-m", "--multirun") for a in argv)
+        if exit_.code == 1 and not started() and not multirun:
+            print("error: invalid configuration (see Hydra's message above)", file=sys.stderr)
+            sys.exit(2)
+        raise

@@ -1,0 +1,193 @@
+"""torchfit.fit: a whole run in-process (no Hydra), byte-identical outputs, exact resume after
+SIGKILL for every solver, and a refused resume that touches nothing."""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+
+from torchfit.fit import FitOptions, ResumeError, RunDirectoryError, fit
+from torchfit.problems import build_problem
+from torchfit.solvers import SolverConfigError
+
+REPO = Path(__file__).resolve().parents[1]
+QUIET = FitOptions(progress=False)
+
+#: A small run of each solver on spring1d (n = 16): (problem settings, solver settings, kill at).
+RUNS = {
+    "gauss_newton": ({"n": 16, "noise": 1e-4, "seed": 1},
+                     {"name": "gauss_newton"}, 2),
+    "levenberg_marquardt": ({"n": 16}, {"name": "levenberg_marquardt", "max_iter": 12}, 5),
+    "split_bregman": ({"n": 16, "noise": 1e-4, "seed": 1},
+                      {"name": "split_bregman", "max_iter": 60}, 23),
+}
+
+SCRIPT = """
+import json, os, signal, sys
+from torchfit.fit import FitOptions, fit
+from torchfit.problems import build_problem
+run_dir, problem, solver, kill_at, resume = sys.argv[1:6]
+def killer(record):
+    if record.iteration == int(kill_at):
+        os.kill(os.getpid(), signal.SIGKILL)   # no cleanup, no flush: as a crash or OOM kill
+fit(build_problem("spring1d", json.loads(problem)), json.loads(solver), run_dir=run_dir,
+    resume=resume == "1", callbacks=[killer], options=FitOptions(progress=False))
+"""
+
+
+def run_script(run_dir: Path, problem: dict, solver: dict, kill_at: int = -1,
+               resume: bool = False) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    return subprocess.run([sys.executable, "-c", SCRIPT, str(run_dir), json.dumps(problem),
+                           json.dumps(solver), str(kill_at), "1" if resume else "0"],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+
+
+def scalar_steps(logdir: Path, tag: str) -> list[int]:
+    """Every step written for ``tag`` in every event file (not a sample)."""
+    steps = []
+    for path in sorted(logdir.glob("events.out.tfevents.*")):
+        for event in EventFileLoader(str(path)).Load():
+            steps += [event.step for value in event.summary.value if value.tag == tag]
+    return sorted(steps)
+
+
+def load_params(run_dir: Path) -> dict:
+    with open(run_dir / "params.pt", "rb") as f:
+        return torch.load(f, weights_only=True)
+
+
+def tree_digest(root: Path) -> dict[str, str]:
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_fit_in_process_writes_the_run_directory(tmp_path):
+    problem = build_problem("spring1d", {"n": 16, "noise": 1e-4, "seed": 1})
+    result = fit(problem, "gauss_newton", run_dir=tmp_path / "run", options=QUIET)
+    run = tmp_path / "run"
+    saved = json.loads((run / "result.json").read_text())
+    assert saved["status"] == "completed" and saved["stop_reason"] == "discrepancy"
+    assert saved["iterations"] == result.iterations and len(saved["history"]) == result.iterations + 1
+    assert saved["misfit"] == pytest.approx(result.metrics["misfit"], rel=1e-15)
+    assert result.metrics["misfit"] <= 1.5 * problem.noise_level
+    assert set(problem.metric_names()) <= set(saved)
+    for name in ("params.pt", "field.npy", "checkpoint.pt", "history.jsonl", "field.png",
+                 "error_curves.png"):
+        assert (run / name).is_file(), name
+    assert torch.equal(load_params(run)["theta"], result.theta)
+    assert scalar_steps(run / "tb", "fit/misfit") == list(range(result.iterations + 1))
+
+
+def test_fit_without_run_dir_writes_nothing(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    result = fit(build_problem("spring1d", {"n": 8}), "levenberg_marquardt", options=QUIET)
+    assert list(tmp_path.iterdir()) == []
+    assert len(result.history) == result.iterations + 1 and result.run_dir is None
+
+
+def test_identical_runs_write_identical_bytes(tmp_path):
+    for name in ("a", "b"):
+        problem = build_problem("poisson2d", {"N": 9, "noise": 1e-3})
+        fit(problem, {"name": "gauss_newton", "max_iter": 4}, run_dir=tmp_path / name,
+            options=QUIET)
+    for file in ("params.pt", "checkpoint.pt", "field.npy"):
+        assert (tmp_path / "a" / file).read_bytes() == (tmp_path / "b" / file).read_bytes(), file
+
+
+@pytest.mark.parametrize("solver", sorted(RUNS))
+def test_killed_run_resumes_exactly(tmp_path, solver):
+    problem, settings, kill_at = RUNS[solver]
+    straight = run_script(tmp_path / "straight", problem, settings)
+    assert straight.returncode == 0, straight.stderr
+    killed = run_script(tmp_path / "killed", problem, settings, kill_at=kill_at)
+    assert killed.returncode == -9, killed.stderr
+    assert not (tmp_path / "killed" / "result.json").exists()
+    resumed = run_script(tmp_path / "killed", problem, settings, resume=True)
+    assert resumed.returncode == 0, resumed.stderr
+
+    a = json.loads((tmp_path / "straight" / "result.json").read_text())
+    b = json.loads((tmp_path / "killed" / "result.json").read_text())
+    assert b["resumed_from_iteration"] == kill_at
+    assert a["iterations"] > kill_at + 1, "the kill must fall inside the run"
+    for key in ("misfit", "k_err_rel", "u_err_2", "iterations", "stop_reason", "converged"):
+        assert a[key] == b[key], key
+    # the resumed process simulates the checkpointed point once more: one factorisation, and
+    # the solves of that simulation and of its gradient
+    assert b["factorizations"] == a["factorizations"] + 1
+    assert 0 < b["solves"] - a["solves"] <= 3
+    assert torch.equal(load_params(tmp_path / "straight")["theta"],
+                       load_params(tmp_path / "killed")["theta"])
+    counted = {"wall_time", "factorizations", "solves"}
+    assert [{k: v for k, v in r.items() if k not in counted} for r in a["history"]] == \
+        [{k: v for k, v in r.items() if k not in counted} for r in b["history"]]
+    steps = scalar_steps(tmp_path / "killed" / "tb", "fit/misfit")
+    assert steps == list(range(a["iterations"] + 1)), "every step once in TensorBoard"
+
+
+def test_max_iter_is_the_budget_of_the_whole_run(tmp_path):
+    problem, solver = {"n": 16}, {"name": "levenberg_marquardt", "max_iter": 6}
+    assert run_script(tmp_path / "run", problem, solver, kill_at=3).returncode == -9
+    assert run_script(tmp_path / "run", problem, solver, resume=True).returncode == 0
+    saved = json.loads((tmp_path / "run" / "result.json").read_text())
+    assert saved["iterations"] == 6 and saved["stop_reason"] == "max_iter"
+
+
+def test_refused_resume_touches_nothing(tmp_path):
+    problem = build_problem("spring1d", {"n": 8})
+    fit(problem, {"name": "gauss_newton", "max_iter": 3}, run_dir=tmp_path, options=QUIET)
+    before = tree_digest(tmp_path)
+    with pytest.raises(ResumeError, match="tau"):
+        fit(problem, {"name": "gauss_newton", "tau": 2.0}, run_dir=tmp_path, resume=True,
+            options=QUIET)
+    with pytest.raises(ResumeError, match="levenberg_marquardt"):
+        fit(problem, "levenberg_marquardt", run_dir=tmp_path, resume=True, options=QUIET)
+    with pytest.raises(ResumeError, match="n"):
+        fit(build_problem("spring1d", {"n": 9}), "gauss_newton", run_dir=tmp_path, resume=True,
+            options=QUIET)
+    assert tree_digest(tmp_path) == before
+
+
+def test_resuming_a_finished_run_rewrites_nothing(tmp_path):
+    problem = build_problem("spring1d", {"n": 8})
+    first = fit(problem, {"name": "gauss_newton", "max_iter": 3}, run_dir=tmp_path, options=QUIET)
+    before = tree_digest(tmp_path)
+    again = fit(problem, {"name": "gauss_newton", "max_iter": 3}, run_dir=tmp_path, resume=True,
+                options=QUIET)
+    assert tree_digest(tmp_path) == before
+    assert torch.equal(again.theta, first.theta) and again.metrics == first.metrics
+
+
+@pytest.mark.parametrize("call,error,match", [
+    (lambda p, d: fit(p, {"name": "gauss_newton", "tau": float("inf")}, run_dir=d),
+     SolverConfigError, "solver.tau"),
+    (lambda p, d: fit(p, {"name": "split_bregman", "growth": float("inf")}, run_dir=d),
+     SolverConfigError, "solver.growth"),
+    (lambda p, d: fit(p, {"name": "levenberg_marquardt", "damping_init": float("inf")},
+                      run_dir=d), SolverConfigError, "solver.damping_init"),
+    (lambda p, d: fit(p, {"name": "gauss_newton", "tua": 2}, run_dir=d), ValueError, "solver.tua"),
+    (lambda p, d: fit(p, "newton", run_dir=d), ValueError, "newton"),
+    (lambda p, d: fit(p, "gauss_newton", run_dir=d, options=FitOptions(log_every=0)),
+     ValueError, "log_every"),
+    (lambda p, d: fit(p, "gauss_newton", run_dir=d,
+                      options=FitOptions(objective_metric="k_err_rel_aligned")),
+     ValueError, "objective_metric"),
+    (lambda p, d: fit(p, "gauss_newton", run_dir=d, options=FitOptions(sheet_frame=7)),
+     ValueError, "sheet_frame"),
+    (lambda p, d: fit(p, "gauss_newton", run_dir=d / "file" / "run"),
+     RunDirectoryError, "is a file"),
+])
+def test_bad_input_writes_nothing(tmp_path, call, error, match):
+    (tmp_path / "file").write_text("not a directory")
+    problem = build_problem("spring1d", {"n": 8, "noise": 1e-4})
+    with pytest.raises(error, match=match) as info:
+        call(problem, tmp_path)
+    assert "\n" not in str(info.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
