@@ -226,7 +226,7 @@ class TensorBoardLogger:
         self.flush_every = int(flush_every)
         # The event files already in logdir, before this writer creates its own.
         self._old_files = event_files(self.logdir)
-        self.writer = SummaryWriter(log_dir=str(self.logdir))
+        self.writer = self._new_writer()
         self._pending: IterationRecord | None = None
         self._last_step: int | None = None
         self._written = 0
@@ -235,6 +235,31 @@ class TensorBoardLogger:
         self._present: set[tuple[str, int]] = set()   # (tag, step) of older files (resume)
         self.resumed_through: int | None = None
         self.start_time = time.time()
+
+    def _new_writer(self, max_wait_s: float = 3.0) -> SummaryWriter:
+        """A SummaryWriter whose event file sorts after every older one of ``logdir``.
+
+        TensorBoard (both loaders) reads a run's event files in the order of their names
+        (``events.out.tfevents.<unix seconds>.<host>.<pid>...``), and a point whose step
+        is not after the last one read for its tag discards the points read at that step
+        and later ("preemption", meant for restarted jobs). A file of a resumed run that
+        sorted before the interrupted run's file (same second, smaller pid) would have its
+        steps discarded by the older ones; so wait for the next second if needed."""
+        newest = max((p.name for p in self._old_files), default=None)
+        deadline = time.monotonic() + max_wait_s
+        while True:
+            writer = SummaryWriter(log_dir=str(self.logdir))
+            name = Path(writer._get_file_writer().event_writer._file_name).name
+            if newest is None or name > newest:
+                return writer
+            if time.monotonic() > deadline:
+                log.warning("the TensorBoard event file %s sorts before the older %s of the "
+                            "same run (clock skew between machines?); TensorBoard may hide "
+                            "the points of this run that precede older steps", name, newest)
+                return writer
+            writer.close()
+            (self.logdir / name).unlink(missing_ok=True)
+            time.sleep(1.0 - time.time() % 1.0 + 0.01)
 
     # -- per iteration ------------------------------------------------------------------
     def step_of(self, record: IterationRecord) -> int:
@@ -256,11 +281,11 @@ class TensorBoardLogger:
 
     def scalar(self, tag: str, value: float, step: int) -> bool:
         """Write one scalar (float32, see the module docstring); NaN and infinities, and a
-        ``(tag, step)`` already in the event files found by :meth:`resume`, are skipped.
-        Returns whether it was written."""
+        ``(tag, step)`` up to the resumed iteration that the event files found by
+        :meth:`resume` already hold, are skipped. Returns whether it was written."""
         value = float(value)
         step = int(step)
-        if not math.isfinite(value) or (tag, step) in self._present:
+        if not math.isfinite(value) or (self.already_logged(step) and (tag, step) in self._present):
             return False
         # new_style: a float32 tensor summary of the scalars plugin (DT_FLOAT), which both
         # TensorBoard loaders (the Rust data server and --load_fast=false) read.
@@ -285,19 +310,22 @@ class TensorBoardLogger:
         event, with TensorBoard's own event file reader, no sampling), collects the
         ``(tag, step)`` of their scalars, and writes every scalar of ``history_rows``
         (``{'iteration': step, key: value, ...}`` as in ``result.json``'s ``history``,
-        keys mapped by :func:`tag_for`) with ``iteration <= last_iteration`` that is not
-        there yet: what the interrupted run lost after committing its checkpoint and
-        before its event file reached the disk. From then on records whose step is
-        ``<= last_iteration`` are not written again (the resumed solver's first record,
-        the checkpoint's iteration, was logged by the first run) and the curves continue
-        at ``last_iteration + 1``.
+        keys mapped by :func:`tag_for`) with ``iteration <= last_iteration`` that comes
+        after the last step of its tag in those files: what the interrupted run lost after
+        committing its checkpoint and before its event file reached the disk. From then on
+        records whose step is ``<= last_iteration`` are not written again (the resumed
+        solver's first record, the checkpoint's iteration, was logged by the first run)
+        and the curves continue at ``last_iteration + 1``. This logger's event file sorts
+        after the older ones (see :meth:`_new_writer`).
 
-        Scalars at steps ``> last_iteration`` in the old files cannot come from a run that
-        commits each checkpoint before logging its iteration; if there are some (event
-        files of another run, a checkpoint replaced by an older one) a warning names
-        them, and TensorBoard will show both the old points and the new ones at those
-        steps (event files are append-only; remove them or use a new ``logdir`` to avoid
-        it). Per-frame scalars of :class:`FieldSnapshots` and images are not restored.
+        A point missing *before* the last step of its tag is not written: TensorBoard
+        would discard that tag's later points (it treats a step that goes back as a
+        restart). Scalars at steps ``> last_iteration`` in the old files cannot come
+        from a run that commits each checkpoint before logging its iteration; if there
+        are some (event files of another run, an older checkpoint) a warning names them;
+        TensorBoard shows them until this run writes that tag again, then discards them
+        (the same preemption) and shows this run's points.
+        Per-frame scalars of :class:`FieldSnapshots` and images are not restored.
 
         Returns:
             How many scalars were written.
@@ -305,26 +333,30 @@ class TensorBoardLogger:
         last_iteration = int(last_iteration)
         present = scalar_steps(self._old_files)
         self._present |= present
+        last_present: dict[str, int] = {}
+        for tag, step in present:
+            last_present[tag] = max(step, last_present.get(tag, step))
         later = sorted({step for _, step in present if step > last_iteration})
         if later:
             log.warning("TensorBoard logdir %s already holds scalars at steps %s after the "
                         "checkpoint's iteration %d (event files of another run?); TensorBoard "
-                        "will show those steps twice once the fit reaches them", self.logdir,
+                        "replaces them by this run's points as it writes them", self.logdir,
                         later if len(later) <= 10 else f"{later[:10]} ...", last_iteration)
         written = 0
-        for row in history_rows:
+        for row in sorted(history_rows, key=lambda r: int(r["iteration"])):
             step = int(row["iteration"])
             if step > last_iteration:
                 continue
             for key, value in row.items():
-                if key == "iteration" or isinstance(value, (str, bool)) or value is None:
+                if key == "iteration" or isinstance(value, (str, bool)) or \
+                        not isinstance(value, (int, float)):
                     continue
-                if isinstance(value, (int, float)) and self.scalar(tag_for(key), value, step):
-                    self._present.add((tag_for(key), step))
+                tag = tag_for(key)
+                if step > last_present.get(tag, -1) and self.scalar(tag, value, step):
+                    self._present.add((tag, step))
                     written += 1
-        for tag, step in present:
-            if step <= last_iteration and step >= self._tag_steps.get(tag, step):
-                self._tag_steps[tag] = step
+        for tag, step in last_present.items():
+            self._tag_steps[tag] = max(step, self._tag_steps.get(tag, step))
         self.resumed_through = last_iteration
         if self._last_step is None or self._last_step < last_iteration:
             self._last_step = last_iteration
