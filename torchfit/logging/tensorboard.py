@@ -47,7 +47,7 @@ therefore appeared only with ``--load_fast=false``. The exact double values are 
 ``result.json`` (its ``history`` and final metrics); what TensorBoard shows equals them to
 float32 precision (relative ``6e-8``). Read them back as a user sees them through the
 server's HTTP API (``/data/plugin/scalars/scalars?run=...&tag=...``, see
-``tests/logging/conftest.py``), or with ``EventAccumulator.Tensors(tag)``.
+``tests/conftest.py``), or with ``EventAccumulator.Tensors(tag)``.
 
 An ``extra`` key that already contains a ``/`` is used verbatim as its tag, so a
 callback can choose its own section. The step of every scalar is the outer iteration
