@@ -43,7 +43,7 @@ for path in (ROOT, ROOT / "scripts"):
 
 from benchtools import emit_report, machine_info  # noqa: E402
 from torchfit.linalg import counting  # noqa: E402
-from torchfit.linalg.threads import blas_threads, set_blas_threads  # noqa: E402
+from torchfit.linalg.threads import blas_threads, set_threads  # noqa: E402
 from torchfit.problems import Membrane2D  # noqa: E402
 
 MODELS = ["linear", "corotated", "stable_neo_hookean"]
@@ -181,8 +181,7 @@ def main(argv: list[str] | None = None) -> int:
     if any(len(s) != 2 or min(s) < 1 for s in sizes) or args.repeats < 1:
         parser.error("sizes must be NXxNY with NX >= 2, NY >= 1 and repeats >= 1")
     if args.threads:
-        torch.set_num_threads(args.threads)
-        set_blas_threads(args.threads)
+        set_threads(args.threads)
     emit_report(run(args.models, sizes, args.repeats, args.seed), args.out)  # type: ignore[arg-type]
     return 0
 

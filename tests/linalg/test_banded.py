@@ -75,17 +75,22 @@ def test_get_backend_names():
         get_backend("cholmod")
 
 
-def test_blas_thread_count_can_be_set_at_run_time():
-    from torchfit.linalg.threads import blas_threads, set_blas_threads
+def test_thread_count_can_be_set_at_run_time():
+    import torch
+    from threadpoolctl import threadpool_limits
 
-    before = blas_threads()
-    if not before:
-        pytest.skip("no OpenBLAS library found in this process")
+    from torchfit.linalg import blas_threads, set_threads
+
+    before_blas, before_torch = blas_threads(), torch.get_num_threads()
+    if not before_blas:
+        pytest.skip("no BLAS library found by threadpoolctl in this process")
     try:
-        assert set_blas_threads(1) == len(before)
+        set_threads(1)
         assert set(blas_threads().values()) == {1}
+        assert torch.get_num_threads() == 1
     finally:
-        for count in set(before.values()):
-            set_blas_threads(count)
+        for count in set(before_blas.values()):
+            threadpool_limits(limits=count, user_api="blas")
+        torch.set_num_threads(before_torch)
     with pytest.raises(ValueError):
-        set_blas_threads(0)
+        set_threads(0)

@@ -117,3 +117,45 @@ def test_load_checkpoint_rejects_what_does_not_fit(tmp_path):
     (tmp_path / "broken.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="cannot read checkpoint"):
         load_checkpoint(tmp_path / "broken.pt")
+
+
+SAVE_OUTPUTS = """
+import sys
+import torch
+from torchfit.logging import save_checkpoint, save_params
+run_dir = sys.argv[1]
+theta = torch.linspace(-1.0, 2.0, 7, dtype=torch.float64)
+save_params(run_dir, theta, torch.exp(theta), "k")
+save_checkpoint(run_dir + "/checkpoint.pt", 3, theta, 0.125, "spring1d", {"n": 7, "noise": 1e-4})
+"""
+
+
+def test_outputs_are_byte_identical_across_directories_and_processes(tmp_path):
+    """The same content gives the same bytes of params.pt, checkpoint.pt and field.npy,
+    whatever the directory's name and the process (the temporary file's name used to end
+    up inside torch's zip archive)."""
+    import subprocess
+    import sys
+
+    repo = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    env = {**os.environ, "PYTHONPATH": repo + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    dirs = [tmp_path / "first", tmp_path / "second_run_with_a_longer_name"]
+    for d in dirs:
+        proc = subprocess.run([sys.executable, "-c", SAVE_OUTPUTS, str(d)], env=env,
+                              capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 0, proc.stderr
+    # and once more in this process
+    theta = torch.linspace(-1.0, 2.0, 7, dtype=torch.float64)
+    dirs.append(tmp_path / "in_process")
+    save_params(dirs[-1], theta, torch.exp(theta), "k")
+    save_checkpoint(dirs[-1] / "checkpoint.pt", 3, theta, 0.125, "spring1d",
+                    {"n": 7, "noise": 1e-4})
+    for name in ("params.pt", "checkpoint.pt", "field.npy"):
+        contents = [(d / name).read_bytes() for d in dirs]
+        assert contents[0] == contents[1] == contents[2], name
+        assert b".tmp" not in contents[0], name
+    assert sorted(p.name for p in dirs[0].iterdir()) == ["checkpoint.pt", "field.npy",
+                                                         "params.pt"]   # no temporary left
+    loaded = load_checkpoint(dirs[0] / "checkpoint.pt", n_params=7, problem="spring1d")
+    assert loaded.iteration == 3 and torch.equal(loaded.theta, theta)
+    assert loaded.problem_config == {"n": 7, "noise": 1e-4}

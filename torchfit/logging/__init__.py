@@ -11,7 +11,7 @@ seen by the loggers after it.
 """
 from .metrics import METRIC_KEYS, MetricsCallback
 from .pictures import PlotGuard, write_run_pngs
-from .progress import ProgressPrinter
+from .progress import PROGRESS_LOGGER, ProgressPrinter, ensure_progress_visible
 from .results import (Checkpoint, CheckpointWriter, load_checkpoint, result_dict, save_checkpoint,
                       save_params, write_json, write_result)
 from .tensorboard import (FieldSnapshots, TensorBoardLogger, field_is_chain, supports_field_images,
@@ -19,6 +19,7 @@ from .tensorboard import (FieldSnapshots, TensorBoardLogger, field_is_chain, sup
 
 __all__ = [
     "Checkpoint", "CheckpointWriter", "FieldSnapshots", "METRIC_KEYS", "MetricsCallback",
+    "PROGRESS_LOGGER", "ensure_progress_visible",
     "PlotGuard", "ProgressPrinter", "TensorBoardLogger", "field_is_chain", "load_checkpoint", "result_dict",
     "save_checkpoint", "save_params", "supports_field_images", "tag_for", "write_json",
     "write_result", "write_run_pngs",

@@ -30,7 +30,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .plots import aligned, error_curves_figure, field_panels_figure, save_png
+from ..problems.base import FieldImageProblem, MeshProblem
+from .plots import aligned, error_curves_figure, field_figure, field_panels_figure, save_png
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problems import InverseProblem
@@ -67,7 +68,7 @@ class PlotGuard:
 
 def supports_field_images(problem: "InverseProblem") -> bool:
     """Whether the problem can draw its field as an image (``field_image(field)``)."""
-    return callable(getattr(problem, "field_image", None))
+    return isinstance(problem, FieldImageProblem)
 
 
 @dataclasses.dataclass
@@ -117,7 +118,8 @@ def field_colour_range(problem: "InverseProblem", image: np.ndarray) -> tuple[fl
 
 def image_extent(problem: "InverseProblem", image: np.ndarray) -> tuple[float, float, float, float]:
     """``(x0, x1, y0, y1)`` of a field image: the mesh's box when there is one, else cells."""
-    box = getattr(getattr(problem, "mesh", None), "extent", None)
+    box = problem.mesh.extent if isinstance(problem, MeshProblem) and problem.mesh is not None \
+        else None
     if box is not None:
         return float(box[0][0]), float(box[0][1]), float(box[1][0]), float(box[1][1])
     return 0.0, float(image.shape[1]), 0.0, float(image.shape[0])
@@ -145,8 +147,6 @@ def field_panels(problem: "InverseProblem", field: Tensor, title: str | None = N
 
 def chain_figure(problem: "InverseProblem", field: Tensor, title: str | None = None):
     """A 1-D field per cell (spring1d: ``k`` per spring), truth and fit."""
-    from .tensorboard import field_figure
-
     return field_figure(field.detach().cpu(), None if problem.field_true is None
                         else problem.field_true.detach().cpu(), problem.field_name, title=title)
 

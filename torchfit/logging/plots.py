@@ -29,6 +29,37 @@ def colorize(image: np.ndarray, vmin: float, vmax: float, cmap: str = "viridis")
     return (rgba[..., :3] * 255).round().astype(np.uint8)
 
 
+def field_figure(field, truth=None, name: str = "k", title: str | None = None):
+    """Figure of a 1-D field per cell (step plot), with the truth if given.
+
+    ``field`` and ``truth``: ``(n_cells,)`` arrays or tensors.
+    """
+    from matplotlib.figure import Figure
+
+    values = _numpy(field).reshape(-1)
+    fig = Figure(figsize=(6.4, 3.2), dpi=100, layout="constrained")
+    ax = fig.add_subplot()
+    cells = np.arange(values.size)
+    if truth is not None:
+        ax.step(cells, _numpy(truth).reshape(-1), where="mid", color="0.4", lw=2.0,
+                label="true")
+    ax.step(cells, values, where="mid", color="C0", lw=1.2, label="fitted")
+    ax.set_xlabel("cell")
+    ax.set_ylabel(name)
+    if title:
+        ax.set_title(title)
+    ax.legend(loc="best")
+    ax.grid(alpha=0.3)
+    return fig
+
+
+def _numpy(values) -> np.ndarray:
+    """An array of ``values`` (a NumPy array, a torch tensor on any device, a list)."""
+    if hasattr(values, "detach"):
+        values = values.detach().cpu().numpy()
+    return np.asarray(values, dtype=np.float64)
+
+
 def snapshots_figure(images: Sequence[tuple[str, np.ndarray]], extent: tuple[float, float, float, float],
                      vmin: float, vmax: float, name: str = "E",
                      frame_errors: Sequence[np.ndarray | None] | None = None,

@@ -67,14 +67,21 @@ def _jsonable(value: Any) -> Any:
     return str(value)
 
 
-def _atomic_write(path: Path, write) -> None:
-    """Call ``write(tmp_path)`` then rename onto ``path`` (same directory, atomic)."""
+def _atomic_write(path: Path, write, mode: str = "wb") -> None:
+    """Call ``write(f)`` on a temporary file opened with ``mode`` in the same directory,
+    then rename it onto ``path`` (atomic: the file is never half-written).
+
+    ``write`` gets the open file object, never the temporary name: ``torch.save`` to a
+    *path* records the file's name inside its zip archive, which made two identical runs
+    give different bytes."""
     path.parent.mkdir(parents=True, exist_ok=True)
     # A name of our own (not mkstemp, whose files are private): the result keeps the
     # permissions of the umask, like every other file of the run.
     tmp = str(path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp"))
     try:
-        write(tmp)
+        encoding = None if "b" in mode else "utf-8"
+        with open(tmp, mode, encoding=encoding) as f:
+            write(f)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -82,16 +89,21 @@ def _atomic_write(path: Path, write) -> None:
         raise
 
 
+def _torch_bytes(obj: Any, f) -> None:
+    """``torch.save`` into an open file: the same bytes for the same content, whatever the
+    file's name, directory or process."""
+    torch.save(obj, f)
+
+
 def write_json(path: str | Path, data: Mapping[str, Any]) -> Path:
     """Write strict JSON (atomically)."""
     path = Path(path)
 
-    def write(tmp: str) -> None:
-        with open(tmp, "w", encoding="utf-8") as f:
-            json.dump(_jsonable(data), f, indent=2, allow_nan=False)
-            f.write("\n")
+    def write(f) -> None:
+        json.dump(_jsonable(data), f, indent=2, allow_nan=False)
+        f.write("\n")
 
-    _atomic_write(path, write)
+    _atomic_write(path, write, "w")
     return path
 
 
@@ -139,15 +151,10 @@ def save_params(run_dir: str | Path, theta: Tensor, field: Tensor,
     theta_cpu = theta.detach().cpu().clone()
     field_cpu = field.detach().cpu().clone()
     params_path = run_dir / PARAMS_FILE
-    _atomic_write(params_path, lambda tmp: torch.save(
-        {"theta": theta_cpu, "field": field_cpu, "field_name": field_name}, tmp))
+    _atomic_write(params_path, lambda f: _torch_bytes(
+        {"theta": theta_cpu, "field": field_cpu, "field_name": field_name}, f))
     field_path = run_dir / FIELD_FILE
-
-    def write_npy(tmp: str) -> None:
-        with open(tmp, "wb") as f:
-            np.save(f, field_cpu.numpy())
-
-    _atomic_write(field_path, write_npy)
+    _atomic_write(field_path, lambda f: np.save(f, field_cpu.numpy()))
     return params_path, field_path
 
 
@@ -174,7 +181,7 @@ def save_checkpoint(path: str | Path, iteration: int, theta: Tensor,
     payload = {"iteration": int(iteration), "theta": theta_cpu, "misfit": misfit,
                "problem": problem, "n_params": int(theta_cpu.numel()),
                "problem_config": json.dumps(_jsonable(problem_config or {}))}
-    _atomic_write(path, lambda tmp: torch.save(payload, tmp))
+    _atomic_write(path, lambda f: _torch_bytes(payload, f))
     return path
 
 

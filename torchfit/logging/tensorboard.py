@@ -40,14 +40,20 @@ Tag scheme (one TensorBoard section per prefix)
                    wireframe, at iteration 0 and the snapshot iterations.
 =================  ===========================================================================
 
-Scalars are written in double precision (new-style tensor summaries of the ``scalars``
-plugin, ``DT_DOUBLE``), so the logged misfit equals the one in ``result.json`` exactly;
-read them back with ``EventAccumulator.Tensors(tag)`` (not ``Scalars``, which holds only
-legacy float32 values) or TensorBoard's data provider.
+Scalars are float32 tensor summaries of the ``scalars`` plugin (``add_scalar(...,
+new_style=True)``, dtype ``DT_FLOAT``), the form TensorBoard's default loader (the Rust
+data server of ``tensorboard --logdir``) reads; it drops ``DT_DOUBLE`` scalars, which
+therefore appeared only with ``--load_fast=false``. The exact double values are in
+``result.json`` (its ``history`` and final metrics); what TensorBoard shows equals them to
+float32 precision (relative ``6e-8``). Read them back as a user sees them through the
+server's HTTP API (``/data/plugin/scalars/scalars?run=...&tag=...``, see
+``tests/conftest.py``), or with ``EventAccumulator.Tensors(tag)``.
 
 An ``extra`` key that already contains a ``/`` is used verbatim as its tag, so a
 callback can choose its own section. The step of every scalar is the outer iteration
-(plus ``step_offset`` for a resumed run): iteration 0 is the initial point. With
+(plus ``step_offset`` for a resumed run): iteration 0 is the initial point. The event file
+is flushed after every written iteration (``flush_every=1``); :meth:`TensorBoardLogger.resume`
+restores what an interrupted run lost, so that every step appears once. With
 ``log_every = n`` the iterations ``0, n, 2n, ...`` and always the last one are written
 (the last one when :meth:`TensorBoardLogger.close` or :meth:`finish` is called).
 
@@ -60,28 +66,33 @@ experiment summary, so that TensorBoard builds the experiment from all runs of a
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import numpy as np
 import torch
 from torch import Tensor
 from torch.utils.tensorboard import SummaryWriter
+from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
 from tensorboard.compat.proto import summary_pb2
 from tensorboard.plugins.hparams import api_pb2, plugin_data_pb2
 from tensorboard.plugins.hparams import metadata as _hparams_metadata
 from tensorboard.plugins.hparams import summary_v2 as _hparams_v2
 
+from ..problems.base import FramedProblem, MeshProblem
 from ..records import IterationRecord
 from .metrics import METRIC_KEYS
-from .pictures import PlotGuard, supports_field_images
-from .plots import (ERROR_CMAP, aligned, colorize, frame_errors_figure, save_png, sheet_figure,
-                    snapshots_figure, symmetric_range, upscale)
+from .pictures import PlotGuard, field_panels, image_extent, supports_field_images
+from .plots import (ERROR_CMAP, aligned, colorize, field_figure, frame_errors_figure, save_png,
+                    sheet_figure, snapshots_figure, symmetric_range, upscale)
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problems import InverseProblem
+
+log = logging.getLogger(__name__)
 
 FIT_KEYS = ("misfit", "objective", "tv", "penalty")
 
@@ -100,7 +111,7 @@ def tag_for(key: str) -> str:
 def field_is_chain(problem: "InverseProblem") -> bool:
     """Whether the problem's field is one value per cell of a 1-D chain (plot as a line)."""
     param = problem.parameterization
-    if getattr(param, "basis", None) is not None or param.n_field != param.n_params:
+    if param.basis is not None or param.n_field != param.n_params:
         return False
     edges = torch.as_tensor(param.edges).reshape(-1, 2)
     n = param.n_params
@@ -108,6 +119,41 @@ def field_is_chain(problem: "InverseProblem") -> bool:
         return True
     expected = torch.stack([torch.arange(n - 1), torch.arange(1, n)], dim=1)
     return edges.shape == expected.shape and bool(torch.equal(edges.cpu(), expected))
+
+
+def event_files(logdir: str | Path) -> list[Path]:
+    """The TensorBoard event files directly in ``logdir`` (one run), oldest first."""
+    logdir = Path(logdir)
+    if not logdir.is_dir():
+        return []
+    return sorted(p for p in logdir.iterdir() if p.is_file() and "tfevents" in p.name)
+
+
+def scalar_steps(files: Sequence[str | Path]) -> set[tuple[str, int]]:
+    """``(tag, step)`` of every scalar in the event ``files`` (legacy ``simple_value`` or a
+    tensor of the ``scalars`` plugin), read with TensorBoard's event file reader (every
+    event, no sampling). A record cut off by a crash ends the reading of its file."""
+    out: set[tuple[str, int]] = set()
+    for path in files:
+        tags_scalar: dict[str, bool] = {}
+        try:
+            for event in EventFileLoader(str(path)).Load():
+                if not event.HasField("summary"):
+                    continue
+                for value in event.summary.value:
+                    kind = value.WhichOneof("value")
+                    if kind == "simple_value":
+                        out.add((value.tag, int(event.step)))
+                    elif kind == "tensor":
+                        if value.HasField("metadata"):
+                            tags_scalar[value.tag] = \
+                                value.metadata.plugin_data.plugin_name == "scalars"
+                        if tags_scalar.get(value.tag):
+                            out.add((value.tag, int(event.step)))
+        except Exception as e:  # noqa: BLE001  (a damaged file: keep what was read)
+            log.warning("could not read all of the event file %s (%s: %s)", path,
+                        type(e).__name__, e)
+    return out
 
 
 def flatten(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -152,28 +198,6 @@ def _hparams_summary_pb(tag: str, data: plugin_data_pb2.HParamsPluginData) -> su
     return summary
 
 
-def field_figure(field: Tensor, truth: Tensor | None = None, name: str = "k",
-                 title: str | None = None):
-    """Matplotlib figure of a 1-D field per cell (step plot), with the truth if given."""
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(6.4, 3.2), dpi=100, layout="constrained")
-    ax = fig.add_subplot()
-    cells = np.arange(int(field.numel()))
-    if truth is not None:
-        ax.step(cells, truth.detach().cpu().numpy(), where="mid", color="0.4", lw=2.0,
-                label="true")
-    ax.step(cells, field.detach().cpu().numpy(), where="mid", color="C0", lw=1.2,
-            label="fitted")
-    ax.set_xlabel("cell")
-    ax.set_ylabel(name)
-    if title:
-        ax.set_title(title)
-    ax.legend(loc="best")
-    ax.grid(alpha=0.3)
-    return fig
-
-
 class TensorBoardLogger:
     """Callback writing one TensorBoard scalar per record entry and iteration.
 
@@ -181,53 +205,163 @@ class TensorBoardLogger:
         logdir: directory of the event files (created).
         log_every: write iterations ``0, n, 2n, ...`` and the last one.
         step_offset: added to every step (a resumed run continues where it stopped).
-        flush_every: flush the event file every this many written iterations.
+        flush_every: flush the event file every this many written iterations (default 1:
+            after every iteration, so that an iteration whose checkpoint was committed is
+            on disk when the next one starts; see :meth:`resume`).
 
     Use as a context manager or call :meth:`close` (which also writes a pending last
     iteration); :meth:`finish` writes the field and hparams of the finished run.
     """
 
     def __init__(self, logdir: str | Path, log_every: int = 1, step_offset: int = 0,
-                 flush_every: int = 10) -> None:
+                 flush_every: int = 1) -> None:
         if log_every < 1:
             raise ValueError(f"log_every must be >= 1, got {log_every}")
+        if flush_every < 1:
+            raise ValueError(f"flush_every must be >= 1, got {flush_every}")
         self.logdir = Path(logdir)
         self.logdir.mkdir(parents=True, exist_ok=True)
         self.log_every = int(log_every)
         self.step_offset = int(step_offset)
-        self.flush_every = max(1, int(flush_every))
-        self.writer = SummaryWriter(log_dir=str(self.logdir))
+        self.flush_every = int(flush_every)
+        # The event files already in logdir, before this writer creates its own.
+        self._old_files = event_files(self.logdir)
+        self.writer = self._new_writer()
         self._pending: IterationRecord | None = None
         self._last_step: int | None = None
         self._written = 0
         self._closed = False
         self._tag_steps: dict[str, int] = {}    # tag -> last step written
+        self._present: set[tuple[str, int]] = set()   # (tag, step) of older files (resume)
+        self.resumed_through: int | None = None
         self.start_time = time.time()
+
+    def _new_writer(self, max_wait_s: float = 3.0) -> SummaryWriter:
+        """A SummaryWriter whose event file sorts after every older one of ``logdir``.
+
+        TensorBoard (both loaders) reads a run's event files in the order of their names
+        (``events.out.tfevents.<unix seconds>.<host>.<pid>...``), and a point whose step
+        is not after the last one read for its tag discards the points read at that step
+        and later ("preemption", meant for restarted jobs). A file of a resumed run that
+        sorted before the interrupted run's file (same second, smaller pid) would have its
+        steps discarded by the older ones; so wait for the next second if needed."""
+        newest = max((p.name for p in self._old_files), default=None)
+        deadline = time.monotonic() + max_wait_s
+        while True:
+            writer = SummaryWriter(log_dir=str(self.logdir))
+            name = Path(writer._get_file_writer().event_writer._file_name).name
+            if newest is None or name > newest:
+                return writer
+            if time.monotonic() > deadline:
+                log.warning("the TensorBoard event file %s sorts before the older %s of the "
+                            "same run (clock skew between machines?); TensorBoard may hide "
+                            "the points of this run that precede older steps", name, newest)
+                return writer
+            writer.close()
+            (self.logdir / name).unlink(missing_ok=True)
+            time.sleep(1.0 - time.time() % 1.0 + 0.01)
 
     # -- per iteration ------------------------------------------------------------------
     def step_of(self, record: IterationRecord) -> int:
         return self.step_offset + record.iteration
 
+    def already_logged(self, step: int) -> bool:
+        """Whether ``step`` belongs to the iterations restored by :meth:`resume`."""
+        return self.resumed_through is not None and step <= self.resumed_through
+
     def __call__(self, record: IterationRecord) -> None:
-        if record.iteration == 0 or record.iteration % self.log_every == 0:
+        if self.already_logged(self.step_of(record)):
+            self._pending = None    # the checkpoint's iteration, logged by the first run
+        elif record.iteration == 0 or record.iteration % self.log_every == 0:
             self._write(record)
             self._pending = None
         else:
             self._pending = record
         return None
 
+    def scalar(self, tag: str, value: float, step: int) -> bool:
+        """Write one scalar (float32, see the module docstring); NaN and infinities, and a
+        ``(tag, step)`` up to the resumed iteration that the event files found by
+        :meth:`resume` already hold, are skipped. Returns whether it was written."""
+        value = float(value)
+        step = int(step)
+        if not math.isfinite(value) or (self.already_logged(step) and (tag, step) in self._present):
+            return False
+        # new_style: a float32 tensor summary of the scalars plugin (DT_FLOAT), which both
+        # TensorBoard loaders (the Rust data server and --load_fast=false) read.
+        self.writer.add_scalar(tag, value, step, new_style=True)
+        if step >= self._tag_steps.get(tag, step):
+            self._tag_steps[tag] = step
+        return True
+
     def _write(self, record: IterationRecord) -> None:
         step = self.step_of(record)
         for key, value in record.scalars().items():
-            if not math.isfinite(value):
-                continue
-            tag = tag_for(key)
-            self.writer.add_scalar(tag, value, step, new_style=True, double_precision=True)
-            self._tag_steps[tag] = step
+            self.scalar(tag_for(key), value, step)
         self._last_step = step
         self._written += 1
         if self._written % self.flush_every == 0:
             self.writer.flush()
+
+    def resume(self, history_rows: Sequence[Mapping[str, Any]], last_iteration: int) -> int:
+        """Continue the TensorBoard curves of an interrupted run in the same ``logdir``.
+
+        Reads the event files that were in ``logdir`` when this logger was created (every
+        event, with TensorBoard's own event file reader, no sampling), collects the
+        ``(tag, step)`` of their scalars, and writes every scalar of ``history_rows``
+        (``{'iteration': step, key: value, ...}`` as in ``result.json``'s ``history``,
+        keys mapped by :func:`tag_for`) with ``iteration <= last_iteration`` that comes
+        after the last step of its tag in those files: what the interrupted run lost after
+        committing its checkpoint and before its event file reached the disk. From then on
+        records whose step is ``<= last_iteration`` are not written again (the resumed
+        solver's first record, the checkpoint's iteration, was logged by the first run)
+        and the curves continue at ``last_iteration + 1``. This logger's event file sorts
+        after the older ones (see :meth:`_new_writer`).
+
+        A point missing *before* the last step of its tag is not written: TensorBoard
+        would discard that tag's later points (it treats a step that goes back as a
+        restart). Scalars at steps ``> last_iteration`` in the old files cannot come
+        from a run that commits each checkpoint before logging its iteration; if there
+        are some (event files of another run, an older checkpoint) a warning names them;
+        TensorBoard shows them until this run writes that tag again, then discards them
+        (the same preemption) and shows this run's points.
+        Per-frame scalars of :class:`FieldSnapshots` and images are not restored.
+
+        Returns:
+            How many scalars were written.
+        """
+        last_iteration = int(last_iteration)
+        present = scalar_steps(self._old_files)
+        self._present |= present
+        last_present: dict[str, int] = {}
+        for tag, step in present:
+            last_present[tag] = max(step, last_present.get(tag, step))
+        later = sorted({step for _, step in present if step > last_iteration})
+        if later:
+            log.warning("TensorBoard logdir %s already holds scalars at steps %s after the "
+                        "checkpoint's iteration %d (event files of another run?); TensorBoard "
+                        "replaces them by this run's points as it writes them", self.logdir,
+                        later if len(later) <= 10 else f"{later[:10]} ...", last_iteration)
+        written = 0
+        for row in sorted(history_rows, key=lambda r: int(r["iteration"])):
+            step = int(row["iteration"])
+            if step > last_iteration:
+                continue
+            for key, value in row.items():
+                if key == "iteration" or isinstance(value, (str, bool)) or \
+                        not isinstance(value, (int, float)):
+                    continue
+                tag = tag_for(key)
+                if step > last_present.get(tag, -1) and self.scalar(tag, value, step):
+                    self._present.add((tag, step))
+                    written += 1
+        for tag, step in last_present.items():
+            self._tag_steps[tag] = max(step, self._tag_steps.get(tag, step))
+        self.resumed_through = last_iteration
+        if self._last_step is None or self._last_step < last_iteration:
+            self._last_step = last_iteration
+        self.writer.flush()
+        return written
 
     def flush_pending(self) -> None:
         """Write the last iteration if ``log_every`` skipped it."""
@@ -276,9 +410,8 @@ class TensorBoardLogger:
         for key, value in metrics.items():
             value = float(value)
             tag = metric_tag(key)
-            if math.isfinite(value) and self._tag_steps.get(tag) != step:
-                self.writer.add_scalar(tag, value, step, new_style=True, double_precision=True)
-                self._tag_steps[tag] = step
+            if self._tag_steps.get(tag) != step:
+                self.scalar(tag, value, step)
         values = hparam_values(hparams)
         file_writer = self.writer._get_file_writer()
         file_writer.add_summary(_hparams_v2.hparams_pb(values, start_time_secs=self.start_time),
@@ -391,19 +524,24 @@ class FieldSnapshots:
         self.image_min_size = int(image_min_size)
         truth = problem.field_true
         self.truth = None if truth is None else truth.detach().cpu().numpy()
-        self.name = getattr(problem, "field_name", "k")
+        self.name = problem.field_name
         self.error_tag = error_image_tag(problem)
         self.vmin = 0.0 if self.truth is None else float(min(0.0, self.truth.min()))
         self.vmax = None if self.truth is None else float(self.truth.max()) * 1.15
-        self.n_frames = int(getattr(problem, "n_frames", 0) or 0)
-        frame = getattr(problem, "default_sheet_frame", 0) if sheet_frame is None else sheet_frame
+        framed = isinstance(problem, FramedProblem)
+        self.n_frames = int(problem.n_frames) if framed else 0
+        if sheet_frame is not None:
+            frame = sheet_frame
+        else:
+            frame = problem.default_sheet_frame if framed else 0
         if self.n_frames and not -self.n_frames <= int(frame) < self.n_frames:
             raise ValueError(f"sheet_frame={frame} is not a frame of {problem.name} "
                              f"(0..{self.n_frames - 1})")
         self.sheet_frame = int(frame) % self.n_frames if self.n_frames else 0
         # The state x is needed only for per-frame errors and the deformed-mesh figure.
-        self._needs_state = callable(getattr(problem, "frame_errors", None)) or \
-            getattr(problem, "mesh", None) is not None
+        self.framed = framed
+        self.mesh = problem.mesh if isinstance(problem, MeshProblem) else None
+        self._needs_state = framed or self.mesh is not None
         self.snapshots: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
         self.error_history: dict[int, np.ndarray] = {}
         self.imaged_steps: list[int] = []
@@ -434,13 +572,12 @@ class FieldSnapshots:
             return self.problem.simulate(self.problem.field(theta)).detach()
 
     def _errors(self, x: Tensor | None) -> dict[str, np.ndarray] | None:
-        frame_errors = getattr(self.problem, "frame_errors", None)
-        if x is None or frame_errors is None or getattr(self.problem, "x_true", None) is None:
+        if x is None or not self.framed or getattr(self.problem, "x_true", None) is None:
             return None
-        return frame_errors(x)
+        return self.problem.frame_errors(x)
 
     def _sheet(self, field: np.ndarray, x: Tensor | None, title: str):
-        mesh = getattr(self.problem, "mesh", None)
+        mesh = self.mesh
         if mesh is None or x is None or x.shape[-1] != 2:
             return None
         f = self.sheet_frame
@@ -478,7 +615,12 @@ class FieldSnapshots:
     # -- the callback -------------------------------------------------------------------
     def __call__(self, record: IterationRecord) -> None:
         step = self.tb.step_of(record)
-        writer = self.tb.writer
+        if self.tb.already_logged(step):
+            # restored by TensorBoardLogger.resume: the interrupted run drew this step
+            self._wrote_truth = True
+            self._last = (step, record.theta)
+            self.imaged_steps.append(step)
+            return None
         if not self._wrote_truth and self.truth is not None:
             self._wrote_truth = True
             self.guard.run(f"TensorBoard image field/{self.name}_true_image", self._write_truth)
@@ -487,8 +629,7 @@ class FieldSnapshots:
         if errors is not None:
             for key, values in errors.items():
                 for f, value in enumerate(values):
-                    writer.add_scalar(f"frames/{key}/frame_{f}", float(value), step,
-                                      new_style=True, double_precision=True)
+                    self.tb.scalar(f"frames/{key}/frame_{f}", value, step)
             self.error_history[step] = np.asarray(errors["u_err_inf"])
         self._last = (step, record.theta)
         if self.wants_image(step):
@@ -522,8 +663,6 @@ class FieldSnapshots:
         if last_step not in self.imaged_steps:
             self.guard.run(f"TensorBoard images of iteration {last_step}", self._write_images,
                            last_step, last_theta)
-        from .pictures import field_panels
-
         panels = self.guard.run(f"TensorBoard figure field/{self.name}_panels", field_panels,
                                 self.problem, self.problem.field(last_theta),
                                 f"{self.problem.name}: {self.name} after {last_step} iterations")
@@ -557,10 +696,7 @@ class FieldSnapshots:
         if last_step not in self.snapshots:
             panels.append((f"iteration {last_step} (last)", image))
             panel_errors.append(None if errors is None else np.asarray(errors["u_err_inf"]))
-        mesh = getattr(self.problem, "mesh", None)
-        extent_box = getattr(mesh, "extent", None)
-        extent = (extent_box[0][0], extent_box[0][1], extent_box[1][0], extent_box[1][1]) \
-            if extent_box is not None else (0.0, float(image.shape[1]), 0.0, float(image.shape[0]))
+        extent = image_extent(self.problem, image)
         vmin, vmax = self._range(image)
         scaled = " (scaled onto the truth)" if self.problem.scale_free and self.truth is not None else ""
         fig = snapshots_figure(panels, extent, vmin, vmax, self.name, panel_errors,
@@ -569,7 +705,7 @@ class FieldSnapshots:
         save_png(fig, path)
         written.append(path)
         if self.error_history:
-            labels = self.problem.frame_names() if hasattr(self.problem, "frame_names") else None
+            labels = self.problem.frame_names() if self.framed else None
             fig = frame_errors_figure(self.error_history, labels,
                                       title=f"{self.problem.name}: position error per frame")
             path = self.run_dir / "frame_errors.png"
