@@ -8,7 +8,9 @@ Exit statuses of ``experiments/fit.py`` and ``experiments/verify.py``:
 * 2: bad input, nothing run: an invalid setting or an override Hydra cannot compose, or a
   run directory that cannot be written (``error: <one line>`` on standard error). The run
   directory is left as it was: removed when the run created it, and a refused resume puts
-  the earlier run's ``.hydra/`` back;
+  the earlier run's ``.hydra/`` back. In a sweep, a value Hydra cannot compose stops the
+  whole sweep before any job runs (Hydra composes every job first); settings that compose
+  but are invalid fail only their own job (``result.json`` says ``failed``);
 * 130: interrupted (Ctrl-C).
 """
 from __future__ import annotations
@@ -103,8 +105,13 @@ def run_hydra_app(main: Callable[[], Any], started: Callable[[], bool],
     try:
         main()
     except SystemExit as exit_:
-        multirun = any(a in ("-m", "--multirun") for a in argv)
-        if exit_.code == 1 and not started() and not multirun:
+        if exit_.code != 1 or started():
+            raise
+        if any(a in ("-m", "--multirun") for a in argv):
+            # Hydra's basic sweeper composes every job before it launches the first: one
+            # value it cannot compose stops the whole sweep, and no job has run.
+            print("error: invalid sweep, no job was run (Hydra composes every job of a sweep "
+                  "before launching any; fix the override named above)", file=sys.stderr)
+        else:
             print("error: invalid configuration (see Hydra's message above)", file=sys.stderr)
-            sys.exit(2)
-        raise
+        sys.exit(2)
