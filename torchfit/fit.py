@@ -47,8 +47,9 @@ from .linalg import set_threads
 from .logging import (FieldSnapshots, MetricsCallback, PlotGuard, ProgressPrinter,
                       TensorBoardLogger, field_is_chain, save_params, write_json,
                       write_run_pngs)
-from .logging.results import (CHECKPOINT_FILE, RESULT_FILE, atomic_write, jsonable,
-                              save_torch)
+from .logging.results import CHECKPOINT_FILE, RESULT_FILE, save_torch
+from .logging.results import _atomic_write as atomic_write
+from .logging.results import _jsonable as jsonable
 from .problems import InverseProblem
 from .problems.base import FieldImageProblem, FramedProblem, MeshProblem
 from .records import IterationRecord, SolveResult
@@ -430,7 +431,7 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
         run_path.mkdir(parents=True, exist_ok=True)
         checkpointer = _Checkpointer(run_path, problem, solver, rows)
         chain.append(checkpointer)
-        tb = TensorBoardLogger(run_path / "tb", log_every=options.log_every, flush_every=1)
+        tb = TensorBoardLogger(run_path / "tb", log_every=options.log_every)
         if restart is not None:
             tb.resume(restart.rows, restart.iteration)
         else:
@@ -533,7 +534,7 @@ def _save_frames(path: Path, problem: InverseProblem, field: Tensor) -> None:
     def write(f) -> None:
         np.savez_compressed(f, **arrays)
 
-    atomic_write(path, write, binary=True)
+    atomic_write(path, write)
 
 
 # -- derivative verification ------------------------------------------------------------------

@@ -38,12 +38,3 @@ def blas_threads() -> dict[str, int]:
     return {os.path.basename(info["filepath"]): int(info["num_threads"])
             for info in threadpool_info() if info.get("user_api") == "blas"}
 
-
-def set_blas_threads(n: int) -> int:
-    """Deprecated: :func:`set_threads` (kept until ``experiments/`` uses it). Limits the BLAS
-    libraries only; returns how many were set."""
-    if n < 1:
-        raise ValueError(f"thread count must be >= 1, got {n}")
-    _load_blas()
-    threadpool_limits(limits=int(n), user_api="blas")
-    return len(blas_threads())

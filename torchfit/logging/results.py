@@ -242,3 +242,10 @@ class CheckpointWriter:
         save_checkpoint(self.path, self.step_offset + record.iteration, record.theta,
                         record.misfit, self.problem, self.problem_config)
         return None
+
+
+def save_torch(path: str | Path, obj: Any) -> Path:
+    """``torch.save(obj)`` to ``path`` atomically, byte-identical for identical content."""
+    path = Path(path)
+    _atomic_write(path, lambda f: _torch_bytes(obj, f))
+    return path
