@@ -37,7 +37,7 @@ from ..mesh import ipam_mask, normalized_points, rectangle_triangles
 from ..params import Parameterization, per_element
 from ..physics import NewtonOptions
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
-from .base import (Backend, Choice, InverseProblem, ProblemConfig, ProblemConfigError,
+from .base import (Backend, Choice, DType, InverseProblem, ProblemConfig, ProblemConfigError,
                    require_setting)
 
 
@@ -59,6 +59,8 @@ class SheetData(Choice):
 
 
 DATA_MODES = tuple(SheetData.choices())
+#: smallest Newton ``atol`` accepted with ``dtype=float32`` for the nonlinear models
+FLOAT32_NEWTON_ATOL = 1e-4
 
 #: The animation of PROBLEMS.md: (kind, value) per frame.
 FRAMES: tuple[tuple[str, float], ...] = (
@@ -139,6 +141,13 @@ class Membrane2D(InverseProblem):
         require_setting(cfg.newton_rtol >= 0, cfg, "newton_rtol", "must be >= 0")
         require_setting(cfg.newton_atol > 0, cfg, "newton_atol", "must be > 0")
         require_setting(cfg.newton_max_iter >= 1, cfg, "newton_max_iter", "must be >= 1")
+        # float32: Newton residuals of the nonlinear models stall near 1e-5 force units on
+        # the canonical sheet, so the float64 tolerances can never be met.
+        require_setting(cfg.dtype != DType.float32 or cfg.model in (Model.linear,)
+                        or cfg.newton_atol >= FLOAT32_NEWTON_ATOL, cfg, "newton_atol",
+                        f"is below what float32 reaches (problem.dtype=float32, "
+                        f"problem.model={cfg.model}); set problem.newton_atol="
+                        f"{FLOAT32_NEWTON_ATOL:g} or more, or use problem.dtype=float64")
 
     # -- the hooks of the template --------------------------------------------------------
     def build_model(self, cfg: Membrane2DConfig) -> None:
