@@ -17,7 +17,7 @@ from omegaconf.errors import ValidationError
 from conftest import REPO
 from torchfit.logging.results import _jsonable, write_json
 from torchfit.physics.elasticity import ALIASES, MATERIALS
-from torchfit.problems import (PROBLEMS, Backend, Choice, DataMode, DType,
+from torchfit.problems import (PROBLEMS, Backend, DataMode, DType,
                                FieldImageProblem, FramedProblem, InverseProblem,
                                Membrane2DConfig, MeshProblem, Model, ProblemConfig,
                                ProblemConfigError, ProblemEntry, Spring1D, Spring1DConfig,
