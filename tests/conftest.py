@@ -1,5 +1,6 @@
-"""Shared pytest fixtures and helpers: paths to the repo and the independent test vectors,
-the fit app as a subprocess, a residual that records its linearisation points."""
+"""Shared pytest fixtures and helpers: paths to the repo and the independent test vectors
+(vendored under ``tests/data/vectors``), the fit app as a subprocess, a residual that
+records its linearisation points."""
 from __future__ import annotations
 
 import os
@@ -10,15 +11,22 @@ from pathlib import Path
 import pytest
 import torch
 
-import torchfit  # noqa: F401  (sets float64 as the default dtype)
 from torchfit.solvers import ResidualFunction
 
 REPO = Path(__file__).resolve().parents[1]
-VECTORS = REPO.parent / "shared" / "vectors"
+#: The independent test vectors of PROBLEMS.md, vendored (committed) with the tests.
+VECTORS = REPO / "tests" / "data" / "vectors"
+#: Where they come from: ``shared/vectors`` beside the repository, when it is there.
+SHARED_VECTORS = REPO.parent / "shared" / "vectors"
+#: Every file the tests read from :data:`VECTORS`.
+VECTOR_FILES = ("README.md", "poisson2d_N16_blocks.npz", "poisson2d_N16_ipam.npz",
+                "spring1d_n64.npz")
 
 
 @pytest.fixture(autouse=True)
 def _float64_and_seed():
+    # torchfit leaves torch's default dtype alone (problems use their own dtype); the
+    # tests' own ad-hoc tensors (torch.randn(n), torch.ones(n), ...) are float64.
     torch.set_default_dtype(torch.float64)
     torch.manual_seed(0)
     yield
@@ -26,8 +34,10 @@ def _float64_and_seed():
 
 @pytest.fixture
 def vectors_dir() -> Path:
-    if not VECTORS.is_dir():
-        pytest.skip(f"test vectors not found at {VECTORS} (shared/ must sit beside the repo)")
+    """:data:`VECTORS`; a missing file is a test failure, never a skip."""
+    missing = [name for name in VECTOR_FILES if not (VECTORS / name).is_file()]
+    if missing:
+        pytest.fail(f"vendored test vectors missing from {VECTORS}: {', '.join(missing)}")
     return VECTORS
 
 

@@ -24,6 +24,7 @@ Files written into a run directory:
 from __future__ import annotations
 
 import dataclasses
+import enum
 import json
 import math
 import os
@@ -45,7 +46,9 @@ CHECKPOINT_FILE = "checkpoint.pt"
 
 
 def _jsonable(value: Any) -> Any:
-    """Plain JSON types; NaN and infinities become ``None``."""
+    """Plain JSON types; NaN and infinities become ``None``; an Enum becomes its value."""
+    if isinstance(value, enum.Enum):
+        return _jsonable(value.value)
     if isinstance(value, bool) or value is None or isinstance(value, str):
         return value
     if isinstance(value, int):

@@ -39,17 +39,21 @@ class Parameterization:
         groups: ``(n_edges,)`` group index of every edge for isotropic TV (the
             differences along each axis from one grid cell), or ``None`` (no grouping:
             isotropic and anisotropic TV coincide).
+        dtype: floating-point type of what the parameterisation makes itself (``D``,
+            :meth:`constant` by default); never torch's default dtype.
     """
 
     def __init__(self, n_params: int, edges: Tensor | np.ndarray | None = None,
                  basis: Tensor | None = None, transform: str = "exp",
-                 name: str = "field", groups: Tensor | np.ndarray | None = None) -> None:
+                 name: str = "field", groups: Tensor | np.ndarray | None = None,
+                 dtype: torch.dtype = torch.float64) -> None:
         if n_params < 1:
             raise ValueError(f"a parameterisation needs at least one parameter, got {n_params}")
         if transform not in TRANSFORMS:
             raise ValueError(f"unknown transform {transform!r}; choose one of {TRANSFORMS}")
         self.n_params = int(n_params)
-        self.transform = transform
+        self.dtype = dtype
+        self.transform = str(transform)
         self.name = name
         self.basis = basis
         self.n_field = self.n_params if basis is None else int(basis.shape[0])
@@ -95,9 +99,10 @@ class Parameterization:
             return torch.log(values)
         return values.clone()
 
-    def constant(self, value: float, dtype: torch.dtype = torch.float64,
+    def constant(self, value: float, dtype: torch.dtype | None = None,
                  device: torch.device | str = "cpu") -> Tensor:
-        """``theta`` of a constant field ``value``."""
+        """``theta`` of a constant field ``value`` (in ``dtype``, by default :attr:`dtype`)."""
+        dtype = self.dtype if dtype is None else dtype
         if self.transform == "exp":
             if not value > 0:
                 raise ValueError(f"the {self.name} must be positive, got {value}")
@@ -119,7 +124,7 @@ class Parameterization:
                              "least two adjacent parameters)")
         rows = torch.arange(n_edges).repeat_interleave(2)
         cols = self.edges.reshape(-1)
-        vals = torch.tensor([-1.0, 1.0]).repeat(n_edges)
+        vals = torch.tensor([-1.0, 1.0], dtype=self.dtype).repeat(n_edges)
         return torch.sparse_coo_tensor(torch.stack([rows, cols]), vals,
                                        (n_edges, self.n_params),
                                        check_invariants=False).coalesce()
@@ -164,24 +169,26 @@ def grid_groups(shape: tuple[int, ...]) -> np.ndarray:
 
 
 def per_element(n_cells: int, cell_edges: np.ndarray | None = None, transform: str = "exp",
-                name: str = "field", groups: np.ndarray | None = None) -> Parameterization:
+                name: str = "field", groups: np.ndarray | None = None,
+                dtype: torch.dtype = torch.float64) -> Parameterization:
     """One parameter per element (cell, spring, triangle, tetrahedron).
 
     ``groups`` (one per edge) groups the rows of ``D`` for isotropic TV, e.g.
     :func:`grid_groups` for ``cell_edges = grid_edges(shape)``.
     """
-    return Parameterization(n_cells, cell_edges, None, transform, name, groups)
+    return Parameterization(n_cells, cell_edges, None, transform, name, groups, dtype)
 
 
 def per_grid_cell(shape: tuple[int, ...], transform: str = "exp",
-                  name: str = "field") -> Parameterization:
+                  name: str = "field", dtype: torch.dtype = torch.float64) -> Parameterization:
     """One parameter per cell of a regular grid (row-major), with its isotropic-TV groups."""
     return Parameterization(int(np.prod(shape)), grid_edges(shape), None, transform, name,
-                            grid_groups(shape))
+                            grid_groups(shape), dtype)
 
 
 def per_region(labels: Tensor | np.ndarray, cell_edges: np.ndarray | None = None,
-               transform: str = "exp", name: str = "field") -> Parameterization:
+               transform: str = "exp", name: str = "field",
+               dtype: torch.dtype = torch.float64) -> Parameterization:
     """One parameter per region of a label map (``labels[c]`` in ``0..n_regions-1``).
 
     Two regions are neighbours when some pair of neighbouring cells carries their labels.
@@ -193,11 +200,11 @@ def per_region(labels: Tensor | np.ndarray, cell_edges: np.ndarray | None = None
         raise ValueError("region labels must be 0..n_regions-1 with every region used")
     basis = torch.sparse_coo_tensor(
         torch.from_numpy(np.stack([np.arange(labels_np.size), labels_np])),
-        torch.ones(labels_np.size, dtype=torch.float64), (labels_np.size, n_regions),
+        torch.ones(labels_np.size, dtype=dtype), (labels_np.size, n_regions),
         check_invariants=False).coalesce()
     region_edges = np.zeros((0, 2), dtype=np.int64)
     if cell_edges is not None and len(cell_edges):
         pairs = labels_np[np.asarray(cell_edges)]
         pairs = np.sort(pairs[pairs[:, 0] != pairs[:, 1]], axis=1)
         region_edges = np.unique(pairs, axis=0) if len(pairs) else region_edges
-    return Parameterization(n_regions, region_edges, basis, transform, name)
+    return Parameterization(n_regions, region_edges, basis, transform, name, dtype=dtype)

@@ -1,39 +1,48 @@
 """Canonical problems of PROBLEMS.md, one module each, and the registry used by the app."""
 from __future__ import annotations
 
-from typing import Any, Callable
+import dataclasses
+from typing import Any, Iterator
 
-from .base import InverseProblem, ProblemConfigError
-from .poisson2d import Poisson2D, Poisson2DConfig
-from .membrane2d import Membrane2D, Membrane2DConfig
+from .base import (Backend, Choice, DataMode, DType, FieldImageProblem, FramedProblem,
+                   InverseProblem, MeshProblem, ProblemConfig, ProblemConfigError, Transform,
+                   make_config)
+from .membrane2d import Membrane2D, Membrane2DConfig, Model, SheetData
+from .poisson2d import Pattern, Poisson2D, Poisson2DConfig
 from .spring1d import Spring1D, Spring1DConfig
 
-#: config name -> (config dataclass, problem class)
-PROBLEMS: dict[str, tuple[type, Callable[..., InverseProblem]]] = {
-    "spring1d": (Spring1DConfig, Spring1D),
-    "poisson2d": (Poisson2DConfig, Poisson2D),
-    "membrane2d": (Membrane2DConfig, Membrane2D),
+
+@dataclasses.dataclass(frozen=True)
+class ProblemEntry:
+    """A registered problem: its config dataclass (the Hydra schema) and its class."""
+
+    config_class: type[ProblemConfig]
+    problem_class: type[InverseProblem]
+
+    def __iter__(self) -> Iterator[type]:
+        """``config_class, problem_class = entry`` (the registry's former tuple shape)."""
+        return iter((self.config_class, self.problem_class))
+
+
+#: config name -> registered problem
+PROBLEMS: dict[str, ProblemEntry] = {
+    "spring1d": ProblemEntry(Spring1DConfig, Spring1D),
+    "poisson2d": ProblemEntry(Poisson2DConfig, Poisson2D),
+    "membrane2d": ProblemEntry(Membrane2DConfig, Membrane2D),
 }
 
 
 def build_problem(name: str, cfg: Any = None) -> InverseProblem:
-    """Problem ``name`` from a config (dataclass, mapping or OmegaConf node)."""
+    """Problem ``name`` from a config (its dataclass, a mapping or an OmegaConf node)."""
     if name not in PROBLEMS:
-        raise ProblemConfigError(f"unknown problem {name!r}; choose one of {sorted(PROBLEMS)}")
-    config_cls, problem_cls = PROBLEMS[name]
-    if cfg is None:
-        return problem_cls(config_cls())
-    if not isinstance(cfg, config_cls):
-        fields = {f for f in config_cls.__dataclass_fields__}
-        values = {k: v for k, v in dict(cfg).items() if k in fields}
-        unknown = set(dict(cfg)) - fields
-        if unknown:
-            raise ProblemConfigError(f"unknown setting(s) {sorted(unknown)} for problem {name}")
-        cfg = config_cls(**values)
-    return problem_cls(cfg)
+        raise ProblemConfigError(f"unknown problem {name!r}; choose one of "
+                                 f"{', '.join(sorted(PROBLEMS))}")
+    entry = PROBLEMS[name]
+    return entry.problem_class(make_config(entry.config_class, cfg))
 
 
-__all__ = ["InverseProblem", "Membrane2D", "Membrane2DConfig", "PROBLEMS", "Poisson2D",
-           "Poisson2DConfig", "ProblemConfigError",
-           "Spring1D", "Spring1DConfig",
-           "build_problem"]
+__all__ = ["Backend", "Choice", "DType", "DataMode", "FieldImageProblem", "FramedProblem",
+           "InverseProblem", "Membrane2D", "Membrane2DConfig", "MeshProblem", "Model",
+           "PROBLEMS", "Pattern", "Poisson2D", "Poisson2DConfig", "ProblemConfig",
+           "ProblemConfigError", "ProblemEntry", "SheetData", "Spring1D", "Spring1DConfig",
+           "Transform", "build_problem"]

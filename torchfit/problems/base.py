@@ -3,11 +3,40 @@
 A problem owns the mesh, the true field, the data (with seeded noise), the
 observation and the metrics of PROBLEMS.md. It contains no solver logic: solvers get
 :meth:`InverseProblem.residual`, nothing else.
+
+The contract
+------------
+* :class:`ProblemConfig` holds the settings every problem has (``name``, ``noise``,
+  ``seed``, ``transform``, ``backend``, ``device``, ``dtype``); a problem's config
+  dataclass extends it. Choice settings are :class:`Choice` enums (``str`` subclasses,
+  so ``cfg.data == "dense"`` holds), which lets OmegaConf reject a bad value when Hydra
+  composes the config; plain strings are converted on construction.
+* :func:`validate_config` checks what is generic (every numeric setting finite, the
+  types of the numbers, ``noise >= 0``, the device exists here, a direct solver only on
+  the CPU); every error is one line of :class:`ProblemConfigError` naming the setting as
+  ``problem.<field>=<value>`` and what is allowed.
+* :class:`InverseProblem.__init__` is a template: config -> generic checks ->
+  :meth:`~InverseProblem.check` (the problem's own) -> device and dtype ->
+  :meth:`~InverseProblem.build_model` (mesh, physics) ->
+  :meth:`~InverseProblem.build_parameterization` ->
+  :meth:`~InverseProblem.build_observation` -> ``theta0`` ->
+  :meth:`~InverseProblem.true_field` -> ``x_true = simulate(truth)`` -> ``observe`` (or
+  :meth:`~InverseProblem.measured_data` for user targets) -> finite-target check ->
+  seeded noise -> ``data``. A new problem writes its physics and its data, nothing else.
+
+Nothing here relies on torch's default dtype: tensors are made in ``problem.dtype``
+(``float64`` unless ``problem.dtype=float32``).
 """
 from __future__ import annotations
 
+import dataclasses
+import enum
 import math
-from typing import Any, Protocol, Sequence, runtime_checkable
+import numbers
+import re
+import typing
+from collections.abc import Mapping
+from typing import Any, ClassVar, Protocol, Sequence, runtime_checkable
 
 import torch
 from torch import Tensor
@@ -17,7 +46,10 @@ from ..residual import ResidualFunction
 
 
 class ProblemConfigError(ValueError):
-    """A problem setting is invalid; the message names the setting and what to do."""
+    """A problem setting is invalid; the message (one line) names the setting and what to do."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(" ".join(str(message).split()))
 
 
 def require(condition: bool, message: str) -> None:
@@ -25,6 +57,267 @@ def require(condition: bool, message: str) -> None:
         raise ProblemConfigError(message)
 
 
+# -- choices ---------------------------------------------------------------------------
+class Choice(str, enum.Enum):
+    """A setting with a fixed set of values. Member names equal their values (OmegaConf
+    converts a string by name), ``str()`` and f-strings give the value."""
+
+    def __str__(self) -> str:
+        return self.value
+
+    @classmethod
+    def choices(cls) -> list[str]:
+        return [member.value for member in cls]
+
+
+class DataMode(Choice):
+    """Which part of the state is observed."""
+
+    dense = "dense"
+    sparse = "sparse"
+
+
+class Transform(Choice):
+    """``field = exp(theta)`` (positivity) or ``field = theta``."""
+
+    exp = "exp"
+    identity = "identity"
+
+
+class Backend(Choice):
+    """Linear-solve backend: ``scipy`` (CPU direct), ``banded`` (CPU banded Cholesky),
+    ``cg`` (torch Jacobi-CG, any device)."""
+
+    scipy = "scipy"
+    banded = "banded"
+    cg = "cg"
+
+
+class DType(Choice):
+    """Floating-point precision of the problem's tensors."""
+
+    float64 = "float64"
+    float32 = "float32"
+
+
+#: Backends that factorise on the CPU (a problem on another device needs ``cg``).
+CPU_BACKENDS = (Backend.scipy, Backend.banded)
+#: Device names understood by :func:`resolve_device` (``cuda:N`` picks a GPU).
+DEVICE_CHOICES = ("cpu", "cuda", "cuda:N", "mps")
+_DEVICE = re.compile(r"^(cpu|cuda|mps)(?::(\d+))?$")
+
+
+@dataclasses.dataclass
+class ProblemConfig:
+    """Settings every problem has (a problem's config dataclass extends this one).
+
+    ``name`` is the config name; ``noise`` the standard deviation of the i.i.d. Gaussian
+    noise added to every observed value (seeded by ``seed``); ``transform`` maps
+    ``theta`` to the field; ``backend`` does the linear solves; ``device`` and ``dtype``
+    place and type every tensor of the problem.
+    """
+
+    name: str = "problem"
+    noise: float = 0.0                  # sigma of the Gaussian noise on every observed value
+    seed: int = 0                       # of the noise
+    transform: Transform = Transform.exp    # exp (field = exp(theta)) | identity
+    backend: Backend = Backend.scipy    # scipy (CPU direct) | banded (CPU) | cg (torch, CPU or CUDA)
+    device: str = "cpu"                 # cpu | cuda | cuda:N | mps
+    dtype: DType = DType.float64        # float64 | float32
+
+    def __post_init__(self) -> None:
+        for key, kind in choice_fields(type(self)).items():
+            setattr(self, key, to_choice(kind, key, getattr(self, key)))
+
+
+def choice_fields(config_class: type) -> dict[str, type[Choice]]:
+    """``{field: Choice subclass}`` of the choice settings of a config dataclass."""
+    cached = _CHOICE_FIELDS.get(config_class)
+    if cached is None:
+        hints = typing.get_type_hints(config_class)
+        cached = {f.name: hints[f.name] for f in dataclasses.fields(config_class)
+                  if isinstance(hints.get(f.name), type) and issubclass(hints[f.name], Choice)}
+        _CHOICE_FIELDS[config_class] = cached
+    return cached
+
+
+_CHOICE_FIELDS: dict[type, dict[str, type[Choice]]] = {}
+
+
+def to_choice(kind: type[Choice], key: str, value: Any) -> Choice:
+    """``value`` (a member, its value or its name) as a member of ``kind``, else a
+    :class:`ProblemConfigError` listing the choices."""
+    if isinstance(value, kind):
+        return value
+    if isinstance(value, enum.Enum):
+        value = value.value
+    if isinstance(value, str):
+        try:
+            return kind(value)
+        except ValueError:
+            pass
+    raise ProblemConfigError(f"problem.{key}={show(value)} is not a {key} choice; "
+                             f"choose one of {', '.join(kind.choices())}")
+
+
+def show(value: Any) -> str:
+    """A setting's value as written on a command line (``inf``, ``dense``, ``[0.0, 1.0]``)."""
+    if isinstance(value, enum.Enum):
+        return str(value.value)
+    if isinstance(value, str):
+        return value if value and not any(c.isspace() for c in value) else repr(value)
+    if isinstance(value, (list, tuple)) or (isinstance(value, Sequence) and not isinstance(value, str)):
+        return "[" + ", ".join(show(v) for v in value) + "]"
+    return repr(value) if not isinstance(value, float) else str(value)
+
+
+def setting_error(key: str, value: Any, allowed: str) -> ProblemConfigError:
+    """``problem.<key>=<value>: <allowed>`` as a :class:`ProblemConfigError`."""
+    return ProblemConfigError(f"problem.{key}={show(value)}: {allowed}")
+
+
+def require_setting(condition: bool, cfg: Any, key: str, allowed: str) -> None:
+    """Raise :func:`setting_error` for ``cfg.<key>`` unless ``condition``."""
+    if not condition:
+        raise setting_error(key, getattr(cfg, key), allowed)
+
+
+# -- generic validation ---------------------------------------------------------------
+def _is_number(value: Any) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _non_finite(value: Any) -> bool:
+    """Some number in ``value`` (recursively in lists) is NaN or infinite."""
+    if _is_number(value):
+        return not math.isfinite(float(value))
+    if isinstance(value, Sequence) and not isinstance(value, str):
+        return any(_non_finite(v) for v in value)
+    return False
+
+
+def _number_kind(hint: Any) -> tuple[type | None, bool]:
+    """(``int``, ``float`` or ``None``, is it a list of them) of a type hint."""
+    origin = typing.get_origin(hint)
+    if origin is typing.Union:
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        return _number_kind(args[0]) if len(args) == 1 else (None, False)
+    if origin in (list, tuple, Sequence, typing.List, typing.Tuple):
+        args = typing.get_args(hint)
+        inner = args[0] if args else None
+        return (inner if inner in (int, float) else None), True
+    return (hint if hint in (int, float) else None), False
+
+
+def _check_number_type(key: str, value: Any, kind: type, is_list: bool) -> None:
+    what = "an integer" if kind is int else "a number"
+    if is_list:
+        if value is None:
+            return
+        if isinstance(value, str) or not isinstance(value, Sequence):
+            raise setting_error(key, value, f"must be a list of {what.split(' ', 1)[1]}s")
+        ok = all(_is_number(v) and (kind is float or isinstance(v, numbers.Integral))
+                 for v in value)
+        if not ok:
+            raise setting_error(key, value, f"must be a list of {what.split(' ', 1)[1]}s")
+        return
+    if value is None:
+        return
+    if not _is_number(value) or (kind is int and not isinstance(value, numbers.Integral)):
+        raise setting_error(key, value, f"must be {what}")
+
+
+def check_device(key: str, value: Any) -> torch.device:
+    """The torch device named by a ``device`` setting, if it exists on this machine."""
+    name = str(value).strip().lower()
+    match = _DEVICE.match(name)
+    if match is None:
+        raise setting_error(key, value, "is not a device; choose one of "
+                            f"{', '.join(DEVICE_CHOICES)} (N = GPU index)")
+    kind, index = match.group(1), match.group(2)
+    if kind == "cuda":
+        if not torch.cuda.is_available():
+            built = "without CUDA" if torch.version.cuda is None else \
+                f"with CUDA {torch.version.cuda} but sees no GPU"
+            raise setting_error(key, value, f"this torch ({torch.__version__}, built {built}) "
+                                "has no CUDA here (torch.cuda.is_available() is False); "
+                                "use problem.device=cpu")
+        count = torch.cuda.device_count()
+        if index is not None and int(index) >= count:
+            raise setting_error(key, value, f"there are {count} CUDA device(s) here; "
+                                f"choose cuda:0..cuda:{count - 1}")
+    if kind == "mps" and not (getattr(torch.backends, "mps", None) is not None
+                              and torch.backends.mps.is_available()):
+        raise setting_error(key, value, "this torch has no MPS device here; use "
+                            "problem.device=cpu")
+    return torch.device(name)
+
+
+def dtype_of(choice: DType | str) -> torch.dtype:
+    """``torch.float64`` or ``torch.float32``."""
+    return {DType.float64: torch.float64, DType.float32: torch.float32}[DType(choice)]
+
+
+def validate_config(cfg: ProblemConfig) -> None:
+    """Generic checks of a problem config (one-line :class:`ProblemConfigError` each).
+
+    Choice settings are members of their enum; every numeric setting is a number of the
+    declared type and finite (recursively in lists: ``inf`` is as wrong as ``nan``);
+    ``noise >= 0``; the device exists here; the direct backends run on the CPU only.
+    """
+    hints = typing.get_type_hints(type(cfg))
+    choices = choice_fields(type(cfg))
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if f.name in choices:
+            setattr(cfg, f.name, to_choice(choices[f.name], f.name, value))
+            continue
+        if _non_finite(value):
+            raise setting_error(f.name, value, "every numeric setting must be finite "
+                                "(no inf, -inf or nan)")
+        kind, is_list = _number_kind(hints.get(f.name))
+        if kind is not None:
+            _check_number_type(f.name, value, kind, is_list)
+    require_setting(cfg.noise >= 0, cfg, "noise", "must be >= 0 (the standard deviation "
+                    "of the noise; 0 for none)")
+    device = check_device("device", cfg.device)
+    require_setting(device.type == "cpu" or cfg.backend not in CPU_BACKENDS, cfg, "backend",
+                    f"runs on the CPU only; with problem.device={cfg.device} use "
+                    "problem.backend=cg")
+
+
+def make_config(config_class: type[ProblemConfig], cfg: Any = None,
+                overrides: Mapping[str, Any] | None = None) -> ProblemConfig:
+    """A ``config_class`` instance from ``None`` (defaults), an instance, or a mapping
+    (dict, OmegaConf node), with ``overrides`` applied; unknown settings are errors."""
+    overrides = dict(overrides or {})
+    names = {f.name for f in dataclasses.fields(config_class)}
+    if cfg is None:
+        values: dict[str, Any] = {}
+    elif isinstance(cfg, config_class):
+        values = {}
+    elif isinstance(cfg, ProblemConfig):
+        raise ProblemConfigError(f"a {type(cfg).__name__} was given where a "
+                                 f"{config_class.__name__} is needed")
+    else:
+        try:
+            values = dict(cfg)
+        except (TypeError, ValueError):
+            raise ProblemConfigError(f"a problem config must be a {config_class.__name__} "
+                                     f"or a mapping, got {type(cfg).__name__}") from None
+    values.update(overrides)
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise ProblemConfigError(f"unknown setting(s) {', '.join('problem.' + k for k in unknown)}"
+                                 f" for {config_class.__name__}; known: {', '.join(sorted(names))}")
+    values = {k: (list(v) if isinstance(v, Sequence) and not isinstance(v, str) else v)
+              for k, v in values.items()}
+    if isinstance(cfg, config_class):
+        return dataclasses.replace(cfg, **values) if values else dataclasses.replace(cfg)
+    return config_class(**values)
+
+
+# -- data helpers -----------------------------------------------------------------------
 def check_finite_targets(targets: Tensor, frame_of: Tensor, node_of: Tensor,
                          what: str = "target") -> None:
     """Raise naming the first frame and node whose target is NaN or infinite.
@@ -56,6 +349,15 @@ def add_noise(clean: Tensor, sigma: float, seed: int) -> tuple[Tensor, float | N
     return clean + sigma * noise, sigma * math.sqrt(clean.numel())
 
 
+def node_frame_index(n_frames: int, nodes: Sequence[int] | Tensor, dim: int) -> tuple[Tensor, Tensor]:
+    """Frame and node of every entry of ``x[:, nodes, :].reshape(-1)``."""
+    nodes_t = torch.as_tensor(nodes, dtype=torch.long).cpu()
+    frame = torch.arange(n_frames).repeat_interleave(nodes_t.numel() * dim)
+    node = nodes_t.repeat_interleave(dim).repeat(n_frames)
+    return frame, node
+
+
+# -- hooks the logging layer looks for ----------------------------------------------------
 @runtime_checkable
 class FieldImageProblem(Protocol):
     """A problem whose field can be drawn as a 2-D image (poisson2d, membrane2d)."""
@@ -85,13 +387,21 @@ class MeshProblem(Protocol):
     mesh: Any
 
 
+# -- the problem ----------------------------------------------------------------------------
 class InverseProblem:
-    """Base class; subclasses set the attributes below in ``__init__``.
+    """Base class and template constructor of every problem.
 
-    Attributes:
-        name: the config name (``spring1d``, ...).
+    Subclasses set :attr:`config_class` and implement the hooks :meth:`build_model`,
+    :meth:`build_parameterization`, :meth:`build_observation`, :meth:`true_field`,
+    :meth:`simulate`, :meth:`observe` (and optionally :meth:`check`,
+    :meth:`measured_data`, :meth:`observation_index`). The protocols above
+    (:class:`FieldImageProblem`, ...) are opt-in: the base defines none of their members.
+
+    Attributes (set by the template):
+        cfg: the validated config.
+        device, dtype: where and in which precision every tensor lives.
         parameterization: ``theta -> field``.
-        theta0: ``(n_params,)`` initial guess.
+        theta0: ``(n_params,)`` initial guess (the constant field ``cfg.<initial_setting>``).
         field_true: true field ``(n_field,)`` or ``None`` (user data).
         x_true: noise-free state of the true field, ``(F, n_nodes, dim)`` or ``None``.
         data: ``(m,)`` targets ``y_t``.
@@ -99,17 +409,84 @@ class InverseProblem:
         scale_free: data never fix the global scale of the field.
     """
 
+    config_class: ClassVar[type[ProblemConfig]] = ProblemConfig
     name: str = "problem"
     field_name: str = "k"
+    scale_free: bool = False
+    #: the config field holding the constant initial guess of the field
+    initial_setting: ClassVar[str] = "k0"
+    #: components per node of the state (``x`` is ``(F, n_nodes, dim)``)
+    dim: ClassVar[int] = 1
+
+    cfg: Any
+    device: torch.device
+    dtype: torch.dtype
     parameterization: Parameterization
     theta0: Tensor
     field_true: Tensor | None
     x_true: Tensor | None
     data: Tensor
     noise_level: float | None
-    scale_free: bool = False
 
-    # -- to implement -----------------------------------------------------------------
+    def __init__(self, cfg: Any = None, **overrides: Any) -> None:
+        cfg = make_config(self.config_class, cfg, overrides)
+        validate_config(cfg)
+        self.check(cfg)
+        self.cfg = cfg
+        self.device = check_device("device", cfg.device)
+        self.dtype = dtype_of(cfg.dtype)
+        self.build_model(cfg)
+        self.parameterization = self.build_parameterization(cfg)
+        self.build_observation(cfg)
+        self.theta0 = self.parameterization.constant(self.initial_value(cfg), self.dtype,
+                                                     self.device)
+        truth = self.true_field(cfg)
+        if truth is not None:
+            self.field_true = truth.to(device=self.device, dtype=self.dtype)
+            self.x_true = self.simulate(self.field_true).detach()
+            clean, what = self.observe(self.x_true), "simulated target"
+        else:
+            self.field_true = None
+            self.x_true = None
+            clean, what = self.measured_data(cfg), "target"
+        frame_of, node_of = self.observation_index()
+        check_finite_targets(clean, frame_of, node_of, what)
+        self.data, self.noise_level = add_noise(clean, cfg.noise, cfg.seed)
+
+    # -- hooks: what a problem is --------------------------------------------------------
+    def check(self, cfg: Any) -> None:
+        """The problem's own checks of ``cfg`` (after the generic ones); raise
+        :class:`ProblemConfigError` via :func:`require_setting`."""
+
+    def build_model(self, cfg: Any) -> None:
+        """Mesh and physics (the simulator), on ``self.device`` in ``self.dtype``."""
+        raise NotImplementedError
+
+    def build_parameterization(self, cfg: Any) -> Parameterization:
+        """The map ``theta -> field``."""
+        raise NotImplementedError
+
+    def build_observation(self, cfg: Any) -> None:
+        """What is observed (``self.observed_nodes`` for :meth:`observation_index`)."""
+        raise NotImplementedError
+
+    def initial_value(self, cfg: Any) -> float:
+        """The constant field ``theta0`` stands for (``cfg.<initial_setting>``)."""
+        return float(getattr(cfg, self.initial_setting))
+
+    def true_field(self, cfg: Any) -> Tensor | None:
+        """The true field ``(n_field,)``, or ``None`` when the data are the user's."""
+        raise NotImplementedError
+
+    def measured_data(self, cfg: Any) -> Tensor:
+        """Observed user targets ``(m,)`` (only when :meth:`true_field` is ``None``)."""
+        raise NotImplementedError
+
+    def observation_index(self) -> tuple[Tensor, Tensor]:
+        """Frame and node of every observed value, ``(m,)`` each (for messages)."""
+        return node_frame_index(int(getattr(self, "n_frames", 1)), self.observed_nodes,
+                                self.dim)
+
     def simulate(self, field: Tensor) -> Tensor:
         """All node positions of all frames, ``(F, n_nodes, dim)``."""
         raise NotImplementedError
@@ -129,6 +506,17 @@ class InverseProblem:
 
     def field(self, theta: Tensor) -> Tensor:
         return self.parameterization(theta.detach())
+
+    def metric_names(self) -> list[str]:
+        """Keys of PROBLEMS.md's metric table that :meth:`metrics` reports, in its order."""
+        names = ["misfit"]
+        if self.x_true is not None:
+            names += ["u_err_inf", "u_err_2"]
+        if self.field_true is not None:
+            names += ["k_err_inf", "k_err_2", "k_err_rel"]
+            if self.scale_free:
+                names.append("k_err_rel_aligned")
+        return names
 
     def metrics(self, theta: Tensor, x: Tensor | None = None) -> dict[str, float]:
         """The metrics of PROBLEMS.md at ``theta`` (state errors on every node and frame)."""
@@ -160,11 +548,3 @@ class InverseProblem:
         return {"name": self.name, "n_params": self.parameterization.n_params,
                 "n_data": int(self.data.numel()), "noise_level": self.noise_level,
                 "scale_free": self.scale_free}
-
-
-def node_frame_index(n_frames: int, nodes: Sequence[int] | Tensor, dim: int) -> tuple[Tensor, Tensor]:
-    """Frame and node of every entry of ``x[:, nodes, :].reshape(-1)``."""
-    nodes_t = torch.as_tensor(nodes, dtype=torch.long)
-    frame = torch.arange(n_frames).repeat_interleave(nodes_t.numel() * dim)
-    node = nodes_t.repeat_interleave(dim).repeat(n_frames)
-    return frame, node

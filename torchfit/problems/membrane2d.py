@@ -22,6 +22,10 @@ at rest, the right edge (rest ``x = width``) is prescribed:
 Every load is a prescribed displacement, so ``x(a E) = x(E)``: scale-free (metrics
 report ``k_err_rel_aligned``; solvers get the gauge direction). Data ``dense``: both
 coordinates of every free vertex (neither edge) in every frame.
+
+``problem.dtype=float32`` works for every model, but the Newton residuals of the nonlinear
+ones stall near ``1e-5`` (force units) in single precision: it needs
+``problem.newton_atol >= 1e-4`` (checked); the ``linear`` model has no such limit.
 """
 from __future__ import annotations
 
@@ -34,14 +38,33 @@ import torch
 from torch import Tensor
 
 from ..mesh import ipam_mask, normalized_points, rectangle_triangles
-from ..params import per_element
+from ..params import Parameterization, per_element
 from ..physics import NewtonOptions
-from ..physics.elasticity import (MATERIALS, ALIASES, QuasistaticElasticity,
-                                  SimplicialElasticity, get_material)
-from .base import InverseProblem, ProblemConfigError, add_noise, require
+from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
+from .base import (Backend, Choice, DType, InverseProblem, ProblemConfig, ProblemConfigError,
+                   require_setting)
 
-DATA_MODES = ("dense",)
-BACKENDS = ("banded", "scipy", "cg")
+
+class Model(Choice):
+    """Constitutive model of the sheet (``MATERIALS`` and ``ALIASES`` of
+    :mod:`torchfit.physics.elasticity`)."""
+
+    linear = "linear"
+    corotated = "corotated"
+    stable_neo_hookean = "stable_neo_hookean"
+    neo_hookean = "neo_hookean"              # alias of stable_neo_hookean
+    rotated_linear = "rotated_linear"        # alias of corotated
+
+
+class SheetData(Choice):
+    """membrane2d observes every free vertex (PROBLEMS.md: ``dense`` only)."""
+
+    dense = "dense"
+
+
+DATA_MODES = tuple(SheetData.choices())
+#: smallest Newton ``atol`` accepted with ``dtype=float32`` for the nonlinear models
+FLOAT32_NEWTON_ATOL = 1e-4
 
 #: The animation of PROBLEMS.md: (kind, value) per frame.
 FRAMES: tuple[tuple[str, float], ...] = (
@@ -54,8 +77,9 @@ SHEAR_STRETCH = 0.20
 
 
 @dataclasses.dataclass
-class Membrane2DConfig:
-    """Settings of ``problem=membrane2d`` (defaults are the canonical values)."""
+class Membrane2DConfig(ProblemConfig):
+    """Settings of ``problem=membrane2d`` (defaults are the canonical values; ``noise``,
+    ``seed``, ``transform``, ``device``, ``dtype`` from :class:`ProblemConfig`)."""
 
     name: str = "membrane2d"
     nx: int = 96                        # cells along x (2 nx ny triangles)
@@ -63,16 +87,12 @@ class Membrane2DConfig:
     width: float = 2.0
     height: float = 0.5
     nu: float = 0.3                     # Poisson ratio, fixed (plane strain)
-    model: str = "corotated"            # linear | corotated | stable_neo_hookean (neo_hookean)
+    model: Model = Model.corotated      # linear | corotated | stable_neo_hookean (neo_hookean)
     E_background: float = 1.0
     E_ink: float = 10.0                 # on the letters IPAM
-    data: str = "dense"                 # dense: every free vertex, every frame
-    noise: float = 0.0                  # sigma of the Gaussian noise on every observed value
-    seed: int = 0
+    data: SheetData = SheetData.dense   # dense: every free vertex, every frame
     E0: float = 1.0                     # initial guess, constant
-    transform: str = "exp"              # exp (E = exp(theta)) | identity
-    backend: str = "banded"             # linear solves: banded (CPU, SPD) | scipy | cg
-    device: str = "cpu"
+    backend: Backend = Backend.banded   # linear solves: banded (CPU, SPD) | scipy | cg
     newton_rtol: float = 1e-11          # relative to the residual of the cold start
     newton_atol: float = 1e-13          # absolute floor (force units)
     newton_max_iter: int = 50
@@ -102,21 +122,43 @@ def animation(right_rest: Tensor, width: float, height: float) -> Tensor:
 class Membrane2D(InverseProblem):
     """The IPAM sheet as an inverse problem (fit one Young's modulus per triangle)."""
 
+    config_class = Membrane2DConfig
     name = "membrane2d"
     field_name = "E"
+    initial_setting = "E0"
+    dim = 2
     scale_free = True
     default_sheet_frame = 5            # bend by 20 degrees: the most telling frame to draw
 
-    def __init__(self, cfg: Membrane2DConfig | None = None, **overrides: object) -> None:
-        cfg = dataclasses.replace(cfg or Membrane2DConfig(), **overrides)
-        self.cfg = cfg
-        self._validate(cfg)
-        self.device = torch.device(cfg.device)
-        dtype = torch.float64
+    def check(self, cfg: Membrane2DConfig) -> None:
+        for key in ("nx", "ny"):
+            require_setting(isinstance(getattr(cfg, key), int) and getattr(cfg, key) >= 1, cfg,
+                            key, "must be an integer >= 1 (cells per side)")
+        require_setting(cfg.nx >= 2, cfg, "nx", "the sheet needs at least two cells along x "
+                        "so that some vertex is free")
+        for key in ("width", "height"):
+            require_setting(getattr(cfg, key) > 0, cfg, key, "must be positive")
+        require_setting(-1.0 < cfg.nu < 0.5, cfg, "nu", "must lie in (-1, 0.5) (Poisson ratio "
+                        "of an isotropic material; 0.5 would be incompressible)")
+        for key in ("E_background", "E_ink", "E0"):
+            require_setting(getattr(cfg, key) > 0, cfg, key, "must be a positive Young's modulus")
+        require_setting(cfg.newton_rtol >= 0, cfg, "newton_rtol", "must be >= 0")
+        require_setting(cfg.newton_atol > 0, cfg, "newton_atol", "must be > 0")
+        require_setting(cfg.newton_max_iter >= 1, cfg, "newton_max_iter", "must be >= 1")
+        # float32: Newton residuals of the nonlinear models stall near 1e-5 force units on
+        # the canonical sheet, so the float64 tolerances can never be met.
+        require_setting(cfg.dtype != DType.float32 or cfg.model in (Model.linear,)
+                        or cfg.newton_atol >= FLOAT32_NEWTON_ATOL, cfg, "newton_atol",
+                        f"is below what float32 reaches (problem.dtype=float32, "
+                        f"problem.model={cfg.model}); set problem.newton_atol="
+                        f"{FLOAT32_NEWTON_ATOL:g} or more, or use problem.dtype=float64")
+
+    # -- the hooks of the template --------------------------------------------------------
+    def build_model(self, cfg: Membrane2DConfig) -> None:
         self.mesh = rectangle_triangles(cfg.nx, cfg.ny, cfg.width, cfg.height)
         self.model = SimplicialElasticity(torch.from_numpy(self.mesh.points),
-                                          torch.from_numpy(self.mesh.cells), cfg.model,
-                                          nu=cfg.nu, dtype=dtype, device=self.device)
+                                          torch.from_numpy(self.mesh.cells), cfg.model.value,
+                                          nu=cfg.nu, dtype=self.dtype, device=self.device)
         left = self.mesh.boundary_vertices("left")
         right = self.mesh.boundary_vertices("right")
         self.left_vertices = torch.as_tensor(left)
@@ -124,56 +166,31 @@ class Membrane2D(InverseProblem):
         dirichlet = np.concatenate([left, right])
         newton = NewtonOptions(max_iter=cfg.newton_max_iter, rtol=cfg.newton_rtol,
                                atol=cfg.newton_atol)
-        self.quasistatic = QuasistaticElasticity(self.model, dirichlet, backend=cfg.backend,
-                                                 newton=newton)
+        self.quasistatic = QuasistaticElasticity(self.model, dirichlet,
+                                                 backend=cfg.backend.value, newton=newton)
         rest = self.model.rest.points
         right_frames = animation(rest[self.right_vertices], cfg.width, cfg.height)
         n_frames = right_frames.shape[0]
         left_frames = rest[self.left_vertices].expand(n_frames, -1, -1)
         self.dirichlet_positions = torch.cat([left_frames, right_frames], dim=1).contiguous()
         self.n_frames = n_frames
+
+    def build_parameterization(self, cfg: Membrane2DConfig) -> Parameterization:
+        return per_element(self.model.n_cells, self.mesh.adjacency(), cfg.transform.value,
+                           name="Young's modulus", dtype=self.dtype)
+
+    def build_observation(self, cfg: Membrane2DConfig) -> None:
         self.observed_vertices = self.quasistatic.free_vertices.to(self.device)
-        self.parameterization = per_element(self.model.n_cells, self.mesh.adjacency(),
-                                            cfg.transform, name="Young's modulus")
-        self.theta0 = self.parameterization.constant(cfg.E0, dtype, self.device)
+        self.observed_nodes = self.observed_vertices
+
+    def true_field(self, cfg: Membrane2DConfig) -> Tensor:
         self.ink = torch.as_tensor(ipam_mask(normalized_points(self.mesh.centroids(),
                                                                self.mesh.extent)),
                                    device=self.device)
-        self.field_true = torch.where(self.ink, cfg.E_ink, cfg.E_background).to(dtype)
-        self.x_true = self.simulate(self.field_true).detach()
-        self.data, self.noise_level = add_noise(self.observe(self.x_true), cfg.noise, cfg.seed)
-
-    @staticmethod
-    def _validate(cfg: Membrane2DConfig) -> None:
-        require(isinstance(cfg.nx, int) and isinstance(cfg.ny, int) and cfg.nx >= 1
-                and cfg.ny >= 1, f"problem.nx and problem.ny must be integers >= 1 (cells per "
-                f"side), got {cfg.nx!r}, {cfg.ny!r}")
-        require(cfg.nx >= 2, f"problem.nx={cfg.nx}: the sheet needs at least two cells along "
-                "x so that some vertex is free")
-        require(cfg.width > 0 and cfg.height > 0 and math.isfinite(cfg.width)
-                and math.isfinite(cfg.height),
-                f"problem.width and problem.height must be positive, got {cfg.width}, {cfg.height}")
-        require(-1.0 < cfg.nu < 0.5, f"problem.nu={cfg.nu} is outside (-1, 0.5) (Poisson ratio "
-                "of an isotropic material; 0.5 would be incompressible)")
-        known = sorted(MATERIALS) + sorted(ALIASES)
-        require(cfg.model in known, f"problem.model={cfg.model!r} is not a constitutive model; "
-                f"choose one of {known}")
-        require(cfg.data in DATA_MODES, f"problem.data={cfg.data!r} is not a data mode; "
-                f"choose one of {DATA_MODES}")
-        require(cfg.noise >= 0, f"problem.noise must be >= 0 (a standard deviation), got "
-                f"{cfg.noise}")
-        for key in ("E_background", "E_ink", "E0"):
-            value = getattr(cfg, key)
-            require(value > 0 and math.isfinite(value),
-                    f"problem.{key} must be a positive Young's modulus, got {value}")
-        require(cfg.backend in BACKENDS, f"problem.backend={cfg.backend!r} is not a linear-solve "
-                f"backend; choose one of {BACKENDS}")
-        require(cfg.device == "cpu" or cfg.backend == "cg",
-                f"problem.device={cfg.device!r} needs problem.backend=cg (the direct backends run "
-                "on the CPU)")
-        require(cfg.newton_rtol >= 0 and cfg.newton_atol > 0 and cfg.newton_max_iter >= 1,
-                "problem.newton_rtol must be >= 0, problem.newton_atol > 0 and "
-                "problem.newton_max_iter >= 1")
+        ink = torch.full(self.ink.shape, cfg.E_ink, dtype=self.dtype, device=self.device)
+        background = torch.full(self.ink.shape, cfg.E_background, dtype=self.dtype,
+                                device=self.device)
+        return torch.where(self.ink, ink, background)
 
     # -- the forward model ------------------------------------------------------------------
     def simulate(self, E: Tensor) -> Tensor:
@@ -224,7 +241,7 @@ class Membrane2D(InverseProblem):
 
     def describe(self) -> dict[str, Any]:
         out = super().describe()
-        out.update({"model": get_material(self.cfg.model).name, "nu": self.model.nu,
+        out.update({"model": get_material(self.cfg.model.value).name, "nu": self.model.nu,
                     "n_triangles": self.model.n_cells, "n_vertices": self.model.n_vertices,
                     "n_frames": self.n_frames, "n_ink": int(self.ink.sum())})
         return out

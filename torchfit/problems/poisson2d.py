@@ -21,30 +21,35 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..params import grid_edges, grid_groups, per_element
+from ..params import Parameterization, grid_edges, grid_groups, per_element
 from ..physics import Equilibrium, SpringChain1D
-from .base import InverseProblem, ProblemConfigError, add_noise, node_frame_index, require
+from .base import (Choice, DataMode, InverseProblem, ProblemConfig, ProblemConfigError,
+                   node_frame_index, require, require_setting)
 
-PATTERNS = ("blocks", "ipam")
-DATA_MODES = ("dense", "sparse")
+
+class Pattern(Choice):
+    """The true field of poisson2d (PROBLEMS.md)."""
+
+    blocks = "blocks"
+    ipam = "ipam"
+
+
+PATTERNS = tuple(Pattern.choices())
+DATA_MODES = tuple(DataMode.choices())
 
 
 @dataclasses.dataclass
-class Poisson2DConfig:
-    """Settings of ``problem=poisson2d`` (defaults are the canonical values)."""
+class Poisson2DConfig(ProblemConfig):
+    """Settings of ``problem=poisson2d`` (defaults are the canonical values; ``noise``,
+    ``seed``, ``transform``, ``backend``, ``device``, ``dtype`` from :class:`ProblemConfig`)."""
 
     name: str = "poisson2d"
     N: int = 64                      # nodes per side
     s: float = 0.5                   # side of the rest square
-    pattern: str = "blocks"          # blocks | ipam
-    data: str = "dense"              # dense | sparse
+    pattern: Pattern = Pattern.blocks    # blocks | ipam
+    data: DataMode = DataMode.dense  # dense | sparse
     sparse_stride: int = 4           # sparse: nodes (i, j) with i, j multiples of the stride
-    noise: float = 0.0               # sigma on every observed coordinate
-    seed: int = 0
     k0: float = 1.0                  # initial guess, constant
-    transform: str = "exp"           # exp | identity
-    backend: str = "scipy"           # scipy | cg
-    device: str = "cpu"
 
 
 def blocks_field(centres: np.ndarray) -> np.ndarray:
@@ -66,75 +71,72 @@ def ipam_field(centres: np.ndarray) -> np.ndarray:
 class Poisson2D(InverseProblem):
     """Fit per-cell ``k`` from the positions of the stretched square."""
 
+    config_class = Poisson2DConfig
     name = "poisson2d"
     field_name = "k"
     scale_free = True
+    initial_setting = "k0"
+    dim = 2
 
-    def __init__(self, cfg: Poisson2DConfig | None = None, **overrides: object) -> None:
-        cfg = dataclasses.replace(cfg or Poisson2DConfig(), **overrides)
-        self.cfg = cfg
-        self._validate(cfg)
-        N, s = cfg.N, cfg.s
-        self.device = torch.device(cfg.device)
-        dtype = torch.float64
+    def check(self, cfg: Poisson2DConfig) -> None:
+        require_setting(isinstance(cfg.N, int) and cfg.N >= 3, cfg, "N",
+                        "must be an integer >= 3 (nodes per side)")
+        require_setting(cfg.s > 0, cfg, "s", "must be positive (side of the rest square)")
+        require_setting(cfg.sparse_stride >= 1, cfg, "sparse_stride", "must be >= 1")
+        require_setting(cfg.data != DataMode.sparse or cfg.sparse_stride < cfg.N - 1, cfg,
+                        "sparse_stride", f"is larger than the grid (N={cfg.N}): no interior "
+                        "column would be observed; use a stride < N - 1")
+        require_setting(cfg.k0 > 0, cfg, "k0", "must be a positive stiffness")
+
+    # -- the hooks of the template --------------------------------------------------------
+    def build_model(self, cfg: Poisson2DConfig) -> None:
+        N, s, dtype, device = cfg.N, cfg.s, self.dtype, self.device
         # Node (i, j) at (i h, j h), numbered i * N + j; cell (ci, cj) numbered ci * (N-1) + cj.
         h = s / (N - 1)
-        ii, jj = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
+        self._ii, self._jj = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
         self.rest_positions = torch.from_numpy(
-            np.stack([ii.ravel() * h, jj.ravel() * h], axis=1)).to(dtype)
+            np.stack([self._ii.ravel() * h, self._jj.ravel() * h], axis=1)).to(dtype)
         ci, cj = np.meshgrid(np.arange(N - 1), np.arange(N - 1), indexing="ij")
-        self.cell_centres = torch.from_numpy(
-            np.stack([(ci.ravel() + 0.5) * h, (cj.ravel() + 0.5) * h], axis=1)).to(dtype)
+        self._centres = np.stack([(ci.ravel() + 0.5) * h, (cj.ravel() + 0.5) * h], axis=1)
+        self.cell_centres = torch.from_numpy(self._centres).to(dtype)
         edges, edge_cells = self._edge_cells(N)
-        self.edge_cells = torch.from_numpy(edge_cells).to(self.device)   # (n_edges, 2)
+        self.edge_cells = torch.from_numpy(edge_cells).to(device)   # (n_edges, 2)
         n_nodes = N * N
-        self.model = SpringChain1D(torch.from_numpy(edges).to(self.device),
-                                   torch.zeros(len(edges), dtype=dtype, device=self.device),
-                                   torch.zeros(2, n_nodes, dtype=dtype, device=self.device))
-        left_right = np.concatenate([np.arange(N), np.arange((N - 1) * N, N * N)])
-        fixed = torch.from_numpy(np.sort(left_right))
-        self.equilibrium = Equilibrium(self.model, fixed, backend=cfg.backend)
+        self.model = SpringChain1D(torch.from_numpy(edges).to(device),
+                                   torch.zeros(len(edges), dtype=dtype, device=device),
+                                   torch.zeros(2, n_nodes, dtype=dtype, device=device))
+        self.dirichlet_nodes = np.concatenate([np.arange(N), np.arange((N - 1) * N, N * N)])
+        fixed = torch.from_numpy(np.sort(self.dirichlet_nodes))
+        self.equilibrium = Equilibrium(self.model, fixed, backend=cfg.backend.value)
         # Dirichlet: x = X / s on the left and right columns, per component ("frame").
-        self.fixed_values = (self.rest_positions[fixed].T / s).contiguous().to(self.device)
-        self.parameterization = per_element((N - 1) ** 2, grid_edges((N - 1, N - 1)),
-                                            cfg.transform, name="stiffness",
-                                            groups=grid_groups((N - 1, N - 1)))
+        self.fixed_values = (self.rest_positions[fixed].T / s).contiguous().to(device)
 
-        is_free = np.ones(n_nodes, dtype=bool)
-        is_free[left_right] = False
-        if cfg.data == "dense":
+    def build_parameterization(self, cfg: Poisson2DConfig) -> Parameterization:
+        n = cfg.N - 1
+        return per_element(n ** 2, grid_edges((n, n)), cfg.transform.value, name="stiffness",
+                           groups=grid_groups((n, n)), dtype=self.dtype)
+
+    def build_observation(self, cfg: Poisson2DConfig) -> None:
+        is_free = np.ones(cfg.N * cfg.N, dtype=bool)
+        is_free[self.dirichlet_nodes] = False
+        if cfg.data == DataMode.dense:
             observed = np.nonzero(is_free)[0]
         else:
-            on_lattice = (ii.ravel() % cfg.sparse_stride == 0) & (jj.ravel() % cfg.sparse_stride == 0)
+            stride = cfg.sparse_stride
+            on_lattice = (self._ii.ravel() % stride == 0) & (self._jj.ravel() % stride == 0)
             observed = np.nonzero(is_free & on_lattice)[0]
-        require(observed.size > 0, f"problem.sparse_stride={cfg.sparse_stride} leaves no "
-                "non-Dirichlet node observed; lower it")
+        require(observed.size > 0, f"problem.sparse_stride={cfg.sparse_stride}: no "
+                "non-Dirichlet node is observed; lower it")
         self.observed_nodes = torch.from_numpy(observed)
-        self.theta0 = self.parameterization.constant(cfg.k0, dtype, self.device)
-        normalised = self.cell_centres.numpy() / s
-        truth = blocks_field(normalised) if cfg.pattern == "blocks" else ipam_field(normalised)
-        self.field_true = torch.from_numpy(truth).to(dtype).to(self.device)
-        self.x_true = self.simulate(self.field_true).detach()
-        self.data, self.noise_level = add_noise(self.observe(self.x_true), cfg.noise, cfg.seed)
         self.frame_of, self.node_of = node_frame_index(1, self.observed_nodes, 2)
 
-    @staticmethod
-    def _validate(cfg: Poisson2DConfig) -> None:
-        require(isinstance(cfg.N, int) and cfg.N >= 3,
-                f"problem.N must be an integer >= 3 (nodes per side), got {cfg.N!r}")
-        require(cfg.s > 0, f"problem.s must be positive, got {cfg.s}")
-        require(cfg.pattern in PATTERNS,
-                f"problem.pattern={cfg.pattern!r} does not exist; choose one of {PATTERNS}")
-        require(cfg.data in DATA_MODES,
-                f"problem.data={cfg.data!r} does not exist; choose one of {DATA_MODES}")
-        require(cfg.noise >= 0, f"problem.noise must be >= 0 (a standard deviation), got "
-                f"{cfg.noise}")
-        require(cfg.sparse_stride >= 1, f"problem.sparse_stride must be >= 1, got "
-                f"{cfg.sparse_stride}")
-        require(cfg.data != "sparse" or cfg.sparse_stride < cfg.N - 1,
-                f"problem.sparse_stride={cfg.sparse_stride} is larger than the grid "
-                f"(N={cfg.N}): no interior column would be observed")
-        require(cfg.k0 > 0, f"problem.k0 must be positive, got {cfg.k0}")
+    def observation_index(self) -> tuple[Tensor, Tensor]:
+        return self.frame_of, self.node_of
+
+    def true_field(self, cfg: Poisson2DConfig) -> Tensor:
+        normalised = self._centres / cfg.s           # float64 whatever problem.dtype is
+        truth = blocks_field(normalised) if cfg.pattern == Pattern.blocks else ipam_field(normalised)
+        return torch.from_numpy(truth).to(self.dtype)
 
     @staticmethod
     def _edge_cells(N: int) -> tuple[np.ndarray, np.ndarray]:
