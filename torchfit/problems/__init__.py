@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Iterator
+from typing import Any
 
 from .base import (Backend, Choice, DataMode, DType, FieldImageProblem, FramedProblem,
                    InverseProblem, MeshProblem, ProblemConfig, ProblemConfigError, Transform,
@@ -18,10 +18,6 @@ class ProblemEntry:
 
     config_class: type[ProblemConfig]
     problem_class: type[InverseProblem]
-
-    def __iter__(self) -> Iterator[type]:
-        """``config_class, problem_class = entry`` (the registry's former tuple shape)."""
-        return iter((self.config_class, self.problem_class))
 
 
 #: config name -> registered problem

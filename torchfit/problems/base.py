@@ -41,11 +41,12 @@ from typing import Any, ClassVar, Protocol, Sequence, runtime_checkable
 import torch
 from torch import Tensor
 
+from ..errors import ConfigurationError
 from ..params import Parameterization
 from ..residual import ResidualFunction
 
 
-class ProblemConfigError(ValueError):
+class ProblemConfigError(ConfigurationError):
     """A problem setting is invalid; the message (one line) names the setting and what to do."""
 
     def __init__(self, message: str) -> None:
