@@ -160,9 +160,10 @@ def test_gauss_newton_runs_and_keeps_the_gauge(small):
 
 @pytest.mark.skipif("split_bregman" not in SOLVERS, reason="Split Bregman solver not registered")
 def test_split_bregman_smoke(small):
-    config_cls, solve = SOLVERS["split_bregman"]
+    entry = SOLVERS["split_bregman"]
     D = small.parameterization.difference_operator()
-    result = solve(small.residual(), small.theta0, config_cls(max_iter=3), D=D)
+    result = entry.solver_class(entry.config_class(max_iter=3), D=D).solve(small.residual(),
+                                                                            small.theta0)
     assert torch.isfinite(result.theta).all()
     assert small.metrics(result.theta)["misfit"] < small.metrics(small.theta0)["misfit"]
 

@@ -1,8 +1,33 @@
-"""What every solver shares: the run clock, record emission and the result."""
+"""What every solver shares: config validation, the outer loop, the stop rules, the run
+clock, record emission and exact resume.
+
+Contract of :class:`Solver`:
+
+* ``Solver(config, D=..., groups=...)`` validates the config (:meth:`SolverConfig.validate`)
+  and the operators the solver needs; a bad setting raises :class:`SolverConfigError`
+  naming ``solver.<field>``.
+* ``solve(residual, theta0, callbacks)`` runs one loop for every solver: initialise,
+  emit record 0, then per outer iteration: stop rules -> :meth:`Solver.step` -> record
+  -> emit. A callback returning ``True`` stops the run (``interrupted``).
+* ``state_dict()``, called from a callback, returns everything needed to continue after
+  the record just emitted (plain tensors, numbers, bools, strings, ``None``, lists and
+  dicts: ``torch.load(weights_only=True)`` reads it). ``solve(..., state=state)`` on a
+  fresh solver with the same config and operators re-linearises at the saved ``theta``
+  (one extra simulation, not counted in the run's counters), does not emit that record
+  again, numbers on from ``iteration + 1`` and continues the clock and counters. For a
+  deterministic forward model the continuation is bit-identical to the uninterrupted
+  run. ``max_iter`` is the budget of the whole run; ``SolveResult.history`` holds the
+  records of this call, its ``iterations``, ``wall_time``, ``factorizations`` and
+  ``solves`` are whole-run totals.
+"""
 from __future__ import annotations
 
+import abc
+import dataclasses
+import math
 import time
-from typing import Iterable
+import typing
+from typing import Any, ClassVar, Iterable, NamedTuple, Optional
 
 from torch import Tensor
 
@@ -10,19 +35,96 @@ from ..linalg import COUNTERS
 from ..records import Callback, IterationRecord, SolveResult
 
 
-class RunClock:
-    """Wall time and counter offsets since the start of a solver run."""
+class SolverConfigError(ValueError):
+    """An invalid solver setting (or solver input); the message names it."""
 
-    def __init__(self) -> None:
+
+def require(condition: bool, message: str) -> None:
+    """Raise :class:`SolverConfigError` with ``message`` unless ``condition``."""
+    if not condition:
+        raise SolverConfigError(message)
+
+
+# -- configuration -------------------------------------------------------------------------
+def _check_value(path: str, value: Any, kind: Any) -> None:
+    """Generic type and finiteness check of one config value against its annotation."""
+    origin = typing.get_origin(kind)
+    args = typing.get_args(kind)
+    if origin is typing.Union:                       # Optional[X]
+        if value is None and type(None) in args:
+            return
+        inner = [a for a in args if a is not type(None)]
+        if len(inner) == 1:
+            _check_value(path, value, inner[0])
+        return
+    if origin in (list, typing.List, tuple):
+        require(isinstance(value, (list, tuple)) or _is_listconfig(value),
+                f"{path}={value!r}: must be a list")
+        element = args[0] if args else Any
+        for i, item in enumerate(value):
+            _check_value(f"{path}[{i}]", item, element)
+        return
+    if kind is bool:
+        require(isinstance(value, bool), f"{path}={value!r}: must be true or false")
+    elif kind is int:
+        require(isinstance(value, int) and not isinstance(value, bool),
+                f"{path}={value!r}: must be an integer")
+    elif kind is float:
+        require(isinstance(value, (int, float)) and not isinstance(value, bool),
+                f"{path}={value!r}: must be a number")
+        require(math.isfinite(value), f"{path}={value!r}: must be a finite number "
+                                      f"(inf and nan are not allowed)")
+    elif kind is str:
+        require(isinstance(value, str), f"{path}={value!r}: must be a string")
+
+
+def _is_listconfig(value: Any) -> bool:
+    return type(value).__name__ == "ListConfig"
+
+
+@dataclasses.dataclass
+class SolverConfig:
+    """Settings every solver has. Subclasses add plain dataclass fields (Hydra schemas).
+
+    :meth:`validate` checks every field generically (ints are ints, bools are bools,
+    every number, also an optional one when set and inside lists, is finite), then
+    ``max_iter >= 0``, then calls :meth:`check` for the solver's own rules.
+    """
+
+    name: str = "solver"
+    max_iter: int = 50
+
+    def validate(self) -> None:
+        hints = typing.get_type_hints(type(self))
+        for field in dataclasses.fields(self):
+            _check_value(f"solver.{field.name}", getattr(self, field.name),
+                         hints.get(field.name, Any))
+        require(self.max_iter >= 0, f"solver.max_iter={self.max_iter}: must be >= 0")
+        self.check()
+
+    def check(self) -> None:
+        """Solver-specific rules (called by :meth:`validate` after the generic checks)."""
+
+
+# -- run clock and records -----------------------------------------------------------------
+class RunClock:
+    """Wall time and counters since the start of a run, continuing from saved offsets."""
+
+    def __init__(self, wall_time: float = 0.0, factorizations: int = 0, solves: int = 0) -> None:
         self.start = time.perf_counter()
         self.counters0 = COUNTERS.snapshot()
+        self.offsets = (float(wall_time), int(factorizations), int(solves))
 
     def elapsed(self) -> float:
-        return time.perf_counter() - self.start
+        return self.offsets[0] + time.perf_counter() - self.start
 
     def counts(self) -> tuple[int, int]:
         delta = COUNTERS - self.counters0
-        return delta.factorizations, delta.solves
+        return self.offsets[1] + delta.factorizations, self.offsets[2] + delta.solves
+
+    def state_dict(self) -> dict[str, Any]:
+        factorizations, solves = self.counts()
+        return {"wall_time": self.elapsed(), "factorizations": factorizations, "solves": solves}
 
 
 def emit(callbacks: Iterable[Callback], record: IterationRecord) -> bool:
@@ -33,9 +135,177 @@ def emit(callbacks: Iterable[Callback], record: IterationRecord) -> bool:
     return stop
 
 
-def finish(theta: Tensor, converged: bool, reason: str, history: list[IterationRecord],
-           clock: RunClock) -> SolveResult:
-    factorizations, solves = clock.counts()
-    return SolveResult(theta, converged, reason, history[-1].iteration, history,
-                       clock.elapsed(), factorizations, solves)
+class Stop(NamedTuple):
+    """Why a run ends: ``converged`` and a :class:`SolveResult` stop reason."""
 
+    converged: bool
+    reason: str
+
+
+def least_squares_stop(norm: float, previous_norm: Optional[float], gradient_norm: float,
+                       gradient_norm0: float, noise_level: Optional[float], tau: float,
+                       atol: float, gtol: float, rtol: float) -> Optional[Stop]:
+    """The outer stop rules of the least-squares solvers, in order: the discrepancy
+    principle ``||r|| <= tau delta`` (noise level known); ``||r|| <= atol``,
+    ``||J^T r|| <= gtol ||J^T r_0||`` or a zero gradient; without a noise level, a
+    relative decrease ``||r_{k-1}|| - ||r_k|| <= rtol ||r_{k-1}||``."""
+    if noise_level is not None and norm <= tau * noise_level:
+        return Stop(True, "discrepancy")
+    if norm <= atol or gradient_norm <= gtol * gradient_norm0 or gradient_norm == 0.0:
+        return Stop(True, "tolerance")
+    if previous_norm is not None and noise_level is None \
+            and previous_norm - norm <= rtol * previous_norm:
+        return Stop(True, "tolerance")
+    return None
+
+
+# -- the solver ----------------------------------------------------------------------------
+class Solver(abc.ABC):
+    """Base of every solver: one outer loop, stop rules, records and exact resume.
+
+    Subclasses set :attr:`config_class` and implement :meth:`start` (initialise at
+    ``theta0``, return record 0), :meth:`step` (one outer iteration: a record or a
+    :class:`Stop`), :meth:`stop_rule` (checked before every step), and
+    :meth:`_get_state` / :meth:`_set_state` / :meth:`resume` (their carried state).
+    """
+
+    config_class: ClassVar[type[SolverConfig]]
+
+    def __init__(self, config: SolverConfig | None = None, *, D: Tensor | None = None,
+                 groups: Tensor | None = None) -> None:
+        config = config if config is not None else self.config_class()
+        if not isinstance(config, self.config_class):
+            raise TypeError(f"{type(self).__name__} takes a {self.config_class.__name__}, got "
+                            f"{type(config).__name__}")
+        config.validate()
+        self.config = config
+        self.D = D
+        self.groups = groups
+        self.residual: Any = None
+        self.iteration = 0
+        self.clock: RunClock | None = None
+        self._started = False
+
+    # -- subclass hooks --------------------------------------------------------------------
+    @abc.abstractmethod
+    def start(self, theta0: Tensor) -> IterationRecord:
+        """Initialise at ``theta0`` (after the clock started); return record 0."""
+
+    @abc.abstractmethod
+    def step(self) -> IterationRecord | Stop:
+        """One outer iteration (``self.iteration`` is already its number)."""
+
+    def stop_rule(self) -> Stop | None:
+        """Checked before every step (and once more when the budget is spent)."""
+        return None
+
+    def budget_exhausted(self) -> bool:
+        return self.iteration >= self.config.max_iter
+
+    @abc.abstractmethod
+    def _get_state(self) -> dict[str, Any]:
+        """The solver's carried state (see :meth:`state_dict`)."""
+
+    @abc.abstractmethod
+    def _set_state(self, state: dict[str, Any]) -> None:
+        """Inverse of :meth:`_get_state` (no simulation)."""
+
+    @abc.abstractmethod
+    def resume(self) -> None:
+        """Rebuild what is not saved (the linearisation at ``theta``: one simulation)."""
+
+    # -- the loop --------------------------------------------------------------------------
+    def record(self, theta: Tensor, objective: float, misfit: float, step_norm: float = 0.0,
+               cg_iterations: int = 0, damping: float = math.nan, accepted: bool = True,
+               **extra: float) -> IterationRecord:
+        """A record of the current iteration, clock and counters filled in."""
+        assert self.clock is not None
+        factorizations, solves = self.clock.counts()
+        return IterationRecord(self.iteration, theta, objective, misfit, step_norm,
+                               cg_iterations, damping, accepted, self.clock.elapsed(),
+                               factorizations, solves, dict(extra))
+
+    def solve(self, residual: Any, theta0: Tensor, callbacks: Iterable[Callback] = (), *,
+              state: dict[str, Any] | None = None) -> SolveResult:
+        """Run from ``theta0``, or continue a run from ``state`` (a :meth:`state_dict`).
+
+        With ``state`` the solver re-linearises at the saved ``theta`` (one simulation,
+        not counted in the records' counters), emits nothing for the saved iteration and
+        continues with ``iteration + 1``; ``theta0`` is then ignored.
+        """
+        callbacks = list(callbacks)
+        self.residual = residual
+        history: list[IterationRecord] = []
+        if state is None:
+            self.iteration = 0
+            self.clock = RunClock()
+            self._started = True
+            record = self.start(theta0)
+            history.append(record)
+            if emit(callbacks, record):
+                return self._finish(Stop(False, "interrupted"), history)
+        else:
+            self.load_state_dict(state)
+            self.resume()
+            self.clock = RunClock(state["wall_time"], state["factorizations"], state["solves"])
+            self._started = True
+        while True:
+            stop = self.stop_rule()
+            if stop is None and self.budget_exhausted():
+                stop = Stop(False, "max_iter")
+            if stop is None:
+                self.iteration += 1
+                outcome = self.step()
+                if isinstance(outcome, Stop):
+                    self.iteration -= 1          # no record: the run ends where it was
+                    stop = outcome
+                else:
+                    history.append(outcome)
+                    if emit(callbacks, outcome):
+                        stop = Stop(False, "interrupted")
+            if stop is not None:
+                return self._finish(stop, history)
+
+    def _finish(self, stop: Stop, history: list[IterationRecord]) -> SolveResult:
+        assert self.clock is not None
+        factorizations, solves = self.clock.counts()
+        return SolveResult(self.theta, stop.converged, stop.reason, self.iteration, history,
+                           self.clock.elapsed(), factorizations, solves)
+
+    @property
+    @abc.abstractmethod
+    def theta(self) -> Tensor:
+        """The current parameters."""
+
+    # -- state -----------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue after the last emitted record.
+
+        ``iteration``, ``theta``, the clock (``wall_time``, ``factorizations``,
+        ``solves``) and the solver's carried state; plain values only
+        (``torch.load(weights_only=True)`` reads it)."""
+        if not self._started or self.clock is None:
+            raise RuntimeError("state_dict() before solve(): nothing to save")
+        state = {"solver": self.config.name, "iteration": self.iteration,
+                 "theta": self.theta.detach().clone()}
+        state.update(self.clock.state_dict())
+        state.update(self._get_state())
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Take over a :meth:`state_dict` (the next :meth:`solve` needs ``state=``)."""
+        missing = [k for k in ("iteration", "theta", "wall_time", "factorizations", "solves")
+                   if k not in state]
+        if missing:
+            raise ValueError(f"solver state lacks {missing}")
+        self.iteration = int(state["iteration"])
+        self._set_state(state)
+
+
+def clone(value: Any) -> Any:
+    """A detached copy of a tensor (or ``None``/number) for a state dict."""
+    return value.detach().clone() if isinstance(value, Tensor) else value
+
+
+__all__ = ["RunClock", "Solver", "SolverConfig", "SolverConfigError", "Stop", "emit",
+           "least_squares_stop", "require"]

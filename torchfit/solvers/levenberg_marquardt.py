@@ -1,63 +1,50 @@
 """Levenberg-Marquardt with gain-ratio damping.
 
-Each iteration solves the damped normal equations ``(J^T J + lam I) d = -J^T r``
-matrix-free (CGLS with a shift), compares the actual decrease of ``0.5 ||r||^2`` with
-the decrease the linear model predicts, and
+Minimises ``0.5 ||r(theta)||^2``. Each iteration solves the damped normal equations
+``(J^T J + lam I) d = -J^T r`` matrix-free (CGLS with a shift) and compares the actual
+decrease of ``0.5 ||r||^2`` with the one the model predicts (gain ratio ``rho``):
 
-* accepts the step when the gain ratio ``rho > 0``; ``lam`` shrinks by ``decrease``
-  (1/3) when ``rho > 0.75`` and grows by ``increase`` (2) when ``rho < 0.25``
-  (Marquardt's thresholds; on spring1d they reach 1e-7 in 13 iterations where Nielsen's
-  smooth rule needs 20, because the normal matrix has eigenvalues over four decades and
-  ``lam`` must fall fast once the model predicts well);
-* rejects it otherwise, leaving ``theta`` exactly unchanged and growing ``lam`` by a
-  doubling factor (2, 4, 8, ... until a step is accepted). A rejected step costs one factorisation (the trial point); the
-  current point's factorisation is kept, so the next damped solve costs none.
+* ``rho > 0``: the step is accepted; ``lam`` shrinks by ``decrease`` when
+  ``rho > 0.75`` and grows by ``increase`` when ``rho < 0.25`` (Marquardt), or
+  ``lam *= max(decrease, 1 - (2 rho - 1)^3)`` (``damping_update='nielsen'``);
+* otherwise the step is rejected: ``theta`` stays exactly unchanged and ``lam`` grows by
+  a doubling factor (2, 4, 8, ... until a step is accepted). A rejected step costs one
+  factorisation (the trial point); the current point's linearisation is kept.
 
-Stopping rules are those of Gauss-Newton (discrepancy principle first).
+Stop rules: :func:`~.base.least_squares_stop` (discrepancy first), then ``stalled``
+when ``lam`` exceeds ``damping_max`` times its start.
 
-Three opt-in additions, all on in ``solver=levenberg_marquardt_geodesic`` (the solver of
-``problem=membrane2d``; measured there at 96x24, 40 iterations: plain LM 0.082 in
-``k_err_rel_aligned``, geodesic acceleration alone 0.018 after 30, all three 9e-5 and
-below 1e-2 from iteration 20):
+Opt-in (all on in ``solver=levenberg_marquardt_geodesic``):
+``geodesic_acceleration`` (Transtrum and Sethna: a second-order correction ``a / 2``
+from one finite-difference simulation; steps with ``2 ||a|| / ||v|| > geodesic_alpha``
+are rejected without a trial) and ``preconditioner='difference'`` (CGLS in the metric
+``C^{-1} (D^T D + eps I) C^{-1}``, ``C`` the Jacobian's column norms from
+``preconditioner_probes`` random products ``J^T w`` per linearisation; switched on
+after the first damped solve that reaches ``cg_max_iter``). The damped system, hence
+the step, is the same with and without it. Measurements and the reasons for these
+choices: ``docs/solvers/levenberg_marquardt.md``.
 
-* ``damping_update='nielsen'``: after an accepted step ``lam *= max(decrease,
-  1 - (2 rho - 1)^3)``. Where the model's quality falls sharply with ``lam``, Marquardt's
-  thresholds alternate two accepted steps with one rejected one; Nielsen's rule settles
-  at a gain ratio of about 0.7 instead and rejects none.
-* ``geodesic_acceleration`` (Transtrum and Sethna): the second directional derivative
-  ``r_vv`` along the damped step ``v``, by one finite difference (one simulation without
-  a graph), gives the acceleration ``a`` of the same damped system with right-hand side
-  ``-J^T r_vv`` (at most ``geodesic_cg_max_iter`` CGLS iterations); the trial point is
-  ``theta + v + a / 2``, the predicted decrease that of the second-order model
-  ``r + J v + (r_vv + J a) / 2``, and a step with ``2 ||a|| / ||v|| > geodesic_alpha``
-  is rejected without a trial. It lets ``lam`` fall where steps are limited by the
-  curvature of the forward model, not by the linear solve.
-* ``preconditioner='difference'`` preconditions the inner CGLS in parameter space with
-  ``M = C^{-1} (D^T D + eps I) C^{-1}`` (``D`` the parameterisation's difference operator,
-  ``C`` the Jacobian's column norms estimated by a few random products ``J^T w`` at each
-  new linearisation). The damped system, hence the step, is the same; only the Krylov
-  space changes. It pays where the data resolve rough parameter modes worst (a Jacobian
-  that smooths, as an elliptic forward model observed everywhere does: on membrane2d at
-  24x6 ``cond(J)`` is 2.9e3, ``cond(J C^{-1} (D^T D + eps I)^{1/2})`` 5.4e2) and CGLS hits
-  ``cg_max_iter``. While ``lam`` dominates ``J^T J`` the identity is the better
-  preconditioner, so it switches on after the first damped solve that reaches the cap.
+Carried state (:meth:`LevenbergMarquardt.state_dict`): ``theta``, the gradient, the
+damping ``lam``, its rejection growth factor, ``lam_0``, ``||J^T r_0||``, the previous
+``||r||``, whether the difference preconditioner is active and its column scaling at
+the current linearisation, and the probe generator's state.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Callable, Iterable
+from typing import Any, Callable, Iterable
 
 import torch
 from torch import Tensor
 
 from ..errors import SimulationError
 from ..linalg import CGLSResult, cgls
-from .gauss_newton import SolverConfigError, _require, _stop_reason
 from ..records import Callback, IterationRecord, SolveResult
-from .base import RunClock, emit, finish
-from .preconditioners import GraphLaplacian
 from ..residual import Linearization, ResidualFunction, try_linearize
+from .base import Solver, SolverConfig, Stop, clone, least_squares_stop, require
+from .gauss_newton import require_difference_operator
+from .preconditioners import ColumnScaledLaplacian, GraphLaplacian
 
 
 PRECONDITIONERS = ("none", "difference")
@@ -65,7 +52,7 @@ DAMPING_UPDATES = ("marquardt", "nielsen")
 
 
 @dataclasses.dataclass
-class LevenbergMarquardtConfig:
+class LevenbergMarquardtConfig(SolverConfig):
     """Settings of ``solver=levenberg_marquardt``."""
 
     name: str = "levenberg_marquardt"
@@ -91,91 +78,108 @@ class LevenbergMarquardtConfig:
     preconditioner_probes: int = 16      # products J^T w per linearisation estimating C
     seed: int = 0                   # of those random probes
 
-    def validate(self) -> None:
-        _require(self.max_iter >= 0, f"solver.max_iter must be >= 0, got {self.max_iter}")
-        _require(self.tau > 1, f"solver.tau must be > 1 (discrepancy principle), got {self.tau}")
-        _require(self.damping_init > 0, f"solver.damping_init must be > 0, got {self.damping_init}")
-        _require(0 < self.decrease < 1 < self.increase,
-                 f"need 0 < solver.decrease < 1 < solver.increase, got {self.decrease}, {self.increase}")
-        _require(self.damping_max > 1, f"solver.damping_max must be > 1, got {self.damping_max}")
-        _require(self.cg_max_iter >= 1, f"solver.cg_max_iter must be >= 1, got {self.cg_max_iter}")
-        _require(0 < self.cg_rtol < 1, f"solver.cg_rtol must be in (0, 1), got {self.cg_rtol}")
-        _require(self.rtol >= 0 and self.gtol >= 0 and self.atol >= 0,
-                 "solver.rtol, solver.gtol and solver.atol must be >= 0")
-        _require(self.damping_update in DAMPING_UPDATES,
-                 f"solver.damping_update={self.damping_update!r}; choose one of {DAMPING_UPDATES}")
-        _require(self.geodesic_step > 0 and self.geodesic_alpha > 0
-                 and self.geodesic_cg_max_iter >= 1,
-                 "solver.geodesic_step and solver.geodesic_alpha must be > 0 and "
-                 "solver.geodesic_cg_max_iter >= 1")
-        _require(self.preconditioner in PRECONDITIONERS,
-                 f"solver.preconditioner={self.preconditioner!r}; choose one of {PRECONDITIONERS}")
-        _require(self.preconditioner_shift > 0,
-                 f"solver.preconditioner_shift must be > 0, got {self.preconditioner_shift}")
-        _require(self.preconditioner_probes >= 1,
-                 f"solver.preconditioner_probes must be >= 1, got {self.preconditioner_probes}")
+    def check(self) -> None:
+        require(self.tau > 1, f"solver.tau must be > 1 (discrepancy principle), got {self.tau}")
+        require(self.damping_init > 0, f"solver.damping_init must be > 0, got {self.damping_init}")
+        require(0 < self.decrease < 1 < self.increase,
+                f"need 0 < solver.decrease < 1 < solver.increase, got {self.decrease}, "
+                f"{self.increase}")
+        require(self.damping_max > 1, f"solver.damping_max must be > 1, got {self.damping_max}")
+        require(self.cg_max_iter >= 1, f"solver.cg_max_iter must be >= 1, got {self.cg_max_iter}")
+        require(0 < self.cg_rtol < 1, f"solver.cg_rtol must be in (0, 1), got {self.cg_rtol}")
+        require(self.rtol >= 0 and self.gtol >= 0 and self.atol >= 0,
+                "solver.rtol, solver.gtol and solver.atol must be >= 0")
+        require(self.damping_update in DAMPING_UPDATES,
+                f"solver.damping_update={self.damping_update!r}; choose one of {DAMPING_UPDATES}")
+        require(self.geodesic_step > 0 and self.geodesic_alpha > 0
+                and self.geodesic_cg_max_iter >= 1,
+                "solver.geodesic_step and solver.geodesic_alpha must be > 0 and "
+                "solver.geodesic_cg_max_iter >= 1")
+        require(self.preconditioner in PRECONDITIONERS,
+                f"solver.preconditioner={self.preconditioner!r}; choose one of {PRECONDITIONERS}")
+        require(self.preconditioner_shift > 0,
+                f"solver.preconditioner_shift must be > 0, got {self.preconditioner_shift}")
+        require(self.preconditioner_probes >= 1,
+                f"solver.preconditioner_probes must be >= 1, got {self.preconditioner_probes}")
 
 
-def levenberg_marquardt(residual: ResidualFunction, theta0: Tensor,
-                        config: LevenbergMarquardtConfig | None = None,
-                        callbacks: Iterable[Callback] = (), D: Tensor | None = None,
-                        **_: object) -> SolveResult:
-    """Minimise ``0.5 ||r(theta)||^2`` from ``theta0`` by Levenberg-Marquardt.
+class LevenbergMarquardt(Solver):
+    """Levenberg-Marquardt (see the module docstring). Records carry the damping used
+    and whether the step was accepted.
 
-    Args and return as :func:`~torchfit.solvers.gauss_newton.gauss_newton`; records
-    carry the damping ``lam`` and whether the step was accepted. ``D`` (sparse
-    ``(n_edges, n)``, the parameterisation's difference operator) is needed by
-    ``preconditioner='difference'`` only; other keyword inputs (``groups``) are ignored.
+    Args:
+        config: :class:`LevenbergMarquardtConfig`.
+        D: ``(n_edges, n)`` sparse difference operator, needed by
+            ``preconditioner='difference'`` (ignored otherwise).
+        groups: unused.
     """
-    cfg = config or LevenbergMarquardtConfig()
-    cfg.validate()
-    callbacks = list(callbacks)
-    theta = theta0.detach().clone()
-    laplacian = GraphLaplacian(D, theta) if cfg.preconditioner == "difference" else None
-    laplacian_active = False
-    generator = torch.Generator().manual_seed(cfg.seed)
-    clock = RunClock()
-    lin = residual.linearize(theta)
-    gradient = lin.vjp(lin.r)
-    gradient_norm0 = float(torch.linalg.vector_norm(gradient))
-    if lin.norm > 0 and gradient_norm0 > 0:
-        damping = cfg.damping_init * (gradient_norm0 / lin.norm) ** 2
-    else:
-        damping = cfg.damping_init
-    damping0 = damping
-    # The preconditioner follows the linearisation (a rejected step keeps it). It waits for
-    # the first damped solve that reaches cg_max_iter: while lam dominates J^T J the
-    # identity is the better preconditioner (and costs no probes).
-    precondition = None
-    growth = 2.0
-    history: list[IterationRecord] = []
-    previous_norm: float | None = None
 
-    def record(iteration: int, step_norm: float, cg_iterations: int, accepted: bool,
-               used_damping: float, **extra: float) -> bool:
-        factorizations, solves = clock.counts()
-        rec = IterationRecord(iteration, lin.theta, 0.5 * lin.norm ** 2, lin.norm, step_norm,
-                              cg_iterations, used_damping, accepted, clock.elapsed(),
-                              factorizations, solves, dict(extra))
-        history.append(rec)
-        return emit(callbacks, rec)
+    config_class = LevenbergMarquardtConfig
+    config: LevenbergMarquardtConfig
 
-    if record(0, 0.0, 0, True, damping, gradient_norm=gradient_norm0):
-        return finish(theta, False, "interrupted", history, clock)
-    for iteration in range(1, cfg.max_iter + 1):
-        gradient_norm = float(torch.linalg.vector_norm(gradient))
-        reason = _stop_reason(lin.norm, previous_norm, gradient_norm, gradient_norm0,
-                              residual.noise_level, cfg)
-        if reason is not None:
-            return finish(theta, True, reason, history, clock)
-        if damping > cfg.damping_max * damping0:
-            return finish(theta, False, "stalled", history, clock)
-        used_damping = damping
-        if laplacian_active and precondition is None:
-            precondition = _preconditioner(lin, laplacian, cfg, generator)
-        inner = _damped_solve(lin, gradient, damping, residual, theta, cfg, precondition)
-        if laplacian is not None and precondition is None and inner.stop_reason == "max_iter":
-            laplacian_active = True
+    def __init__(self, config: LevenbergMarquardtConfig | None = None, *,
+                 D: Tensor | None = None, groups: Tensor | None = None) -> None:
+        super().__init__(config, D=D, groups=groups)
+        if self.config.preconditioner == "difference":
+            require_difference_operator(D)
+        self.lin: Linearization | None = None
+
+    @property
+    def theta(self) -> Tensor:
+        assert self.lin is not None
+        return self.lin.theta
+
+    def _setup(self, like: Tensor) -> None:
+        cfg = self.config
+        self.laplacian = GraphLaplacian(self.D, like) if cfg.preconditioner == "difference" \
+            else None
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+
+    def start(self, theta0: Tensor) -> IterationRecord:
+        cfg = self.config
+        theta = theta0.detach().clone()
+        self._setup(theta)
+        self.laplacian_active = False
+        lin = self.lin = self.residual.linearize(theta)
+        self.gradient = lin.vjp(lin.r)
+        self.gradient_norm0 = float(torch.linalg.vector_norm(self.gradient))
+        if lin.norm > 0 and self.gradient_norm0 > 0:
+            self.damping = cfg.damping_init * (self.gradient_norm0 / lin.norm) ** 2
+        else:
+            self.damping = cfg.damping_init
+        self.damping0 = self.damping
+        # The preconditioner follows the linearisation (a rejected step keeps it). It waits
+        # for the first damped solve that reaches cg_max_iter: while lam dominates J^T J the
+        # identity is the better preconditioner (and costs no probes).
+        self.precondition: ColumnScaledLaplacian | None = None
+        self.growth = 2.0
+        self.previous_norm: float | None = None
+        return self.record(lin.theta, 0.5 * lin.norm ** 2, lin.norm, 0.0, 0, self.damping, True,
+                           gradient_norm=self.gradient_norm0)
+
+    def stop_rule(self) -> Stop | None:
+        cfg = self.config
+        assert self.lin is not None
+        stop = least_squares_stop(self.lin.norm, self.previous_norm,
+                                  float(torch.linalg.vector_norm(self.gradient)),
+                                  self.gradient_norm0, self.residual.noise_level,
+                                  cfg.tau, cfg.atol, cfg.gtol, cfg.rtol)
+        if stop is None and self.damping > cfg.damping_max * self.damping0:
+            stop = Stop(False, "stalled")
+        return stop
+
+    def step(self) -> IterationRecord | Stop:
+        cfg, residual, lin = self.config, self.residual, self.lin
+        assert lin is not None
+        theta = lin.theta
+        used_damping = damping = self.damping
+        if self.laplacian_active and self.precondition is None:
+            self.precondition = _preconditioner(lin, self.laplacian, cfg, self.generator)
+        inner = _damped_solve(lin, self.gradient, damping, residual, theta, cfg,
+                              self.precondition)
+        if self.laplacian is not None and self.precondition is None \
+                and inner.stop_reason == "max_iter":
+            self.laplacian_active = True
         direction = inner.x
         # the model's residual at the trial point: r + J d (linear model)
         model_residual = lin.r + inner.Ax
@@ -183,7 +187,7 @@ def levenberg_marquardt(residual: ResidualFunction, theta0: Tensor,
         acceleration_ratio = math.nan
         if cfg.geodesic_acceleration:
             accel = _geodesic_acceleration(lin, direction, inner.Ax, damping, residual, theta,
-                                           cfg, precondition)
+                                           cfg, self.precondition)
             if accel is None:           # no simulation at the probe point: a failed step
                 acceleration_ratio = math.inf
             else:
@@ -192,45 +196,87 @@ def levenberg_marquardt(residual: ResidualFunction, theta0: Tensor,
                     float(torch.linalg.vector_norm(direction)), 1e-300)
                 cg_iterations += accel.iterations
                 direction = direction + 0.5 * accel.x
-                # second-order model of the path theta + v + a / 2:
-                # r + J v + (r_vv + J a) / 2
+                # second-order model of the path theta + v + a / 2: r + J v + (r_vv + J a) / 2
                 model_residual = model_residual + 0.5 * (second + accel.Ax)
         predicted = 0.5 * lin.norm ** 2 - 0.5 * float(torch.dot(model_residual, model_residual))
         # Transtrum's safeguard: a correction comparable with the step means the
         # quadratic model of the path is not trustworthy either; reject without a trial.
         candidate = try_linearize(residual, theta + direction) \
             if not acceleration_ratio > cfg.geodesic_alpha else None
-        actual = 0.5 * lin.norm ** 2 - 0.5 * candidate.norm ** 2 if candidate is not None else -math.inf
+        actual = 0.5 * lin.norm ** 2 - 0.5 * candidate.norm ** 2 if candidate is not None \
+            else -math.inf
         gain = actual / predicted if predicted > 0 else -math.inf
         if candidate is not None and math.isfinite(candidate.norm) and gain > 0:
             step_norm = float(torch.linalg.vector_norm(direction))
-            previous_norm = lin.norm
-            theta, lin = candidate.theta, candidate
-            gradient = lin.vjp(lin.r)
-            precondition = None         # belongs to the old linearisation
-            if cfg.damping_update == "nielsen":
-                damping *= max(cfg.decrease, 1.0 - (2.0 * min(gain, 1.0) - 1.0) ** 3)
-            elif gain > 0.75:
-                damping *= cfg.decrease
-            elif gain < 0.25:
-                damping *= cfg.increase
-            growth = 2.0
+            self._accept(candidate, gain)
             accepted = True
         else:
             # Rejected: theta and its linearisation stay exactly as they were.
             step_norm = 0.0
-            damping *= growth
-            growth *= 2.0
+            self.damping *= self.growth
+            self.growth *= 2.0
             accepted = False
+        lin = self.lin
         extra = {"acceleration_ratio": acceleration_ratio} if cfg.geodesic_acceleration else {}
-        stop = record(iteration, step_norm, cg_iterations, accepted, used_damping,
-                      gain_ratio=gain if math.isfinite(gain) else -1.0,
-                      gradient_norm=float(torch.linalg.vector_norm(gradient)), **extra)
-        if stop:
-            return finish(theta, False, "interrupted", history, clock)
-    reason = _stop_reason(lin.norm, previous_norm, float(torch.linalg.vector_norm(gradient)),
-                          gradient_norm0, residual.noise_level, cfg)
-    return finish(theta, reason is not None, reason or "max_iter", history, clock)
+        return self.record(lin.theta, 0.5 * lin.norm ** 2, lin.norm, step_norm, cg_iterations,
+                           used_damping, accepted,
+                           gain_ratio=gain if math.isfinite(gain) else -1.0,
+                           gradient_norm=float(torch.linalg.vector_norm(self.gradient)), **extra)
+
+    def _accept(self, candidate: Linearization, gain: float) -> None:
+        cfg = self.config
+        assert self.lin is not None
+        self.previous_norm = self.lin.norm
+        self.lin = candidate
+        self.gradient = candidate.vjp(candidate.r)
+        self.precondition = None            # belongs to the old linearisation
+        if cfg.damping_update == "nielsen":
+            self.damping *= max(cfg.decrease, 1.0 - (2.0 * min(gain, 1.0) - 1.0) ** 3)
+        elif gain > 0.75:
+            self.damping *= cfg.decrease
+        elif gain < 0.25:
+            self.damping *= cfg.increase
+        self.growth = 2.0
+
+    # -- state -----------------------------------------------------------------------------
+    def _get_state(self) -> dict[str, Any]:
+        return {"gradient": clone(self.gradient), "damping": self.damping,
+                "growth": self.growth, "damping0": self.damping0,
+                "gradient_norm0": self.gradient_norm0, "previous_norm": self.previous_norm,
+                "laplacian_active": self.laplacian_active,
+                "preconditioner_inverse_norms": None if self.precondition is None
+                else clone(self.precondition.inverse_norms),
+                "generator_state": self.generator.get_state()}
+
+    def _set_state(self, state: dict[str, Any]) -> None:
+        self._saved = state
+        self.gradient = state["gradient"].detach().clone()
+        self.damping = float(state["damping"])
+        self.growth = float(state["growth"])
+        self.damping0 = float(state["damping0"])
+        self.gradient_norm0 = float(state["gradient_norm0"])
+        self.previous_norm = None if state["previous_norm"] is None \
+            else float(state["previous_norm"])
+        self.laplacian_active = bool(state["laplacian_active"])
+
+    def resume(self) -> None:
+        state = self._saved
+        theta = state["theta"].detach().clone()
+        self._setup(theta)
+        self.generator.set_state(state["generator_state"].clone())
+        norms = state["preconditioner_inverse_norms"]
+        self.precondition = None if norms is None or self.laplacian is None else \
+            ColumnScaledLaplacian(self.laplacian, norms.detach().clone(),
+                                  self.config.preconditioner_shift)
+        self.lin = self.residual.linearize(theta)
+
+
+def levenberg_marquardt(residual: ResidualFunction, theta0: Tensor,
+                        config: LevenbergMarquardtConfig | None = None,
+                        callbacks: Iterable[Callback] = (), *, D: Tensor | None = None,
+                        groups: Tensor | None = None) -> SolveResult:
+    """``LevenbergMarquardt(config, D=D).solve(residual, theta0, callbacks)``."""
+    return LevenbergMarquardt(config, D=D, groups=groups).solve(residual, theta0, callbacks)
 
 
 def _damped_solve(lin: Linearization, gradient: Tensor, damping: float,
@@ -270,8 +316,8 @@ def _geodesic_acceleration(lin: Linearization, velocity: Tensor, j_velocity: Ten
 
 def _preconditioner(lin: Linearization, laplacian: GraphLaplacian | None,
                     cfg: LevenbergMarquardtConfig,
-                    generator: torch.Generator) -> Callable[[Tensor], Tensor] | None:
-    """``s -> C^{-1} (D^T D + eps I) C^{-1} s`` at this linearisation (``None``: no preconditioner).
+                    generator: torch.Generator) -> ColumnScaledLaplacian | None:
+    """``C^{-1} (D^T D + eps I) C^{-1}`` at this linearisation (``None``: no preconditioner).
 
     ``C = diag(c)``, ``c_j`` the column norm ``||J e_j||`` normalised to mean 1, from
     ``k = preconditioner_probes`` Rademacher vectors ``w`` (``E[(J^T w)_j^2] = ||J e_j||^2``,
@@ -288,20 +334,8 @@ def _preconditioner(lin: Linearization, laplacian: GraphLaplacian | None,
     mean = float(norms.mean())
     inverse_norms = (1.0 / (norms / mean).clamp(min=1e-3)) if mean > 0 and math.isfinite(mean) \
         else torch.ones_like(norms)
-    shift = cfg.preconditioner_shift
-
-    def precondition(s: Tensor) -> Tensor:
-        v = inverse_norms * s
-        return inverse_norms * (laplacian(v) + shift * v)
-
-    return precondition
+    return ColumnScaledLaplacian(laplacian, inverse_norms, cfg.preconditioner_shift)
 
 
-def _needs_difference_operator(config: LevenbergMarquardtConfig) -> bool:
-    return config.preconditioner == "difference"
-
-
-#: experiments/fit.py hands this solver the parameterisation's ``D`` when its config asks.
-levenberg_marquardt.needs_difference_operator = _needs_difference_operator  # type: ignore[attr-defined]
-
-__all__ = ["PRECONDITIONERS", "LevenbergMarquardtConfig", "SolverConfigError", "levenberg_marquardt"]
+__all__ = ["DAMPING_UPDATES", "LevenbergMarquardt", "LevenbergMarquardtConfig",
+           "PRECONDITIONERS", "levenberg_marquardt"]

@@ -4,8 +4,10 @@ For a field seen through an elliptic solve (``J = -A^{-1} dR/dk``) the Gauss-New
 matrix ``J^T J`` acts like an inverse Laplacian on the parameters: smooth changes of the
 field are seen strongly, rough ones weakly. The graph Laplacian ``D^T D`` of the
 parameter neighbours (``D`` the difference operator the caller hands over; solvers never
-build it) is then a cheap approximate inverse. Gauss-Newton and Levenberg-Marquardt
-shift and scale it in their own ways; the Laplacian itself lives here, once.
+build it) is then a cheap approximate inverse. Gauss-Newton shifts it
+(:class:`DifferencePreconditioner`), Levenberg-Marquardt scales it by the Jacobian's
+column norms (:class:`ColumnScaledLaplacian`); the Laplacian itself lives here, once.
+Measured effects: ``docs/solvers/gauss_newton.md``, ``docs/solvers/levenberg_marquardt.md``.
 """
 from __future__ import annotations
 
@@ -14,7 +16,8 @@ import warnings
 import torch
 from torch import Tensor
 
-from .gauss_newton import SolverConfigError
+from .base import SolverConfigError
+from .total_variation import check_difference_operator
 
 
 def compressed_rows(matrix: Tensor) -> Tensor:
@@ -39,8 +42,6 @@ class GraphLaplacian:
     """
 
     def __init__(self, D: Tensor | None, like: Tensor) -> None:
-        from .split_bregman import check_difference_operator   # (it imports gauss_newton)
-
         if D is None:
             raise SolverConfigError(
                 "solver.preconditioner=difference needs the difference operator D of the "
@@ -55,3 +56,50 @@ class GraphLaplacian:
 
     def __call__(self, v: Tensor) -> Tensor:
         return torch.mv(self._L, v)
+
+
+class DifferencePreconditioner:
+    """``M v = D^T D v + s v`` for CGLS (Gauss-Newton's ``preconditioner=difference``).
+
+    The shift ``s`` bounds how much a rough mode is favoured over a smooth one (at most
+    ``(||D||^2 + s) / s``); the solver starts with a large shift (close to
+    unpreconditioned CGLS, the linear model being poor for rough changes far from the
+    solution) and lowers it as the misfit falls.
+
+    Args:
+        D: ``(n_edges, n)`` sparse difference operator of the parameterisation (a clear
+            error when ``None``).
+        like: ``theta`` (``n`` entries; its dtype and device).
+    Attributes:
+        degree: the largest diagonal entry of ``D^T D``, the unit of :attr:`shift`.
+        shift: ``s`` relative to :attr:`degree` (set by the solver).
+    """
+
+    def __init__(self, D: Tensor | None, like: Tensor) -> None:
+        self._laplacian = GraphLaplacian(D, like)
+        self.degree = self._laplacian.degree
+        self.shift = 0.0
+
+    def __call__(self, v: Tensor) -> Tensor:
+        return self._laplacian(v) + (self.shift * self.degree) * v
+
+
+class ColumnScaledLaplacian:
+    """``s -> C^{-1} (D^T D + eps I) C^{-1} s`` (Levenberg-Marquardt's ``difference``).
+
+    ``C = diag(c)`` holds the Jacobian's column norms at one linearisation; the solver
+    estimates them and passes ``inverse_norms = 1 / c`` (a tensor it can save).
+    """
+
+    def __init__(self, laplacian: GraphLaplacian, inverse_norms: Tensor, shift: float) -> None:
+        self.laplacian = laplacian
+        self.inverse_norms = inverse_norms
+        self.shift = shift
+
+    def __call__(self, s: Tensor) -> Tensor:
+        v = self.inverse_norms * s
+        return self.inverse_norms * (self.laplacian(v) + self.shift * v)
+
+
+__all__ = ["ColumnScaledLaplacian", "DifferencePreconditioner", "GraphLaplacian",
+           "compressed_rows"]

@@ -1,0 +1,67 @@
+"""Levenberg-Marquardt: rejected steps, settings, exact resume."""
+import math
+
+import pytest
+import torch
+
+from torchfit.problems import Spring1D, Spring1DConfig
+from torchfit.solvers import LevenbergMarquardt, LevenbergMarquardtConfig, levenberg_marquardt
+
+from conftest import CountingResidual
+from resume import check_resume, fresh, roundtrip, run_with_snapshots
+
+
+def distinct(points):
+    unique: list[torch.Tensor] = []
+    for p in points:
+        if not any(torch.equal(p, q) for q in unique):
+            unique.append(p)
+    return len(unique)
+
+
+def test_levenberg_marquardt_rejected_step_keeps_theta_and_factorization():
+    problem = Spring1D()
+    problem.equilibrium.clear_cache()
+    residual = CountingResidual(problem.residual())
+    # almost no damping: the first (Gauss-Newton-like) step overshoots and is rejected
+    result = levenberg_marquardt(residual, problem.theta0,
+                                 LevenbergMarquardtConfig(damping_init=1e-12, max_iter=6))
+    rejected = [r for r in result.history if not r.accepted]
+    assert rejected
+    history = result.history
+    for before, after in zip(history[:-1], history[1:]):
+        if not after.accepted:
+            assert torch.equal(after.theta, before.theta)
+            assert after.misfit == before.misfit
+            assert after.step_norm == 0.0
+        # every iteration evaluates exactly one new point: one factorisation, no more
+        assert after.factorizations - before.factorizations == 1
+    assert result.factorizations == distinct(residual.points)
+    # a rejection makes the next step more damped
+    for rejected_step, next_step in zip(history[1:-1], history[2:]):
+        if not rejected_step.accepted:
+            assert next_step.damping > rejected_step.damping
+
+
+
+
+@pytest.mark.parametrize("noise", [0.0, 1e-4])
+@pytest.mark.parametrize("config", [
+    LevenbergMarquardtConfig(damping_init=1e-12),          # rejected steps, growth factor
+    LevenbergMarquardtConfig(geodesic_acceleration=True, damping_update="nielsen",
+                             preconditioner="difference", cg_max_iter=5),
+], ids=["rejections", "geodesic-preconditioned"])
+def test_resume_from_any_iteration_is_bit_identical(noise, config):
+    problem = Spring1D(Spring1DConfig(n=16, noise=noise))
+    D = problem.parameterization.difference_operator()
+    full, snapshots = run_with_snapshots(LevenbergMarquardt(config, D=D), fresh(problem)(),
+                                         problem.theta0, set(range(0, 40, 2)))
+    assert any(not r.accepted for r in full.history)
+    for k, (state, _) in snapshots.items():
+        if config.preconditioner == "difference" and k > 2:
+            assert state["laplacian_active"]
+        resumed = LevenbergMarquardt(config, D=D).solve(fresh(problem)(), problem.theta0,
+                                                        state=roundtrip(state))
+        # noise-free and converged, the geodesic probe repeats a point of the previous
+        # (rejected) iteration, which the simulator's cache serves in the uninterrupted run
+        check_resume(full, resumed, k, counters=noise > 0 or not config.geodesic_acceleration)
