@@ -119,13 +119,12 @@ def test_killed_run_resumes_exactly(tmp_path, solver):
     assert a["iterations"] > kill_at + 1, "the kill must fall inside the run"
     for key in ("misfit", "k_err_rel", "u_err_2", "iterations", "stop_reason", "converged"):
         assert a[key] == b[key], key
-    # the resumed process simulates the checkpointed point once more: one factorisation, and
-    # the solves of that simulation and of its gradient
-    assert b["factorizations"] == a["factorizations"] + 1
-    assert 0 < b["solves"] - a["solves"] <= 3
+    # whole-run counts (the resumed process's re-simulation of the checkpointed point is
+    # not counted: it repeats work the killed process did and counted)
+    assert (b["factorizations"], b["solves"]) == (a["factorizations"], a["solves"])
     assert torch.equal(load_params(tmp_path / "straight")["theta"],
                        load_params(tmp_path / "killed")["theta"])
-    counted = {"wall_time", "factorizations", "solves"}
+    counted = {"wall_time"}
     assert [{k: v for k, v in r.items() if k not in counted} for r in a["history"]] == \
         [{k: v for k, v in r.items() if k not in counted} for r in b["history"]]
     steps = scalar_steps(tmp_path / "killed" / "tb", "fit/misfit")

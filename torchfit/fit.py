@@ -296,7 +296,7 @@ def read_checkpoint(run_dir: Path, problem: InverseProblem, solver: Solver) -> _
         raise ResumeError(f"cannot resume: {run_dir / HISTORY_FILE} does not reach iteration "
                           f"{iteration} of the checkpoint; use resume=false")
     state = payload["solver_state"]
-    state.setdefault("clock", {})["wall_time"] = float(rows[-1].get("wall_time", 0.0))
+    state["wall_time"] = float(rows[-1].get("wall_time", 0.0))
     return _Resume(iteration, state, rows, bool(payload.get("finished", False)))
 
 
@@ -348,9 +348,7 @@ class _Checkpointer:
     def commit(self, iteration: int, theta: Tensor, state: dict[str, Any],
                finished: bool = False) -> None:
         state = dict(state)
-        clock = dict(state.get("clock", {}))
-        clock.pop("wall_time", None)        # time lives in history.jsonl: same runs, same bytes
-        state["clock"] = clock
+        state.pop("wall_time", None)        # time lives in history.jsonl: same runs, same bytes
         payload = {**self.fixed, "iteration": int(iteration),
                    "theta": theta.detach().cpu().clone(), "solver_state": _cpu(state),
                    "finished": bool(finished)}
