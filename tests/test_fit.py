@@ -13,7 +13,7 @@ import pytest
 import torch
 from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
 
-from torchfit.fit import FitOptions, ResumeError, RunDirectoryError, fit
+from torchfit.fit import FitOptions, ResumeError, RunDirectoryError, build_solver, fit
 from torchfit.problems import build_problem
 from torchfit.solvers import SolverConfigError
 
@@ -190,3 +190,37 @@ def test_bad_input_writes_nothing(tmp_path, call, error, match):
         call(problem, tmp_path)
     assert "\n" not in str(info.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_solvers_get_what_their_registry_entry_asks_of_the_parameterisation():
+    class NoDifferences:
+        n_params = 3
+
+    class Custom:                      # only what build_solver looks at
+        name = "custom"
+        parameterization = NoDifferences()
+
+    with pytest.raises(ValueError, match="split_bregman needs the difference operator D.*custom"):
+        build_solver(Custom(), "split_bregman")
+    assert build_solver(Custom(), "gauss_newton").config.name == "gauss_newton"
+    with pytest.raises(ValueError, match="levenberg_marquardt needs the difference operator D"):
+        build_solver(Custom(), {"name": "levenberg_marquardt", "preconditioner": "difference"})
+    spring = build_problem("spring1d", {"n": 6})
+    solver = build_solver(spring, {"name": "levenberg_marquardt", "preconditioner": "difference"})
+    assert solver.D.shape == (5, 6)
+    with pytest.raises(ValueError, match="no difference operator"):
+        build_solver(build_problem("spring1d", {"n": 1}), "split_bregman")
+
+
+def test_split_bregman_run_records_its_terms(tmp_path):
+    problem = build_problem("spring1d", {"noise": 1e-4})
+    result = fit(problem, "split_bregman", run_dir=tmp_path, options=FitOptions(progress=False,
+                                                                                threads=1))
+    assert result.stop_reason == "discrepancy" and result.converged
+    assert result.metrics["k_err_rel"] <= 2e-3
+    last = result.history[-1]
+    for key in ("tv", "split_residual", "inner_iterations", "mu", "beta", "stage"):
+        assert key in last, key
+    for tag in ("fit/tv", "fit/objective", "solver/split_residual", "solver/inner_iterations",
+                "solver/mu", "solver/beta", "solver/stage", "metrics/k_err_rel"):
+        assert scalar_steps(tmp_path / "tb", tag) == list(range(result.iterations + 1)), tag

@@ -1,5 +1,4 @@
 """Levenberg-Marquardt: rejected steps, settings, exact resume."""
-import math
 
 import pytest
 import torch

@@ -37,10 +37,8 @@ The denoising cross-checks map torchfit's functional onto scikit-image's exactly
 from __future__ import annotations
 
 import ast
-import json
 import math
-import subprocess
-import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -49,14 +47,11 @@ import torch
 
 from torchfit.params import (Parameterization, grid_edges, grid_groups, per_element,
                              per_grid_cell)
-import time
-
 from torchfit.problems import Poisson2D, Spring1D, Spring1DConfig
-from torchfit.solvers import (SOLVERS, GroupTV, LevenbergMarquardtConfig, ResidualFunction,
-                              SolverConfigError, SplitBregman, SplitBregmanConfig,
-                              check_difference_operator,
-                              gauss_newton, levenberg_marquardt, split_bregman)
-from conftest import CountingResidual, run_fit_app
+from torchfit.solvers import (SOLVERS, GroupTV, ResidualFunction, SolverConfigError,
+                              SplitBregman, SplitBregmanConfig, check_difference_operator,
+                              gauss_newton, split_bregman)
+from conftest import CountingResidual
 from resume import check_resume, fresh, roundtrip, run_with_snapshots
 
 REPO = Path(__file__).resolve().parents[2]
@@ -444,42 +439,6 @@ def test_bad_difference_operators_are_named():
         check_difference_operator(torch.zeros(0, 1), 1)
 
 
-@pytest.mark.xfail(reason="experiments/fit.py still reads SOLVERS as (config, function) tuples; "
-                          "passes again once the run orchestration uses SolverEntry", strict=False)
-def test_fit_app_refuses_a_parameterisation_without_difference_operator():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("fit_app", REPO / "experiments" / "fit.py")
-    fit_app = importlib.util.module_from_spec(spec)
-    sys.modules["fit_app"] = fit_app          # dataclasses look their module up
-    try:
-        spec.loader.exec_module(fit_app)
-    finally:
-        del sys.modules["fit_app"]
-
-    class NoD:
-        n_params = 3
-
-    class Problem:
-        name = "custom"
-        parameterization = NoD()
-        theta0 = torch.zeros(3)
-
-    with pytest.raises(ValueError, match="split_bregman needs the difference operator D.*custom"):
-        fit_app.solver_inputs(split_bregman, "split_bregman", Problem())
-    assert fit_app.solver_inputs(gauss_newton, "gauss_newton", Problem()) == {}
-    # Levenberg-Marquardt asks for D only with its difference preconditioner
-    assert fit_app.solver_inputs(levenberg_marquardt, "levenberg_marquardt", Problem(),
-                                 LevenbergMarquardtConfig()) == {}
-    with pytest.raises(ValueError, match="levenberg_marquardt needs the difference operator D"):
-        fit_app.solver_inputs(levenberg_marquardt, "levenberg_marquardt", Problem(),
-                              LevenbergMarquardtConfig(preconditioner="difference"))
-    spring = Spring1D(n=6)
-    inputs = fit_app.solver_inputs(levenberg_marquardt, "levenberg_marquardt", spring,
-                                   LevenbergMarquardtConfig(preconditioner="difference"))
-    assert inputs["D"].shape == (5, 6)
-
-
 def test_registered_with_its_config():
     entry = SOLVERS["split_bregman"]
     assert entry.config_class is SplitBregmanConfig and entry.solver_class is SplitBregman
@@ -685,47 +644,3 @@ def test_isotropic_matches_skimage_denoise_tv_chambolle(skimage_restoration):
     assert result.history[-1].objective == pytest.approx(e_tf, rel=1e-12)
     assert abs(e_tf - e_sk) <= 1e-3 * e_sk
     assert np.abs(u - sk).max() <= 5e-3
-
-
-# -- the Hydra app ---------------------------------------------------------------------------
-def fit(run_dir: Path, *overrides: str, timeout: float = 300) -> subprocess.CompletedProcess:
-    return run_fit_app(run_dir, *overrides, timeout=timeout)
-
-
-@pytest.mark.xfail(reason="experiments/fit.py still reads SOLVERS as (config, function) tuples; "
-                          "passes again once the run orchestration uses SolverEntry", strict=False)
-def test_fit_app_split_bregman_end_to_end(tmp_path):
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    run_dir = tmp_path / "sb"
-    proc = fit(run_dir, "solver=split_bregman", "problem.noise=1e-4", "progress=false",
-               "threads=1")
-    assert proc.returncode == 0, proc.stderr
-    result = json.loads((run_dir / "result.json").read_text())
-    assert result["stop_reason"] == "discrepancy" and result["converged"] is True
-    assert result["k_err_rel"] <= 2e-3
-    assert result["config"]["solver"]["name"] == "split_bregman"
-    last = result["history"][-1]
-    for key in ("tv", "split_residual", "inner_iterations", "mu", "beta", "stage"):
-        assert key in last, key
-    acc = EventAccumulator(str(run_dir / "tb"), size_guidance={"tensors": 0})
-    acc.Reload()
-    tags = set(acc.Tags()["tensors"])
-    for tag in ("fit/tv", "fit/objective", "fit/misfit", "solver/split_residual",
-                "solver/inner_iterations", "solver/mu", "solver/beta", "solver/stage",
-                "metrics/k_err_rel"):
-        assert tag in tags, tag
-    assert len(acc.Tensors("fit/tv")) == result["iterations"] + 1
-
-
-@pytest.mark.xfail(reason="experiments/fit.py still reads SOLVERS as (config, function) tuples; "
-                          "passes again once the run orchestration uses SolverEntry", strict=False)
-@pytest.mark.parametrize("overrides, match", [
-    (("solver.mu=-1",), "solver.mu must be > 0"),
-    (("solver.beta=0",), "solver.beta must be > 0"),
-    (("problem.n=1",), "no difference operator"),
-])
-def test_fit_app_bad_split_bregman_input(tmp_path, overrides, match):
-    proc = fit(tmp_path / "bad", "solver=split_bregman", *overrides)
-    assert proc.returncode == 2
-    assert match in proc.stderr and "Traceback" not in proc.stderr
