@@ -102,16 +102,48 @@ def run_hydra_app(main: Callable[[], Any], started: Callable[[], bool],
     except RunDirectoryError as error:
         print("error: " + one_line(error), file=sys.stderr, flush=True)
         sys.exit(2)
+    stderr = _Tail(sys.stderr)
+    sys.stderr = stderr                 # keeps Hydra's composition message to name the key
     try:
         main()
     except SystemExit as exit_:
         if exit_.code != 1 or started():
             raise
+        reason = hydra_reason(stderr.tail)
         if any(a in ("-m", "--multirun") for a in argv):
             # Hydra's basic sweeper composes every job before it launches the first: one
             # value it cannot compose stops the whole sweep, and no job has run.
-            print("error: invalid sweep, no job was run (Hydra composes every job of a sweep "
-                  "before launching any; fix the override named above)", file=sys.stderr)
+            print(f"error: invalid sweep, no job was run: {reason} (Hydra composes every job "
+                  "of a sweep before launching any)", file=stderr.stream)
         else:
-            print("error: invalid configuration (see Hydra's message above)", file=sys.stderr)
+            print(f"error: invalid configuration: {reason}", file=stderr.stream)
         sys.exit(2)
+    finally:
+        sys.stderr = stderr.stream
+
+
+class _Tail:
+    """A text stream that writes through and keeps the last few thousand characters."""
+
+    def __init__(self, stream: Any) -> None:
+        self.stream = stream
+        self.tail = ""
+
+    def write(self, text: str) -> int:
+        self.tail = (self.tail + text)[-4000:]
+        return self.stream.write(text)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.stream, name)
+
+
+def hydra_reason(message: str) -> str:
+    """One line from Hydra's composition error: the setting (``full_key``) and why."""
+    lines = [line.strip() for line in message.splitlines() if line.strip()]
+    key = next((line.split(":", 1)[1].strip() for line in lines
+                if line.startswith("full_key:")), None)
+    why = next((line for line in lines if not line.startswith(("full_key:", "object_type=",
+                                                                 "Set the environment",
+                                                                 "Error merging", "error:"))),
+               "see Hydra's message above")
+    return f"{key}: {why}" if key else why

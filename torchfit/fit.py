@@ -250,6 +250,7 @@ class _Resume:
     state: dict[str, Any]
     rows: list[dict[str, Any]]
     finished: bool
+    stop_reason: str | None
 
 
 def _read_rows(path: Path, last: int) -> list[dict[str, Any]]:
@@ -297,7 +298,8 @@ def read_checkpoint(run_dir: Path, problem: InverseProblem, solver: Solver) -> _
                           f"{iteration} of the checkpoint; use resume=false")
     state = payload["solver_state"]
     state["wall_time"] = float(rows[-1].get("wall_time", 0.0))
-    return _Resume(iteration, state, rows, bool(payload.get("finished", False)))
+    return _Resume(iteration, state, rows, bool(payload.get("finished", False)),
+                   payload.get("stop_reason"))
 
 
 def _resumable(settings: dict[str, Any]) -> dict[str, Any]:
@@ -346,12 +348,12 @@ class _Checkpointer:
         self.commit(record.iteration, record.theta, self.solver.state_dict())
 
     def commit(self, iteration: int, theta: Tensor, state: dict[str, Any],
-               finished: bool = False) -> None:
+               stop_reason: str | None = None) -> None:
         state = dict(state)
         state.pop("wall_time", None)        # time lives in history.jsonl: same runs, same bytes
         payload = {**self.fixed, "iteration": int(iteration),
                    "theta": theta.detach().cpu().clone(), "solver_state": _cpu(state),
-                   "finished": bool(finished)}
+                   "finished": stop_reason is not None, "stop_reason": stop_reason}
         save_torch(self.run_dir / CHECKPOINT_FILE, payload)
 
     def close(self) -> None:
@@ -410,8 +412,9 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
                     run_path / CHECKPOINT_FILE)
     config = dict(config) if config is not None else {
         "problem": _settings(problem.cfg), "solver": _settings(solver.config)}
-    if restart is not None and restart.finished and (run_path / RESULT_FILE).is_file():
-        return _finished_result(problem, run_path, restart)
+    if restart is not None and restart.finished and (run_path / RESULT_FILE).is_file() and not (
+            restart.stop_reason == "max_iter" and solver.config.max_iter > restart.iteration):
+        return _finished_result(problem, run_path, restart)   # a larger max_iter continues
     if options.threads > 0:
         set_threads(options.threads)
     # -- from here on files are written ---------------------------------------------------
@@ -467,7 +470,8 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
     if run_path is not None:
         assert tb is not None and checkpointer is not None
         result.files = _write_outputs(problem, result, run_path, tb, snapshots, guard, config)
-        checkpointer.commit(solved.iterations, solved.theta, solver.state_dict(), finished=True)
+        checkpointer.commit(solved.iterations, solved.theta, solver.state_dict(),
+                            stop_reason=solved.stop_reason)
     return result
 
 

@@ -31,11 +31,12 @@ from typing import Any, ClassVar, Iterable, NamedTuple, Optional
 
 from torch import Tensor
 
+from ..errors import ConfigurationError
 from ..linalg import COUNTERS
 from ..records import Callback, IterationRecord, SolveResult
 
 
-class SolverConfigError(ValueError):
+class SolverConfigError(ConfigurationError):
     """An invalid solver setting (or solver input); the message names it."""
 
 
