@@ -1,16 +1,12 @@
-"""Derivative verification (torchfit.verification and experiments/verify.py)."""
+"""Derivative verification (torchfit.verification): Taylor, dot-product and FD checks."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
-from omegaconf import OmegaConf
 
 from torchfit.problems import Spring1D
 from torchfit.residual import ResidualFunction
@@ -179,61 +175,3 @@ def test_bad_arguments():
         taylor_test(residual, theta, torch.zeros(10, dtype=torch.float64))
     with pytest.raises(ValueError, match="taylor_tol"):
         verify(residual, theta, taylor_tol=-1)
-
-
-# -- the Hydra app --------------------------------------------------------------------------
-def _run_app(*overrides: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "experiments/verify.py", *overrides], cwd=REPO,
-                          capture_output=True, text=True, timeout=120)
-
-
-def test_app_spring1d(tmp_path):
-    run_dir = tmp_path / "run"
-    proc = _run_app("problem=spring1d", f"hydra.run.dir={run_dir}")
-    assert proc.returncode == 0, proc.stderr
-    assert "Taylor rate" in proc.stdout
-    result = json.loads((run_dir / "verify.json").read_text())
-    assert abs(result["taylor_rate"] - 2.0) <= 0.05
-    assert result["dot_product_rel_error"] <= 1e-10
-    assert result["fd_rel_error"] <= 1e-6
-    assert result["passed"] is True
-    assert result["config"]["problem"]["name"] == "spring1d"
-    assert result["config"]["at"] == "initial"
-
-
-def test_app_bad_config(tmp_path):
-    run_dir = tmp_path / "run"
-    proc = _run_app("problem=spring1d", "problem.noise=-1", f"hydra.run.dir={run_dir}")
-    assert proc.returncode == 2, proc.stderr
-    assert proc.stderr.startswith("error:") and "problem.noise" in proc.stderr
-    assert "Traceback" not in proc.stderr
-    assert not (run_dir / "verify.json").exists()
-
-
-def _load_app():
-    spec = importlib.util.spec_from_file_location("verify_app", REPO / "experiments" / "verify.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-@pytest.mark.parametrize("override, message", [
-    ({"at": "nowhere"}, "at="),
-    ({"perturbation": -0.5}, "perturbation"),
-    ({"dot_tol": 0.0}, "dot_tol"),
-])
-def test_app_config_checks(override, message):
-    """The app's own settings, checked in-process (the subprocess path is shared above)."""
-    app = _load_app()
-    cfg = OmegaConf.create({"at": "initial", "perturbation": 0.1, "taylor_tol": 0.05,
-                            "dot_tol": 1e-10, "fd_tol": 1e-6, **override})
-    with pytest.raises(app.VerifyConfigError, match=message):
-        app.check_config(cfg)
-
-
-def test_app_misspelt_override_exits_2(tmp_path):
-    run_dir = tmp_path / "run"
-    proc = _run_app("problem.nosie=0.1", f"hydra.run.dir={run_dir}")
-    assert proc.returncode == 2
-    assert "Traceback" not in proc.stderr
-    assert not (run_dir / "verify.json").exists()

@@ -115,7 +115,7 @@ class FitOptions:
              f"snapshot_iterations={list(self.snapshot_iterations)} must be integers >= 0")
         allowed = list(problem.metric_names()) + list(COUNT_KEYS)
         need(self.objective_metric in allowed,
-             f"objective_metric={self.objective_metric!r} is not reported by {problem.name}; "
+             f"objective_metric={self.objective_metric} is not reported by {problem.name}; "
              f"choose one of {allowed}")
         if self.sheet_frame is not None:
             n = problem.n_frames if isinstance(problem, FramedProblem) else 0

@@ -81,6 +81,10 @@ BAD_INPUT = [
     (["problem.nosie=0.1"], ["nosie"]),                     # misspelt: the schema rejects it
     (["problem.n=abc"], ["problem.n"]),                     # mistyped
     (["problem=nope"], ["spring1d"]),
+    (["problem=membrane2d", "problem.nu=0.5"], ["problem.nu"]),
+    (["problem=membrane2d", "problem.model=mooney"], ["corotated"]),
+    (["problem=membrane2d", "problem.nx=4", "problem.ny=2", "sheet_frame=9"], ["sheet_frame"]),
+    (["snapshot_every=-1"], ["snapshot_every"]),
 ]
 
 

@@ -261,8 +261,6 @@ def test_registry_entries():
         assert issubclass(entry.config_class, ProblemConfig)
         assert entry.problem_class.config_class is entry.config_class
         assert entry.config_class().name == name == entry.problem_class.name
-        config_class, problem_class = entry                     # the former tuple shape
-        assert (config_class, problem_class) == (entry.config_class, entry.problem_class)
     with pytest.raises(dataclasses.FrozenInstanceError):
         PROBLEMS["spring1d"].config_class = ProblemConfig
     with pytest.raises(ProblemConfigError, match="spring1d"):

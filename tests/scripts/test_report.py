@@ -51,7 +51,7 @@ def result(k_aligned: float | None, misfit: float | None = 0.1, **extra) -> dict
 
 @pytest.fixture
 def fake_sweep(tmp_path) -> Path:
-    """The seed table's 2 x 2 sweep: job 0 fine, job 1 crashed, job 2 NaN, job 3 invalid."""
+    """The seed table's 2 x 2 sweep: job 0 fine, job 1 killed, job 2 NaN, job 3 invalid."""
     sweep = tmp_path / "multirun" / "seed"
     sweep.mkdir(parents=True)
     # what Hydra's basic sweeper writes: the sweep parameters and the command line
@@ -70,7 +70,9 @@ def fake_sweep(tmp_path) -> Path:
     (crashed / "checkpoint.pt").write_bytes(b"")
     fake_job(sweep, 2, ["solver=split_bregman", "problem.noise=0", "experiment=seed_table",
                         "problem.N=16"], result(None, misfit=None, stop_reason="stalled"))
-    # job 3 (split_bregman, noise 1e-3) has no directory: invalid settings
+    # job 3: invalid settings; experiments/fit.py wrote why
+    fake_job(sweep, 3, ["solver=split_bregman", "problem.noise=0.001", "experiment=seed_table",
+                        "problem.N=16"], {"status": "failed", "error": "solver.mu=-1.0: must be > 0"})
     return sweep
 
 
@@ -93,7 +95,7 @@ def test_fake_sweep_table(fake_sweep, tmp_path):
     assert rows[2][-1] == ("failed: no result.json (still running, or stopped during the "
                            "fit: checkpoint.pt left): simulation failed at iteration 3")
     assert rows[3][-1] == "failed: non-finite misfit in result.json"
-    assert rows[4][-1].startswith("failed: no job directory (invalid settings")
+    assert rows[4][-1] == "failed: solver.mu=-1.0: must be > 0"
     assert all(cell == "–" for r in rows[2:] for cell in r[3:-1])
     assert "4 jobs, 3 failed or unfinished." in proc.stdout
 
@@ -104,7 +106,7 @@ def test_fake_sweep_table(fake_sweep, tmp_path):
     assert float(records[0]["wall_s"]) == 12.345
     assert records[0]["status"] == "ok" and records[0]["problem.N"] == "16"
     assert [r["status"].split(":")[0] for r in records[1:]] == ["failed"] * 3
-    assert records[3]["solver"] == "split_bregman" and records[3]["directory"] == ""
+    assert records[3]["solver"] == "split_bregman" and Path(records[3]["directory"]).name.startswith("3_")
 
 
 def test_not_scale_free_shows_k_err_rel(tmp_path):
