@@ -183,3 +183,31 @@ def test_a_sweep_value_hydra_cannot_compose_stops_the_sweep_before_any_job(tmp_p
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert "problem.noise=abc" in proc.stderr and "error: invalid sweep" in proc.stderr
     assert not list(sweep.glob("*/result.json"))
+
+
+def test_a_sweeps_hparams_table_in_tensorboard(tmp_path, tensorboard_server):
+    sweep = tmp_path / "sweep"
+    ok(app("fit.py", "-m", f"hydra.sweep.dir={sweep}", "solver=gauss_newton,levenberg_marquardt",
+           "problem.n=16", "problem.noise=1e-4", "progress=false"))
+    results = {r["config"]["solver"]["name"]: r for r in
+               (json.loads(p.read_text()) for p in sweep.glob("*/result.json"))}
+    assert len(results) == 2
+    server = tensorboard_server(sweep)
+    metrics = ("fit/misfit", "metrics/k_err_rel", "final/iterations")
+
+    def rows():
+        groups = server.hparams_session_groups()
+        values = {g["hparams"].get("solver.name"): {
+            m["name"]["tag"]: m["value"] for s in g["sessions"] for m in s.get("metricValues", [])}
+            for g in groups}
+        return values if len(values) == 2 and all(
+            set(metrics) <= set(v) for v in values.values()) else None
+
+    table = server.wait_until(rows, what="the HParams table of the sweep")
+    experiment = server.hparams_experiment()
+    assert {"solver.name", "problem.noise"} <= {h["name"] for h in experiment["hparamInfos"]}
+    for solver, result in results.items():
+        shown = table[solver]
+        assert shown["metrics/k_err_rel"] == pytest.approx(result["k_err_rel"], rel=1e-6)
+        assert shown["fit/misfit"] == pytest.approx(result["misfit"], rel=1e-6)
+        assert shown["final/iterations"] == result["iterations"]
