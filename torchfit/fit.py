@@ -47,9 +47,8 @@ from .linalg import set_threads
 from .logging import (FieldSnapshots, MetricsCallback, PlotGuard, ProgressPrinter,
                       TensorBoardLogger, field_is_chain, save_params, write_json,
                       write_run_pngs)
-from .logging.results import CHECKPOINT_FILE, RESULT_FILE, save_torch
-from .logging.results import _atomic_write as atomic_write
-from .logging.results import _jsonable as jsonable
+from .logging.results import (CHECKPOINT_FILE, RESULT_FILE, atomic_write, jsonable,
+                              save_torch)
 from .problems import InverseProblem
 from .problems.base import FieldImageProblem, FramedProblem, MeshProblem
 from .records import IterationRecord, SolveResult
@@ -341,7 +340,7 @@ class _Checkpointer:
         self._history = open(run_dir / HISTORY_FILE, "a", encoding="utf-8")
 
     def __call__(self, record: IterationRecord) -> None:
-        row = {"iteration": record.iteration, **record.scalars()}
+        row = record.row()
         self.rows.append(row)
         self._history.write(json.dumps(jsonable(row)) + "\n")
         self._history.flush()
@@ -443,8 +442,7 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
                                        options.snapshot_every, options.sheet_frame, guard=guard)
             chain.append(snapshots)
     else:
-        chain.append(lambda record: rows.append({"iteration": record.iteration,
-                                                 **record.scalars()}))
+        chain.append(lambda record: rows.append(record.row()))
     chain.extend(callbacks)
 
     def emit(record: IterationRecord) -> bool:

@@ -52,6 +52,10 @@ class IterationRecord:
         out.update({k: float(v) for k, v in self.extra.items()})
         return out
 
+    def row(self, step_offset: int = 0) -> dict[str, float]:
+        """``{'iteration': ..., **scalars()}``: one row of ``result.json``'s history."""
+        return {"iteration": self.iteration + step_offset, **self.scalars()}
+
 
 @dataclasses.dataclass
 class SolveResult:

@@ -1,26 +1,26 @@
-"""Logging layer: TensorBoard, progress display, result files, per-iteration metrics.
+"""Logging layer: TensorBoard, progress display, run-directory files, per-iteration metrics.
 
-Everything here observes a run through the solvers' callback protocol
-(:class:`torchfit.solvers.IterationRecord` in, ``None`` out) or writes files after it;
-nothing here computes anything a solver needs. The order of callbacks in a run is
+Everything here observes a run through the callback protocol of :mod:`torchfit.records`
+(an :class:`~torchfit.records.IterationRecord` in, ``None`` out) or writes files after it;
+nothing here computes anything a solver needs, and nothing imports :mod:`torchfit.solvers`.
+In a run (:func:`torchfit.fit.fit`) the callbacks are called in the order
 
-``[MetricsCallback, ProgressPrinter, TensorBoardLogger, CheckpointWriter]``
+``MetricsCallback, ProgressPrinter, <checkpoint commit>, TensorBoardLogger, FieldSnapshots``
 
-so that the problem metrics added by :class:`MetricsCallback` to ``record.extra`` are
-seen by the loggers after it.
+so that the metrics :class:`MetricsCallback` adds to ``record.extra`` reach everything after
+it, and an iteration is in the checkpoint before TensorBoard shows it (a resumed run adds
+what TensorBoard lost, :meth:`TensorBoardLogger.resume`).
 """
 from .metrics import METRIC_KEYS, MetricsCallback
 from .pictures import PlotGuard, write_run_pngs
 from .progress import PROGRESS_LOGGER, ProgressPrinter, ensure_progress_visible
-from .results import (Checkpoint, CheckpointWriter, load_checkpoint, result_dict, save_checkpoint,
-                      save_params, write_json, write_result)
+from .results import history_rows, save_params, save_torch, write_json
 from .tensorboard import (FieldSnapshots, TensorBoardLogger, field_is_chain, supports_field_images,
                           tag_for)
 
 __all__ = [
-    "Checkpoint", "CheckpointWriter", "FieldSnapshots", "METRIC_KEYS", "MetricsCallback",
-    "PROGRESS_LOGGER", "ensure_progress_visible",
-    "PlotGuard", "ProgressPrinter", "TensorBoardLogger", "field_is_chain", "load_checkpoint", "result_dict",
-    "save_checkpoint", "save_params", "supports_field_images", "tag_for", "write_json",
-    "write_result", "write_run_pngs",
+    "FieldSnapshots", "METRIC_KEYS", "MetricsCallback", "PROGRESS_LOGGER", "PlotGuard",
+    "ProgressPrinter", "TensorBoardLogger", "ensure_progress_visible", "field_is_chain",
+    "history_rows", "save_params", "save_torch", "supports_field_images", "tag_for",
+    "write_json", "write_run_pngs",
 ]
