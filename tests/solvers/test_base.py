@@ -1,6 +1,5 @@
 """The shared solver base: config validation, the loop, the stop rules, the registry,
 exact resume, the import graph of the package."""
-import ast
 import dataclasses
 import math
 import typing
@@ -239,39 +238,3 @@ def test_resume_continues_the_clock():
     assert all(r.wall_time >= 1000.0 for r in resumed.history) and resumed.wall_time >= 1000.0
 
 
-# -- the package's imports -----------------------------------------------------------------
-def _solver_modules():
-    package = REPO / "torchfit" / "solvers"
-    return {source.stem: ast.parse(source.read_text()) for source in package.glob("*.py")}
-
-
-def test_solvers_import_nothing_from_physics_mesh_or_problems():
-    for name, tree in _solver_modules().items():
-        for node in ast.walk(tree):
-            if isinstance(node, ast.ImportFrom):
-                module = ("." * node.level) + (node.module or "")
-                assert not any(part in module for part in ("physics", "mesh", "problems")), \
-                    f"{name}.py imports {module}"
-            elif isinstance(node, ast.Import):
-                for alias in node.names:
-                    assert not any(p in alias.name for p in ("physics", "mesh", "problems"))
-
-
-def test_no_import_cycle_and_no_private_helpers_across_solver_modules():
-    modules = _solver_modules()
-    graph = {name: set() for name in modules}
-    for name, tree in modules.items():
-        for node in ast.walk(tree):
-            if isinstance(node, ast.ImportFrom) and node.level == 1 and node.module in modules:
-                graph[name].add(node.module)
-                private = [a.name for a in node.names if a.name.startswith("_")]
-                assert not private or name == "__init__", f"{name} imports {private}"
-    graph.pop("__init__")
-
-    def visit(node, path):
-        assert node not in path, f"import cycle {path + [node]}"
-        for nxt in graph.get(node, ()):
-            visit(nxt, path + [node])
-
-    for name in graph:
-        visit(name, [])

@@ -36,7 +36,6 @@ The denoising cross-checks map torchfit's functional onto scikit-image's exactly
 """
 from __future__ import annotations
 
-import ast
 import math
 import time
 from pathlib import Path
@@ -444,17 +443,6 @@ def test_registered_with_its_config():
     assert entry.config_class is SplitBregmanConfig and entry.solver_class is SplitBregman
     assert entry.needs_difference_operator(SplitBregmanConfig())
     assert (REPO / "conf" / "solver" / "split_bregman.yaml").is_file()
-
-
-def test_solver_module_imports_nothing_from_physics_mesh_or_problems():
-    for name in ("split_bregman.py", "stacked.py", "total_variation.py"):
-        tree = ast.parse((REPO / "torchfit" / "solvers" / name).read_text())
-        for node in ast.walk(tree):
-            if isinstance(node, ast.ImportFrom):
-                assert not any(p in (node.module or "") for p in ("physics", "mesh", "problems"))
-            elif isinstance(node, ast.Import):
-                assert not any(p in a.name for a in node.names
-                               for p in ("physics", "mesh", "problems"))
 
 
 # -- cross-check with scikit-image ---------------------------------------------------------
