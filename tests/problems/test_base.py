@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 from omegaconf.errors import ValidationError
 
 from conftest import REPO
-from torchfit.logging.results import _jsonable, write_json
+from torchfit.logging.results import jsonable, write_json
 from torchfit.physics.elasticity import ALIASES, MATERIALS
 from torchfit.problems import (PROBLEMS, Backend, DataMode, DType,
                                FieldImageProblem, FramedProblem, InverseProblem,
@@ -161,7 +161,7 @@ def test_omegaconf_node_builds_the_problem():
 
 
 def test_configs_serialise_choices_by_value(tmp_path):
-    plain = _jsonable(Membrane2DConfig())
+    plain = jsonable(Membrane2DConfig())
     assert type(plain["model"]) is str and plain["model"] == "corotated"
     assert plain["data"] == "dense" and plain["dtype"] == "float64"
     path = write_json(tmp_path / "cfg.json", {"problem": Spring1DConfig(data="sparse")})
