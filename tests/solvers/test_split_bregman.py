@@ -206,7 +206,7 @@ def test_resume_across_stage_changes_is_bit_identical():
     problem = Spring1D(Spring1DConfig(n=16, noise=1e-4))
     D = problem.parameterization.difference_operator()
     full, snapshots = _resume_all(lambda: SplitBregman(SplitBregmanConfig(max_iter=200), D=D),
-                                  fresh(problem), problem.theta0, every=4)
+                                  fresh(problem), problem.theta0, every=9)
     assert full.stop_reason == "discrepancy"
     stages = {k: state["stage"] for k, (state, _) in snapshots.items()}
     assert len(set(stages.values())) >= 3                   # snapshots in three stages
@@ -235,9 +235,9 @@ def test_resume_when_returning_to_an_accepted_earlier_stage():
     accepted earlier stage is part of the state."""
     problem = Spring1D(Spring1DConfig(n=16, noise=1e-4))
     D = problem.parameterization.difference_operator()
-    config = SplitBregmanConfig(mu=1e7, stage_tol=1e-2)
+    config = SplitBregmanConfig(mu=1e7, stage_tol=3e-2)
     full, snapshots = _resume_all(lambda: SplitBregman(config, D=D), fresh(problem),
-                                  problem.theta0, every=3)
+                                  problem.theta0, every=13)
     assert full.history[-1].extra.get("restored") == 1.0
     assert any(state["accepted"] is not None for state, _ in snapshots.values())
     # resumed from the 'restored' record itself: nothing left but the stop
