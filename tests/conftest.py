@@ -49,6 +49,32 @@ def run_fit_app(run_dir: Path, *overrides: str, timeout: float = 300) -> subproc
                           timeout=timeout)
 
 
+def distinct(points: list[torch.Tensor]) -> int:
+    """How many different parameter vectors ``points`` holds (``torch.equal``)."""
+    unique: list[torch.Tensor] = []
+    for p in points:
+        if not any(torch.equal(p, q) for q in unique):
+            unique.append(p)
+    return len(unique)
+
+
+def timed_fit(problem, solver, config=None):
+    """``(result, metrics, seconds)`` of Gauss-Newton or split Bregman on ``problem``, with
+    the parameterisation's ``D`` (and TV groups)."""
+    import time
+
+    from torchfit.solvers import gauss_newton, split_bregman
+
+    D = problem.parameterization.difference_operator()
+    start = time.perf_counter()
+    if solver is gauss_newton:
+        result = gauss_newton(problem.residual(), problem.theta0, config, D=D)
+    else:
+        result = split_bregman(problem.residual(), problem.theta0, config, D=D,
+                               groups=problem.parameterization.difference_groups())
+    return result, problem.metrics(result.theta), time.perf_counter() - start
+
+
 class CountingResidual(ResidualFunction):
     """Records every parameter vector at which the residual is linearised."""
 

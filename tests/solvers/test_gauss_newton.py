@@ -2,23 +2,14 @@
 import math
 
 import pytest
-import torch
 
 from torchfit.problems import Spring1D, Spring1DConfig
 from torchfit.solvers import (GaussNewton, GaussNewtonConfig, LevenbergMarquardtConfig,
                               SolverConfigError, gauss_newton, levenberg_marquardt)
 
-from conftest import CountingResidual
+from conftest import CountingResidual, distinct
 from resume import check_resume, fresh, roundtrip, run_with_snapshots
 
-
-
-def distinct(points):
-    unique: list[torch.Tensor] = []
-    for p in points:
-        if not any(torch.equal(p, q) for q in unique):
-            unique.append(p)
-    return len(unique)
 
 
 def test_gauss_newton_step_costs_one_factorization_per_point_and_2m_plus_2_solves():

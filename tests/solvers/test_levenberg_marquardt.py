@@ -6,16 +6,8 @@ import torch
 from torchfit.problems import Spring1D, Spring1DConfig
 from torchfit.solvers import LevenbergMarquardt, LevenbergMarquardtConfig, levenberg_marquardt
 
-from conftest import CountingResidual
+from conftest import CountingResidual, distinct
 from resume import check_resume, fresh, roundtrip, run_with_snapshots
-
-
-def distinct(points):
-    unique: list[torch.Tensor] = []
-    for p in points:
-        if not any(torch.equal(p, q) for q in unique):
-            unique.append(p)
-    return len(unique)
 
 
 def test_levenberg_marquardt_rejected_step_keeps_theta_and_factorization():

@@ -6,29 +6,17 @@ Reduced grids run by default; the acceptance sizes (N = 64) are marked slow. The
 figures they guard were measured with the settings used here (see the issue report).
 """
 import math
-import time
 from pathlib import Path
 
 import pytest
 import torch
 
 from torchfit.problems import Poisson2D
-from torchfit.solvers import SOLVERS, GaussNewtonConfig, SolverConfigError, gauss_newton, split_bregman
+from torchfit.solvers import SOLVERS, GaussNewtonConfig, SolverConfigError, gauss_newton
 from torchfit.solvers.preconditioners import DifferencePreconditioner
+from conftest import timed_fit
 
 REPO = Path(__file__).resolve().parents[2]
-
-
-def fit(problem, solver, config=None):
-    D = problem.parameterization.difference_operator()
-    start = time.perf_counter()
-    if solver is gauss_newton:
-        result = gauss_newton(problem.residual(), problem.theta0, config, D=D)
-    else:
-        result = split_bregman(problem.residual(), problem.theta0, config, D=D,
-                               groups=problem.parameterization.difference_groups())
-    seconds = time.perf_counter() - start
-    return result, problem.metrics(result.theta), seconds
 
 
 def test_difference_preconditioner_is_the_shifted_graph_laplacian():
@@ -69,8 +57,8 @@ def test_registry_hands_D_to_gauss_newton_only_when_preconditioned():
 
 def test_preconditioned_gauss_newton_is_accurate_with_far_fewer_cgls_iterations():
     problem = Poisson2D(N=20)
-    plain, plain_metrics, _ = fit(problem, gauss_newton, GaussNewtonConfig(max_iter=12))
-    pre, pre_metrics, _ = fit(problem, gauss_newton,
+    plain, plain_metrics, _ = timed_fit(problem, gauss_newton, GaussNewtonConfig(max_iter=12))
+    pre, pre_metrics, _ = timed_fit(problem, gauss_newton,
                               GaussNewtonConfig(max_iter=12, preconditioner="difference"))
     assert pre_metrics["k_err_rel_aligned"] < 1e-6
     assert pre_metrics["k_err_rel_aligned"] < 0.1 * plain_metrics["k_err_rel_aligned"]
@@ -87,7 +75,7 @@ def test_preconditioned_gauss_newton_is_accurate_with_far_fewer_cgls_iterations(
 @pytest.mark.slow
 def test_acceptance_A_dense_noise_free_n64_preconditioned_gauss_newton():
     problem = Poisson2D(N=64)
-    result, metrics, seconds = fit(problem, gauss_newton,
+    result, metrics, seconds = timed_fit(problem, gauss_newton,
                                    GaussNewtonConfig(preconditioner="difference", atol=3e-8))
     print(f"A: {seconds:.2f} s, {result.iterations} iterations, "
           f"k_err_rel_aligned {metrics['k_err_rel_aligned']:.2e}")

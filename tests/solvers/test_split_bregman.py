@@ -37,7 +37,6 @@ The denoising cross-checks map torchfit's functional onto scikit-image's exactly
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 
 import numpy as np
@@ -50,7 +49,7 @@ from torchfit.problems import Poisson2D, Spring1D, Spring1DConfig
 from torchfit.solvers import (SOLVERS, GroupTV, ResidualFunction, SolverConfigError,
                               SplitBregman, SplitBregmanConfig, check_difference_operator,
                               gauss_newton, split_bregman)
-from conftest import CountingResidual
+from conftest import CountingResidual, timed_fit
 from resume import check_resume, fresh, roundtrip, run_with_snapshots
 
 REPO = Path(__file__).resolve().parents[2]
@@ -283,24 +282,12 @@ def test_resume_after_rejected_outer_steps_is_bit_identical():
 
 
 # -- poisson2d (issue 4) ---------------------------------------------------------------------
-def fit_poisson(problem, solver, config=None):
-    D = problem.parameterization.difference_operator()
-    start = time.perf_counter()
-    if solver is gauss_newton:
-        result = gauss_newton(problem.residual(), problem.theta0, config, D=D)
-    else:
-        result = split_bregman(problem.residual(), problem.theta0, config, D=D,
-                               groups=problem.parameterization.difference_groups())
-    seconds = time.perf_counter() - start
-    return result, problem.metrics(result.theta), seconds
-
-
 def test_noisy_dense_reduced_grid_tv_beats_gauss_newton_at_the_discrepancy():
     problem = Poisson2D(N=24, noise=1e-3)
-    gn, gn_metrics, _ = fit_poisson(problem, gauss_newton)
+    gn, gn_metrics, _ = timed_fit(problem, gauss_newton)
     assert gn.stop_reason == "discrepancy"
     assert gn.history[-1].misfit <= 1.5 * problem.noise_level
-    sb, sb_metrics, _ = fit_poisson(problem, split_bregman)
+    sb, sb_metrics, _ = timed_fit(problem, split_bregman)
     assert sb.stop_reason == "discrepancy"
     assert sb_metrics["k_err_rel_aligned"] <= 0.05
     assert sb_metrics["k_err_rel_aligned"] * 3 <= gn_metrics["k_err_rel_aligned"]
@@ -309,9 +296,9 @@ def test_noisy_dense_reduced_grid_tv_beats_gauss_newton_at_the_discrepancy():
 @pytest.mark.slow
 def test_acceptance_B_noisy_dense_n64():
     problem = Poisson2D(N=64, noise=1e-3)
-    gn, gn_metrics, _ = fit_poisson(problem, gauss_newton)
+    gn, gn_metrics, _ = timed_fit(problem, gauss_newton)
     assert gn.stop_reason == "discrepancy"
-    sb, sb_metrics, _ = fit_poisson(problem, split_bregman)
+    sb, sb_metrics, _ = timed_fit(problem, split_bregman)
     assert sb_metrics["k_err_rel_aligned"] <= 0.05
     assert sb_metrics["k_err_rel_aligned"] * 3 <= gn_metrics["k_err_rel_aligned"]
 
@@ -319,8 +306,8 @@ def test_acceptance_B_noisy_dense_n64():
 @pytest.mark.slow
 def test_acceptance_C_sparse_noise_free_n64():
     problem = Poisson2D(N=64, data="sparse")
-    _, gn_metrics, _ = fit_poisson(problem, gauss_newton)
-    sb, sb_metrics, _ = fit_poisson(problem, split_bregman)
+    _, gn_metrics, _ = timed_fit(problem, gauss_newton)
+    sb, sb_metrics, _ = timed_fit(problem, split_bregman)
     assert sb_metrics["k_err_rel_aligned"] <= 0.03
     assert sb_metrics["k_err_rel_aligned"] * 5 <= gn_metrics["k_err_rel_aligned"]
 

@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, Iterable, Optional
+from typing import Any, Iterable
 
 import torch
 from torch import Tensor
@@ -35,10 +35,9 @@ from torch import Tensor
 from ..linalg import cgls
 from ..records import Callback, IterationRecord, SolveResult
 from ..residual import Linearization, ResidualFunction, try_linearize
-from .base import (Solver, SolverConfig, SolverConfigError, Stop, clone, least_squares_stop,
-                   require)
+from .base import SolverConfig, Stop, clone, least_squares_stop, require
+from .least_squares import LeastSquaresSolver
 from .preconditioners import DifferencePreconditioner
-from .total_variation import check_difference_operator
 
 PRECONDITIONERS = ("none", "difference")
 
@@ -82,18 +81,7 @@ class GaussNewtonConfig(SolverConfig):
                 f"{PRECONDITIONERS}")
 
 
-def require_difference_operator(D: Optional[Tensor]) -> None:
-    """The error of ``preconditioner=difference`` without ``D`` (and a check of ``D``)."""
-    if D is None:
-        raise SolverConfigError(
-            "solver.preconditioner=difference needs the difference operator D of the "
-            "parameterisation (pass D=parameterization.difference_operator()), or set "
-            "solver.preconditioner=none")
-    n = D.shape[1] if isinstance(D, Tensor) and D.dim() == 2 else 0
-    check_difference_operator(D, n)
-
-
-class GaussNewton(Solver):
+class GaussNewton(LeastSquaresSolver):
     """Inexact Gauss-Newton (see the module docstring).
 
     Args:
@@ -109,15 +97,7 @@ class GaussNewton(Solver):
     def __init__(self, config: GaussNewtonConfig | None = None, *, D: Tensor | None = None,
                  groups: Tensor | None = None) -> None:
         super().__init__(config, D=D, groups=groups)
-        if self.config.preconditioner == "difference":
-            require_difference_operator(D)
         self.preconditioner: DifferencePreconditioner | None = None
-        self.lin: Linearization | None = None
-
-    @property
-    def theta(self) -> Tensor:
-        assert self.lin is not None
-        return self.lin.theta
 
     def _setup(self, like: Tensor) -> None:
         if self.config.preconditioner == "difference":

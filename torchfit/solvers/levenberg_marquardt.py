@@ -42,8 +42,8 @@ from ..errors import SimulationError
 from ..linalg import CGLSResult, cgls
 from ..records import Callback, IterationRecord, SolveResult
 from ..residual import Linearization, ResidualFunction, try_linearize
-from .base import Solver, SolverConfig, Stop, clone, least_squares_stop, require
-from .gauss_newton import require_difference_operator
+from .base import SolverConfig, Stop, clone, least_squares_stop, require
+from .least_squares import LeastSquaresSolver
 from .preconditioners import ColumnScaledLaplacian, GraphLaplacian
 
 
@@ -103,7 +103,7 @@ class LevenbergMarquardtConfig(SolverConfig):
                 f"solver.preconditioner_probes must be >= 1, got {self.preconditioner_probes}")
 
 
-class LevenbergMarquardt(Solver):
+class LevenbergMarquardt(LeastSquaresSolver):
     """Levenberg-Marquardt (see the module docstring). Records carry the damping used
     and whether the step was accepted.
 
@@ -120,14 +120,6 @@ class LevenbergMarquardt(Solver):
     def __init__(self, config: LevenbergMarquardtConfig | None = None, *,
                  D: Tensor | None = None, groups: Tensor | None = None) -> None:
         super().__init__(config, D=D, groups=groups)
-        if self.config.preconditioner == "difference":
-            require_difference_operator(D)
-        self.lin: Linearization | None = None
-
-    @property
-    def theta(self) -> Tensor:
-        assert self.lin is not None
-        return self.lin.theta
 
     def _setup(self, like: Tensor) -> None:
         cfg = self.config
