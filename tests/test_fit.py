@@ -153,6 +153,8 @@ def test_refused_resume_touches_nothing(tmp_path):
     with pytest.raises(ResumeError, match="n"):
         fit(build_problem("spring1d", {"n": 9}), "gauss_newton", run_dir=tmp_path, resume=True,
             options=QUIET)
+    with pytest.raises(FitConfigError, match="already holds a run"):
+        fit(problem, "gauss_newton", run_dir=tmp_path, options=QUIET)   # without resume
     assert tree_digest(tmp_path) == before
 
 

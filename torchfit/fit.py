@@ -405,6 +405,9 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
         raise FitConfigError("resume=True needs the run_dir of the run to continue")
     if run_path is not None:
         check_writable(run_path)
+        if not resume and (run_path / CHECKPOINT_FILE).exists():
+            raise FitConfigError(f"{run_path} already holds a run (its checkpoint.pt); resume=true "
+                                 "continues it, or choose another run directory")
     restart = read_checkpoint(run_path, problem, solver) if resume and run_path else None
     if resume and run_path is not None and restart is None:
         log.warning("resume: %s has no checkpoint; starting from the initial guess",
