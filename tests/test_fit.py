@@ -133,6 +133,7 @@ def test_killed_run_resumes_exactly(tmp_path, solver):
     assert steps == list(range(a["iterations"] + 1)), "every step once in TensorBoard"
 
 
+@pytest.mark.slow      # also at the solver level (tests/solvers/test_base.py)
 def test_max_iter_is_the_budget_of_the_whole_run(tmp_path):
     problem, solver = {"n": 16}, {"name": "levenberg_marquardt", "max_iter": 6}
     assert run_script(tmp_path / "run", problem, solver, kill_at=3).returncode == -9
