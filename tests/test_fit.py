@@ -218,11 +218,10 @@ def test_solvers_get_what_their_registry_entry_asks_of_the_parameterisation():
 
 
 def test_split_bregman_run_records_its_terms(tmp_path):
-    problem = build_problem("spring1d", {"noise": 1e-4})
-    result = fit(problem, "split_bregman", run_dir=tmp_path, options=FitOptions(progress=False,
-                                                                                threads=1))
-    assert result.stop_reason == "discrepancy" and result.converged
-    assert result.metrics["k_err_rel"] <= 2e-3
+    # (its accuracy: tests/solvers/test_split_bregman.py)
+    problem = build_problem("spring1d", {"n": 16, "noise": 1e-4})
+    result = fit(problem, {"name": "split_bregman", "max_iter": 12}, run_dir=tmp_path,
+                 options=QUIET)
     last = result.history[-1]
     for key in ("tv", "split_residual", "inner_iterations", "mu", "beta", "stage"):
         assert key in last, key

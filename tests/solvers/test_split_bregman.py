@@ -205,7 +205,7 @@ def test_resume_across_stage_changes_is_bit_identical():
     problem = Spring1D(Spring1DConfig(n=16, noise=1e-4))
     D = problem.parameterization.difference_operator()
     full, snapshots = _resume_all(lambda: SplitBregman(SplitBregmanConfig(max_iter=200), D=D),
-                                  fresh(problem), problem.theta0, every=9)
+                                  fresh(problem), problem.theta0, every=14)
     assert full.stop_reason == "discrepancy"
     stages = {k: state["stage"] for k, (state, _) in snapshots.items()}
     assert len(set(stages.values())) >= 3                   # snapshots in three stages
@@ -215,7 +215,7 @@ def test_resume_noise_free_fixed_weight_is_bit_identical():
     problem = Spring1D(Spring1DConfig(n=16))
     D = problem.parameterization.difference_operator()
     full, _ = _resume_all(lambda: SplitBregman(SplitBregmanConfig(max_iter=200), D=D),
-                          fresh(problem), problem.theta0, every=6)
+                          fresh(problem), problem.theta0, every=12)
     assert full.stop_reason == "tolerance"
 
 
