@@ -21,13 +21,9 @@ import sys
 from pathlib import Path
 from typing import Any, Callable, NoReturn
 
-REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:       # the package of this checkout, installed or not
-    sys.path.insert(0, str(REPO))
+from omegaconf.errors import OmegaConfBaseException
 
-from omegaconf.errors import OmegaConfBaseException  # noqa: E402
-
-from torchfit.errors import ConfigurationError  # noqa: E402
+from torchfit.errors import ConfigurationError
 
 #: Exceptions that mean "the input is wrong" (exit 2, one line, nothing left behind).
 BAD_INPUT = (ConfigurationError, OmegaConfBaseException, OSError)
@@ -107,8 +103,8 @@ def run_hydra_app(main: Callable[[], Any], started: Callable[[], bool],
     try:
         main()
     except SystemExit as exit_:
-        if exit_.code != 1 or started():
-            raise
+        if exit_.code != 1 or started() or "Traceback (most recent call last)" in stderr.tail:
+            raise           # not a configuration Hydra refused: a crash (its traceback is above)
         reason = hydra_reason(stderr.tail)
         if any(a in ("-m", "--multirun") for a in argv):
             # Hydra's basic sweeper composes every job before it launches the first: one

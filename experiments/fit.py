@@ -21,7 +21,11 @@ import traceback
 from pathlib import Path
 from typing import Any
 
-from app import BAD_INPUT, RunDirGuard, one_line, refuse, run_hydra_app
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:       # this checkout's experiments/ (and torchfit), installed or not
+    sys.path.insert(0, str(REPO))
+
+from experiments.app import BAD_INPUT, RunDirGuard, one_line, refuse, run_hydra_app
 
 import hydra  # noqa: E402
 import matplotlib  # noqa: E402

@@ -14,7 +14,11 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from app import BAD_INPUT, RunDirGuard, refuse, run_hydra_app
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:       # this checkout's experiments/ (and torchfit), installed or not
+    sys.path.insert(0, str(REPO))
+
+from experiments.app import BAD_INPUT, RunDirGuard, refuse, run_hydra_app
 
 import hydra  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402

@@ -150,7 +150,7 @@ def test_real_joblib_sweep(tmp_path):
     rows = table_rows(rep.stdout)
     assert rows[0][:2] == ["job", "tau"]
     assert [r[:2] for r in rows[1:]] == [["0", "0.5"], ["1", "1.5"], ["2", "2.0"]]
-    assert rows[1][-1].startswith("failed: no job directory")
+    assert rows[1][-1].startswith("failed: solver.tau")     # the job's own error line
     for row in rows[2:]:
         job_dir = next(sweep.glob(f"{row[0]}_*"))
         res = json.loads((job_dir / "result.json").read_text())
