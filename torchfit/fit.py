@@ -447,15 +447,8 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
     else:
         chain.append(lambda record: rows.append(record.row()))
     chain.extend(callbacks)
-
-    def emit(record: IterationRecord) -> bool:
-        stop = False
-        for callback in chain:
-            stop = bool(callback(record)) or stop
-        return stop
-
     try:
-        solved = solver.solve(problem.residual(), problem.theta0, [emit],
+        solved = solver.solve(problem.residual(), problem.theta0, chain,
                               state=restart.state if restart else None)
     finally:
         if checkpointer is not None:
