@@ -1,7 +1,8 @@
 # Sourced by scripts/fit.sh and scripts/test.sh: create or reuse the project's virtual
 # environment and install torchfit with the pinned versions of constraints.txt.
 # Re-installs only when pyproject.toml or constraints.txt changed.
-# Variables: TORCHFIT_VENV (default <repo>/.venv), PYTHON (default: python3.11 or python3).
+# Variables: TORCHFIT_VENV (default <repo>/.venv), PYTHON (default: python3.11 or python3),
+# TORCHFIT_EXTRAS (default "dev,pardiso" on x86-64, "dev" elsewhere: MKL has no other wheels).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="${TORCHFIT_VENV:-$ROOT/.venv}"
@@ -16,13 +17,19 @@ if [ ! -x "$VENV/bin/python" ]; then
   echo "[torchfit] creating virtual environment $VENV" >&2
   "$PYTHON" -m venv "$VENV"
 fi
+if [ -z "${TORCHFIT_EXTRAS:-}" ]; then
+  case "$(uname -m)" in
+    x86_64|AMD64) TORCHFIT_EXTRAS="dev,pardiso" ;;
+    *) TORCHFIT_EXTRAS="dev" ;;
+  esac
+fi
 STAMP="$VENV/.torchfit-install"
-WANT="$(cat "$ROOT/pyproject.toml" "$ROOT/constraints.txt" | sha256sum | cut -d' ' -f1)"
+WANT="$( (cat "$ROOT/pyproject.toml" "$ROOT/constraints.txt"; echo "$TORCHFIT_EXTRAS") | sha256sum | cut -d' ' -f1)"
 if [ "$(cat "$STAMP" 2>/dev/null || true)" != "$WANT" ]; then
   echo "[torchfit] installing torchfit and pinned dependencies into $VENV" >&2
   # torch is pinned (2.13.0, CPU build): an unpinned torch would pull several GB of CUDA.
   "$VENV/bin/python" -m pip install --quiet --disable-pip-version-check \
-    -c "$ROOT/constraints.txt" -e "$ROOT[dev]" >&2
+    -c "$ROOT/constraints.txt" -e "$ROOT[$TORCHFIT_EXTRAS]" >&2
   echo "$WANT" > "$STAMP"
 fi
 TORCHFIT_PYTHON="$VENV/bin/python"
