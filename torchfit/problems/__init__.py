@@ -7,6 +7,8 @@ from typing import Any
 from .base import (Backend, Choice, DataMode, DType, FieldImageProblem, FramedProblem,
                    InverseProblem, MeshProblem, ProblemConfig, ProblemConfigError, Transform,
                    make_config)
+from .animation import AnimationConfig, AnimationProblem
+from .arm3d import Arm3D, Arm3DConfig
 from .membrane2d import Membrane2D, Membrane2DConfig, Model, SheetData
 from .poisson2d import Pattern, Poisson2D, Poisson2DConfig
 from .spring1d import Spring1D, Spring1DConfig
@@ -25,6 +27,8 @@ PROBLEMS: dict[str, ProblemEntry] = {
     "spring1d": ProblemEntry(Spring1DConfig, Spring1D),
     "poisson2d": ProblemEntry(Poisson2DConfig, Poisson2D),
     "membrane2d": ProblemEntry(Membrane2DConfig, Membrane2D),
+    "arm3d": ProblemEntry(Arm3DConfig, Arm3D),
+    "animation": ProblemEntry(AnimationConfig, AnimationProblem),
 }
 
 
@@ -37,7 +41,7 @@ def build_problem(name: str, cfg: Any = None) -> InverseProblem:
     return entry.problem_class(make_config(entry.config_class, cfg))
 
 
-__all__ = ["Backend", "Choice", "DType", "DataMode", "FieldImageProblem", "FramedProblem",
+__all__ = ["AnimationConfig", "AnimationProblem", "Arm3D", "Arm3DConfig", "Backend", "Choice", "DType", "DataMode", "FieldImageProblem", "FramedProblem",
            "InverseProblem", "Membrane2D", "Membrane2DConfig", "MeshProblem", "Model",
            "PROBLEMS", "Pattern", "Poisson2D", "Poisson2DConfig", "ProblemConfig",
            "ProblemConfigError", "ProblemEntry", "SheetData", "Spring1D", "Spring1DConfig",

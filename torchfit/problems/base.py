@@ -87,11 +87,15 @@ class Transform(Choice):
 
 class Backend(Choice):
     """Linear-solve backend: ``scipy`` (CPU direct), ``banded`` (CPU banded Cholesky),
-    ``cg`` (torch Jacobi-CG, any device)."""
+    ``pardiso`` (CPU, MKL PARDISO, the ``pardiso`` extra), ``cg`` (torch Jacobi-CG, any
+    device); ``auto`` lets the problem choose (3-D: pardiso where installed, else scipy;
+    ``cg`` off the CPU)."""
 
     scipy = "scipy"
     banded = "banded"
+    pardiso = "pardiso"
     cg = "cg"
+    auto = "auto"
 
 
 class DType(Choice):
@@ -102,7 +106,7 @@ class DType(Choice):
 
 
 #: Backends that factorise on the CPU (a problem on another device needs ``cg``).
-CPU_BACKENDS = (Backend.scipy, Backend.banded)
+CPU_BACKENDS = (Backend.scipy, Backend.banded, Backend.pardiso)
 #: Device names understood by :func:`resolve_device` (``cuda:N`` picks a GPU).
 DEVICE_CHOICES = ("cpu", "cuda", "cuda:N", "mps")
 _DEVICE = re.compile(r"^(cpu|cuda|mps)(?::(\d+))?$")
@@ -252,6 +256,17 @@ def check_device(key: str, value: Any) -> torch.device:
         raise setting_error(key, value, "this torch has no MPS device here; use "
                             "problem.device=cpu")
     return torch.device(name)
+
+
+def resolve_backend(choice: Backend, device: torch.device, dim: int) -> str:
+    """The backend name of a ``backend`` setting: ``auto`` is
+    :func:`torchfit.linalg.backends.default_backend` (3-D CPU: ``pardiso`` where installed,
+    else ``scipy``; ``cg`` off the CPU)."""
+    if choice != Backend.auto:
+        return choice.value
+    from ..linalg.backends import default_backend
+
+    return default_backend(dim, device)
 
 
 def dtype_of(choice: DType | str) -> torch.dtype:

@@ -42,7 +42,7 @@ from ..params import Parameterization, per_element
 from ..physics import NewtonOptions
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
 from .base import (Backend, Choice, DType, InverseProblem, ProblemConfig, ProblemConfigError,
-                   require_setting)
+                   require_setting, resolve_backend)
 
 
 class Model(Choice):
@@ -167,7 +167,8 @@ class Membrane2D(InverseProblem):
         newton = NewtonOptions(max_iter=cfg.newton_max_iter, rtol=cfg.newton_rtol,
                                atol=cfg.newton_atol)
         self.quasistatic = QuasistaticElasticity(self.model, dirichlet,
-                                                 backend=cfg.backend.value, newton=newton)
+                                                 backend=resolve_backend(cfg.backend, self.device, 2),
+                                                 newton=newton)
         rest = self.model.rest.points
         right_frames = animation(rest[self.right_vertices], cfg.width, cfg.height)
         n_frames = right_frames.shape[0]

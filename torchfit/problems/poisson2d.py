@@ -24,7 +24,7 @@ from torch import Tensor
 from ..params import Parameterization, grid_edges, grid_groups, per_element
 from ..physics import Equilibrium, SpringChain1D
 from .base import (Choice, DataMode, InverseProblem, ProblemConfig, ProblemConfigError,
-                   node_frame_index, require, require_setting)
+                   node_frame_index, require, require_setting, resolve_backend)
 
 
 class Pattern(Choice):
@@ -107,7 +107,8 @@ class Poisson2D(InverseProblem):
                                    torch.zeros(2, n_nodes, dtype=dtype, device=device))
         self.dirichlet_nodes = np.concatenate([np.arange(N), np.arange((N - 1) * N, N * N)])
         fixed = torch.from_numpy(np.sort(self.dirichlet_nodes))
-        self.equilibrium = Equilibrium(self.model, fixed, backend=cfg.backend.value)
+        self.equilibrium = Equilibrium(self.model, fixed,
+                                       backend=resolve_backend(cfg.backend, self.device, 2))
         # Dirichlet: x = X / s on the left and right columns, per component ("frame").
         self.fixed_values = (self.rest_positions[fixed].T / s).contiguous().to(device)
 

@@ -18,7 +18,7 @@ from torch import Tensor
 from ..params import Parameterization, chain_edges, per_element
 from ..physics import Equilibrium, SpringChain1D
 from .base import (DataMode, InverseProblem, ProblemConfig, ProblemConfigError, require,
-                   require_setting)
+                   require_setting, resolve_backend)
 
 DATA_MODES = tuple(DataMode.choices())
 
@@ -96,7 +96,8 @@ class Spring1D(InverseProblem):
                                    torch.full((n,), 1.0 / n, dtype=dtype, device=device),
                                    external.to(device))
         self.fixed = torch.as_tensor(sorted(int(i) for i in cfg.fixed_nodes), dtype=torch.long)
-        self.equilibrium = Equilibrium(self.model, self.fixed, backend=cfg.backend.value)
+        self.equilibrium = Equilibrium(self.model, self.fixed,
+                                       backend=resolve_backend(cfg.backend, self.device, 1))
         # Fixed nodes stay at their rest positions i/n (node 0 at x = 0).
         self.fixed_values = (self.fixed.to(dtype) / n).repeat(n_frames, 1).to(device)
         self.n_frames = n_frames

@@ -1,0 +1,131 @@
+"""``arm3d``: the seed's 3-D test, a tetrahedral arm with a two-bone rig (PROBLEMS.md).
+
+The procedural arm of :mod:`torchfit.mesh.arm` (upper arm 0.30 m, forearm 0.28 m, radius
+0.05 to 0.035 m with a muscle profile; 48 frames: elbow bend to 120 degrees with a bicep
+bulge, back, extension to -10 degrees with a tricep bulge, back) is written as an animation
+folder in the user format (:mod:`torchfit.mesh.animation`) and read back through the same
+loader as ``problem=animation``: one path for procedural and user data. The folder lives in
+the cache (``<cache>/animations/arm3d-<hash of the shape>``); every run also copies it into
+its run directory (``animation/``), a worked example of the format.
+
+Differences from ``animation``: regions are geometric (``bone`` within 0.4 of the local
+radius from the bone axis, the attached core; ``muscle`` to 0.75; ``fat`` outside), the joint
+region is the elbow (within 1.5 radii of it), frames are named by their elbow angle.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..mesh import MeshError
+from ..mesh.animation import Animation, load_animation, write_animation
+from ..mesh.arm import (REGION_NAMES, ArmShape, arm_animation, arm_surface, correctives,
+                        elbow_angles, elbow_region, region_labels)
+from ..mesh.tetrahedralize import default_cache_dir
+from .animation import AnimationConfig, AnimationProblem
+from .base import ProblemConfigError, require_setting
+
+
+@dataclasses.dataclass
+class Arm3DConfig(AnimationConfig):
+    """Settings of ``problem=arm3d``: the arm's shape and animation, then everything of
+    ``problem=animation`` (``path`` is not used: the arm writes its own animation)."""
+
+    name: str = "arm3d"
+    upper: float = 0.30                # upper-arm length (m)
+    fore: float = 0.28                 # forearm length (m)
+    r_shoulder: float = 0.05           # radius at the shoulder (m)
+    r_wrist: float = 0.035             # radius at the wrist (m)
+    n_frames: int = 48                 # frames of the whole animation (4 phases)
+    max_flexion: float = 120.0         # degrees
+    max_extension: float = 10.0        # degrees
+    bicep_bulge: float = 0.012         # peak corrective displacement at full flexion (m)
+    tricep_bulge: float = 0.006        # at full extension (m)
+    tet_edge_length: float = 0.028     # about 10k tetrahedra
+    # noise as a fraction of the mean bulge displacement (0.01: 1 %); sets problem.noise
+    noise_of_bulge: float = 0.0
+    E_regions: list = dataclasses.field(default_factory=lambda: [8.0, 3.0, 1.0])  # bone, muscle, fat
+
+
+class Arm3D(AnimationProblem):
+    """The procedural arm, fitted through the animation path."""
+
+    config_class = Arm3DConfig
+    name = "arm3d"
+
+    def check_source(self, cfg: Arm3DConfig) -> None:
+        require_setting(not cfg.path, cfg, "path", "is not used by arm3d (it writes its own "
+                        "animation); use problem=animation problem.path=<folder> for yours")
+        require_setting(cfg.n_frames >= 1, cfg, "n_frames", "must be >= 1")
+        for key in ("upper", "fore", "r_shoulder", "r_wrist"):
+            require_setting(getattr(cfg, key) > 0, cfg, key, "must be positive (metres)")
+        require_setting(cfg.max_flexion > 0, cfg, "max_flexion", "must be positive (degrees)")
+        require_setting(cfg.max_extension >= 0, cfg, "max_extension", "must be >= 0 (degrees)")
+        require_setting(cfg.noise_of_bulge >= 0, cfg, "noise_of_bulge", "must be >= 0")
+        if cfg.noise_of_bulge > 0:
+            require_setting(cfg.noise == 0, cfg, "noise", "give either problem.noise (metres) or "
+                            "problem.noise_of_bulge (a fraction of the mean bulge), not both")
+            cfg.noise = cfg.noise_of_bulge * mean_bulge_displacement(self.shape(cfg))
+
+    def shape(self, cfg: Arm3DConfig) -> ArmShape:
+        return ArmShape(upper=cfg.upper, fore=cfg.fore, r_shoulder=cfg.r_shoulder,
+                        r_wrist=cfg.r_wrist, n_frames=cfg.n_frames, max_flexion=cfg.max_flexion,
+                        max_extension=cfg.max_extension, bicep_bulge=cfg.bicep_bulge,
+                        tricep_bulge=cfg.tricep_bulge)
+
+    def load(self, cfg: Arm3DConfig) -> Animation:
+        self.arm = self.shape(cfg)
+        key = hashlib.sha256(json.dumps(dataclasses.asdict(self.arm), sort_keys=True)
+                             .encode()).hexdigest()[:16]
+        root = Path(cfg.cache_dir).expanduser() if cfg.cache_dir else default_cache_dir().parent
+        folder = root / "animations" / f"arm3d-{key}"
+        if not (folder / "animation.yaml").is_file():
+            data = arm_animation(self.arm)
+            write_animation(folder, data["rest_vertices"], data["faces"], data["frames"],
+                            skeleton=data["skeleton"],
+                            description="procedural arm of torchfit's arm3d problem "
+                                        "(PROBLEMS.md): two bones, 48 frames, elbow bend with "
+                                        "bicep bulge, extension with tricep bulge")
+        self.elbow_angles = elbow_angles(self.arm)
+        try:
+            return load_animation(folder)
+        except MeshError as err:
+            raise ProblemConfigError(f"arm3d animation in {folder}: {err}") from err
+
+    def regions(self, cfg: Arm3DConfig) -> tuple[np.ndarray, list[str]]:
+        return region_labels(self.arm, self.mesh.centroids()), list(REGION_NAMES)
+
+    def joint_region(self, cfg: Arm3DConfig) -> np.ndarray:
+        return np.flatnonzero(elbow_region(self.arm, self.mesh.centroids()))
+
+    def reference_frame(self) -> int:
+        angles = self.frame_angles()
+        return int(np.argmax(angles))
+
+    def frame_angles(self) -> np.ndarray:
+        """Elbow angle (degrees) of every fitted frame."""
+        frames = self.cfg.frames if self.cfg.frames is not None else range(self.arm.n_frames)
+        return np.asarray([self.elbow_angles[int(f)] for f in frames])
+
+    def frame_names(self) -> list[str]:
+        frames = self.cfg.frames if self.cfg.frames is not None else range(self.arm.n_frames)
+        return [f"frame {int(f)}: elbow {a:+.0f} deg" for f, a in zip(frames, self.frame_angles())]
+
+    def describe(self) -> dict:
+        out = super().describe()
+        out.update({"elbow_angle_full_bend": float(self.frame_angles()[self.full_bend_frame]),
+                    "mean_bulge_displacement": mean_bulge_displacement(self.arm)})
+        return out
+
+
+def mean_bulge_displacement(shape: ArmShape) -> float:
+    """Mean length (m) of the corrective (bulge) displacement over every frame and every
+    surface vertex the bulges move: the scale of the signal a material fit explains."""
+    rest, _ = arm_surface(shape)
+    bulge = np.linalg.norm(correctives(shape, rest, elbow_angles(shape)), axis=-1)   # (F, V)
+    moved = bulge.max(axis=0) > 0
+    return float(bulge[:, moved].mean()) if moved.any() else 0.0
