@@ -48,7 +48,6 @@ class Arm3DConfig(AnimationConfig):
     tet_edge_length: float = 0.028     # about 10k tetrahedra
     # noise as a fraction of the mean bulge displacement (0.01: 1 %); sets problem.noise
     noise_of_bulge: float = 0.0
-    E_regions: list = dataclasses.field(default_factory=lambda: [8.0, 3.0, 1.0])  # bone, muscle, fat
 
 
 class Arm3D(AnimationProblem):

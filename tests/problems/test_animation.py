@@ -1,0 +1,180 @@
+"""problem=animation: a user's rigged animation, end to end through real pytetwild.
+
+The capsule of tests/capsule_animation.py (a second closed surface, two bones, three
+frames) goes through the loader, tetrahedralisation (cached), embedding, both driving modes,
+a fit, and the bad-input errors of the issue.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from capsule_animation import HALF, RADIUS, write_capsule
+from conftest import run_fit_app
+from torchfit import build_problem, fit
+from torchfit.problems import ProblemConfigError
+
+SMALL = {"tet_edge_length": 0.12, "grid": [2, 2, 3], "newton_rtol": 1e-9}
+
+
+@pytest.fixture()
+def cache(tmp_path, monkeypatch):
+    folder = tmp_path / "cache"
+    monkeypatch.setenv("TORCHFIT_CACHE_DIR", str(folder))
+    return folder
+
+
+def problem_for(folder, cache, **settings):
+    return build_problem("animation", {"path": str(folder), "cache_dir": str(cache),
+                                       **SMALL, **settings})
+
+
+@pytest.mark.parametrize("mode,frames_as", [("skeleton", "obj"), ("driven", "npz")])
+def test_capsule_fits_and_rerun_hits_the_tet_cache(tmp_path, cache, mode, frames_as):
+    folder = write_capsule(tmp_path / "capsule", mode, frames_as)
+    problem = problem_for(folder, cache, target="synthetic", truth="blocks",
+                          E_blocks=[1.0, 3.0, 0.5])
+    assert not problem.tet.from_cache
+    assert problem.n_frames == 3
+    assert (problem.mesh.signed_volumes() > 0).all()
+    # the user's surface vertices are embedded: the rest tets reproduce them exactly
+    rest = torch.as_tensor(problem.mesh.points)
+    assert torch.allclose(problem.surface(rest), torch.as_tensor(problem.animation.rest_vertices),
+                          atol=1e-12)
+    if mode == "driven":
+        assert problem.observed_vertices.numel() == int((~problem.animation.driven.mask).sum())
+    else:
+        assert problem.observed_vertices.numel() == problem.animation.n_vertices
+    result = fit(problem, {"name": "levenberg_marquardt", "max_iter": 8})
+    assert result.metrics["k_err_rel_aligned"] < 1e-3
+    assert result.metrics["surface_err_mean"] < 1e-6
+    again = problem_for(folder, cache, target="synthetic", truth="blocks",
+                        E_blocks=[1.0, 3.0, 0.5])
+    assert again.tet.from_cache
+    assert np.array_equal(again.tet.points, problem.tet.points)
+    assert np.array_equal(again.tet.cells, problem.tet.cells)
+
+
+def test_rig_target_fit_lowers_the_surface_error(tmp_path, cache):
+    folder = write_capsule(tmp_path / "capsule", "skeleton", "npz")
+    problem = problem_for(folder, cache)
+    result = fit(problem, {"name": "levenberg_marquardt", "max_iter": 6})
+    assert result.metrics["surface_err_reduction"] > 1.0
+    assert result.metrics["surface_err_mean"] < problem.homogeneous_surface_error()
+
+
+def test_fit_app_runs_the_capsule_end_to_end(tmp_path, cache):
+    folder = write_capsule(tmp_path / "capsule", "skeleton", "obj")
+    run = tmp_path / "run"
+    proc = run_fit_app(run, "problem=animation", f"problem.path={folder}",
+                       f"problem.cache_dir={cache}", "problem.tet_edge_length=0.12",
+                       "problem.grid=[2,2,3]", "solver.max_iter=3", "threads=1")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads((run / "result.json").read_text())
+    assert result["problem"]["n_frames"] == 3
+    assert result["surface_err_mean"] <= result["problem"]["surface_err_mean_homogeneous"]
+
+
+# -- bad input: one clear line, before any output -------------------------------------
+def edit_manifest(folder, change):
+    path = folder / "animation.yaml"
+    spec = yaml.safe_load(path.read_text())
+    change(spec)
+    path.write_text(yaml.safe_dump(spec))
+
+
+def expect_error(folder, cache, match, **settings):
+    with pytest.raises(ProblemConfigError, match=match) as info:
+        problem_for(folder, cache, **settings)
+    assert "\n" not in str(info.value)
+
+
+def test_frame_with_another_vertex_count_names_the_file(tmp_path, cache):
+    folder = write_capsule(tmp_path / "c", "skeleton", "obj")
+    import trimesh
+
+    trimesh.creation.icosphere(subdivisions=1).export(str(folder / "frames" / "pose2.obj"))
+    expect_error(folder, cache, r"pose2\.obj: frame has 42 vertices but the rest surface has")
+
+
+def test_nan_coordinate_names_frame_and_vertex(tmp_path, cache):
+    folder = write_capsule(tmp_path / "c", "skeleton", "npz")
+    frames = np.load(folder / "frames.npz")["frames"]
+    frames[2, 17, 1] = np.nan
+    np.savez(folder / "frames.npz", frames=frames)
+    expect_error(folder, cache, r"frame 2 .*vertex 17 has a NaN or infinite coordinate")
+
+
+def test_missing_files_and_manifest_keys(tmp_path, cache):
+    folder = write_capsule(tmp_path / "c", "skeleton", "npz")
+    expect_error(tmp_path / "nowhere", cache, "no animation manifest at")
+    (folder / "rest.obj").rename(folder / "moved.obj")
+    expect_error(folder, cache, r"rest surface file .*rest\.obj does not exist")
+    (folder / "moved.obj").rename(folder / "rest.obj")
+    edit_manifest(folder, lambda s: s.update(colour="red"))
+    expect_error(folder, cache, r"unknown key 'colour' in the manifest")
+    edit_manifest(folder, lambda s: (s.pop("colour"), s.pop("frames")))
+    expect_error(folder, cache, r"missing entry 'frames' in the manifest")
+
+
+def test_driven_sets_empty_or_everything(tmp_path, cache):
+    folder = write_capsule(tmp_path / "c", "driven", "npz")
+    n = len(np.load(folder / "frames.npz")["frames"][0])
+    np.save(folder / "driven.npy", np.zeros(0, dtype=np.int64))
+    expect_error(folder, cache, "the driven set is empty")
+    np.save(folder / "driven.npy", np.ones(n, dtype=bool))
+    expect_error(folder, cache, "the driven set covers every vertex")
+
+
+def test_bone_transform_not_finite_and_no_vertex_near_a_bone(tmp_path, cache):
+    folder = write_capsule(tmp_path / "c", "skeleton", "npz")
+    with np.load(folder / "skeleton.npz") as data:
+        bones = {k: data[k] for k in data.files}
+    bones["transforms"][1, 0, 2, 3] = np.inf
+    np.savez(folder / "skeleton.npz", **bones)
+    expect_error(folder, cache, "the transform of bone 0 in frame 1 is not finite")
+    bones["transforms"][1, 0, 2, 3] = 0.0
+    bones["heads"] = bones["heads"] + [1.0, 0, 0]
+    bones["tails"] = bones["tails"] + [1.0, 0, 0]
+    np.savez(folder / "skeleton.npz", **bones)
+    expect_error(folder, cache, "no material point lies within attach_radius")
+
+
+def test_broken_surface_is_an_error_and_an_open_one_a_warning(tmp_path, cache):
+    folder = write_capsule(tmp_path / "c", "skeleton", "npz")
+    import trimesh
+
+    mesh = trimesh.load(str(folder / "rest.obj"), process=False, maintain_order=True)
+    flat = np.asarray(mesh.vertices).copy()
+    flat[:, 0] = 0.0                                    # every vertex on one plane
+    trimesh.Trimesh(flat, mesh.faces, process=False).export(str(folder / "rest.obj"))
+    np.savez(folder / "frames.npz", frames=np.broadcast_to(flat, (3, *flat.shape)))
+    with pytest.raises(ProblemConfigError, match="tetrahedr") as info:
+        problem_for(folder, cache)
+    assert "\n" not in str(info.value)
+    folder = write_capsule(tmp_path / "open", "skeleton", "npz")
+    mesh = trimesh.load(str(folder / "rest.obj"), process=False, maintain_order=True)
+    keep = np.ones(len(mesh.faces), dtype=bool)
+    keep[np.argsort(mesh.triangles_center[:, 2])[-4:]] = False   # a hole at the top
+    trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False).export(
+        str(folder / "rest.obj"))
+    with pytest.warns(UserWarning, match="watertight|open"):
+        problem = problem_for(folder, cache)
+    assert problem.model.n_cells > 0
+
+
+def test_app_reports_bad_animation_in_one_line_and_writes_nothing(tmp_path, cache):
+    folder = write_capsule(tmp_path / "c", "driven", "npz")
+    np.save(folder / "driven.npy", np.zeros(0, dtype=np.int64))
+    run = tmp_path / "run"
+    proc = run_fit_app(run, "problem=animation", f"problem.path={folder}",
+                       f"problem.cache_dir={cache}")
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    lines = [l for l in proc.stderr.strip().splitlines() if l.strip()]
+    assert len(lines) == 1 and "driven set is empty" in lines[0], proc.stderr
+    assert not (run / "result.json").exists() and not (run / "tb").exists()
