@@ -47,10 +47,11 @@ from .linalg import set_threads
 from .logging import (FieldSnapshots, MetricsCallback, PlotGuard, ProgressPrinter,
                       TensorBoardLogger, field_is_chain, save_params, write_json,
                       write_run_pngs)
+from .logging.meshes import BodyOutputs
 from .logging.results import (CHECKPOINT_FILE, RESULT_FILE, atomic_write, jsonable,
                               save_torch)
 from .problems import InverseProblem
-from .problems.base import FieldImageProblem, FramedProblem, MeshProblem
+from .problems.base import BodyProblem, FieldImageProblem, FramedProblem, MeshProblem
 from .records import IterationRecord, SolveResult
 from .solvers import SOLVERS, Solver, SolverConfig
 
@@ -429,7 +430,7 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
     if options.progress:
         chain.append(ProgressPrinter())
     guard = PlotGuard()    # a failed drawing is warned about once, never fails the fit
-    tb = snapshots = checkpointer = None
+    tb = snapshots = checkpointer = body = None
     if run_path is not None:
         run_path.mkdir(parents=True, exist_ok=True)
         checkpointer = _Checkpointer(run_path, problem, solver, rows)
@@ -444,6 +445,9 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
             snapshots = FieldSnapshots(problem, tb, run_path, list(options.snapshot_iterations),
                                        options.snapshot_every, options.sheet_frame, guard=guard)
             chain.append(snapshots)
+        if isinstance(problem, BodyProblem):
+            body = BodyOutputs(problem, tb, run_path, guard=guard)
+            chain.append(body)
     else:
         chain.append(lambda record: rows.append(record.row()))
     chain.extend(callbacks)
@@ -463,7 +467,8 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
                        restart.iteration if restart else None, solved)
     if run_path is not None:
         assert tb is not None and checkpointer is not None
-        result.files = _write_outputs(problem, result, run_path, tb, snapshots, guard, config)
+        result.files = _write_outputs(problem, result, run_path, tb, snapshots, guard, config,
+                                      body)
         checkpointer.commit(solved.iterations, solved.theta, solver.state_dict(),
                             stop_reason=solved.stop_reason)
     return result
@@ -471,9 +476,13 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
 
 def _write_outputs(problem: InverseProblem, result: FitResult, run_dir: Path,
                    tb: TensorBoardLogger, snapshots: FieldSnapshots | None, guard: PlotGuard,
-                   config: Mapping[str, Any]) -> list[Path]:
+                   config: Mapping[str, Any], body: BodyOutputs | None = None) -> list[Path]:
     """Every file of a finished run; returns the pictures and data files written."""
     files = snapshots.finish() if snapshots is not None else []
+    comparison: dict[str, Any] = {}
+    if body is not None:
+        body_files, comparison = body.finish(result.theta)
+        files.extend(body_files)
     final = {**result.metrics, "iterations": result.iterations, "wall_s": result.wall_s}
     hparams = {"problem": config.get("problem", {}), "solver": config.get("solver", {})}
     tb.finish(problem, result.theta, final, hparams, guard)
@@ -481,7 +490,13 @@ def _write_outputs(problem: InverseProblem, result: FitResult, run_dir: Path,
     if isinstance(problem, MeshProblem):
         _save_frames(run_dir / "frames.npz", problem, result.field)
         files.append(run_dir / "frames.npz")
-    write_json(run_dir / RESULT_FILE, result_dict(problem, result, config))
+    summary = result_dict(problem, result, config)
+    if comparison:
+        summary["model_comparison"] = {
+            name: {k: v for k, v in values.items() if not k.endswith("_per_frame")}
+            for name, values in comparison["models"].items()}
+        summary["model_comparison"]["frame"] = comparison["frame"]
+    write_json(run_dir / RESULT_FILE, summary)
     files[:0] = write_run_pngs(run_dir, problem, result.theta, result.history, guard,
                                field_is_chain(problem))
     return files

@@ -126,6 +126,8 @@ class AnimationProblem(InverseProblem):
     initial_setting = "E0"
     dim = 3
     scale_free = True
+    #: the problem wrote its animation folder itself (a run copies it as an example)
+    writes_animation = False
 
     # -- hooks of the template --------------------------------------------------------
     def check(self, cfg: AnimationConfig) -> None:
@@ -433,6 +435,17 @@ class AnimationProblem(InverseProblem):
             return self.observe(self.x_true).reshape(self.n_frames, -1, 3)
         return torch.as_tensor(self.animation.frames, dtype=self.dtype, device=self.device)[
             :, self.observed_vertices.to(self.device)]
+
+    def clean_surface(self) -> Tensor:
+        """Noise-free target surface of every user vertex ``(F, V, 3)`` (observed or not)."""
+        if self.x_true is not None:
+            return self.surface(self.x_true)
+        return torch.as_tensor(self.animation.frames, dtype=self.dtype, device=self.device)
+
+    def surface_error_field(self, x: Tensor) -> Tensor:
+        """Distance of every user surface vertex to its noise-free target ``(F, V)``."""
+        with torch.no_grad():
+            return torch.linalg.vector_norm(self.surface(x) - self.clean_surface(), dim=-1)
 
     def surface_errors(self, x: Tensor) -> Tensor:
         """Distance of every observed surface vertex to its noise-free target ``(F, n_obs)``."""

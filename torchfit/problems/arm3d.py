@@ -55,6 +55,7 @@ class Arm3D(AnimationProblem):
 
     config_class = Arm3DConfig
     name = "arm3d"
+    writes_animation = True
 
     def check_source(self, cfg: Arm3DConfig) -> None:
         require_setting(not cfg.path, cfg, "path", "is not used by arm3d (it writes its own "

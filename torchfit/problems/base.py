@@ -403,6 +403,38 @@ class MeshProblem(Protocol):
     mesh: Any
 
 
+@runtime_checkable
+class BodyProblem(Protocol):
+    """A 3-D body fitted to an animation (``arm3d``, ``animation``): what
+    :class:`torchfit.logging.meshes.BodyOutputs` draws and exports.
+
+    ``animation`` has ``faces`` ``(T, 3)`` and ``path``; ``surface(x)`` maps tet positions
+    ``(F, n, 3)`` to the user's surface vertices ``(F, V, 3)``; ``clean_surface()`` is the
+    noise-free target surface ``(F, V, 3)`` and ``surface_error_field(x)`` the distance of
+    every surface vertex to it ``(F, V)``; ``simulate_model(model, E)`` simulates the same
+    body with another constitutive model; ``region_summary(field)`` summarises a field per
+    region.
+    """
+
+    animation: Any
+    mesh: Any
+
+    def surface(self, x: Tensor) -> Tensor:
+        ...
+
+    def clean_surface(self) -> Tensor:
+        ...
+
+    def surface_error_field(self, x: Tensor) -> Tensor:
+        ...
+
+    def simulate_model(self, model: str, E: Tensor, frames: Any = None) -> Tensor:
+        ...
+
+    def region_summary(self, field: Tensor) -> dict[str, Any]:
+        ...
+
+
 # -- the problem ----------------------------------------------------------------------------
 class InverseProblem:
     """Base class and template constructor of every problem.

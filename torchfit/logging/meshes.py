@@ -1,0 +1,344 @@
+"""Outputs of a 3-D body fitted to an animation (``arm3d``, ``animation``).
+
+:class:`BodyOutputs` is a run callback (per iteration: the per-frame surface error, kept
+for ``frame_errors.png``) and, at the end of a run, writes into the run directory
+
+``frames/frame_NNN.obj``
+    the simulated surface of every frame on the user's own vertices and faces (vertex order
+    as in the rest surface), an OBJ sequence for any DCC tool;
+``body.vtu``
+    the tetrahedral mesh (rest positions) for ParaView (meshio): cell data ``E`` (fitted),
+    ``E_true`` (synthetic targets), ``region``; point data ``displacement_NNN`` per frame
+    (``Warp By Vector`` shows a frame);
+``regions.json``
+    the fitted field summarised per region (tets, volume, mean, min, max, volume-weighted
+    mean), and the truth's for synthetic targets;
+``model_comparison.json`` and ``frame_comparison.png``
+    the same field, rig and frames simulated with the ``linear`` model beside the fitted
+    model: per-frame mean surface error and joint-region volume change, and a picture of
+    the full-bend frame (animation | linear | fitted model), the seed's frame-24 figure;
+``frame_errors.png``
+    mean surface error per frame: the homogeneous material (iteration 0) against the fit;
+``animation/``
+    a copy of the animation folder when the problem wrote it itself (``arm3d``): a worked
+    example of the format.
+
+TensorBoard (``tb/``): meshes (``add_mesh``) of the chosen frames coloured by surface error
+(``mesh/surface_error_frame<f>``) and of the tetrahedral boundary coloured by Young's
+modulus (``mesh/E_frame<f>``), and the per-frame curves as scalars whose step is the frame
+(``frames/surface_err_mean``, ``frames/surface_err_mean_homogeneous``,
+``frames/joint_volume_change_<model>``). Nothing here computes anything a solver needs.
+"""
+from __future__ import annotations
+
+import logging
+import shutil
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..problems.base import BodyProblem
+from .plots import colorize, frame_errors_figure, save_png
+from .progress import PROGRESS_LOGGER
+from .results import atomic_write, write_json
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..records import IterationRecord
+    from .pictures import PlotGuard
+    from .tensorboard import TensorBoardLogger
+
+log = logging.getLogger(__name__)
+progress = logging.getLogger(PROGRESS_LOGGER)
+
+COMPARISON_PNG = "frame_comparison.png"
+COMPARISON_JSON = "model_comparison.json"
+REGIONS_JSON = "regions.json"
+VTU_FILE = "body.vtu"
+FRAMES_DIR = "frames"
+
+
+def _numpy(x: Tensor) -> np.ndarray:
+    return x.detach().cpu().numpy().astype(np.float64)
+
+
+def vertex_field(cells: np.ndarray, values: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Per-vertex mean of a per-cell field ``(n_vertices,)`` (for colouring a surface)."""
+    total = np.zeros(n_vertices)
+    count = np.zeros(n_vertices)
+    np.add.at(total, cells.reshape(-1), np.repeat(values, cells.shape[1]))
+    np.add.at(count, cells.reshape(-1), 1.0)
+    return total / np.maximum(count, 1.0)
+
+
+def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """A plain OBJ (``v`` and ``f`` lines, 1-based) in the given vertex order, atomically."""
+    lines = ["# torchfit simulated frame"]
+    lines += [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    atomic_write(path, lambda f: f.write(("\n".join(lines) + "\n").encode()))
+
+
+def surface_figure(panels: Sequence[tuple[str, np.ndarray, np.ndarray | None]],
+                   faces: np.ndarray, vmax: float, title: str | None = None):
+    """Surfaces side by side (matplotlib 3-D), each ``(label, vertices (V, 3), error (V,))``
+    coloured by its per-vertex error on a common scale ``[0, vmax]`` (grey without one)."""
+    from matplotlib import colormaps
+    from matplotlib.figure import Figure
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    fig = Figure(figsize=(4.2 * len(panels), 5.2), dpi=100, layout="constrained")
+    all_points = np.concatenate([p[1] for p in panels])
+    lo, hi = all_points.min(0), all_points.max(0)
+    centre, half = (lo + hi) / 2, (hi - lo).max() / 2
+    cmap = colormaps["magma"]
+    for i, (label, vertices, error) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), i + 1, projection="3d")
+        triangles = vertices[faces]
+        if error is None:
+            colours = np.tile([0.75, 0.75, 0.78, 1.0], (len(faces), 1))
+        else:
+            colours = cmap(np.clip(error[faces].mean(axis=1) / max(vmax, 1e-300), 0, 1))
+        # simple Lambert shading so the shape reads without a colour scale
+        normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+        light = 0.55 + 0.45 * np.abs(normals @ np.array([0.3, -0.8, 0.5]) / np.linalg.norm(
+            [0.3, -0.8, 0.5]))
+        colours = colours.copy()
+        colours[:, :3] *= light[:, None]
+        ax.add_collection3d(Poly3DCollection(triangles, facecolors=colours, linewidths=0))
+        for axis, c in zip("xyz", centre):
+            getattr(ax, f"set_{axis}lim")(c - half, c + half)
+        ax.set_box_aspect((1, 1, 1))
+        ax.view_init(elev=10, azim=-90)
+        ax.set_axis_off()
+        ax.set_title(label, fontsize=9)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return fig
+
+
+class BodyOutputs:
+    """Per-iteration per-frame errors and the end-of-run files of a 3-D body (module doc).
+
+    Args:
+        problem: a :class:`~torchfit.problems.base.BodyProblem`.
+        tb: the run's TensorBoard logger.
+        run_dir: the run directory.
+        frames: frames to show as TensorBoard meshes (default: the full-bend frame and
+            frame 0).
+        guard: the run's plot guard (a drawing failure is warned about, never fatal).
+    """
+
+    def __init__(self, problem: BodyProblem, tb: "TensorBoardLogger", run_dir: str | Path,
+                 frames: Sequence[int] | None = None, guard: "PlotGuard | None" = None) -> None:
+        from .pictures import PlotGuard
+
+        self.problem = problem
+        self.tb = tb
+        self.run_dir = Path(run_dir)
+        reference = int(getattr(problem, "full_bend_frame", 0))
+        self.frames = sorted({reference, 0} if frames is None else {int(f) for f in frames})
+        self.guard = guard or PlotGuard()
+        self.history: dict[int, np.ndarray] = {}
+
+    def __call__(self, record: "IterationRecord") -> None:
+        with torch.no_grad():
+            x = self.problem.simulate(self.problem.field(record.theta))   # the cached state
+        self.history[int(record.iteration)] = self.problem.frame_errors(x)["surface_err_mean"]
+
+    # -- end of the run ---------------------------------------------------------------
+    def finish(self, theta: Tensor) -> tuple[list[Path], dict[str, Any]]:
+        """Write every file; returns ``(files, model comparison)`` (the latter goes into
+        ``result.json``)."""
+        problem = self.problem
+        field = problem.field(theta).detach()
+        with torch.no_grad():
+            x = problem.simulate(field)
+        files: list[Path] = []
+        comparison: dict[str, Any] = {}
+        steps = [
+            ("simulated frames (OBJ)", self._write_frames, (x,)),
+            ("body.vtu", self._write_vtu, (x, field)),
+            ("regions.json", self._write_regions, (field,)),
+            ("TensorBoard meshes", self._write_meshes, (x, field)),
+            ("frame_errors.png", self._write_frame_errors, (x,)),
+        ]
+        for what, step, args in steps:
+            written = self.guard.run(what, step, *args)
+            files.extend(written or [])
+        compared = self.guard.run("model comparison", self._compare_models, x, field)
+        if compared is not None:
+            written, comparison = compared
+            files.extend(written)
+        copied = self.guard.run("animation copy", self._copy_animation)
+        files.extend(copied or [])
+        return files, comparison
+
+    def _write_frames(self, x: Tensor) -> list[Path]:
+        folder = self.run_dir / FRAMES_DIR
+        folder.mkdir(exist_ok=True)
+        surface = _numpy(self.problem.surface(x))
+        faces = np.asarray(self.problem.animation.faces)
+        paths = []
+        for f in range(surface.shape[0]):
+            path = folder / f"frame_{f:03d}.obj"
+            write_obj(path, surface[f], faces)
+            paths.append(path)
+        progress.info("wrote %d simulated frames to %s", len(paths), folder)
+        return paths
+
+    def _write_vtu(self, x: Tensor, field: Tensor) -> list[Path]:
+        import meshio
+
+        problem = self.problem
+        points = np.asarray(problem.mesh.points)
+        cell_data = {"E": [_numpy(field)]}
+        if problem.field_true is not None:
+            cell_data["E_true"] = [_numpy(problem.field_true)]
+        if getattr(problem, "tet_regions", None) is not None:
+            cell_data["region"] = [np.asarray(problem.tet_regions, dtype=np.int32)]
+        positions = _numpy(x)
+        point_data = {f"displacement_{f:03d}": positions[f] - points
+                      for f in range(positions.shape[0])}
+        mesh = meshio.Mesh(points, [("tetra", np.asarray(problem.mesh.cells))],
+                           point_data=point_data, cell_data=cell_data)
+        path = self.run_dir / VTU_FILE
+        tmp = path.with_name(path.name + ".tmp.vtu")
+        meshio.write(str(tmp), mesh)
+        tmp.replace(path)
+        return [path]
+
+    def _write_regions(self, field: Tensor) -> list[Path]:
+        problem = self.problem
+        out: dict[str, Any] = {"fitted": problem.region_summary(field)}
+        if problem.field_true is not None:
+            out["true"] = problem.region_summary(problem.field_true)
+            # scale-free: the fit is known up to a global factor; report it aligned too
+            f, t = _numpy(field), _numpy(problem.field_true)
+            a = float(f @ t / (f @ f)) if float(f @ f) > 0 else 1.0
+            out["alignment_scale"] = a
+            out["fitted_aligned"] = problem.region_summary(field * a)
+        path = self.run_dir / REGIONS_JSON
+        write_json(path, out)
+        return [path]
+
+    def _mesh_colours(self, values: np.ndarray, vmin: float, vmax: float,
+                      cmap: str) -> np.ndarray:
+        return colorize(values[None, :], vmin, vmax, cmap)[0]
+
+    def _write_meshes(self, x: Tensor, field: Tensor) -> list[Path]:
+        problem = self.problem
+        writer = self.tb.writer
+        faces = np.asarray(problem.animation.faces)
+        surface = _numpy(problem.surface(x))
+        errors = _numpy(problem.surface_error_field(x))                 # (F, V)
+        vmax = float(errors.max()) if errors.size else 1.0
+        from ..mesh.embedding import boundary_faces
+
+        tet_faces, _ = boundary_faces(np.asarray(problem.mesh.cells))
+        E_vertex = vertex_field(np.asarray(problem.mesh.cells), _numpy(field),
+                                problem.mesh.points.shape[0])
+        positions = _numpy(x)
+        step = self.tb.last_step or 0
+        for f in self.frames:
+            if f >= surface.shape[0]:
+                continue
+            colours = self._mesh_colours(errors[f], 0.0, vmax, "magma")
+            writer.add_mesh(f"mesh/surface_error_frame{f}", torch.as_tensor(surface[f][None]),
+                            colors=torch.as_tensor(colours[None]),
+                            faces=torch.as_tensor(faces[None].astype(np.int32)), global_step=step)
+            colours = self._mesh_colours(E_vertex, float(E_vertex.min()), float(E_vertex.max()),
+                                         "viridis")
+            writer.add_mesh(f"mesh/E_frame{f}", torch.as_tensor(positions[f][None]),
+                            colors=torch.as_tensor(colours[None]),
+                            faces=torch.as_tensor(tet_faces[None].astype(np.int32)),
+                            global_step=step)
+        curves = problem.frame_errors(x)
+        for f, value in enumerate(curves["surface_err_mean"]):
+            writer.add_scalar("frames/surface_err_mean", float(value), f)
+        if 0 in self.history:
+            for f, value in enumerate(self.history[0]):
+                writer.add_scalar("frames/surface_err_mean_homogeneous", float(value), f)
+        model = problem.cfg.model.value
+        for f, value in enumerate(curves["joint_volume_change"]):
+            writer.add_scalar(f"frames/joint_volume_change_{model}", float(value), f)
+        writer.flush()
+        return []
+
+    def _write_frame_errors(self, x: Tensor) -> list[Path]:
+        from matplotlib.figure import Figure
+
+        problem = self.problem
+        final = problem.frame_errors(x)["surface_err_mean"]
+        fig = Figure(figsize=(7.0, 3.6), dpi=100, layout="constrained")
+        ax = fig.add_subplot()
+        frames = np.arange(len(final))
+        if 0 in self.history:
+            ax.plot(frames, self.history[0] * 1e3, "o-", color="0.5", ms=3,
+                    label="homogeneous (initial)")
+        ax.plot(frames, final * 1e3, "o-", color="C0", ms=3, label="fitted")
+        ax.set_xlabel("frame")
+        ax.set_ylabel("mean surface error (mm)")
+        ax.grid(alpha=0.3)
+        ax.legend()
+        path = self.run_dir / "frame_errors.png"
+        save_png(fig, path)
+        paths = [path]
+        if len(self.history) > 1:
+            fig = frame_errors_figure(self.history, problem.frame_names())
+            fig.axes[0].set_ylabel("mean surface error (m)")
+            history_path = self.run_dir / "frame_errors_history.png"
+            save_png(fig, history_path)
+            paths.append(history_path)
+        return paths
+
+    def _compare_models(self, x: Tensor, field: Tensor) -> tuple[list[Path], dict[str, Any]]:
+        problem = self.problem
+        model = problem.cfg.model.value
+        frame = int(getattr(problem, "full_bend_frame", 0))
+        results = {model: x}
+        if model != "linear":
+            progress.info("simulating the linear model for the comparison (%d frames)",
+                          problem.n_frames)
+            results["linear"] = problem.simulate_model("linear", field)
+        names = problem.frame_names()
+        summary: dict[str, Any] = {"frame": frame, "frame_name": names[frame], "models": {}}
+        panels = [("animation (target)", _numpy(problem.clean_surface())[frame], None)]
+        errors_at_frame = {}
+        for name in (["linear"] if "linear" in results else []) + \
+                ([model] if model != "linear" else []):
+            curves = problem.frame_errors(results[name])
+            summary["models"][name] = {
+                "surface_err_mean_per_frame": curves["surface_err_mean"].tolist(),
+                "joint_volume_change_per_frame": curves["joint_volume_change"].tolist(),
+                "surface_err_mean": float(np.mean(curves["surface_err_mean"])),
+                "joint_volume_change_at_frame": float(curves["joint_volume_change"][frame]),
+            }
+            errors_at_frame[name] = _numpy(problem.surface_error_field(results[name]))[frame]
+        vmax = max(float(e.max()) for e in errors_at_frame.values()) or 1.0
+        for name, error in errors_at_frame.items():
+            info = summary["models"][name]
+            panels.append((f"{name}: joint volume {100 * info['joint_volume_change_at_frame']:+.2f} %,"
+                           f"\nmean surface error {1e3 * float(error.mean()):.2f} mm",
+                           _numpy(problem.surface(results[name]))[frame], error))
+        json_path = self.run_dir / COMPARISON_JSON
+        write_json(json_path, summary)
+        fig = surface_figure(panels, np.asarray(problem.animation.faces), vmax,
+                             title=f"{names[frame]} (colour: surface error, 0 to "
+                                   f"{1e3 * vmax:.1f} mm)")
+        png = self.run_dir / COMPARISON_PNG
+        save_png(fig, png)
+        return [png, json_path], summary
+
+    def _copy_animation(self) -> list[Path]:
+        source = Path(self.problem.animation.path).parent
+        if not getattr(self.problem, "writes_animation", False):
+            return []
+        target = self.run_dir / "animation"
+        if target.exists():
+            shutil.rmtree(target)
+        shutil.copytree(source, target)
+        return [target / source.joinpath("animation.yaml").name]
