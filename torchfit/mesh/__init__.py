@@ -1,9 +1,12 @@
-"""Meshes: structured triangle/tetrahedral meshes, boundary sets, adjacency, the IPAM font."""
+"""Meshes: structured triangle/tetrahedral meshes, boundary sets, adjacency, the IPAM font,
+user surfaces (loading, checks), tetrahedralisation (fTetWild, cached), barycentric embedding."""
 from .font import GLYPHS, IPAM_BOX, bitmap_mask, ipam_mask, word_bitmap
 from .simplicial import (MeshError, SimplexMesh, box_tetrahedra, check_rest_cells,
                          element_adjacency, normalized_points, rectangle_triangles,
                          signed_volumes)
+from .surface import SurfaceError, load_surface, surface_volume, surface_warnings
 
-__all__ = ["GLYPHS", "IPAM_BOX", "MeshError", "SimplexMesh", "bitmap_mask", "box_tetrahedra",
-           "check_rest_cells", "element_adjacency", "ipam_mask", "normalized_points",
-           "rectangle_triangles", "signed_volumes", "word_bitmap"]
+__all__ = ["GLYPHS", "IPAM_BOX", "MeshError", "SimplexMesh", "SurfaceError", "bitmap_mask",
+           "box_tetrahedra", "check_rest_cells", "element_adjacency", "ipam_mask", "load_surface",
+           "normalized_points", "rectangle_triangles", "signed_volumes", "surface_volume",
+           "surface_warnings", "word_bitmap"]
