@@ -5,8 +5,11 @@ from .simplicial import (MeshError, SimplexMesh, box_tetrahedra, check_rest_cell
                          element_adjacency, normalized_points, rectangle_triangles,
                          signed_volumes)
 from .surface import SurfaceError, load_surface, surface_volume, surface_warnings
+from .tetrahedralize import (TetMesh, TetOptions, TetrahedralizationError, default_cache_dir,
+                             tetrahedralize)
 
-__all__ = ["GLYPHS", "IPAM_BOX", "MeshError", "SimplexMesh", "SurfaceError", "bitmap_mask",
-           "box_tetrahedra", "check_rest_cells", "element_adjacency", "ipam_mask", "load_surface",
-           "normalized_points", "rectangle_triangles", "signed_volumes", "surface_volume",
-           "surface_warnings", "word_bitmap"]
+__all__ = ["GLYPHS", "IPAM_BOX", "MeshError", "SimplexMesh", "SurfaceError", "TetMesh",
+           "TetOptions", "TetrahedralizationError", "bitmap_mask", "box_tetrahedra",
+           "check_rest_cells", "default_cache_dir", "element_adjacency", "ipam_mask",
+           "load_surface", "normalized_points", "rectangle_triangles", "signed_volumes",
+           "surface_volume", "surface_warnings", "tetrahedralize", "word_bitmap"]
