@@ -193,3 +193,27 @@ def test_options_are_checked_and_the_cache_directory_follows_the_environment(mon
     assert default_cache_dir() == tmp_path / "home" / ".cache" / "torchfit" / "tetmesh"
     with pytest.raises(MeshError, match="out of range"):
         tetrahedralize(np.eye(3), np.array([[0, 1, 3]]), use_cache=False)
+
+
+def test_a_concurrent_build_gets_the_entry_stored_first(tmp_path, monkeypatch):
+    """Two processes building the same key: the one that stores second returns the first's
+    arrays (never overwriting them), so both fit on the same tetrahedra."""
+    import pytetwild
+
+    box = trimesh.creation.box((1.0, 1.0, 1.0))
+    box.vertices += 0.5
+    points, cells = unit_box_tets()
+    calls = []
+
+    def racing(vertices, faces, **kwargs):
+        calls.append(len(calls))
+        if len(calls) == 1:           # another process finishes first, while this one runs
+            winner = tetrahedralize(box.vertices, box.faces, FAST, cache_dir=tmp_path)
+            assert not winner.from_cache
+        return points * (1.0 + 1e-3 * len(calls)), cells       # fTetWild varies run to run
+
+    monkeypatch.setattr(pytetwild, "tetrahedralize", racing)
+    late = tetrahedralize(box.vertices, box.faces, FAST, cache_dir=tmp_path)
+    assert len(calls) == 2 and late.from_cache
+    np.testing.assert_array_equal(late.points, points[1:-1] * 1.002)   # the winner's
+    assert [p.suffix for p in tmp_path.iterdir()] == [".npz"]
