@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 import torch
 
-from torchfit.params import Parameterization, chain_edges, grid_edges, per_element, per_region
+from torchfit.params import (Parameterization, chain_edges, grid_edges, grid_groups,
+                             grid_node_positions, per_element, per_grid_node, per_region)
 
 
 def test_exp_map_inverse_and_scale_direction():
@@ -60,3 +61,92 @@ def test_bad_inputs_are_named():
         param.inverse(torch.tensor([1.0, -1.0, 2.0]))
     with pytest.raises(ValueError, match="labels"):
         per_region(np.array([0, 2]))
+
+
+LOWER, UPPER = np.array([-0.1, 0.2, -0.3]), np.array([0.3, 0.5, 0.4])
+
+
+def test_grid_node_positions_are_row_major():
+    shape = (3, 4, 5)
+    nodes = grid_node_positions(shape, LOWER, UPPER)
+    assert nodes.shape == (60, 3)
+    ix, iy, iz = 2, 1, 3
+    spacing = (UPPER - LOWER) / (np.array(shape) - 1)
+    np.testing.assert_allclose(nodes[(ix * 4 + iy) * 5 + iz], LOWER + spacing * [ix, iy, iz],
+                               rtol=0, atol=1e-15)
+    np.testing.assert_allclose(nodes.min(0), LOWER, rtol=0, atol=0)
+    np.testing.assert_allclose(nodes.max(0), UPPER, rtol=0, atol=1e-15)
+
+
+def trilinear(x: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """``c0 + c1 x + c2 y + c3 z + c4 xy + c5 xz + c6 yz + c7 xyz``."""
+    X, Y, Z = x.T
+    return (c[0] + c[1] * X + c[2] * Y + c[3] * Z + c[4] * X * Y + c[5] * X * Z + c[6] * Y * Z
+            + c[7] * X * Y * Z)
+
+
+def test_per_grid_node_reproduces_trilinear_functions():
+    shape = (3, 4, 5)
+    rng = np.random.default_rng(1)
+    points = rng.uniform(LOWER, UPPER, (500, 3))
+    outside = np.array([[-1.0, 0.3, 0.0], [0.2, 9.0, 9.0]])      # clamped onto the box
+    param = per_grid_node(shape, np.vstack([points, outside]), LOWER, UPPER,
+                          transform="identity", name="stiffness")
+    assert param.n_params == 60 and param.n_field == 502 and param.name == "stiffness"
+    basis = param.basis
+    assert basis.is_sparse and basis.is_coalesced() and basis.dtype == torch.float64
+    dense = basis.to_dense()
+    torch.testing.assert_close(dense.sum(1), torch.ones(502), rtol=0, atol=1e-15)
+    assert (dense >= 0).all() and int((dense != 0).sum(1).max()) <= 8
+    for _ in range(3):
+        c = rng.normal(size=8)
+        theta = torch.from_numpy(trilinear(grid_node_positions(shape, LOWER, UPPER), c))
+        field = param(theta).numpy()
+        np.testing.assert_allclose(field[:500], trilinear(points, c), rtol=0, atol=1e-13)
+        np.testing.assert_allclose(field[500:], trilinear(np.clip(outside, LOWER, UPPER), c),
+                                   rtol=0, atol=1e-13)
+    # at a node the field is that node's value alone
+    node = grid_node_positions(shape, LOWER, UPPER)[[17]]
+    one = per_grid_node(shape, node, LOWER, UPPER).basis.to_dense()
+    assert one.shape == (1, 60) and one[0, 17] == 1.0 and int((one != 0).sum()) == 1
+
+
+def test_per_grid_node_tv_operator_and_groups():
+    nx, ny, nz = shape = (3, 4, 5)
+    param = per_grid_node(shape, np.zeros((1, 3)), LOWER, UPPER)
+    D = param.difference_operator()
+    assert D.shape == ((nx - 1) * ny * nz + nx * (ny - 1) * nz + nx * ny * (nz - 1), 60)
+    assert torch.equal(param.difference_groups(), torch.from_numpy(grid_groups(shape)))
+    np.testing.assert_array_equal(param.edges.numpy(), grid_edges(shape))
+    # neighbours are one grid spacing apart along one axis
+    nodes = grid_node_positions(shape, LOWER, UPPER)
+    steps = np.abs(nodes[param.edges[:, 1]] - nodes[param.edges[:, 0]])
+    spacing = (UPPER - LOWER) / (np.array(shape) - 1)
+    assert np.allclose(np.sort(steps / spacing, axis=1), [0, 0, 1])
+    # exp: a constant theta is a constant field, and D ignores it
+    theta = param.constant(2.5)
+    torch.testing.assert_close(param(theta), torch.full((1,), 2.5))
+    assert torch.count_nonzero(D @ theta) == 0
+
+
+def test_per_grid_node_in_2d_is_bilinear():
+    rng = np.random.default_rng(2)
+    points = rng.uniform([0, 0], [1, 2], (50, 2))
+    param = per_grid_node((4, 3), points, [0, 0], [1, 2], transform="identity")
+    nodes = grid_node_positions((4, 3), [0, 0], [1, 2])
+    f = lambda x: 1 + 2 * x[:, 0] - x[:, 1] + 3 * x[:, 0] * x[:, 1]   # noqa: E731
+    np.testing.assert_allclose(param(torch.from_numpy(f(nodes))).numpy(), f(points),
+                               rtol=0, atol=1e-13)
+    assert param.difference_operator().shape == (3 * 3 + 4 * 2, 12)
+
+
+def test_per_grid_node_checks_its_grid():
+    points = np.zeros((2, 3))
+    with pytest.raises(ValueError, match="at least 2 nodes per axis"):
+        per_grid_node((1, 3, 3), points, LOWER, UPPER)
+    with pytest.raises(ValueError, match="upper > lower"):
+        per_grid_node((2, 3, 3), points, LOWER, [0.3, 0.2, 0.4])
+    with pytest.raises(ValueError, match=r"\(n, 3\)"):
+        per_grid_node((2, 3, 3), np.zeros((2, 2)), LOWER, UPPER)
+    with pytest.raises(ValueError, match="same length"):
+        grid_node_positions((2, 3, 3), LOWER[:2], UPPER)

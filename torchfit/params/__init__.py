@@ -1,6 +1,8 @@
 """Parameterisations of physical fields (map, difference operator, scale direction)."""
 from .parameterization import (TRANSFORMS, Parameterization, chain_edges, grid_edges,
-                               grid_groups, per_element, per_grid_cell, per_region)
+                               grid_groups, grid_node_positions, per_element, per_grid_cell,
+                               per_grid_node, per_region)
 
 __all__ = ["TRANSFORMS", "Parameterization", "chain_edges", "grid_edges", "grid_groups",
-           "per_element", "per_grid_cell", "per_region"]
+           "grid_node_positions", "per_element", "per_grid_cell", "per_grid_node",
+           "per_region"]

@@ -208,3 +208,82 @@ def per_region(labels: Tensor | np.ndarray, cell_edges: np.ndarray | None = None
         pairs = np.sort(pairs[pairs[:, 0] != pairs[:, 1]], axis=1)
         region_edges = np.unique(pairs, axis=0) if len(pairs) else region_edges
     return Parameterization(n_regions, region_edges, basis, transform, name, dtype=dtype)
+
+
+def _grid_box(shape: tuple[int, ...], lower, upper) -> tuple[tuple[int, ...], np.ndarray,
+                                                              np.ndarray]:
+    """Checked ``(shape, lower, upper)`` of a node grid spanning a box."""
+    shape = tuple(int(s) for s in shape)
+    lo = np.asarray(lower, dtype=np.float64).reshape(-1)
+    hi = np.asarray(upper, dtype=np.float64).reshape(-1)
+    if len(shape) not in (2, 3) or lo.shape != (len(shape),) or hi.shape != (len(shape),):
+        raise ValueError(f"a node grid needs a 2-D or 3-D shape with lower and upper corners "
+                         f"of the same length, got shape {shape}, lower {lo.tolist()}, "
+                         f"upper {hi.tolist()}")
+    if min(shape) < 2:
+        raise ValueError(f"a node grid needs at least 2 nodes per axis, got shape {shape}")
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all() and (hi > lo).all()):
+        raise ValueError(f"the grid's box must be finite with upper > lower on every axis, "
+                         f"got lower {lo.tolist()}, upper {hi.tolist()}")
+    return shape, lo, hi
+
+
+def grid_node_positions(shape: tuple[int, int, int], lower, upper) -> np.ndarray:
+    """Positions ``(nx * ny * nz, 3)`` of the nodes of a regular grid spanning the box
+    ``[lower, upper]`` (corners included), row-major: node ``(ix, iy, iz)`` is row
+    ``(ix * ny + iy) * nz + iz`` (also for 2-D shapes, ``(nx * ny, 2)``)."""
+    shape, lo, hi = _grid_box(shape, lower, upper)
+    axes = [lo[a] + (hi[a] - lo[a]) * np.arange(n) / (n - 1) for a, n in enumerate(shape)]
+    mesh = np.meshgrid(*axes, indexing="ij")
+    return np.stack([g.reshape(-1) for g in mesh], axis=1)
+
+
+def per_grid_node(shape: tuple[int, int, int], points: np.ndarray, lower, upper,
+                  transform: str = "exp", name: str = "field",
+                  dtype: torch.dtype = torch.float64) -> Parameterization:
+    """One parameter per node of a regular grid over a box, interpolated (trilinearly) to
+    ``points`` (e.g. the centroids of a tetrahedral mesh's cells).
+
+    Args:
+        shape: ``(nx, ny, nz)`` nodes per axis, each at least 2 (``(nx, ny)`` works too:
+            bilinear).
+        points: ``(n, 3)`` where the field is wanted; points outside the box are clamped
+            onto it.
+        lower, upper: ``(3,)`` corners of the box (same unit as ``points``), ``upper >
+            lower``.
+
+    Returns:
+        A :class:`Parameterization` with ``nx * ny * nz`` parameters (numbered as in
+        :func:`grid_node_positions`), the sparse COO (coalesced) basis ``(n, nx * ny * nz)``
+        of trilinear weights (each row sums to 1, at most 8 nonzeros), the TV edges
+        :func:`grid_edges` between neighbouring nodes and their isotropic groups
+        :func:`grid_groups`.
+    """
+    shape, lo, hi = _grid_box(shape, lower, upper)
+    d = len(shape)
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != d or len(p) == 0:
+        raise ValueError(f"points for a {d}-D node grid must be a non-empty (n, {d}) array, "
+                         f"got shape {p.shape}")
+    if not np.isfinite(p).all():
+        raise ValueError("points for the node grid must be finite")
+    dims = np.array(shape)
+    t = np.clip((p - lo) / (hi - lo), 0.0, 1.0) * (dims - 1)       # grid coordinates
+    base = np.minimum(np.floor(t).astype(np.int64), dims - 2)      # lower node of the cell
+    frac = t - base                                                 # in [0, 1]
+    rows, cols, vals = [], [], []
+    for corner in range(2 ** d):                                    # 4 or 8 corners
+        bits = np.array([(corner >> (d - 1 - a)) & 1 for a in range(d)])
+        weight = np.prod(np.where(bits == 1, frac, 1.0 - frac), axis=1)
+        node = np.ravel_multi_index(tuple((base + bits).T), shape)
+        keep = weight != 0
+        rows.append(np.nonzero(keep)[0])
+        cols.append(node[keep])
+        vals.append(weight[keep])
+    n_nodes = int(np.prod(shape))
+    basis = torch.sparse_coo_tensor(
+        torch.from_numpy(np.stack([np.concatenate(rows), np.concatenate(cols)])),
+        torch.from_numpy(np.concatenate(vals)).to(dtype), (len(p), n_nodes),
+        check_invariants=False).coalesce()
+    return Parameterization(n_nodes, grid_edges(shape), basis, transform, name,
+                            grid_groups(shape), dtype)

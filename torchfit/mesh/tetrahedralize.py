@@ -1,0 +1,430 @@
+"""Tetrahedral meshes of closed (or nearly closed) triangle surfaces with fTetWild
+(pytetwild), cached on disk so that the same surface and options always give the same
+tetrahedra.
+
+fTetWild is robust to imperfect surfaces but not deterministic (its output changes from
+run to run and with the number of threads); the cache is what makes "the same input gives
+the same fit" true: the first call stores the mesh under a key that hashes the input
+(vertex and face bytes), the options and the pytetwild version, and every later call
+returns the stored arrays bit for bit.
+
+Conventions: ``points`` ``(n, 3)`` float64 in the unit of the surface's vertices, ``cells``
+``(m, 4)`` int64, positively oriented (``det([p1 - p0, p2 - p0, p3 - p0]) > 0``), every
+vertex referenced by some cell.
+
+pytetwild is imported lazily (inside :func:`tetrahedralize`): the rest of ``torchfit.mesh``
+works without it. Nothing here solves anything (see DESIGN.md, layer ``mesh``).
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import tempfile
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+
+from .simplicial import MeshError, signed_volumes
+from .surface import surface_volume, surface_warnings
+
+#: Version of the cache file layout (part of the key: a new layout never reads old files).
+_CACHE_FORMAT = "torchfit-tetmesh-1"
+_NO_TETS = ("tetrahedralisation produced no tetrahedra: the surface is too broken to enclose "
+            "a volume{reason}; repair it (close holes, remove self-intersections) or raise "
+            "epsilon")
+#: Accepted ratio of the tetrahedral volume to a closed surface's enclosed volume.
+_VOLUME_RATIO = (0.7, 1.3)
+#: Accepted ratio of the tetrahedral volume to the convex hull's for an open surface.
+_HULL_RATIO = 1.1
+
+
+class TetrahedralizationError(MeshError):
+    """fTetWild gave no usable tetrahedral mesh for a surface (nothing enclosed, inverted
+    tetrahedra, a volume that does not match the surface); the message says what to do."""
+
+
+@dataclasses.dataclass(frozen=True)
+class TetOptions:
+    """fTetWild's settings (part of the cache key).
+
+    Attributes:
+        edge_length_fac: target edge length as a fraction of the surface's bounding-box
+            diagonal, in ``(0, 1]``.
+        edge_length_abs: absolute target edge length (surface units); overrides
+            ``edge_length_fac`` when given.
+        optimize: improve the tetrahedra's quality (slower, better elements).
+        epsilon: envelope size (how far the tetrahedral boundary may stray from the
+            surface) relative to the bounding-box diagonal.
+        stop_energy: the quality optimisation stops when the conformal AMIPS energy (3 for
+            a regular tetrahedron) falls below this.
+        num_opt_iter: maximum number of optimisation passes.
+        coarsen: coarsen the output as much as the quality allows.
+    """
+
+    edge_length_fac: float = 0.05
+    edge_length_abs: float | None = None
+    optimize: bool = True
+    epsilon: float = 1e-3
+    stop_energy: float = 10.0
+    num_opt_iter: int = 80
+    coarsen: bool = False
+
+    def __post_init__(self) -> None:
+        self.check()
+
+    def check(self) -> None:
+        """Raise ``ValueError`` (one line naming the option) for an invalid setting."""
+        def positive(name: str, value: Any) -> None:
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+                    math.isfinite(value) and value > 0):
+                raise ValueError(f"TetOptions.{name} must be a positive finite number, "
+                                 f"got {value!r}")
+
+        positive("edge_length_fac", self.edge_length_fac)
+        if self.edge_length_fac > 1:
+            raise ValueError(f"TetOptions.edge_length_fac is a fraction of the bounding-box "
+                             f"diagonal and must be at most 1, got {self.edge_length_fac!r}")
+        if self.edge_length_abs is not None:
+            positive("edge_length_abs", self.edge_length_abs)
+        positive("epsilon", self.epsilon)
+        positive("stop_energy", self.stop_energy)
+        if isinstance(self.num_opt_iter, bool) or not isinstance(
+                self.num_opt_iter, (int, np.integer)) or self.num_opt_iter < 1:
+            raise ValueError(f"TetOptions.num_opt_iter must be a positive integer, got "
+                             f"{self.num_opt_iter!r}")
+        for name in ("optimize", "coarsen"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ValueError(f"TetOptions.{name} must be True or False, got "
+                                 f"{getattr(self, name)!r}")
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain JSON-serialisable values (floats, ints, bools, ``None``)."""
+        return {"edge_length_fac": float(self.edge_length_fac),
+                "edge_length_abs": None if self.edge_length_abs is None
+                else float(self.edge_length_abs),
+                "optimize": bool(self.optimize), "epsilon": float(self.epsilon),
+                "stop_energy": float(self.stop_energy),
+                "num_opt_iter": int(self.num_opt_iter), "coarsen": bool(self.coarsen)}
+
+
+@dataclasses.dataclass(eq=False)
+class TetMesh:
+    """A tetrahedral mesh from :func:`tetrahedralize`.
+
+    Attributes:
+        points: ``(n, 3)`` float64 vertex positions (the surface's units).
+        cells: ``(m, 4)`` int64, positively oriented, every vertex referenced.
+        key: the cache key (sha256 hex digest of input, options and pytetwild version).
+        from_cache: whether the arrays were read from the cache.
+        seconds: wall time of this call (s).
+        build_seconds: wall time pytetwild took when the mesh was built (s; stored in the
+            cache).
+        path: the cache file, or ``None`` when the cache was not used.
+    """
+
+    points: np.ndarray
+    cells: np.ndarray
+    key: str
+    from_cache: bool
+    seconds: float
+    build_seconds: float
+    path: Path | None
+
+    @property
+    def volumes(self) -> np.ndarray:
+        """``(m,)`` signed volumes of the tetrahedra (positive; units cubed)."""
+        return signed_volumes(self.points, self.cells)
+
+
+def default_cache_dir() -> Path:
+    """``$TORCHFIT_CACHE_DIR/tetmesh`` when that variable is set, else
+    ``~/.cache/torchfit/tetmesh``."""
+    root = os.environ.get("TORCHFIT_CACHE_DIR")
+    if root:
+        return Path(root).expanduser() / "tetmesh"
+    return Path.home() / ".cache" / "torchfit" / "tetmesh"
+
+
+def tetrahedralize(vertices: np.ndarray, faces: np.ndarray,
+                   options: TetOptions = TetOptions(),
+                   cache_dir: str | Path | None = None, warn: bool = True,
+                   use_cache: bool = True) -> TetMesh:
+    """Tetrahedral mesh of the volume enclosed by a triangle surface (fTetWild), cached.
+
+    Args:
+        vertices: ``(n, 3)`` surface vertices (any length unit; the mesh uses the same).
+        faces: ``(k, 3)`` vertex indices of the surface triangles.
+        options: fTetWild's settings (:class:`TetOptions`).
+        cache_dir: where meshes are stored; ``None`` (the default) means
+            :func:`default_cache_dir` at call time.
+        warn: emit a ``UserWarning`` naming what is wrong with an imperfect surface (open,
+            non-manifold, badly wound, inside out, duplicate vertices), from
+            :func:`~torchfit.mesh.surface.surface_warnings`.
+        use_cache: ``False`` bypasses the cache (neither read nor written; the result then
+            changes from call to call, as fTetWild's does).
+
+    Returns:
+        :class:`TetMesh`. A cache hit returns exactly the arrays of the first build.
+        Cache files are written atomically (a temporary file, then a rename); an existing
+        entry is never overwritten by a concurrent build (the first one stored wins and
+        every caller gets it); an unreadable entry is reported with a warning and rebuilt.
+
+    Raises:
+        TetrahedralizationError: empty result (flat or broken surface), inverted
+            tetrahedra, or a volume that does not match the surface: for a watertight
+            surface the tetrahedral volume must be within [0.7, 1.3] times the enclosed
+            volume; for an open one, positive and at most 1.1 times the convex hull's.
+        ValueError: invalid options.
+
+    fTetWild runs with the working directory set to a temporary directory (it leaves a
+    ``__tracked_surface.stl`` behind), so do not call this from several threads at once.
+    """
+    start = time.perf_counter()
+    vertices, faces = _check_surface(vertices, faces)
+    options.check()
+    surface = trimesh.Trimesh(vertices, faces, process=False)
+    problems = surface_warnings(surface)
+    if warn and problems:
+        warnings.warn("surface given to tetrahedralize: " + "; ".join(problems), UserWarning,
+                      stacklevel=2)
+    version = _pytetwild_version()
+    key = _cache_key(vertices, faces, options, version)
+    path: Path | None = None
+    corrupt = False
+    if use_cache:
+        path = Path(default_cache_dir() if cache_dir is None else cache_dir) / f"{key}.npz"
+        if path.exists():
+            try:
+                points, cells, build_seconds = _read_entry(path, key)
+            except Exception as e:                    # any unreadable entry is rebuilt
+                warnings.warn(f"tetrahedral mesh cache file {path} is unreadable "
+                              f"({type(e).__name__}: {' '.join(str(e).split())}); rebuilding it",
+                              UserWarning, stacklevel=2)
+                corrupt = True
+            else:
+                return TetMesh(points, cells, key, True, time.perf_counter() - start,
+                               build_seconds, path)
+
+    points, cells, build_seconds = _build(vertices, faces, options)
+    _check_volume(points, cells, surface, problems)
+    from_cache = False
+    if path is not None:
+        stored = _write_entry(path, key, points, cells, build_seconds, options, version,
+                              overwrite=corrupt)
+        if stored is None:
+            path = None
+        elif not stored:                              # another process stored it first
+            points, cells, build_seconds = _read_entry(path, key)
+            from_cache = True
+    return TetMesh(points, cells, key, from_cache, time.perf_counter() - start,
+                   build_seconds, path)
+
+
+def _cache_key(vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
+              version: str) -> str:
+    """sha256 hex digest of the float64 vertex bytes, the int64 face bytes (little-endian,
+    C order, with their shapes), the options' JSON and the pytetwild version."""
+    v = np.ascontiguousarray(vertices, dtype="<f8")
+    f = np.ascontiguousarray(faces, dtype="<i8")
+    h = hashlib.sha256()
+    h.update(json.dumps({"format": _CACHE_FORMAT, "vertices": list(v.shape),
+                         "faces": list(f.shape)}).encode())
+    h.update(v.tobytes())
+    h.update(f.tobytes())
+    h.update(json.dumps(options.as_dict(), sort_keys=True).encode())
+    h.update(f"pytetwild {version}".encode())
+    return h.hexdigest()
+
+
+def _check_surface(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
+        raise TetrahedralizationError(f"surface vertices must be a non-empty (n, 3) array, "
+                                      f"got shape {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+        raise TetrahedralizationError(f"surface faces must be a non-empty (k, 3) array of "
+                                      f"vertex indices, got shape {f.shape}")
+    if not np.issubdtype(f.dtype, np.integer):
+        raise TetrahedralizationError(f"surface faces must be integer vertex indices, got "
+                                      f"dtype {f.dtype}")
+    f = f.astype(np.int64)
+    if f.min() < 0 or f.max() >= len(v):
+        raise TetrahedralizationError(f"a surface face refers to a vertex out of range "
+                                      f"[0, {len(v)}); fix the face indices")
+    bad = np.nonzero(~np.isfinite(v).all(axis=1))[0]
+    if bad.size:
+        raise TetrahedralizationError(f"surface vertex {int(bad[0])} is not finite "
+                                      f"{v[bad[0]].tolist()}; fix or remove it")
+    return np.ascontiguousarray(v), np.ascontiguousarray(f)
+
+
+def _pytetwild_version() -> str:
+    from importlib import metadata
+
+    try:
+        return metadata.version("pytetwild")
+    except metadata.PackageNotFoundError:
+        raise TetrahedralizationError("pytetwild is not installed; install it with "
+                                      "pip install 'pytetwild>=0.2,<0.3'") from None
+
+
+def _flatness(vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float]:
+    """Extent of the referenced vertices across their flattest direction, and the
+    bounding-box diagonal."""
+    p = vertices[np.unique(faces)]
+    diagonal = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
+    centred = p - p.mean(axis=0)
+    normal = np.linalg.svd(centred, full_matrices=False)[2][-1]
+    across = centred @ normal
+    return float(across.max() - across.min()), diagonal
+
+
+def _build(vertices: np.ndarray, faces: np.ndarray,
+           options: TetOptions) -> tuple[np.ndarray, np.ndarray, float]:
+    """fTetWild in a temporary working directory; unreferenced vertices dropped."""
+    thickness, diagonal = _flatness(vertices, faces)
+    if not thickness > options.epsilon * diagonal:
+        # fTetWild finds nothing inside a surface thinner than its envelope, and crashes
+        # (segmentation fault) on some exactly flat ones: never hand it those.
+        raise TetrahedralizationError(_NO_TETS.format(
+            reason=f" (it is flat: {thickness:.3g} thick across, within the envelope "
+                   f"epsilon x diagonal = {options.epsilon * diagonal:.3g})"))
+    try:
+        import pytetwild
+    except ImportError as e:
+        raise TetrahedralizationError(f"pytetwild cannot be imported ({e}); install it with "
+                                      "pip install 'pytetwild>=0.2,<0.3'") from e
+    opts = options.as_dict()
+    previous = os.getcwd()
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="torchfit-tetwild-") as scratch:
+        os.chdir(scratch)
+        try:
+            points, cells = pytetwild.tetrahedralize(
+                vertices, faces.astype(np.int32), edge_length_fac=opts["edge_length_fac"],
+                edge_length_abs=opts["edge_length_abs"], optimize=opts["optimize"],
+                epsilon=opts["epsilon"], stop_energy=opts["stop_energy"],
+                coarsen=opts["coarsen"], num_opt_iter=opts["num_opt_iter"],
+                loglevel=6, quiet=True, vtk_ordering=True)
+        except Exception as e:
+            raise TetrahedralizationError(f"pytetwild failed ({type(e).__name__}: "
+                                          f"{' '.join(str(e).split())}); repair the surface "
+                                          "or change the options") from e
+        finally:
+            os.chdir(previous)
+    seconds = time.perf_counter() - start
+    points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    cells = np.ascontiguousarray(cells, dtype=np.int64).reshape(-1, 4)
+    if len(cells) == 0:
+        raise TetrahedralizationError(_NO_TETS.format(reason=""))
+    used = np.unique(cells)
+    if len(used) < len(points):
+        remap = np.full(len(points), -1, dtype=np.int64)
+        remap[used] = np.arange(len(used))
+        points, cells = np.ascontiguousarray(points[used]), remap[cells]
+    volumes = signed_volumes(points, cells)
+    bad = ~(volumes > 0)
+    if bad.any():
+        raise TetrahedralizationError(
+            f"tetrahedralisation produced {int(bad.sum())} of {len(cells)} tetrahedra with "
+            f"non-positive volume (smallest {volumes.min():.3e}); retry with optimize=True or "
+            "another edge length")
+    return points, cells, seconds
+
+
+def _check_volume(points: np.ndarray, cells: np.ndarray, surface: trimesh.Trimesh,
+                  problems: list[str]) -> None:
+    """The tetrahedra fill about what the surface encloses (see :func:`tetrahedralize`)."""
+    volume = float(signed_volumes(points, cells).sum())
+    enclosed = surface_volume(surface)
+    if enclosed is not None:
+        ratio = volume / enclosed if enclosed > 0 else math.inf
+        if not _VOLUME_RATIO[0] <= ratio <= _VOLUME_RATIO[1]:
+            raise TetrahedralizationError(
+                f"the tetrahedral mesh's volume {volume:.4g} is {ratio:.3g} times the "
+                f"volume the surface encloses ({enclosed:.4g}), outside {_VOLUME_RATIO}: the "
+                "tetrahedra do not match the surface; check it for self-intersections or "
+                "lower epsilon")
+        return
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = float(ConvexHull(np.asarray(surface.vertices)[np.unique(surface.faces)]).volume)
+    except (QhullError, ValueError):
+        hull = 0.0
+    if not 0 < volume <= _HULL_RATIO * hull:
+        raise TetrahedralizationError(
+            f"the tetrahedral mesh's volume {volume:.4g} is not in (0, {_HULL_RATIO} x the "
+            f"convex hull's {hull:.4g}] for a surface that is not closed "
+            f"({'; '.join(problems) or 'no enclosed volume'}); repair the surface")
+
+
+# -- the cache ---------------------------------------------------------------------------
+def _read_entry(path: Path, key: str) -> tuple[np.ndarray, np.ndarray, float]:
+    with np.load(path, allow_pickle=False) as data:
+        stored_key = str(data["key"])
+        points = np.ascontiguousarray(data["points"])
+        cells = np.ascontiguousarray(data["cells"])
+        build_seconds = float(data["build_seconds"])
+    if stored_key != key:
+        raise ValueError(f"it holds key {stored_key[:12]}..., not {key[:12]}...")
+    if (points.dtype != np.float64 or points.ndim != 2 or points.shape[1] != 3
+            or cells.dtype != np.int64 or cells.ndim != 2 or cells.shape[1] != 4
+            or len(cells) == 0):
+        raise ValueError(f"arrays of the wrong type or shape (points {points.dtype} "
+                         f"{points.shape}, cells {cells.dtype} {cells.shape})")
+    if cells.min() < 0 or cells.max() >= len(points):
+        raise ValueError("cell vertex index out of range")
+    return points, cells, build_seconds
+
+
+def _write_entry(path: Path, key: str, points: np.ndarray, cells: np.ndarray,
+                 build_seconds: float, options: TetOptions, version: str,
+                 overwrite: bool) -> bool | None:
+    """Store an entry atomically. ``True``: stored; ``False``: another writer's entry was
+    already there (kept, never overwritten unless ``overwrite``); ``None``: the cache is
+    not writable (warned)."""
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{key[:16]}.", suffix=".npz.tmp", dir=path.parent)
+        with os.fdopen(fd, "wb") as out:
+            np.savez(out, points=points, cells=cells, key=np.str_(key),
+                     build_seconds=np.float64(build_seconds),
+                     options=np.str_(json.dumps(options.as_dict(), sort_keys=True)),
+                     pytetwild=np.str_(version))
+            out.flush()
+            os.fsync(out.fileno())
+        if overwrite:
+            os.replace(tmp, path)
+            tmp = None
+            return True
+        try:
+            os.link(tmp, path)                        # atomic, and never overwrites
+        except FileExistsError:
+            return False
+        except OSError:                               # no hard links here: rename instead
+            if path.exists():
+                return False
+            os.replace(tmp, path)
+            tmp = None
+        return True
+    except OSError as e:
+        warnings.warn(f"cannot write the tetrahedral mesh cache {path} "
+                      f"({' '.join(str(e).split())}); continuing without caching",
+                      UserWarning, stacklevel=3)
+        return None
+    finally:
+        if tmp is not None:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
