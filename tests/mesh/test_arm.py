@@ -43,8 +43,10 @@ def test_rig_moves_the_forearm_about_the_elbow_and_bulges_the_front():
     assert np.allclose(frames[11, wrist], expected, atol=1e-9)
     # bicep: front (+x) of the upper arm moves outward at full bend, the back does not
     bulge = data["bulge"]
-    front = (rest[:, 0] > 0.03) & (np.abs(rest[:, 2] - 0.6 * shape.upper) < 0.03)
-    back = (rest[:, 0] < -0.03) & (np.abs(rest[:, 2] - 0.6 * shape.upper) < 0.03)
+    rho = np.hypot(rest[:, 0], rest[:, 1])
+    middle = np.abs(rest[:, 2] - 0.6 * shape.upper) < 0.03
+    front = (rest[:, 0] > 0.95 * rho) & middle
+    back = (rest[:, 0] < -0.95 * rho) & middle
     assert bulge[11, front, 0].min() > 0.5 * shape.bicep_bulge
     assert np.abs(bulge[11, back]).max() < 1e-12
     assert bulge[35, back, 0].max() < -0.5 * shape.tricep_bulge   # tricep at -10 degrees

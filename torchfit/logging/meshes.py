@@ -40,10 +40,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..mesh.animation import write_obj
 from ..problems.base import BodyProblem
 from .plots import colorize, frame_errors_figure, save_png
 from .progress import PROGRESS_LOGGER
-from .results import atomic_write, write_json
+from .results import write_json
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..records import IterationRecord
@@ -71,14 +72,6 @@ def vertex_field(cells: np.ndarray, values: np.ndarray, n_vertices: int) -> np.n
     np.add.at(total, cells.reshape(-1), np.repeat(values, cells.shape[1]))
     np.add.at(count, cells.reshape(-1), 1.0)
     return total / np.maximum(count, 1.0)
-
-
-def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
-    """A plain OBJ (``v`` and ``f`` lines, 1-based) in the given vertex order, atomically."""
-    lines = ["# torchfit simulated frame"]
-    lines += [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in vertices]
-    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
-    atomic_write(path, lambda f: f.write(("\n".join(lines) + "\n").encode()))
 
 
 def surface_figure(panels: Sequence[tuple[str, np.ndarray, np.ndarray | None]],

@@ -476,6 +476,14 @@ def load_animation(path: str | Path) -> Animation:
 
 
 # -- writing ------------------------------------------------------------------------------
+def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """A plain OBJ (``v``/``f`` lines, vertex order kept, 17 significant digits so that the
+    positions read back bit for bit)."""
+    lines = [f"v {x:.17g} {y:.17g} {z:.17g}" for x, y, z in vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
 def write_animation(folder: str | Path, rest_vertices: np.ndarray, faces: np.ndarray,
                     frames: np.ndarray, *, skeleton: Skeleton | None = None,
                     driven: DrivenSurface | None = None,
@@ -486,16 +494,14 @@ def write_animation(folder: str | Path, rest_vertices: np.ndarray, faces: np.nda
     The folder is written whole into a temporary sibling and renamed into place, so a
     killed process never leaves a half-written animation. Returns the manifest path.
     """
-    import trimesh
-
     if (skeleton is None) == (driven is None):
         raise ValueError("give exactly one of skeleton or driven")
     folder = Path(folder)
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
     try:
-        mesh = trimesh.Trimesh(np.asarray(rest_vertices), np.asarray(faces), process=False)
-        mesh.export(str(tmp / "rest.obj"))
+        write_obj(tmp / "rest.obj", np.asarray(rest_vertices, dtype=np.float64),
+                  np.asarray(faces, dtype=np.int64))
         np.savez_compressed(tmp / "frames.npz", frames=np.asarray(frames, dtype=np.float64))
         manifest: dict[str, Any] = {}
         if description:

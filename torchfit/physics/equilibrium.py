@@ -170,6 +170,8 @@ class Equilibrium:
         self.linear_refinement = int(linear_refinement)
         self._accepts_projected = _accepts_keyword(model.tangent_values, "projected")
         self._has_param_derivative = callable(getattr(model, "param_derivative", None))
+        # a symmetric model with an energy (R = dEnergy/dx) gets the energy line search
+        self._has_energy = bool(model.symmetric) and callable(getattr(model, "energy", None))
 
     # -- public -----------------------------------------------------------------------
     @property
@@ -277,6 +279,10 @@ class Equilibrium:
         slots = self._free_slots.to(contributions.device)
         return self.model.tangent_pattern.assemble(contributions)[..., slots]
 
+    def _energy(self, x: Tensor, params: Tensor) -> Tensor:
+        """The model's energy per frame ``(F,)`` (the Dirichlet dofs' part is constant)."""
+        return self.model.energy(x, params).detach()
+
     def _factorize(self, x: Tensor, params: Tensor) -> list[Factor]:
         """Factors of the exact tangent: one shared or one per frame."""
         values = self._free_values(self._tangent(x, params))
@@ -359,6 +365,12 @@ class Equilibrium:
         exact = ~(norms > opts.exact_below * reference) if can_project else \
             torch.ones(n_frames, dtype=torch.bool, device=x.device)
         history = [norms]
+        # An energy (the residual is its gradient) makes the line search an Armijo search
+        # on it as well: a projected (PSD) Newton direction always descends the energy,
+        # not always ||R|| (inverted elements, folds), so a step is taken when either the
+        # energy or ||R|| decreases enough.
+        energy = self._energy(x, params) if self._has_energy else None
+        energies = [energy]
         stalled = False
         for _ in range(max_iter):
             active = norms > targets
@@ -366,7 +378,12 @@ class Equilibrium:
                 break
             if opts.stall_iter and len(history) > opts.stall_iter:
                 before = history[-1 - opts.stall_iter]
-                if bool((active & ~(norms <= 0.5 * before)).any()):
+                stuck = active & ~(norms <= 0.5 * before)
+                if energy is not None:
+                    # still descending the energy: not stalled (nonconvex stretches)
+                    earlier = energies[-1 - opts.stall_iter]
+                    stuck &= ~(energy < earlier - 1e-10 * earlier.abs())
+                if bool(stuck.any()):
                     stalled = True
                     break
             frames = torch.nonzero(active).reshape(-1)
@@ -387,13 +404,31 @@ class Equilibrium:
                            for v in values]
             step = torch.zeros_like(residual)
             step[frames] = self._solve(factors, -residual[frames])
-            # Backtracking on ||R||, per frame; converged frames stay where they are.
+            slope = (residual * step).sum(dim=1)        # dEnergy/dalpha at alpha = 0
+            if energy is not None and can_project:
+                # an exact tangent that is not positive definite can point uphill: take
+                # the projected one for those frames instead
+                uphill = active & (slope >= 0) & exact
+                if bool(uphill.any()):
+                    again = torch.nonzero(uphill).reshape(-1)
+                    projected = self._free_values(self._tangent(x[again], params, projected=True))
+                    redo = [self.backend.factorize(self.free_pattern, v, self.model.symmetric)
+                            for v in projected]
+                    step[again] = self._solve(redo, -residual[again])
+                    slope = (residual * step).sum(dim=1)
+                    exact = exact & ~uphill
+            # Backtracking on ||R|| (and the energy), per frame; converged frames stay.
             alpha = torch.ones(n_frames, dtype=x.dtype, device=x.device)
+            energy_trial = energy
             for _ in range(opts.max_backtracks):
                 x_trial = self._full(x[:, free] + alpha[:, None] * step, fixed_values)
                 residual_trial = self._free_residual(x_trial, params)
                 norms_trial = torch.linalg.vector_norm(residual_trial, dim=1)
                 ok = (norms_trial <= (1 - 1e-4 * alpha) * norms) | ~active | (norms_trial <= targets)
+                if energy is not None:
+                    energy_trial = self._energy(x_trial, params)
+                    ok |= (slope < 0) & (energy_trial <= energy + 1e-4 * alpha * slope)
+                    ok &= torch.isfinite(energy_trial)
                 ok &= torch.isfinite(norms_trial)
                 if bool(ok.all()):
                     break
@@ -408,6 +443,10 @@ class Equilibrium:
             for f in frames.tolist():
                 iterations[f] += 1
             finite = torch.isfinite(norms_trial)
+            if energy is not None:
+                finite &= torch.isfinite(energy_trial)
+                energy = torch.where(finite, energy_trial, energy)
+                energies.append(energy)
             keep = ~finite[:, None]
             x = torch.where(keep, x, x_trial)
             residual = torch.where(keep, residual, residual_trial)
