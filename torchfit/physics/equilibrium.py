@@ -172,6 +172,7 @@ class Equilibrium:
         self._has_param_derivative = callable(getattr(model, "param_derivative", None))
         # a symmetric model with an energy (R = dEnergy/dx) gets the energy line search
         self._has_energy = bool(model.symmetric) and callable(getattr(model, "energy", None))
+        self._has_residual_and_energy = callable(getattr(model, "residual_and_energy", None))
 
     # -- public -----------------------------------------------------------------------
     @property
@@ -282,6 +283,14 @@ class Equilibrium:
     def _energy(self, x: Tensor, params: Tensor) -> Tensor:
         """The model's energy per frame ``(F,)`` (the Dirichlet dofs' part is constant)."""
         return self.model.energy(x, params).detach()
+
+    def _residual_and_energy(self, x: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
+        """Free residual ``(F, n_free)`` and energy ``(F,)`` (one pass where the model
+        offers ``residual_and_energy``: one SVD per element instead of two)."""
+        if self._has_residual_and_energy:
+            residual, energy = self.model.residual_and_energy(x, params)
+            return residual[:, self.free_dofs.to(x.device)], energy.detach()
+        return self._free_residual(x, params), self._energy(x, params)
 
     def _factorize(self, x: Tensor, params: Tensor) -> list[Factor]:
         """Factors of the exact tangent: one shared or one per frame."""
@@ -422,11 +431,13 @@ class Equilibrium:
             energy_trial = energy
             for _ in range(opts.max_backtracks):
                 x_trial = self._full(x[:, free] + alpha[:, None] * step, fixed_values)
-                residual_trial = self._free_residual(x_trial, params)
+                if energy is not None:
+                    residual_trial, energy_trial = self._residual_and_energy(x_trial, params)
+                else:
+                    residual_trial = self._free_residual(x_trial, params)
                 norms_trial = torch.linalg.vector_norm(residual_trial, dim=1)
                 ok = (norms_trial <= (1 - 1e-4 * alpha) * norms) | ~active | (norms_trial <= targets)
                 if energy is not None:
-                    energy_trial = self._energy(x_trial, params)
                     ok |= (slope < 0) & (energy_trial <= energy + 1e-4 * alpha * slope)
                     ok &= torch.isfinite(energy_trial)
                 ok &= torch.isfinite(norms_trial)

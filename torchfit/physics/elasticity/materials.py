@@ -193,21 +193,85 @@ class Corotated(Material):
         stretch = _trace(R.transpose(-1, -2) @ F) - F.shape[-1]
         return 2.0 * mu[..., None, None] * (F - R) + (lam * stretch)[..., None, None] * R
 
-    def stress_derivative(self, F: Tensor, mu: Tensor, lam: Tensor) -> Tensor:
+    def stress_and_energy(self, F: Tensor, mu: Tensor, lam: Tensor) -> tuple[Tensor, Tensor]:
+        """``(P, Psi)`` from one rotation-variant SVD (no gradient: Newton's line search):
+        ``Psi = mu sum (sigma_i - 1)^2 + lam/2 (sum sigma_i - d)^2``."""
         d = F.shape[-1]
-        F = F.detach()
-        R = polar_rotation(F)
-        stretch = _trace(R.transpose(-1, -2) @ F) - d
-        basis = _basis(d, F)                                     # dF = E_kl
-        Rb, Fb = R[..., None, :, :], F[..., None, :, :]
-        dR = rotation_differential(Rb, Fb, basis)                # (..., d^2, d, d)
-        R_dot_dF = R.reshape(*R.shape[:-2], d * d)               # R : E_kl = R_kl
-        mu_, lam_ = mu[..., None, None, None], lam[..., None, None, None]
-        dP = (2.0 * mu_ * (basis - dR) + lam_ * R_dot_dF[..., None, None] * Rb
-              + (lam * stretch)[..., None, None, None] * dR)
-        A = dP.reshape(*dP.shape[:-3], d, d, d, d).permute(
-            *range(dP.dim() - 3), -2, -1, -4, -3)               # (..., i, j, k, l)
-        return _symmetrize(A)
+        with torch.no_grad():
+            U, sigma, Vh = rotation_variant_svd(F)
+            R = U @ Vh
+            stretch = sigma.sum(-1) - d
+            psi = mu * ((sigma - 1.0) ** 2).sum(-1) + 0.5 * lam * stretch ** 2
+            P = 2.0 * mu[..., None, None] * (F - R) + (lam * stretch)[..., None, None] * R
+        return P, psi
+
+    #: the twist modes ``T_jk`` of :meth:`stiffness_terms`, by dimension
+    TWIST_PAIRS = {3: ((0, 1), (1, 2), (0, 2)), 2: ((0, 1),)}
+
+    def stiffness_terms(self, F: Tensor, mu: Tensor, lam: Tensor, projected: bool = False
+                        ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The exact (or PSD-projected) ``dP/dF`` in closed form (Smith, de Goes, Kim 2019,
+        "Analytic eigensystems for isotropic distortion energies"):
+        ``A = c0 I + sum_m c_m vec(V_m) vec(V_m)^T``.
+
+        With ``I1 = tr(R^T F)`` (the signed singular values' sum) and ``I2 = ||F||^2``,
+        ``Psi = mu (I2 - 2 I1 + d) + lam/2 (I1 - d)^2``, so
+        ``A = 2 mu I + (lam (I1 - d) - 2 mu) d2I1/dF2 + lam vec(R) vec(R)^T``; the Hessian
+        of ``I1`` lives on the twist modes ``V_m = U (E_kj - E_jk) V^T / sqrt 2`` (pairs
+        :attr:`TWIST_PAIRS`) with eigenvalues ``2 / (sigma_j + sigma_k)``. Twist modes are
+        orthonormal and orthogonal to ``R``, so the eigenvalues of ``A`` are ``2 mu +
+        c_twist`` on them, ``2 mu + d lam`` along ``R`` and ``2 mu`` elsewhere: projecting
+        ``A`` onto the PSD cone clamps the twist eigenvalues only.
+
+        Returns ``c0`` ``(...)``, ``c`` ``(..., m)`` (the twists, then ``R = U V^T``) and the
+        rotation-variant SVD factors ``U``, ``Vh`` ``(..., d, d)`` defining the ``V_m``.
+        """
+        d = F.shape[-1]
+        U, sigma, Vh = rotation_variant_svd(F.detach())
+        I1 = sigma.sum(-1)
+        pairs = self.TWIST_PAIRS[d]
+        denominator = torch.stack([sigma[..., j] + sigma[..., k] for j, k in pairs], dim=-1)
+        # sigma_j + sigma_k >= 0 in the rotation-variant SVD; 0 only for a collapsed element
+        tiny = 1e-12 * sigma.abs().amax(dim=-1, keepdim=True).clamp(min=1e-300)
+        mu_b = torch.broadcast_to(mu, I1.shape)
+        lam_b = torch.broadcast_to(lam, I1.shape)
+        twist = (lam_b * (I1 - d) - 2.0 * mu_b)[..., None] * 2.0 / denominator.clamp(min=tiny)
+        if projected:
+            twist = (2.0 * mu_b[..., None] + twist).clamp(min=0.0) - 2.0 * mu_b[..., None]
+        c = torch.cat([twist, lam_b[..., None]], dim=-1)
+        return 2.0 * mu_b, c, U, Vh
+
+    def stiffness_modes(self, U: Tensor, Vh: Tensor) -> Tensor:
+        """The ``V_m`` of :meth:`stiffness_terms` ``(..., m, d, d)``."""
+        d = U.shape[-1]
+        modes = []
+        for j, k in self.TWIST_PAIRS[d]:
+            T = torch.zeros(d, d, dtype=U.dtype, device=U.device)
+            T[j, k], T[k, j] = -1.0 / math.sqrt(2.0), 1.0 / math.sqrt(2.0)
+            modes.append(U @ T @ Vh)
+        return torch.stack(modes + [U @ Vh], dim=-3)
+
+    def stress_derivative(self, F: Tensor, mu: Tensor, lam: Tensor,
+                          projected: bool = False) -> Tensor:
+        d = F.shape[-1]
+        c0, c, U, Vh = self.stiffness_terms(F, mu, lam, projected)
+        V = self.stiffness_modes(U, Vh)
+        A = torch.einsum("...m,...mij,...mkl->...ijkl", c, V, V)
+        return A + c0[..., None, None, None, None] * _identity4(d, F)
+
+
+def rotation_variant_svd(F: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``F = U diag(sigma) V^T`` with ``det U = det V = +1`` (``(..., d, d)``): the last
+    singular value carries the sign of ``det F`` (negative for an inverted element)."""
+    U, sigma, Vh = torch.linalg.svd(F)
+    sign_u = torch.sign(torch.linalg.det(U))
+    sign_v = torch.sign(torch.linalg.det(Vh))
+    sign_u = torch.where(sign_u == 0, torch.ones_like(sign_u), sign_u)
+    sign_v = torch.where(sign_v == 0, torch.ones_like(sign_v), sign_v)
+    U = torch.cat([U[..., :-1], U[..., -1:] * sign_u[..., None, None]], dim=-1)
+    Vh = torch.cat([Vh[..., :-1, :], Vh[..., -1:, :] * sign_v[..., None, None]], dim=-2)
+    sigma = torch.cat([sigma[..., :-1], sigma[..., -1:] * (sign_u * sign_v)[..., None]], dim=-1)
+    return U, sigma, Vh
 
 
 def cofactor(F: Tensor) -> Tensor:
