@@ -42,6 +42,8 @@ import torch
 from torch import Tensor
 
 from ..errors import ConfigurationError
+from ..linalg import pardiso_available
+from ..linalg.pardiso import PARDISO_EXTRA
 from ..params import Parameterization
 from ..residual import ResidualFunction
 
@@ -87,11 +89,13 @@ class Transform(Choice):
 
 class Backend(Choice):
     """Linear-solve backend: ``scipy`` (CPU direct), ``banded`` (CPU banded Cholesky),
-    ``cg`` (torch Jacobi-CG, any device)."""
+    ``cg`` (torch Jacobi-CG, any device), ``pardiso`` (CPU, MKL PARDISO; the optional
+    extra ``torchfit[pardiso]``)."""
 
     scipy = "scipy"
     banded = "banded"
     cg = "cg"
+    pardiso = "pardiso"
 
 
 class DType(Choice):
@@ -102,7 +106,7 @@ class DType(Choice):
 
 
 #: Backends that factorise on the CPU (a problem on another device needs ``cg``).
-CPU_BACKENDS = (Backend.scipy, Backend.banded)
+CPU_BACKENDS = (Backend.scipy, Backend.banded, Backend.pardiso)
 #: Device names understood by :func:`resolve_device` (``cuda:N`` picks a GPU).
 DEVICE_CHOICES = ("cpu", "cuda", "cuda:N", "mps")
 _DEVICE = re.compile(r"^(cpu|cuda|mps)(?::(\d+))?$")
@@ -122,7 +126,8 @@ class ProblemConfig:
     noise: float = 0.0                  # sigma of the Gaussian noise on every observed value
     seed: int = 0                       # of the noise
     transform: Transform = Transform.exp    # exp (field = exp(theta)) | identity
-    backend: Backend = Backend.scipy    # scipy (CPU direct) | banded (CPU) | cg (torch, CPU or CUDA)
+    backend: Backend = Backend.scipy    # scipy (CPU direct) | banded (CPU) | cg (torch, CPU or
+                                        # CUDA) | pardiso (CPU, MKL; torchfit[pardiso])
     device: str = "cpu"                 # cpu | cuda | cuda:N | mps
     dtype: DType = DType.float64        # float64 | float32
 
@@ -264,7 +269,8 @@ def validate_config(cfg: ProblemConfig) -> None:
 
     Choice settings are members of their enum; every numeric setting is a number of the
     declared type and finite (recursively in lists: ``inf`` is as wrong as ``nan``);
-    ``noise >= 0``; the device exists here; the direct backends run on the CPU only.
+    ``noise >= 0``; the device exists here; the direct backends run on the CPU only;
+    ``pardiso`` is installed.
     """
     hints = typing.get_type_hints(type(cfg))
     choices = choice_fields(type(cfg))
@@ -285,6 +291,9 @@ def validate_config(cfg: ProblemConfig) -> None:
     require_setting(device.type == "cpu" or cfg.backend not in CPU_BACKENDS, cfg, "backend",
                     f"runs on the CPU only; with problem.device={cfg.device} use "
                     "problem.backend=cg")
+    require_setting(cfg.backend != Backend.pardiso or pardiso_available(), cfg, "backend",
+                    f"needs MKL PARDISO, which is not installed here: {PARDISO_EXTRA} "
+                    "(x86-64 only, about 700 MB), or use problem.backend=scipy")
 
 
 def make_config(config_class: type[ProblemConfig], cfg: Any = None,
