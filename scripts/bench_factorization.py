@@ -8,7 +8,11 @@ the physics assemble them, Dirichlet rows/columns dropped with ``submatrix``):
   ``n`` free nodes, log-uniform stiffness in ``[e^-1, e^1]``), default ``n = 1e5``;
 * ``grid2d_N{N}``: a 5-point Laplacian-like matrix with variable coefficients on an
   ``N x N`` grid of unknowns (conductance ``exp(U(-2, 2))`` on every grid edge,
-  Dirichlet ring around it, row-major numbering), default ``N = 64, 256, 512``.
+  Dirichlet ring around it, row-major numbering), default ``N = 64, 256, 512``;
+* ``tet3d_{nx}x{ny}x{nz}`` (``--tet``, none by default): the linear-elastic stiffness
+  (``nu = 0.3``, log-normal Young's modulus per tetrahedron) of ``box_tetrahedra(nx, ny,
+  nz)`` with the ``z = 0`` face fixed, as ``SimplicialElasticity`` assembles it
+  (``10x10x30``: 10,890 free dofs, ``13x13x46``: 27,048).
 
 Methods: SuperLU through ``scipy.sparse.linalg.splu`` with its default (COLAMD,
 partial pivoting), with torchfit's SPD setting (``MMD_AT_PLUS_A``, diagonal pivoting,
@@ -17,8 +21,11 @@ call); torchfit's ``ScipyBackend`` (the same SuperLU plus its torch/CSR glue); d
 ``scipy.linalg.cho_factor`` and ``torch.linalg.cholesky`` (<= ``--dense-max``
 unknowns); LAPACK banded Cholesky (``cholesky_banded``) where the band is small and
 the tridiagonal LDL^T (``dpttrf``) for the chain;
-torchfit's ``CGBackend`` (Jacobi-PCG in torch, rtol 1e-12, time-capped); and CHOLMOD
-(scikit-sparse), PARDISO (pypardiso) and ``torch.sparse.spsolve`` when they work here.
+torchfit's ``CGBackend`` (Jacobi-PCG in torch, rtol 1e-12, time-capped); torchfit's
+``PardisoBackend`` (MKL PARDISO, symmetric indefinite; its timed factorisations reuse the
+pattern's analysis, ``analysis_plus_factor`` is the first one with it); and CHOLMOD
+(scikit-sparse), PARDISO through pypardiso's own solver (analysis and factorisation
+every time) and ``torch.sparse.spsolve`` when they work here.
 
 For each: factorisation time, one solve with 1 and with 2 right-hand sides (median and
 minimum over repeats), fill-in ``L.nnz + U.nnz`` (or the factor's stored entries), and
@@ -47,7 +54,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from benchtools import emit_report, machine_info  # noqa: E402
-from torchfit.linalg import CGBackend, ScipyBackend, SingularMatrixError, SparsePattern  # noqa: E402
+from torchfit.linalg import (CGBackend, ScipyBackend, SingularMatrixError, SparsePattern,  # noqa: E402
+                             blas_threads, get_backend, pardiso_available, set_threads)
 
 TORCHFIT_CHOICE = "superlu_mmd_at_plus_a_symmetric"
 
@@ -94,6 +102,26 @@ def grid2d(N: int, seed: int) -> tuple[SparsePattern, torch.Tensor]:
     k = np.exp(rng.uniform(-2.0, 2.0, a.size))
     rows, cols, vals = _edge_contributions(a, b, k)
     return _reduced(rows, cols, vals, M * M, index[interior].reshape(-1))
+
+
+def tet3d(nx: int, ny: int, nz: int, seed: int) -> tuple[SparsePattern, torch.Tensor]:
+    """Linear-elastic stiffness of a tetrahedral box, the ``z = 0`` face fixed."""
+    from torchfit.mesh import box_tetrahedra
+    from torchfit.physics.elasticity import SimplicialElasticity
+
+    mesh = box_tetrahedra(nx, ny, nz, (1.0, ny / nx, nz / nx))
+    model = SimplicialElasticity(torch.from_numpy(mesh.points), torch.from_numpy(mesh.cells),
+                                 "linear", nu=0.3)
+    rng = np.random.default_rng(seed)
+    E = torch.from_numpy(np.exp(rng.normal(0.0, 0.5, model.n_cells)))
+    values = model.tangent_pattern.assemble(
+        model.tangent_values(model.rest.points.reshape(1, -1), E))[0]
+    fixed = np.nonzero(mesh.points[:, 2] <= 1e-12)[0]
+    is_free = np.ones(model.n_dofs, dtype=bool)
+    is_free[(fixed[:, None] * 3 + np.arange(3)).reshape(-1)] = False
+    keep = torch.from_numpy(np.nonzero(is_free)[0])
+    sub, slots = model.tangent_pattern.submatrix(keep, keep)
+    return sub, values[slots].contiguous()
 
 
 # -- measurement helpers ---------------------------------------------------------------------
@@ -271,6 +299,9 @@ def bench_matrix(name: str, pattern: SparsePattern, values: torch.Tensor, args: 
     # torchfit's CGBackend: Jacobi-PCG in torch, capped in wall time.
     run("torchfit_CGBackend", lambda: cg_entry(pattern, values, A, b2, args))
 
+    # torchfit's PardisoBackend: the analysis once per pattern, then numeric factorisations.
+    run("torchfit_PardisoBackend", lambda: torchfit_pardiso_entry(pattern, values, A, b2, args))
+
     # Optional solvers (not installed here: no wheels for this platform / Python).
     run("cholmod_scikit_sparse", lambda: cholmod_entry(Acsc, A, b2, args))
     run("pypardiso", lambda: pardiso_entry(A, b2, args))
@@ -352,12 +383,36 @@ def pardiso_entry(A: sp.csr_matrix, b2: np.ndarray, args: argparse.Namespace) ->
         return {"unavailable": f"pypardiso (MKL PARDISO) not importable ({err}): not "
                                "installed in this environment"}
     solver = pypardiso.PyPardisoSolver(mtype=2)  # real SPD
+    # Symmetric PARDISO types read the upper triangle only and need it alone: the full
+    # matrix is invalid input there (MKL crashed on it).
+    upper = sp.triu(A, format="csr")
+    upper.sort_indices()
 
     def factor() -> Any:
-        solver.factorize(A)
+        solver.factorize(upper)
         return solver
 
-    return direct_method(factor, lambda s, r: s.solve(A, r), None, A, b2, args.repeats)
+    out = direct_method(factor, lambda s, r: s.solve(upper, r), None, A, b2, args.repeats)
+    out["note"] = ("pypardiso's own solver: analysis and factorisation (phase 12) every "
+                   "time, MKL's default iparm, SPD (mtype 2), upper triangle")
+    return out
+
+
+def torchfit_pardiso_entry(pattern: SparsePattern, values: torch.Tensor, A: sp.csr_matrix,
+                           b2: np.ndarray, args: argparse.Namespace) -> dict[str, Any]:
+    if not pardiso_available():
+        return {"unavailable": "MKL PARDISO not installed here (pip install 'torchfit[pardiso]')"}
+    backend = get_backend("pardiso")
+    fresh = SparsePattern(pattern.row_indices, pattern.col_indices, pattern.shape)
+    first, factor = measure(lambda: backend.factorize(fresh, values, True), 1)
+    out = direct_method(lambda: backend.factorize(pattern, values, True),
+                        lambda f, r: f.solve(torch.from_numpy(r)).numpy(),
+                        lambda f: f.report["factor_nnz"], A, b2, args.repeats)
+    out["analysis_plus_factor"] = first
+    out["analyses"] = backend.plan(pattern, True).analyses
+    out["note"] = ("symmetric indefinite (mtype -2); 'factor' reuses the pattern's analysis, "
+                   "'analysis_plus_factor' is a first factorisation of a new pattern")
+    return out
 
 
 def torch_spsolve_entry(pattern: SparsePattern, values: torch.Tensor, A: sp.csr_matrix,
@@ -420,6 +475,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="sizes of the 1-D chain (free nodes)")
     parser.add_argument("--grid-N", type=int, nargs="*", default=[64, 256, 512],
                         help="2-D grid sides N (N^2 unknowns)")
+    parser.add_argument("--tet", nargs="*", default=[],
+                        help="tetrahedral boxes NXxNYxNZ (e.g. 10x10x30 13x13x46)")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--dense-max", type=int, default=5000,
@@ -435,14 +492,17 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.quick:
         args.chain_n, args.grid_N, args.repeats, args.cg_budget_s = [1000], [16], 2, 2.0
+        args.tet = ["2x2x4"]
     if args.threads:
-        torch.set_num_threads(args.threads)
+        set_threads(args.threads)
     report: dict[str, Any] = {"benchmark": "factorization", "machine": machine_info(),
                               "settings": {k: (str(v) if isinstance(v, Path) else v)
                                            for k, v in vars(args).items()},
                               "torchfit_choice": TORCHFIT_CHOICE, "matrices": {}}
     cases = [(f"chain1d_n{n}", lambda n=n: chain1d(n, args.seed)) for n in args.chain_n]
     cases += [(f"grid2d_N{N}", lambda N=N: grid2d(N, args.seed)) for N in args.grid_N]
+    cases += [(f"tet3d_{box}", lambda box=box: tet3d(*map(int, box.split("x")), args.seed))
+              for box in args.tet]
     for name, build in cases:
         start = time.perf_counter()
         pattern, values = build()
@@ -451,6 +511,7 @@ def main(argv: list[str] | None = None) -> int:
                                     **bench_matrix(name, pattern, values, args)}
         gc.collect()
     report["machine"]["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
+    report["machine"]["blas_threads"] = blas_threads()
     emit_report(report, args.out)
     return 0
 

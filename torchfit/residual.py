@@ -6,6 +6,14 @@ Products come from torch autograd through the differentiable simulator, whose cu
 adjoints do the work: ``J^T w`` is a reverse pass over one retained graph and ``J v`` a
 forward-mode pass (the simulator returns its stored solution for an unchanged
 ``theta``, so neither product refactorises anything).
+
+Few parameters: a problem may also hand over ``jacobian(theta) -> (m, n)``, the whole
+``d forward / d theta`` in one pass (the simulator solves with ``n`` right-hand sides per
+stored factor). :meth:`Linearization.jacobian` returns it (computed once per
+linearisation), and after :meth:`Linearization.use_dense` the products ``J v`` and
+``J^T w`` are matrix products with it, with no simulation call. Without the callable
+:meth:`Linearization.jacobian` stacks ``n`` jvps (exact, generic, slow). Nothing changes
+for a solver that does not ask.
 """
 from __future__ import annotations
 
@@ -21,14 +29,23 @@ from .errors import SimulationError
 class Linearization:
     """The residual at one ``theta`` and its Jacobian products.
 
+    Args:
+        forward, data, theta: the residual ``forward(theta) - data`` at ``theta``.
+        jacobian: ``theta -> (m, n)`` dense ``d forward / d theta`` or ``None``.
+
     Attributes:
         theta: ``(n,)`` the point (detached).
         r: ``(m,)`` residual ``forward(theta) - data``.
         norm: ``||r||_2`` as a float.
+        dense: whether :meth:`use_dense` switched the products to the stored ``J``.
     """
 
-    def __init__(self, forward: Callable[[Tensor], Tensor], data: Tensor, theta: Tensor) -> None:
+    def __init__(self, forward: Callable[[Tensor], Tensor], data: Tensor, theta: Tensor,
+                 jacobian: Callable[[Tensor], Tensor] | None = None) -> None:
         self._forward = forward
+        self._jacobian_fn = jacobian
+        self._J: Tensor | None = None
+        self.dense = False
         self.theta = theta.detach()
         self._theta_leaf = self.theta.clone().requires_grad_(True)
         with torch.enable_grad():
@@ -39,15 +56,54 @@ class Linearization:
         self.r = (self._y - data).detach()
         self.norm = float(torch.linalg.vector_norm(self.r))
 
+    def jacobian(self) -> Tensor:
+        """``J = d forward / d theta`` at :attr:`theta`, dense ``(m, n)``, computed once.
+
+        From the residual's ``jacobian`` callable when it has one (one pass of the
+        simulator), else the stack of the ``n`` jvps of the unit vectors (``n``
+        forward-mode passes).
+        """
+        if self._J is None:
+            m, n = self.r.numel(), self.theta.numel()
+            if self._jacobian_fn is not None:
+                J = self._jacobian_fn(self.theta).detach()
+                if J.shape != (m, n):
+                    raise ValueError(f"the residual's jacobian returned shape {tuple(J.shape)}, "
+                                     f"expected (m, n) = ({m}, {n})")
+                J = J.to(self.r)
+            else:
+                eye = torch.eye(n, dtype=self.theta.dtype, device=self.theta.device)
+                J = torch.stack([self._forward_jvp(eye[j]) for j in range(n)], dim=1) \
+                    if n else self.r.new_zeros(m, 0)
+            self._J = J
+        return self._J
+
+    def use_dense(self) -> "Linearization":
+        """From now on ``jvp``/``vjp`` are products with :meth:`jacobian` (computed now)."""
+        self.jacobian()
+        self.dense = True
+        return self
+
     def jvp(self, v: Tensor) -> Tensor:
-        """``J v`` ``(m,)`` for ``v`` ``(n,)``: one forward-mode pass (one solve)."""
+        """``J v`` ``(m,)`` for ``v`` ``(n,)``: one forward-mode pass (one solve), or a matrix
+        product after :meth:`use_dense`."""
+        if self.dense:
+            assert self._J is not None
+            return self._J @ v.to(self._J)
+        return self._forward_jvp(v)
+
+    def _forward_jvp(self, v: Tensor) -> Tensor:
         with fwAD.dual_level():
             y = self._forward(fwAD.make_dual(self.theta, v.to(self.theta)))
             tangent = fwAD.unpack_dual(y).tangent
         return torch.zeros_like(self.r) if tangent is None else tangent.detach()
 
     def vjp(self, w: Tensor) -> Tensor:
-        """``J^T w`` ``(n,)`` for ``w`` ``(m,)``: one reverse pass (one adjoint solve)."""
+        """``J^T w`` ``(n,)`` for ``w`` ``(m,)``: one reverse pass (one adjoint solve), or a
+        matrix product after :meth:`use_dense`."""
+        if self.dense:
+            assert self._J is not None
+            return self._J.T @ w.to(self._J)
         (grad,) = torch.autograd.grad(self._y, self._theta_leaf, grad_outputs=w.to(self._y),
                                       retain_graph=True, allow_unused=True)
         return torch.zeros_like(self.theta) if grad is None else grad.detach()
@@ -63,11 +119,15 @@ class ResidualFunction:
             principle), or ``None`` when unknown.
         gauge: ``theta -> (n,)`` unit direction the residual does not depend on (the
             global stiffness scale of a scale-free problem), or ``None``.
+        jacobian: ``theta (n,) -> (m, n)``, the dense ``d forward / d theta`` in one pass,
+            or ``None``. Solvers use it for problems with few parameters (see their
+            ``dense_jacobian_max_params``); it must agree with the products of ``forward``.
     """
 
     def __init__(self, forward: Callable[[Tensor], Tensor], data: Tensor,
                  noise_level: float | None = None,
-                 gauge: Callable[[Tensor], Tensor] | None = None) -> None:
+                 gauge: Callable[[Tensor], Tensor] | None = None,
+                 jacobian: Callable[[Tensor], Tensor] | None = None) -> None:
         if data.dim() != 1:
             raise ValueError(f"data must be a flat vector, got shape {tuple(data.shape)}")
         if not bool(torch.isfinite(data).all()):
@@ -78,6 +138,7 @@ class ResidualFunction:
         self.data = data
         self.noise_level = noise_level
         self.gauge = gauge
+        self.jacobian = jacobian
 
     @property
     def size(self) -> int:
@@ -89,7 +150,7 @@ class ResidualFunction:
             return self.forward(theta.detach()) - self.data
 
     def linearize(self, theta: Tensor) -> Linearization:
-        return Linearization(self.forward, self.data, theta)
+        return Linearization(self.forward, self.data, theta, self.jacobian)
 
     def try_linearize(self, theta: Tensor) -> Linearization | None:
         """:func:`try_linearize` of this residual."""

@@ -150,3 +150,25 @@ def test_per_grid_node_checks_its_grid():
         per_grid_node((2, 3, 3), np.zeros((2, 2)), LOWER, UPPER)
     with pytest.raises(ValueError, match="same length"):
         grid_node_positions((2, 3, 3), LOWER[:2], UPPER)
+@pytest.mark.parametrize("transform", ["exp", "identity"])
+@pytest.mark.parametrize("kind", ["per_element", "per_region", "coarse_grid"])
+def test_jacobian_matches_finite_differences(kind, transform):
+    g = torch.Generator().manual_seed(0)
+    if kind == "per_element":
+        param = per_element(6, chain_edges(6), transform=transform)
+    elif kind == "per_region":
+        param = per_region(np.array([0, 0, 1, 2, 2, 1, 0]), chain_edges(7), transform=transform)
+    else:   # trilinear-like weights of a coarse grid: dense, non-negative rows summing to 1
+        weights = torch.rand(9, 4, generator=g, dtype=torch.float64)
+        param = Parameterization(4, chain_edges(4), (weights / weights.sum(1, keepdim=True))
+                                 .to_sparse(), transform)
+    theta = torch.randn(param.n_params, generator=g, dtype=torch.float64) * 0.5 + 1.0
+    J = param.jacobian(theta)
+    assert J.shape == (param.n_field, param.n_params) and J.layout == torch.strided
+    h = 1e-6
+    for j in range(param.n_params):
+        e = torch.zeros_like(theta)
+        e[j] = h
+        fd = (param(theta + e) - param(theta - e)) / (2 * h)
+        assert torch.allclose(J[:, j], fd, rtol=1e-8, atol=1e-10), j
+    assert torch.allclose(J, torch.autograd.functional.jacobian(param, theta), atol=1e-14)

@@ -159,3 +159,68 @@ def test_live_graph_keeps_its_factorization_after_other_points():
     with counting() as count:                   # graph gone: the point is solved afresh
         residual.value(problem.theta0)
     assert count.factorizations == 1
+
+
+# -- the whole Jacobian in one pass ---------------------------------------------------------
+def _jvp_columns(fn, params, directions):
+    import torch.autograd.forward_ad as fwAD
+    columns = []
+    for j in range(directions.shape[1]):
+        with fwAD.dual_level():
+            columns.append(fwAD.unpack_dual(fn(fwAD.make_dual(params, directions[:, j]))).tangent)
+    return torch.stack(columns, dim=-1)
+
+
+def _relative(a, b):
+    return float((a - b).norm() / b.norm())
+
+
+@pytest.mark.parametrize("material", ["linear", "corotated"])
+def test_jacobian_columns_are_the_jvps_and_cost_one_solve_per_frame(material):
+    from torchfit.mesh import box_tetrahedra
+    from torchfit.physics.elasticity import QuasistaticElasticity, SimplicialElasticity
+
+    mesh = box_tetrahedra(2, 2, 3, (0.5, 0.5, 1.0))
+    model = SimplicialElasticity(torch.from_numpy(mesh.points), torch.from_numpy(mesh.cells),
+                                 material, nu=0.3)
+    X = model.rest.points
+    bottom = torch.nonzero(X[:, 2] <= 1e-12).reshape(-1)
+    top = torch.nonzero(X[:, 2] >= 1.0 - 1e-12).reshape(-1)
+    qs = QuasistaticElasticity(model, torch.cat([bottom, top]),
+                               newton=NewtonOptions(rtol=1e-13, atol=1e-15))
+    shift = torch.tensor([[0.1, 0.0, 0.15], [-0.1, 0.05, -0.1]], dtype=torch.float64)
+    positions = torch.stack([torch.cat([X[bottom], X[top] + s]) for s in shift])   # 2 frames
+    g = torch.Generator().manual_seed(0)
+    E = torch.exp(0.3 * torch.randn(model.n_cells, generator=g, dtype=torch.float64))
+    V = torch.randn(model.n_cells, 7, generator=g, dtype=torch.float64)
+    x = qs(E, positions)                                    # the forward: factorised here
+    with counting() as count:
+        J = qs.jacobian(E, positions, V)
+    assert J.shape == (2, model.n_vertices, 3, 7) and not J.requires_grad
+    assert count.factorizations == 0
+    if material == "linear":                                # one factor shared by the frames
+        assert (count.solves, count.rhs_columns) == (1, 2 * 7)
+    else:
+        assert (count.solves, count.rhs_columns) == (2, 2 * 7)
+    reference = _jvp_columns(lambda e: qs(e, positions), E, V)
+    assert _relative(J, reference) < 1e-10
+    assert float(J[:, torch.cat([bottom, top])].abs().max()) == 0.0   # Dirichlet vertices
+    # without a cached solution it solves exactly like the forward, then the same answer
+    qs.clear_cache()
+    J2 = qs.jacobian(E, positions, V)
+    assert _relative(J2, J) < 1e-10 and torch.allclose(qs(E, positions), x, atol=1e-12)
+
+
+def test_jacobian_of_a_model_without_param_derivative_takes_the_generic_route():
+    model, eq, fixed = make_hardening(8)
+    g = torch.Generator().manual_seed(1)
+    k = torch.rand(8, generator=g) + 1.0
+    V = torch.randn(8, 5, generator=g)
+    eq(k, fixed)
+    with counting() as count:
+        J = eq.jacobian(k, fixed, V)
+    assert count.factorizations == 0 and (count.solves, count.rhs_columns) == (3, 15)
+    assert J.shape == (3, 9, 5) and float(J[:, 0].abs().max()) == 0.0
+    assert _relative(J, _jvp_columns(lambda p: eq(p, fixed), k, V)) < 1e-10
+    with pytest.raises(ValueError, match="directions"):
+        eq.jacobian(k, fixed, torch.ones(7, 2))

@@ -282,3 +282,49 @@ def test_cuda_path_matches_cpu():
     assert torch.allclose(cpu.x_true, gpu.x_true.cpu(), atol=1e-10)
     lin = gpu.residual().linearize(gpu.theta0)
     assert lin.vjp(lin.r).device.type == "cuda"
+
+
+# -- the one-pass Jacobian (few parameters) -------------------------------------------------
+def test_forward_jacobian_is_the_stack_of_jvps_and_costs_one_solve_per_frame():
+    from torchfit.residual import ResidualFunction
+    problem = Membrane2D(nx=6, ny=2)
+    g = torch.Generator().manual_seed(5)
+    theta = problem.theta0 + 0.3 * torch.randn(problem.theta0.shape, generator=g,
+                                               dtype=problem.dtype)
+    residual = problem.residual()
+    assert residual.jacobian is not None
+    lin = residual.linearize(theta)
+    with counting() as count:
+        J = lin.jacobian()
+    n = problem.parameterization.n_params
+    assert J.shape == (problem.data.numel(), n) == (8 * 5 * 3 * 2, 24)   # 5 x 3 free vertices
+    assert count.factorizations == 0 and (count.solves, count.rhs_columns) == (8, 8 * n)
+    stacked = ResidualFunction(problem.forward, problem.data).linearize(theta).jacobian()
+    assert float((J - stacked).norm() / stacked.norm()) < 1e-10
+    # the gauge: E -> a E leaves the motion unchanged, so J annihilates the scale direction
+    gauge = problem.parameterization.scale_direction(theta)
+    assert float(torch.linalg.vector_norm(J @ gauge)) < 1e-10 * float(J.norm())
+
+
+def test_levenberg_marquardt_on_the_dense_jacobian_reaches_the_matrix_free_answer():
+    results = {}
+    for limit in (0, 1000):
+        problem = Membrane2D(nx=6, ny=2)
+        problem.quasistatic.clear_cache()
+        g = torch.Generator().manual_seed(0)
+        theta0 = problem.theta0 + 0.5 * torch.randn(problem.theta0.shape, generator=g,
+                                                    dtype=problem.dtype)
+        results[limit] = levenberg_marquardt(problem.residual(), theta0, LevenbergMarquardtConfig(
+            dense_jacobian_max_params=limit, max_iter=40, rtol=1e-10, gtol=1e-14))
+    matrix_free, dense = results[0], results[1000]
+    assert dense.history[-1].extra["dense_jacobian"] == 1.0
+    assert "dense_jacobian" not in matrix_free.history[-1].extra
+    assert float((dense.theta - matrix_free.theta).abs().max()) < 1e-6
+    assert dense.solves < matrix_free.solves / 5
+    assert dense.factorizations <= matrix_free.factorizations
+
+
+def test_canonical_sheet_stays_matrix_free_by_default():
+    assert Membrane2D.has_forward_jacobian(Membrane2D.__new__(Membrane2D))
+    assert LevenbergMarquardtConfig().dense_jacobian_max_params < 2 * 96 * 24
+    assert GaussNewtonConfig().dense_jacobian_max_params < 2 * 96 * 24

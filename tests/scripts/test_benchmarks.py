@@ -119,7 +119,7 @@ def test_factorization_layout(factorization_report):
     assert report["benchmark"] == "factorization"
     assert {"torch", "torch_num_threads", "cpu_count"} <= set(report["machine"])
     choice = report["torchfit_choice"]
-    assert set(report["matrices"]) == {"chain1d_n1000", "grid2d_N16"}
+    assert set(report["matrices"]) == {"chain1d_n1000", "grid2d_N16", "tet3d_2x2x4"}
     for name, mat in report["matrices"].items():
         methods = mat["methods"]
         for label in ("superlu_colamd_default", choice, "superlu_natural",
@@ -134,9 +134,14 @@ def test_factorization_layout(factorization_report):
         assert "factor_and_solve_1rhs" in methods["scipy_spsolve"]
         cg = methods["torchfit_CGBackend"]
         assert cg["solve_1rhs"]["converged"] and cg["solve_1rhs"]["iterations"] > 0
-        for label in ("cholmod_scikit_sparse", "pypardiso", "torch_sparse_spsolve"):
+        for label in ("cholmod_scikit_sparse", "pypardiso", "torch_sparse_spsolve",
+                      "torchfit_PardisoBackend"):
             assert label in methods
             assert "unavailable" in methods[label] or "error" not in methods[label]
+        pardiso = methods["torchfit_PardisoBackend"]
+        if "unavailable" not in pardiso:
+            assert pardiso["analyses"] == 1 and pardiso["backward_error"] < 1e-12
+            assert pardiso["analysis_plus_factor"]["median_s"] > 0
         # Symmetric mode never fills more than the default COLAMD LU.
         assert methods[choice]["fill_nnz"] <= methods["superlu_colamd_default"]["fill_nnz"]
         assert methods["torchfit_ScipyBackend"]["fill_nnz"] == methods[choice]["fill_nnz"]

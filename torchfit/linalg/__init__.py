@@ -1,15 +1,18 @@
 """Sparse linear algebra: patterns, differentiable solves, factorisation reuse, Krylov."""
-from .backends import (BandedBackend, Backend, CGBackend, Factor, ScipyBackend,
-                       SingularMatrixError, get_backend)
+from .backends import (BandedBackend, Backend, CGBackend, Factor, PardisoBackend, PardisoFactor,
+                       PardisoPlan, ScipyBackend, SingularMatrixError, default_backend,
+                       get_backend)
 from .cg import CGLSResult, batched_cg, cgls
 from .counters import COUNTERS, SolveCounters, counting, reset_counters
+from .pardiso import PardisoError, PardisoUnavailableError, pardiso_available
 from .pattern import SparsePattern
 from .sparse_solve import DEFAULT_CACHE, FactorCache, sparse_solve
 from .threads import blas_threads, set_threads
 
 __all__ = [
     "BandedBackend", "Backend", "CGBackend", "CGLSResult", "COUNTERS", "DEFAULT_CACHE", "Factor",
-    "FactorCache", "ScipyBackend", "SingularMatrixError", "SolveCounters", "SparsePattern",
-    "batched_cg", "blas_threads", "cgls", "counting", "get_backend", "reset_counters",
-    "set_threads", "sparse_solve",
+    "FactorCache", "PardisoBackend", "PardisoError", "PardisoFactor", "PardisoPlan",
+    "PardisoUnavailableError", "ScipyBackend", "SingularMatrixError", "SolveCounters",
+    "SparsePattern", "batched_cg", "blas_threads", "cgls", "counting", "default_backend",
+    "get_backend", "pardiso_available", "reset_counters", "set_threads", "sparse_solve",
 ]

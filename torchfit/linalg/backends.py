@@ -17,6 +17,19 @@ about 2x faster than SuperLU. Matrices that are not symmetric positive definite 
 indefinite tangent during Newton) and patterns whose band is too wide fall back to the
 ``scipy`` backend.
 
+``pardiso`` (CPU, optional extra ``torchfit[pardiso]``): MKL PARDISO (:mod:`.pardiso`).
+The symbolic analysis (ordering and symbolic factorisation, phase 11) is made once per
+sparsity pattern and kept with it; every factorisation of that pattern is a numeric
+factorisation (phase 22) into a slot of the same PARDISO handle, so 48 frames of one
+mesh are 48 live factors sharing one analysis. Symmetric matrices are factorised as
+symmetric indefinite (Bunch-Kaufman ``LDL^T``: Newton tangents may be indefinite);
+nonsymmetric ones by LU with scaling and weighted matching, which read the values in
+the analysis, so there every factor gets its own analysis (the host structure is still
+built once per pattern). On a tetrahedral box of 6,561 free dofs it factorises about 7x
+and on 29,700 about 9x faster than SuperLU, and the shared analysis saves half (6.6k)
+and a quarter (29.7k) of each factorisation's time: ``docs/linalg/pardiso.md``.
+:func:`default_backend` picks it for 3-D problems on the CPU where it is installed.
+
 Every factorisation and every solve is counted in :mod:`torchfit.linalg.counters`.
 """
 from __future__ import annotations
@@ -36,6 +49,8 @@ from torch import Tensor
 from ..errors import SimulationError
 from .cg import batched_cg
 from .counters import COUNTERS
+from .pardiso import (REAL_NONSYMMETRIC, REAL_SYMMETRIC_INDEFINITE, SINGULAR_CODES, PardisoError,
+                      PardisoHandle, PardisoStructure, load_pardiso, pardiso_available)
 from .pattern import SparsePattern
 
 
@@ -237,15 +252,169 @@ class BandedBackend:
         return BandedFactor(factor, plan.perm, values.dtype)
 
 
+_SINGULAR_ADVICE = ("the system is singular: check that every connected part of the model "
+                    "has a Dirichlet (fixed) node and that all stiffnesses are positive")
+
+
+class PardisoFactor:
+    """A numeric PARDISO factorisation: slot ``mnum`` of a :class:`PardisoHandle`.
+
+    Solves (phase 33) take ``(n,)`` or ``(n, k)`` right-hand sides (``k`` columns in one
+    call) and the transpose. The slot's memory is released (phase 0) when the factor is
+    garbage collected; the handle lives as long as a plan or a factor needs it.
+    """
+
+    def __init__(self, handle: PardisoHandle, mnum: int, a: np.ndarray, symmetric: bool,
+                 dtype: torch.dtype, report: dict[str, int]) -> None:
+        self._handle = handle
+        self._mnum = mnum
+        self._a = a                  # phase 33 gets the values again
+        self._symmetric = symmetric
+        self._dtype = dtype
+        self.report = report         # PARDISO's output of the factorisation (inertia, nnz)
+        self._finalizer = weakref.finalize(self, handle.release, mnum)
+        self._finalizer.atexit = False
+
+    def solve(self, rhs: Tensor, transpose: bool = False) -> Tensor:
+        if rhs.device.type != "cpu":
+            raise ValueError("the pardiso backend runs on the CPU; use backend='cg' for "
+                             f"tensors on {rhs.device}")
+        _count_solve(rhs)
+        b = rhs.detach().to(torch.float64).numpy()
+        x = self._handle.solve(self._mnum, self._a, b,
+                               transpose=bool(transpose and not self._symmetric))
+        if not np.isfinite(x).all():
+            raise SingularMatrixError("the PARDISO solve produced NaN or infinite values; "
+                                      + _SINGULAR_ADVICE)
+        return torch.from_numpy(x).to(self._dtype)
+
+
+class PardisoPlan:
+    """What one sparsity pattern keeps for PARDISO (per matrix type): the host structure
+    (upper-triangle CSR and the map from the pattern's values) and the handles.
+
+    Symmetric types: one handle holds the analysis and up to ``capacity`` live factors;
+    a further handle (a second analysis) only when all of them are alive at once.
+    Nonsymmetric: the analysis depends on the values (scaling, matching), so every
+    factor has a handle (and an analysis) of its own.
+
+    Attributes:
+        analyses: phase-11 analyses made for this pattern and type so far.
+    """
+
+    def __init__(self, pattern: SparsePattern, mtype: int, capacity: int) -> None:
+        self.mtype = mtype
+        self.capacity = int(capacity)
+        self.structure = PardisoStructure(pattern.row_indices.numpy(),
+                                          pattern.col_indices.numpy(), pattern.shape[0],
+                                          symmetric=mtype != REAL_NONSYMMETRIC)
+        self.handles: list[PardisoHandle] = []
+        self.analyses = 0
+
+    def slot(self, a: np.ndarray) -> tuple[PardisoHandle, int]:
+        """A handle analysed for this structure and a free factor slot in it."""
+        library = load_pardiso()
+        if self.mtype == REAL_NONSYMMETRIC:
+            handle = PardisoHandle(library, self.structure, self.mtype, 1, a)
+            self.analyses += 1
+            return handle, handle.acquire()  # type: ignore[return-value]
+        for handle in reversed(self.handles):
+            mnum = handle.acquire()
+            if mnum is not None:
+                return handle, mnum
+        handle = PardisoHandle(library, self.structure, self.mtype, self.capacity, a)
+        self.analyses += 1
+        self.handles.append(handle)
+        return handle, handle.acquire()  # type: ignore[return-value]
+
+
+#: pattern -> {matrix type: plan}, shared by every PardisoBackend (sparse_solve makes a
+#: backend per call; the analysis must outlive it)
+_PARDISO_PLANS: "weakref.WeakKeyDictionary[SparsePattern, dict[int, PardisoPlan]]" = \
+    weakref.WeakKeyDictionary()
+
+
+@dataclasses.dataclass
+class PardisoBackend:
+    """MKL PARDISO (CPU): analysis once per pattern, numeric factorisation per matrix.
+
+    Args:
+        capacity: live factors one analysis serves (PARDISO's ``maxfct``) before a second
+            analysis of the same pattern is made; free slots cost no memory.
+
+    Raises :class:`~.pardiso.PardisoUnavailableError` (an ``ImportError`` naming
+    ``pip install 'torchfit[pardiso]'``) when pypardiso or MKL is missing.
+    """
+
+    capacity: int = 1024
+    name: str = "pardiso"
+
+    def __post_init__(self) -> None:
+        load_pardiso()
+
+    def plan(self, pattern: SparsePattern, symmetric: bool) -> PardisoPlan:
+        """The plan of ``pattern`` for symmetric or nonsymmetric matrices (made once)."""
+        mtype = REAL_SYMMETRIC_INDEFINITE if symmetric else REAL_NONSYMMETRIC
+        plans = _PARDISO_PLANS.get(pattern)
+        if plans is None:
+            plans = _PARDISO_PLANS[pattern] = {}
+        if mtype not in plans:
+            if pattern.shape[0] != pattern.shape[1]:
+                raise ValueError(f"PARDISO needs a square matrix, got {pattern.shape}")
+            plans[mtype] = PardisoPlan(pattern, mtype, self.capacity)
+        return plans[mtype]
+
+    def factorize(self, pattern: SparsePattern, values: Tensor, symmetric: bool) -> PardisoFactor:
+        if values.device.type != "cpu":
+            raise ValueError("the pardiso backend runs on the CPU; use backend='cg' for "
+                             f"tensors on {values.device}")
+        if not torch.isfinite(values).all():
+            raise SingularMatrixError("system matrix has NaN or infinite entries")
+        plan = self.plan(pattern, symmetric)
+        a = plan.structure.gather(values.detach().to(torch.float64).numpy())
+        handle, mnum = plan.slot(a)
+        report = handle.factorize(mnum, a)
+        error, perturbed = report["error"], report["perturbed_pivots"]
+        if error or perturbed:
+            handle.release(mnum)
+            if error and error not in SINGULAR_CODES:
+                if error == -2:
+                    raise MemoryError(str(PardisoError(error, 22)))
+                raise PardisoError(error, 22)
+            why = str(PardisoError(error, 22)) if error else (
+                f"PARDISO perturbed {perturbed} pivot(s) smaller than 1e-13 ||A||")
+            raise SingularMatrixError(f"sparse factorisation failed ({why}); "
+                                      + _SINGULAR_ADVICE)
+        COUNTERS.factorizations += 1
+        return PardisoFactor(handle, mnum, a, symmetric, values.dtype, report)
+
+
+def default_backend(dim: int, device: torch.device | str = "cpu") -> str:
+    """The backend a new problem should use: ``'pardiso'`` for 3-D problems on the CPU
+    when MKL PARDISO is installed (several times faster than SuperLU there), else
+    ``'scipy'``; ``'cg'`` off the CPU. (Existing problems keep their own defaults.)"""
+    if torch.device(device).type != "cpu":
+        return "cg"
+    if int(dim) == 3 and torch.device(device).type == "cpu" and pardiso_available():
+        return "pardiso"
+    return "scipy"
+
+
 def get_backend(name: str | Backend) -> Backend:
-    """``'scipy'``, ``'banded'`` or ``'cg'`` (or an object with ``factorize``)."""
+    """``'scipy'``, ``'banded'``, ``'pardiso'`` or ``'cg'`` (or an object with ``factorize``).
+
+    ``'pardiso'`` without its extra raises :class:`~.pardiso.PardisoUnavailableError`.
+    """
     if not isinstance(name, str):
         return name
     if name == "scipy":
         return ScipyBackend()
     if name == "banded":
         return BandedBackend()
+    if name == "pardiso":
+        return PardisoBackend()
     if name == "cg":
         return CGBackend()
     raise ValueError(f"unknown linear-solve backend {name!r}; choose 'scipy' (CPU direct), "
-                     "'banded' (CPU banded Cholesky, SPD) or 'cg' (torch CG, CPU or CUDA)")
+                     "'banded' (CPU banded Cholesky, SPD), 'pardiso' (CPU, MKL PARDISO, "
+                     "optional extra) or 'cg' (torch CG, CPU or CUDA)")

@@ -7,6 +7,8 @@ per core. On a machine whose cores are shared with other jobs those threads spin
 wait: a banded Cholesky of the membrane2d tangent was measured 4-13x slower with two
 OpenBLAS threads than with one while another process kept a core busy.
 :func:`set_threads` sets both for the whole process (a sweep job with ``threads=1``).
+A library loaded later (MKL, when the ``pardiso`` backend is first used) gets the same
+limit through :func:`apply_requested_threads`.
 """
 from __future__ import annotations
 
@@ -14,6 +16,8 @@ import os
 
 import torch
 from threadpoolctl import threadpool_info, threadpool_limits
+
+_REQUESTED: int | None = None
 
 
 def _load_blas() -> None:
@@ -27,9 +31,22 @@ def set_threads(n: int) -> None:
     (numpy's and scipy's OpenBLAS included), kept until the process ends."""
     if n < 1:
         raise ValueError(f"thread count must be >= 1, got {n}")
+    global _REQUESTED
     _load_blas()
     torch.set_num_threads(int(n))
     threadpool_limits(limits=int(n))
+    _REQUESTED = int(n)
+
+
+def requested_threads() -> int | None:
+    """The count of the last :func:`set_threads` call (``None``: never called)."""
+    return _REQUESTED
+
+
+def apply_requested_threads() -> None:
+    """Limit the libraries loaded since :func:`set_threads` (e.g. MKL) to its count."""
+    if _REQUESTED is not None:
+        threadpool_limits(limits=_REQUESTED)
 
 
 def blas_threads() -> dict[str, int]:

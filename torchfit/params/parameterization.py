@@ -84,6 +84,24 @@ class Parameterization:
             return values
         return self.basis.to(values) @ values
 
+    def jacobian(self, theta: Tensor) -> Tensor:
+        """``d field / d theta`` as a dense ``(n_field, n_params)`` matrix at ``theta``.
+
+        ``basis * exp(theta)`` (columns scaled) for ``exp``, ``basis`` for the identity
+        (the identity basis is ``I``). Dense on purpose: it is meant for problems with
+        few parameters (the solvers' dense-Jacobian path); no autograd graph.
+        """
+        self.check(theta)
+        theta = theta.detach()
+        if self.basis is None:
+            dense = torch.eye(self.n_params, dtype=theta.dtype, device=theta.device)
+        else:
+            basis = self.basis.to_dense() if self.basis.layout != torch.strided else self.basis
+            dense = basis.to(dtype=theta.dtype, device=theta.device)
+        if self.transform == "exp":
+            return dense * torch.exp(theta)[None, :]
+        return dense.clone()
+
     def inverse(self, field: Tensor) -> Tensor:
         """``theta`` whose image is ``field`` (basis must be the identity or one-hot)."""
         if self.basis is not None:

@@ -28,7 +28,16 @@ Extensions a model may offer (all optional, detected once):
   factorisation kept for the adjoint and jvp is always the exact ``dR/dx`` at ``x*``.
 * ``param_derivative(x, params)``: an object with ``jvp(v) -> (F, n_dofs)`` (``dR/dparams
   v``) and ``vjp(w (F, n_dofs)) -> (n_params,)``. When present, backward and jvp use it
-  instead of reverse-mode autograd of the residual (it is built once per solution).
+  instead of reverse-mode autograd of the residual (it is built once per solution). If
+  it also has ``matmul(V (n_params, k)) -> (F, n_dofs, k)`` (a new tensor),
+  :meth:`Equilibrium.jacobian` takes all ``k`` directions of every frame from one call.
+
+The whole Jacobian: :meth:`Equilibrium.jacobian` returns ``(dx*/dparams) V`` for ``k``
+directions at once (``V`` ``(n_params, k)``): one solve with ``k`` right-hand sides per
+stored factor (``F`` solves, ``F k`` columns; one solve of ``F k`` columns for a shared
+factor), no factorisation when the solution is cached. With few parameters this is the
+dense Jacobian in the time of about one forward-mode product per frame block, where
+``k`` separate jvps cost ``k F`` solves and ``k`` passes through the model.
 
 Warm start: with ``warm_start=True`` (the default), a new parameter vector with the
 same Dirichlet values as the most recently used solution starts Newton from that
@@ -235,6 +244,78 @@ class Equilibrium:
                                               self.model.symmetric) for v in values]
             dx[:, free] = -self._solve(factors, (residual + coupling).expand(n_frames, -1))
             return x_ref + dx
+
+    def jacobian(self, params: Tensor, fixed_values: Tensor, directions: Tensor,
+                 x_init: Tensor | Callable[[], Tensor] | None = None) -> Tensor:
+        """``(dx*/dparams) directions`` of every frame, ``(F, n_dofs, k)`` (no graph).
+
+        Args:
+            params: the model's field (as for ``__call__``).
+            fixed_values: ``(F, n_fixed)`` Dirichlet values (held fixed: zero rows there).
+            directions: ``(n_params, k)`` parameter directions ``V``.
+            x_init: cold start if the solution must be computed (as for ``__call__``).
+
+        The solution for ``(params, fixed_values)`` is taken from the cache (or computed
+        exactly as the forward does). ``K dX = -(dR/dparams) V`` is then solved with the
+        stored factors: one solve with ``k`` right-hand sides per frame (``F`` solves,
+        ``F k`` columns; one solve of ``F k`` columns for a shared factor), no new
+        factorisation. ``(dR/dparams) V`` comes from the model's
+        ``param_derivative(...).matmul`` when it has one, else one ``jvp`` of it per column,
+        else the generic autograd route of :meth:`__call__`'s jvp, column by column.
+        Column ``j`` equals the forward-mode jvp along ``directions[:, j]``.
+        """
+        if fixed_values.dim() != 2 or fixed_values.shape[1] != self.n_fixed:
+            raise ValueError(f"Dirichlet values must have shape (frames, {self.n_fixed}), got "
+                             f"{tuple(fixed_values.shape)}")
+        if directions.dim() != 2 or directions.shape[0] != params.numel():
+            raise ValueError(f"directions must have shape ({params.numel()}, k), got "
+                             f"{tuple(directions.shape)}")
+        if isinstance(x_init, Tensor):
+            self._check_x_init(x_init, fixed_values.shape[0])
+        with torch.no_grad():
+            sol = self.solution(params, fixed_values, x_init)
+        directions = directions.detach().to(sol.x)
+        out = self._residual_directions(sol, directions)      # (F, n_dofs, k), overwritten
+        free = self.free_dofs.to(out.device)
+        n_frames, k = out.shape[0], out.shape[2]
+        if len(sol.factors) == 1:
+            rhs = out[:, free, :].permute(1, 0, 2).reshape(free.numel(), n_frames * k)
+            dx_free = sol.factors[0].solve(rhs.contiguous()).to(out)
+            out.zero_()
+            out[:, free, :] = -dx_free.reshape(free.numel(), n_frames, k).permute(1, 0, 2)
+            return out
+        for f, factor in enumerate(sol.factors):
+            dx_free = factor.solve(out[f, free, :].contiguous()).to(out)
+            out[f].zero_()
+            out[f, free, :] = -dx_free
+        return out
+
+    def _residual_directions(self, sol: _Solution, directions: Tensor) -> Tensor:
+        """``(dR/dparams) V`` ``(F, n_dofs, k)`` at the solution (a fresh tensor)."""
+        k = directions.shape[1]
+        if self._has_param_derivative:
+            derivative = self._param_derivative(sol)
+            if callable(getattr(derivative, "matmul", None)):
+                return derivative.matmul(directions).detach().to(sol.x)   # a new tensor
+            return torch.stack([derivative.jvp(directions[:, j]).detach().to(sol.x)
+                                for j in range(k)], dim=-1)
+        out = sol.x.new_zeros(sol.x.shape[0], self.model.n_dofs, k)
+        if k == 0:
+            return out
+        free = self.free_dofs.to(sol.x.device)
+        with torch.enable_grad():
+            residual, leaves = _residual_at_solution(self, sol, True, False)
+            probe = torch.zeros_like(residual, requires_grad=True)
+            (grad,) = torch.autograd.grad(residual, leaves, probe, create_graph=True,
+                                          allow_unused=True)
+            if grad is None or not grad.requires_grad:
+                return out                           # R does not depend on params
+            for j in range(k):
+                (column,) = torch.autograd.grad((grad * directions[:, j]).sum(), probe,
+                                                retain_graph=True, allow_unused=True)
+                if column is not None:
+                    out[:, free, j] = column.detach()
+        return out
 
     def clear_cache(self) -> None:
         self._cache.clear()

@@ -36,12 +36,14 @@ import numbers
 import re
 import typing
 from collections.abc import Mapping
-from typing import Any, ClassVar, Protocol, Sequence, runtime_checkable
+from typing import Any, Callable, ClassVar, Protocol, Sequence, runtime_checkable
 
 import torch
 from torch import Tensor
 
 from ..errors import ConfigurationError
+from ..linalg import pardiso_available
+from ..linalg.pardiso import PARDISO_EXTRA
 from ..params import Parameterization
 from ..residual import ResidualFunction
 
@@ -87,9 +89,9 @@ class Transform(Choice):
 
 class Backend(Choice):
     """Linear-solve backend: ``scipy`` (CPU direct), ``banded`` (CPU banded Cholesky),
-    ``pardiso`` (CPU, MKL PARDISO, the ``pardiso`` extra), ``cg`` (torch Jacobi-CG, any
-    device); ``auto`` lets the problem choose (3-D: pardiso where installed, else scipy;
-    ``cg`` off the CPU)."""
+    ``pardiso`` (CPU, MKL PARDISO, the optional extra ``torchfit[pardiso]``), ``cg`` (torch
+    Jacobi-CG, any device); ``auto`` lets the problem choose (3-D: pardiso where installed,
+    else scipy; ``cg`` off the CPU)."""
 
     scipy = "scipy"
     banded = "banded"
@@ -126,7 +128,8 @@ class ProblemConfig:
     noise: float = 0.0                  # sigma of the Gaussian noise on every observed value
     seed: int = 0                       # of the noise
     transform: Transform = Transform.exp    # exp (field = exp(theta)) | identity
-    backend: Backend = Backend.scipy    # scipy (CPU direct) | banded (CPU) | cg (torch, CPU or CUDA)
+    backend: Backend = Backend.scipy    # scipy (CPU direct) | banded (CPU) | cg (torch, CPU or
+                                        # CUDA) | pardiso (CPU, MKL; torchfit[pardiso])
     device: str = "cpu"                 # cpu | cuda | cuda:N | mps
     dtype: DType = DType.float64        # float64 | float32
 
@@ -279,7 +282,8 @@ def validate_config(cfg: ProblemConfig) -> None:
 
     Choice settings are members of their enum; every numeric setting is a number of the
     declared type and finite (recursively in lists: ``inf`` is as wrong as ``nan``);
-    ``noise >= 0``; the device exists here; the direct backends run on the CPU only.
+    ``noise >= 0``; the device exists here; the direct backends run on the CPU only;
+    ``pardiso`` is installed.
     """
     hints = typing.get_type_hints(type(cfg))
     choices = choice_fields(type(cfg))
@@ -300,6 +304,9 @@ def validate_config(cfg: ProblemConfig) -> None:
     require_setting(device.type == "cpu" or cfg.backend not in CPU_BACKENDS, cfg, "backend",
                     f"runs on the CPU only; with problem.device={cfg.device} use "
                     "problem.backend=cg")
+    require_setting(cfg.backend != Backend.pardiso or pardiso_available(), cfg, "backend",
+                    f"needs MKL PARDISO, which is not installed here: {PARDISO_EXTRA} "
+                    "(x86-64 only, about 700 MB), or use problem.backend=scipy")
 
 
 def make_config(config_class: type[ProblemConfig], cfg: Any = None,
@@ -363,6 +370,20 @@ def add_noise(clean: Tensor, sigma: float, seed: int) -> tuple[Tensor, float | N
     generator = torch.Generator().manual_seed(int(seed))
     noise = torch.randn(clean.shape, generator=generator, dtype=clean.dtype).to(clean.device)
     return clean + sigma * noise, sigma * math.sqrt(clean.numel())
+
+
+def observe_columns(observe: Callable[[Tensor], Tensor], states: Tensor) -> Tensor:
+    """A linear ``observe`` applied to every column of ``states`` ``(..., k)``: ``(m, k)``.
+
+    Vectorised with ``torch.func.vmap(observe, in_dims=-1, out_dims=-1)`` (``observe``
+    sees one state of its usual shape, e.g. ``(F, n_nodes, dim)``); an ``observe`` that
+    vmap cannot trace falls back to one call per column. ``observe`` must be linear (it
+    maps state derivatives): a gather, barycentric weights, a sparse matrix.
+    """
+    try:
+        return torch.func.vmap(observe, in_dims=-1, out_dims=-1)(states)
+    except (RuntimeError, NotImplementedError, ValueError, TypeError):
+        return torch.stack([observe(states[..., j]) for j in range(states.shape[-1])], dim=-1)
 
 
 def node_frame_index(n_frames: int, nodes: Sequence[int] | Tensor, dim: int) -> tuple[Tensor, Tensor]:
@@ -543,14 +564,47 @@ class InverseProblem:
         """Linear sampling of the state: ``(F, n_nodes, dim) -> (m,)``."""
         raise NotImplementedError
 
+    # -- optional: the whole Jacobian in one pass (problems with few parameters) ---------
+    def simulate_jacobian(self, field: Tensor, directions: Tensor) -> Tensor:
+        """Optional hook: ``(d simulate / d field) directions``, ``(F, n_nodes, dim, k)`` for
+        ``directions`` ``(n_field, k)`` (e.g. ``QuasistaticElasticity.jacobian``: one solve
+        with ``k`` right-hand sides per frame). Implementing it gives the problem
+        :meth:`forward_jacobian`."""
+        raise NotImplementedError
+
+    def forward_jacobian(self, theta: Tensor) -> Tensor:
+        """Optional hook: ``d forward / d theta``, dense ``(m, n_params)``.
+
+        The default chains the parameterisation's :meth:`~torchfit.params.Parameterization.jacobian`,
+        :meth:`simulate_jacobian` and :meth:`observe` applied to every column
+        (:func:`observe_columns`); a problem implements :meth:`simulate_jacobian` (or this
+        method). Only then does :meth:`residual` hand it to the solvers, which use it when
+        ``n_params`` is small (``solver.dense_jacobian_max_params``).
+        """
+        if not self.has_forward_jacobian():
+            raise NotImplementedError(f"{type(self).__name__} has no one-pass Jacobian")
+        with torch.no_grad():
+            theta = theta.detach()
+            field = self.parameterization(theta)
+            directions = self.parameterization.jacobian(theta)
+            return observe_columns(self.observe, self.simulate_jacobian(field, directions))
+
+    def has_forward_jacobian(self) -> bool:
+        """Whether the subclass implements :meth:`forward_jacobian` or :meth:`simulate_jacobian`."""
+        cls = type(self)
+        return cls.forward_jacobian is not InverseProblem.forward_jacobian or \
+            cls.simulate_jacobian is not InverseProblem.simulate_jacobian
+
     # -- shared -----------------------------------------------------------------------
     def forward(self, theta: Tensor) -> Tensor:
         """``observe(simulate(map(theta)))``, ``(m,)``."""
         return self.observe(self.simulate(self.parameterization(theta)))
 
     def residual(self) -> ResidualFunction:
+        """The residual the solvers get (with :meth:`forward_jacobian` where implemented)."""
         gauge = self.parameterization.scale_direction if self.scale_free else None
-        return ResidualFunction(self.forward, self.data, self.noise_level, gauge)
+        jacobian = self.forward_jacobian if self.has_forward_jacobian() else None
+        return ResidualFunction(self.forward, self.data, self.noise_level, gauge, jacobian)
 
     def field(self, theta: Tensor) -> Tensor:
         return self.parameterization(theta.detach())

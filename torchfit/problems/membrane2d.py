@@ -205,6 +205,13 @@ class Membrane2D(InverseProblem):
         """Both coordinates of every free vertex, frame-major ``(F * n_free * 2,)``."""
         return x[:, self.observed_vertices.to(x.device), :].reshape(-1)
 
+    def simulate_jacobian(self, E: Tensor, directions: Tensor) -> Tensor:
+        """``(dx/dE) directions`` ``(8, n_vertices, 2, k)``: one solve with ``k`` right-hand
+        sides per frame at the stored solution (gives :meth:`forward_jacobian`; the
+        solvers use it only below ``solver.dense_jacobian_max_params`` parameters, far
+        fewer than the canonical 4,608)."""
+        return self.quasistatic.jacobian(E, self.dirichlet_positions.to(E), directions)
+
     # -- what the loggers draw -------------------------------------------------------------
     def field_image(self, field: Tensor, pixels_per_cell: int = 4) -> np.ndarray:
         """The per-triangle field as an image ``(ny p, nx p)``, row 0 at the top (max y).

@@ -19,6 +19,11 @@ is good. Measurements: ``docs/solvers/gauss_newton.md``.
 Cost of one accepted full step with ``m`` CG iterations: one factorisation (the new
 point) and at most ``2m + 1`` solves.
 
+Dense Jacobian (``dense_jacobian_max_params``, see :mod:`.least_squares`): when the
+residual provides ``jacobian`` and ``n`` is small, each accepted point materialises
+``J`` once (one solve with ``n`` right-hand sides per stored factor) and CGLS runs on
+matrix products: the same REGINN and discrepancy logic, iterations cost no simulation.
+
 Carried state (:meth:`GaussNewton.state_dict`): ``theta``, the gradient ``J^T r`` at
 ``theta``, the forcing term ``eta``, the previous ``||r||``, ``||J^T r_0||`` and
 ``||r_0||`` (the preconditioner shift follows from it).
@@ -35,15 +40,15 @@ from torch import Tensor
 from ..linalg import cgls
 from ..records import Callback, IterationRecord, SolveResult
 from ..residual import Linearization, ResidualFunction, try_linearize
-from .base import SolverConfig, Stop, clone, least_squares_stop, require
-from .least_squares import LeastSquaresSolver
+from .base import Stop, clone, least_squares_stop, require
+from .least_squares import LeastSquaresConfig, LeastSquaresSolver
 from .preconditioners import DifferencePreconditioner
 
 PRECONDITIONERS = ("none", "difference")
 
 
 @dataclasses.dataclass
-class GaussNewtonConfig(SolverConfig):
+class GaussNewtonConfig(LeastSquaresConfig):
     """Settings of ``solver=gauss_newton``."""
 
     name: str = "gauss_newton"
@@ -64,6 +69,7 @@ class GaussNewtonConfig(SolverConfig):
                                        # D^T D; scaled by ||r_k|| / ||r_0|| as r falls
 
     def check(self) -> None:
+        super().check()
         require(self.tau > 1, f"solver.tau must be > 1 (discrepancy principle), got {self.tau}")
         require(0 < self.eta_min <= self.eta_max < 1,
                 f"need 0 < solver.eta_min <= solver.eta_max < 1, got {self.eta_min}, "
@@ -106,7 +112,8 @@ class GaussNewton(LeastSquaresSolver):
     def start(self, theta0: Tensor) -> IterationRecord:
         theta = theta0.detach().clone()
         self._setup(theta)
-        self.lin = self.residual.linearize(theta)
+        self.choose_path(theta)
+        self.lin = self.adopt(self.residual.linearize(theta))
         self.gradient = self.lin.vjp(self.lin.r)
         self.gradient_norm0 = float(torch.linalg.vector_norm(self.gradient))
         self.eta = self.config.eta_max
@@ -118,7 +125,7 @@ class GaussNewton(LeastSquaresSolver):
         lin = self.lin
         assert lin is not None
         return self.record(lin.theta, 0.5 * lin.norm ** 2, lin.norm, step_norm, cg_iterations,
-                           math.nan, True, **extra)
+                           math.nan, True, **extra, **self.path_extra())
 
     def stop_rule(self) -> Stop | None:
         cfg = self.config
@@ -159,7 +166,7 @@ class GaussNewton(LeastSquaresSolver):
             eta_next = max(eta_next, 0.9 * self.eta ** 2)
         self.eta = min(cfg.eta_max, max(cfg.eta_min, eta_next))
         step_norm = float(torch.linalg.vector_norm(trial.theta - theta))
-        self.lin = trial
+        self.lin = self.adopt(trial)
         self.gradient = trial.vjp(trial.r)
         return self._record(step_norm, inner.iterations, eta=self.eta, step_length=step,
                             gradient_norm=float(torch.linalg.vector_norm(self.gradient)),
@@ -196,7 +203,8 @@ class GaussNewton(LeastSquaresSolver):
 
     def resume(self) -> None:
         self._setup(self._saved_theta)
-        self.lin = self.residual.linearize(self._saved_theta)
+        self.choose_path(self._saved_theta)
+        self.lin = self.adopt(self.residual.linearize(self._saved_theta))
 
 
 def gauss_newton(residual: ResidualFunction, theta0: Tensor,

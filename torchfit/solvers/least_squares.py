@@ -1,15 +1,43 @@
 """What Gauss-Newton and Levenberg-Marquardt share beyond :class:`~.base.Solver`: the
-linearisation they carry (``lin``, whose ``theta`` is the current point) and the
-difference operator their ``preconditioner=difference`` needs."""
+linearisation they carry (``lin``, whose ``theta`` is the current point), the difference
+operator their ``preconditioner=difference`` needs, and the dense-Jacobian path.
+
+Dense Jacobian (few parameters): when the residual provides ``jacobian`` (a problem with
+a one-pass Jacobian, see :class:`~torchfit.residual.ResidualFunction`) and the number of
+parameters ``n`` is at most ``dense_jacobian_max_params``, every linearisation the
+solver adopts as its current point materialises ``J`` once (``F`` solves with ``n``
+right-hand sides instead of one solve per product) and every product of that iteration
+is a matrix product. Gauss-Newton keeps its CGLS (its early stopping regularises);
+Levenberg-Marquardt solves its damped normal equations exactly
+(:class:`DenseNormalEquations`). Trial points that are rejected never pay for ``J``.
+Records carry ``dense_jacobian = 1.0`` on this path.
+"""
 from __future__ import annotations
 
-from typing import Optional
+import dataclasses
+from typing import Any, Callable, Optional
 
+import torch
 from torch import Tensor
 
+from ..linalg import CGLSResult
 from ..residual import Linearization
-from .base import Solver, SolverConfig, SolverConfigError
+from .base import Solver, SolverConfig, SolverConfigError, require
 from .total_variation import check_difference_operator
+
+
+@dataclasses.dataclass
+class LeastSquaresConfig(SolverConfig):
+    """Settings every least-squares solver has (Gauss-Newton, Levenberg-Marquardt)."""
+
+    # dense J (one simulator pass per linearisation) when the residual provides a
+    # jacobian and n <= this; 0: always matrix-free products
+    dense_jacobian_max_params: int = 1000
+
+    def check(self) -> None:
+        require(self.dense_jacobian_max_params >= 0,
+                f"solver.dense_jacobian_max_params must be >= 0 (0 disables the dense "
+                f"Jacobian), got {self.dense_jacobian_max_params}")
 
 
 def require_difference_operator(D: Optional[Tensor]) -> None:
@@ -23,10 +51,62 @@ def require_difference_operator(D: Optional[Tensor]) -> None:
     check_difference_operator(D, n)
 
 
+def wants_dense_jacobian(residual: Any, n: int, max_params: int) -> bool:
+    """Whether a solver with ``dense_jacobian_max_params = max_params`` takes the dense
+    path for ``residual`` with ``n`` parameters (the residual must provide ``jacobian``)."""
+    return 0 < n <= max_params and getattr(residual, "jacobian", None) is not None
+
+
+def projector_matrix(project: Callable[[Tensor], Tensor] | None, like: Tensor) -> Tensor | None:
+    """The ``(n, n)`` matrix of a (linear) projector, or ``None`` without one."""
+    if project is None:
+        return None
+    eye = torch.eye(like.numel(), dtype=like.dtype, device=like.device)
+    return torch.stack([project(eye[:, j]) for j in range(like.numel())], dim=1)
+
+
+class DenseNormalEquations:
+    """Exact solutions of ``min ||J d - b||^2 + shift ||d||^2`` with the dense ``J`` of one
+    linearisation, ``d`` orthogonal to the gauge when the residual has a projector ``P``.
+
+    The Gram matrix ``P J^T J P`` is formed once (``m n^2``); each solve is a Cholesky
+    factorisation of ``P J^T J P + shift I`` (``n^3 / 3``) and, where that fails (no
+    shift and a singular ``J``), a least-squares solve (``torch.linalg.lstsq``). The
+    result has the fields of :class:`~torchfit.linalg.CGLSResult` (``iterations = 0``,
+    ``stop_reason = 'exact'``), so the solvers treat both alike.
+    """
+
+    def __init__(self, lin: Any, project: Callable[[Tensor], Tensor] | None) -> None:
+        self.lin = lin
+        self.J = lin.jacobian()
+        self.P = projector_matrix(project, lin.theta.to(self.J))
+        gram = self.J.T @ self.J
+        if self.P is not None:
+            gram = self.P @ gram @ self.P
+        self.gram = 0.5 * (gram + gram.T)
+
+    def solve(self, b: Tensor, shift: float, rmatvec_b: Tensor | None = None) -> CGLSResult:
+        rhs = self.J.T @ b if rmatvec_b is None else rmatvec_b.to(self.J)
+        if self.P is not None:
+            rhs = self.P @ rhs
+        n = rhs.numel()
+        system = self.gram + shift * torch.eye(n, dtype=self.J.dtype, device=self.J.device)
+        factor, info = torch.linalg.cholesky_ex(system)
+        if int(info) == 0:
+            x = torch.cholesky_solve(rhs[:, None], factor)[:, 0]
+        else:
+            x = torch.linalg.lstsq(system, rhs[:, None]).solution[:, 0]
+        if self.P is not None:
+            x = self.P @ x
+        Ax = self.J @ x
+        return CGLSResult(x, 0, float(torch.linalg.vector_norm(Ax - b)), Ax, "exact")
+
+
 class LeastSquaresSolver(Solver):
     """A solver of ``min 0.5 ||r(theta)||^2`` that carries its current linearisation.
 
-    Its config has a ``preconditioner`` setting; ``difference`` requires ``D``.
+    Its config has a ``preconditioner`` setting (``difference`` requires ``D``) and
+    ``dense_jacobian_max_params`` (see the module docstring).
     """
 
     def __init__(self, config: SolverConfig | None = None, *, D: Tensor | None = None,
@@ -35,6 +115,22 @@ class LeastSquaresSolver(Solver):
         if getattr(self.config, "preconditioner", "none") == "difference":
             require_difference_operator(D)
         self.lin: Linearization | None = None
+        self.dense = False
+
+    def choose_path(self, theta: Tensor) -> None:
+        """Dense-Jacobian or matrix-free products for this run (from the residual and ``n``)."""
+        self.dense = wants_dense_jacobian(
+            self.residual, theta.numel(), int(getattr(self.config, "dense_jacobian_max_params", 0)))
+
+    def adopt(self, lin: Any) -> Any:
+        """``lin`` becomes a current point: on the dense path its ``J`` is made now."""
+        if self.dense:
+            lin.use_dense()
+        return lin
+
+    def path_extra(self) -> dict[str, float]:
+        """What the records say about the path (``dense_jacobian = 1.0`` when dense)."""
+        return {"dense_jacobian": 1.0} if self.dense else {}
 
     @property
     def theta(self) -> Tensor:

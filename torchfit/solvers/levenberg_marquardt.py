@@ -14,6 +14,15 @@ decrease of ``0.5 ||r||^2`` with the one the model predicts (gain ratio ``rho``)
 Stop rules: :func:`~.base.least_squares_stop` (discrepancy first), then ``stalled``
 when ``lam`` exceeds ``damping_max`` times its start.
 
+Dense Jacobian (``dense_jacobian_max_params``, see :mod:`.least_squares`): when the
+residual provides ``jacobian`` and ``n`` is small, each accepted point materialises
+``J`` once and the damped normal equations ``(J^T J + lam I) d = -J^T r`` (on the
+complement of the gauge) are solved exactly by Cholesky
+(:class:`~.least_squares.DenseNormalEquations`; ``lstsq`` where Cholesky fails), also
+for the geodesic acceleration; the difference preconditioner (which only changes the
+Krylov space) is not used there. A rejected step then costs one factorisation per frame
+and no solve. Measurements: ``docs/solvers/levenberg_marquardt.md``.
+
 Opt-in (all on in ``solver=levenberg_marquardt_geodesic``):
 ``geodesic_acceleration`` (Transtrum and Sethna: a second-order correction ``a / 2``
 from one finite-difference simulation; steps with ``2 ||a|| / ||v|| > geodesic_alpha``
@@ -42,8 +51,8 @@ from ..errors import SimulationError
 from ..linalg import CGLSResult, cgls
 from ..records import Callback, IterationRecord, SolveResult
 from ..residual import Linearization, ResidualFunction, try_linearize
-from .base import SolverConfig, Stop, clone, least_squares_stop, require
-from .least_squares import LeastSquaresSolver
+from .base import Stop, clone, least_squares_stop, require
+from .least_squares import DenseNormalEquations, LeastSquaresConfig, LeastSquaresSolver
 from .preconditioners import ColumnScaledLaplacian, GraphLaplacian
 
 
@@ -52,7 +61,7 @@ DAMPING_UPDATES = ("marquardt", "nielsen")
 
 
 @dataclasses.dataclass
-class LevenbergMarquardtConfig(SolverConfig):
+class LevenbergMarquardtConfig(LeastSquaresConfig):
     """Settings of ``solver=levenberg_marquardt``."""
 
     name: str = "levenberg_marquardt"
@@ -79,6 +88,7 @@ class LevenbergMarquardtConfig(SolverConfig):
     seed: int = 0                   # of those random probes
 
     def check(self) -> None:
+        super().check()
         require(self.tau > 1, f"solver.tau must be > 1 (discrepancy principle), got {self.tau}")
         require(self.damping_init > 0, f"solver.damping_init must be > 0, got {self.damping_init}")
         require(0 < self.decrease < 1 < self.increase,
@@ -132,7 +142,8 @@ class LevenbergMarquardt(LeastSquaresSolver):
         theta = theta0.detach().clone()
         self._setup(theta)
         self.laplacian_active = False
-        lin = self.lin = self.residual.linearize(theta)
+        self.choose_path(theta)
+        lin = self.lin = self.adopt(self.residual.linearize(theta))
         self.gradient = lin.vjp(lin.r)
         self.gradient_norm0 = float(torch.linalg.vector_norm(self.gradient))
         if lin.norm > 0 and self.gradient_norm0 > 0:
@@ -147,7 +158,7 @@ class LevenbergMarquardt(LeastSquaresSolver):
         self.growth = 2.0
         self.previous_norm: float | None = None
         return self.record(lin.theta, 0.5 * lin.norm ** 2, lin.norm, 0.0, 0, self.damping, True,
-                           gradient_norm=self.gradient_norm0)
+                           gradient_norm=self.gradient_norm0, **self.path_extra())
 
     def stop_rule(self) -> Stop | None:
         cfg = self.config
@@ -165,13 +176,17 @@ class LevenbergMarquardt(LeastSquaresSolver):
         assert lin is not None
         theta = lin.theta
         used_damping = damping = self.damping
-        if self.laplacian_active and self.precondition is None:
-            self.precondition = _preconditioner(lin, self.laplacian, cfg, self.generator)
-        inner = _damped_solve(lin, self.gradient, damping, residual, theta, cfg,
-                              self.precondition)
-        if self.laplacian is not None and self.precondition is None \
-                and inner.stop_reason == "max_iter":
-            self.laplacian_active = True
+        normal = self._normal_equations()
+        if normal is not None:
+            inner = normal.solve(-lin.r, damping, rmatvec_b=-self.gradient)
+        else:
+            if self.laplacian_active and self.precondition is None:
+                self.precondition = _preconditioner(lin, self.laplacian, cfg, self.generator)
+            inner = _damped_solve(lin, self.gradient, damping, residual, theta, cfg,
+                                  self.precondition)
+            if self.laplacian is not None and self.precondition is None \
+                    and inner.stop_reason == "max_iter":
+                self.laplacian_active = True
         direction = inner.x
         # the model's residual at the trial point: r + J d (linear model)
         model_residual = lin.r + inner.Ax
@@ -179,7 +194,7 @@ class LevenbergMarquardt(LeastSquaresSolver):
         acceleration_ratio = math.nan
         if cfg.geodesic_acceleration:
             accel = _geodesic_acceleration(lin, direction, inner.Ax, damping, residual, theta,
-                                           cfg, self.precondition)
+                                           cfg, self.precondition, normal)
             if accel is None:           # no simulation at the probe point: a failed step
                 acceleration_ratio = math.inf
             else:
@@ -213,13 +228,24 @@ class LevenbergMarquardt(LeastSquaresSolver):
         return self.record(lin.theta, 0.5 * lin.norm ** 2, lin.norm, step_norm, cg_iterations,
                            used_damping, accepted,
                            gain_ratio=gain if math.isfinite(gain) else -1.0,
-                           gradient_norm=float(torch.linalg.vector_norm(self.gradient)), **extra)
+                           gradient_norm=float(torch.linalg.vector_norm(self.gradient)), **extra,
+                           **self.path_extra())
+
+    def _normal_equations(self) -> DenseNormalEquations | None:
+        """The exact damped solver of the current linearisation (dense path only)."""
+        if not self.dense:
+            return None
+        normal = getattr(self, "_normal", None)
+        if normal is None or normal.lin is not self.lin:
+            normal = self._normal = DenseNormalEquations(self.lin,
+                                                         self.residual.projector(self.theta))
+        return normal
 
     def _accept(self, candidate: Linearization, gain: float) -> None:
         cfg = self.config
         assert self.lin is not None
         self.previous_norm = self.lin.norm
-        self.lin = candidate
+        self.lin = self.adopt(candidate)
         self.gradient = candidate.vjp(candidate.r)
         self.precondition = None            # belongs to the old linearisation
         if cfg.damping_update == "nielsen":
@@ -260,7 +286,8 @@ class LevenbergMarquardt(LeastSquaresSolver):
         self.precondition = None if norms is None or self.laplacian is None else \
             ColumnScaledLaplacian(self.laplacian, norms.detach().clone(),
                                   self.config.preconditioner_shift)
-        self.lin = self.residual.linearize(theta)
+        self.choose_path(theta)
+        self.lin = self.adopt(self.residual.linearize(theta))
 
 
 def levenberg_marquardt(residual: ResidualFunction, theta0: Tensor,
@@ -283,13 +310,15 @@ def _damped_solve(lin: Linearization, gradient: Tensor, damping: float,
 def _geodesic_acceleration(lin: Linearization, velocity: Tensor, j_velocity: Tensor,
                            damping: float, residual: ResidualFunction, theta: Tensor,
                            cfg: LevenbergMarquardtConfig,
-                           precondition: Callable[[Tensor], Tensor] | None
+                           precondition: Callable[[Tensor], Tensor] | None,
+                           normal: DenseNormalEquations | None = None
                            ) -> tuple[Tensor, CGLSResult] | None:
     """Transtrum and Sethna's geodesic acceleration ``a`` of the damped step ``v``.
 
     ``a`` solves ``min ||J a + r_vv||^2 + lam ||a||^2`` with the second directional
     derivative ``r_vv ~ (2 / h) ((r(theta + h v) - r) / h - J v)`` (one simulation
-    without a graph, ``h = geodesic_step``); the trial step is ``v + a / 2``. Returns
+    without a graph, ``h = geodesic_step``); the trial step is ``v + a / 2`` (``a`` exact
+    with ``normal``, the dense path's solver of the same damped system). Returns
     ``(r_vv, a)``, or ``None`` when the simulation fails at ``theta + h v``.
     """
     h = cfg.geodesic_step
@@ -300,6 +329,8 @@ def _geodesic_acceleration(lin: Linearization, velocity: Tensor, j_velocity: Ten
     if not bool(torch.isfinite(shifted).all()):
         return None
     second = (2.0 / h) * ((shifted - lin.r) / h - j_velocity)
+    if normal is not None:
+        return second, normal.solve(-second, damping)
     return second, cgls(lin.jvp, lin.vjp, -second, theta.numel(), shift=damping,
                         residual_target=0.0, max_iter=cfg.geodesic_cg_max_iter,
                         project=residual.projector(theta), normal_rtol=cfg.cg_rtol,

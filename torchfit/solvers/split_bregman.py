@@ -18,6 +18,11 @@ One outer iteration (split Bregman = scaled ADMM on ``d = D theta + c``)::
   (:mod:`.stacked`); CGLS stops on the relative normal residual ``cg_rtol``. The model
   residual is wrapped in :class:`~.stacked.CachedResidual`, so every distinct parameter
   vector is simulated (hence factorised) once.
+* Dense Jacobian (``dense_jacobian_max_params``, as for Gauss-Newton): when the model
+  residual provides ``jacobian`` and ``n`` is small, the inner solver runs on the dense
+  stacked ``[sqrt(mu) J; sqrt(beta) D]`` (``J`` made once per accepted point, the
+  products are matrix products) and the scale estimates at ``theta0`` use ``J`` too;
+  records carry ``dense_jacobian = 1.0``.
 * Weights: without a noise level (or ``continuation=false``) ``mu`` is fixed
   (``mu_rel / ||J(theta0)||_2^2`` unless set). With a noise level ``delta``: stages
   ``mu_k = mu_0 growth^k``, each run to its fixed point and warm-started from the
@@ -70,6 +75,7 @@ from ..records import Callback, IterationRecord, SolveResult
 from ..residual import ResidualFunction
 from .base import Solver, SolverConfig, Stop, clone, require
 from .gauss_newton import GaussNewton, GaussNewtonConfig
+from .least_squares import wants_dense_jacobian
 from .levenberg_marquardt import LevenbergMarquardt, LevenbergMarquardtConfig
 from .stacked import CachedResidual, LinearResidual, StackedResidual
 from .total_variation import GroupTV, check_difference_operator
@@ -103,6 +109,8 @@ class SplitBregmanConfig(SolverConfig):
     power_iterations: int = 20      # for ||J(theta0)||_2, ||J(theta0)||_F and ||D||_2
     divergence_factor: float = 10.0  # reject an outer step whose objective grows this much
     max_rejections: int = 8
+    dense_jacobian_max_params: int = 1000   # dense J in the inner solve when the residual
+                                            # provides one and n <= this (0: never)
 
     def check(self) -> None:
         require(self.mu is None or self.mu > 0,
@@ -133,6 +141,9 @@ class SplitBregmanConfig(SolverConfig):
                 f"solver.divergence_factor must be > 1, got {self.divergence_factor}")
         require(self.max_rejections >= 0,
                 f"solver.max_rejections must be >= 0, got {self.max_rejections}")
+        require(self.dense_jacobian_max_params >= 0,
+                f"solver.dense_jacobian_max_params must be >= 0 (0 disables the dense "
+                f"Jacobian), got {self.dense_jacobian_max_params}")
 
 
 _SNAPSHOT = ("theta", "Dtheta", "d", "b", "mu", "beta", "stage", "norm")
@@ -188,13 +199,16 @@ class SplitBregman(Solver):
         self.level = cfg.tau * noise if self.staged else math.nan
         # The inner problem has a non-zero minimum: its CGLS stops on the normal-equation
         # residual (REGINN's ||J d + r|| <= eta ||r|| could never be met there).
+        dense = cfg.dense_jacobian_max_params
+        self.dense = wants_dense_jacobian(self.residual, like.numel(), dense)
         if cfg.inner_solver == "gauss_newton":
             self.inner = GaussNewton(GaussNewtonConfig(
                 max_iter=cfg.inner_max_iter, cg_max_iter=cfg.cg_max_iter, eta_min=1e-14,
-                eta_max=1e-14, cg_rtol=cfg.cg_rtol))
+                eta_max=1e-14, cg_rtol=cfg.cg_rtol, dense_jacobian_max_params=dense))
         else:
             self.inner = LevenbergMarquardt(LevenbergMarquardtConfig(
-                max_iter=cfg.inner_max_iter, cg_max_iter=cfg.cg_max_iter, cg_rtol=cfg.cg_rtol))
+                max_iter=cfg.inner_max_iter, cg_max_iter=cfg.cg_max_iter, cg_rtol=cfg.cg_rtol,
+                dense_jacobian_max_params=dense))
 
     def start(self, theta0: Tensor) -> IterationRecord:
         theta = theta0.detach().clone()
@@ -202,6 +216,8 @@ class SplitBregman(Solver):
         self.lin = self.model.linearize(theta)
         if not math.isfinite(self.lin.norm):
             raise ValueError("the residual at theta0 is not finite")
+        if self.dense:
+            self.lin.use_dense()      # the scale estimates below are then matrix products
         self.mu, self.beta = self._initial_weights(theta)
         self._theta, self.norm, self.stage = theta, self.lin.norm, 0
         self.Dtheta = self.diff.matvec(theta) + self.c
@@ -463,7 +479,8 @@ class SplitBregman(Solver):
         return self.record(self._theta, objective, self.norm, step_norm, cg_iterations, damping,
                            accepted, tv=tv_value,
                            split_residual=float(torch.linalg.vector_norm(self.Dtheta - self.d)),
-                           mu=self.mu, beta=self.beta, stage=float(self.stage), **extra)
+                           mu=self.mu, beta=self.beta, stage=float(self.stage), **extra,
+                           **({"dense_jacobian": 1.0} if self.dense else {}))
 
     # -- state -----------------------------------------------------------------------------
     def _get_state(self) -> dict[str, Any]:

@@ -14,6 +14,11 @@ block costs sparse products only, never a solve.
 that hands the end point of one inner solve to the next (split Bregman) re-linearises
 there for free instead of running the simulator again, so every distinct parameter
 vector is simulated (and factorised) once.
+
+Dense Jacobians (few parameters): a stack provides ``jacobian`` when every block does
+(a :class:`LinearResidual` always does); its linearisation's ``jacobian()`` is the
+weighted stack of the blocks' Jacobians and ``use_dense()`` makes its products matrix
+products, as for :class:`~torchfit.residual.Linearization`.
 """
 from __future__ import annotations
 
@@ -60,6 +65,14 @@ class _LinearLinearization:
         self.theta = theta.detach()
         self.r = owner.value(self.theta)
         self.norm = float(torch.linalg.vector_norm(self.r))
+        self.dense = False
+
+    def jacobian(self) -> Tensor:
+        return self._owner.jacobian(self.theta)
+
+    def use_dense(self) -> "_LinearLinearization":
+        self.dense = True       # the sparse products stay: exact and cheaper
+        return self
 
     def jvp(self, v: Tensor) -> Tensor:
         return self._owner.matvec(v)
@@ -85,6 +98,13 @@ class LinearResidual:
         # CSR copies for the products (one per CGLS iteration): ~7x faster than COO.
         self._A_rows, self._At_rows = compressed_rows(self.A), compressed_rows(self.At)
         self.target = target if target is not None else self.A.new_zeros(self.A.shape[0])
+        self._dense: Tensor | None = None
+
+    def jacobian(self, theta: Tensor) -> Tensor:
+        """``A`` as a dense ``(m, n)`` matrix (made once), whatever ``theta``."""
+        if self._dense is None:
+            self._dense = self.A.to_dense()
+        return self._dense
 
     @property
     def size(self) -> int:
@@ -123,6 +143,7 @@ class CachedResidual:
     def __init__(self, residual: ResidualLike, size: int = 3) -> None:
         self.residual = residual
         self.noise_level = residual.noise_level
+        self.jacobian = getattr(residual, "jacobian", None)
         self.size = max(1, int(size))
         self._recent: list[LinearizationLike] = []
         self.evaluations = 0
@@ -168,11 +189,32 @@ class StackedLinearization:
         self.sizes = [int(p.r.numel()) for p in self.parts]
         self.r = torch.cat([s * p.r for s, p in zip(self.scales, self.parts)])
         self.norm = float(torch.linalg.vector_norm(self.r))
+        self.dense = False
+        self._J: Tensor | None = None
+
+    def jacobian(self) -> Tensor:
+        """``[sqrt(w_1) J_1; ...]`` dense ``(sum m_i, n)`` (the blocks' own, computed once)."""
+        if self._J is None:
+            self._J = torch.cat([s * p.jacobian().to(self.r)  # type: ignore[attr-defined]
+                                 for s, p in zip(self.scales, self.parts)])
+        return self._J
+
+    def use_dense(self) -> "StackedLinearization":
+        """From now on ``jvp``/``vjp`` are products with :meth:`jacobian`."""
+        self.jacobian()
+        self.dense = True
+        return self
 
     def jvp(self, v: Tensor) -> Tensor:
+        if self.dense:
+            assert self._J is not None
+            return self._J @ v.to(self._J)
         return torch.cat([s * p.jvp(v) for s, p in zip(self.scales, self.parts)])
 
     def vjp(self, w: Tensor) -> Tensor:
+        if self.dense:
+            assert self._J is not None
+            return self._J.T @ w.to(self._J)
         out = None
         for s, p, w_i in zip(self.scales, self.parts, torch.split(w, self.sizes)):
             term = s * p.vjp(w_i)
@@ -211,6 +253,18 @@ class StackedResidual:
     @property
     def scales(self) -> list[float]:
         return [math.sqrt(w) for w in self.weights]
+
+    @property
+    def jacobian(self) -> Callable[[Tensor], Tensor] | None:
+        """``theta -> [sqrt(w_1) J_1(theta); ...]`` when every block has a ``jacobian``."""
+        parts = [getattr(b, "jacobian", None) for b in self.blocks]
+        if any(part is None for part in parts):
+            return None
+
+        def stacked(theta: Tensor) -> Tensor:
+            return torch.cat([s * part(theta) for s, part in zip(self.scales, parts)])
+
+        return stacked
 
     def linearize(self, theta: Tensor) -> StackedLinearization:
         theta = theta.detach()

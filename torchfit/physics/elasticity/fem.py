@@ -11,11 +11,13 @@ Young's modulus per element ``E`` ``(n_cells,)`` it gives
   Hessian on a pattern built once (every element's ``(d + 1) d`` local dofs, all
   pairs); ``projected=True`` clamps each element's ``A`` to be positive semi-definite
   (for Newton's search direction; the adjoint always gets the exact one);
-* ``param_derivative(x, E)``: ``dR/dE`` as products (``R`` is linear in ``E``).
+* ``param_derivative(x, E)``: ``dR/dE`` as products (``R`` is linear in ``E``), including
+  the all-frames, many-directions ``matmul`` that ``Equilibrium.jacobian`` uses.
 """
 from __future__ import annotations
 
 import math
+import warnings
 
 import torch
 from torch import Tensor
@@ -27,15 +29,23 @@ from .materials import (InvalidModulusError, Material, MaterialError, check_pois
 
 
 class ElasticParamDerivative:
-    """``dR/dE`` at fixed positions: element forces of unit modulus, ``(F, n_cells, d+1, d)``."""
+    """``dR/dE`` at fixed positions: element forces of unit modulus, ``(F, n_cells, d+1, d)``.
+
+    ``R`` is linear in ``E``, so ``dR/dE_e`` is the element force of element ``e`` at unit
+    modulus. Products: :meth:`jvp` (one direction), :meth:`vjp` (summed over frames) and
+    :meth:`matmul` (many directions at once, every frame).
+    """
 
     def __init__(self, rest: RestShape, unit_contributions: Tensor) -> None:
         self.rest = rest
         n_frames, n_cells = unit_contributions.shape[:2]
+        self.n_frames, self.n_cells = int(n_frames), int(n_cells)
+        self.n_dofs = rest.n_vertices * rest.dim
         self.unit = unit_contributions.contiguous()
         # (m, (d+1) d, F): the layout of w^T gathered at the element dofs (fastest vjp)
         self._unit_local = self.unit.reshape(n_frames, n_cells, -1).permute(1, 2, 0).contiguous()
         self._dofs = rest.element_dofs().to(unit_contributions.device)
+        self._stacked: Tensor | None = None
 
     def jvp(self, v: Tensor) -> Tensor:
         """``(dR/dE) v`` ``(F, n_dofs)`` for ``v`` ``(n_cells,)``."""
@@ -45,6 +55,44 @@ class ElasticParamDerivative:
         """``(dR/dE)^T w`` ``(n_cells,)`` for ``w`` ``(F, n_dofs)`` (summed over frames)."""
         local = w.to(self.unit).T[self._dofs]                     # (m, k, F)
         return (local * self._unit_local).sum(dim=(1, 2))
+
+    def matmul(self, V: Tensor) -> Tensor:
+        """``(dR/dE) V`` of every frame, ``(F, n_dofs, k)``, for ``V`` ``(n_cells, k)``.
+
+        One product of a sparse CSR matrix ``(F n_dofs, n_cells)`` (frame-major rows; its
+        entries are the unit element forces, ``F n_cells (d+1) d`` of them, built on the
+        first call and kept) with ``V``: memory ``O(F n_cells (d+1) d + F n_dofs k)``, no
+        ``(F, n_cells, (d+1) d, k)`` intermediate.
+        """
+        if V.dim() != 2 or V.shape[0] != self.n_cells:
+            raise ValueError(f"directions must have shape ({self.n_cells}, k), got "
+                             f"{tuple(V.shape)}")
+        with warnings.catch_warnings():   # "sparse CSR tensor support is in beta state"
+            warnings.simplefilter("ignore", UserWarning)
+            out = torch.sparse.mm(self._matrix(), V.to(self.unit).contiguous())
+        return out.reshape(self.n_frames, self.n_dofs, V.shape[1])
+
+    def _matrix(self) -> Tensor:
+        """The sparse ``(F n_dofs, n_cells)`` CSR matrix of :meth:`matmul` (made once)."""
+        if self._stacked is None:
+            device = self.unit.device
+            dofs = self._dofs.reshape(-1)                        # (n_cells (d+1) d,)
+            order = torch.argsort(dofs, stable=True)             # CSR order within a frame
+            cells = torch.arange(self.n_cells, device=device).repeat_interleave(
+                self._dofs.shape[1])[order]
+            per_frame = dofs.numel()
+            counts = torch.bincount(dofs, minlength=self.n_dofs)
+            crow_frame = torch.cumsum(counts, 0)
+            starts = torch.arange(self.n_frames, device=device)[:, None] * per_frame
+            crow = torch.cat([torch.zeros(1, dtype=torch.long, device=device),
+                              (starts + crow_frame[None, :]).reshape(-1)])
+            values = self.unit.reshape(self.n_frames, -1)[:, order].reshape(-1)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)
+                self._stacked = torch.sparse_csr_tensor(
+                    crow, cells.repeat(self.n_frames), values,
+                    size=(self.n_frames * self.n_dofs, self.n_cells), check_invariants=False)
+        return self._stacked
 
 
 class SimplicialElasticity:

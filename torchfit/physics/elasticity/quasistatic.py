@@ -13,7 +13,7 @@ calls with the same Dirichlet data warm-start from the last solution (see
 """
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -139,17 +139,38 @@ class QuasistaticElasticity:
         """
         self.model.check_modulus(E)
         values = self.dirichlet_values(positions).to(E)
+        x = self.equilibrium(E, values, self._start(E, values, x_init))
+        return x.reshape(values.shape[0], self.model.n_vertices, self.dim)
+
+    def jacobian(self, E: Tensor, positions: Tensor | Sequence[Tensor], directions: Tensor,
+                 x_init: Tensor | None = None) -> Tensor:
+        """``(dx/dE) directions``: ``(F, n_vertices, d, k)`` for ``directions`` ``(n_cells, k)``.
+
+        At the solution :meth:`__call__` gives for the same ``E`` and ``positions`` (cached,
+        else solved the same way); one solve with ``k`` right-hand sides per frame, no
+        factorisation (see :meth:`~torchfit.physics.Equilibrium.jacobian`). Dirichlet
+        vertices do not move (zero rows). No autograd graph.
+        """
+        self.model.check_modulus(E)
+        values = self.dirichlet_values(positions).to(E)
+        dx = self.equilibrium.jacobian(E.detach(), values.detach(), directions,
+                                       self._start(E, values, x_init))
+        return dx.reshape(values.shape[0], self.model.n_vertices, self.dim, dx.shape[-1])
+
+    def _start(self, E: Tensor, values: Tensor,
+               x_init: Tensor | None) -> Tensor | Callable[[], Tensor]:
+        """The cold start handed to the equilibrium (used only when it must solve)."""
         if x_init is not None:
-            start = x_init.reshape(values.shape[0], -1)
-        elif self.model.linear:
+            return x_init.reshape(values.shape[0], -1)
+        if self.model.linear:
             # one linear solve from the rest shape: its round-off scales with the
             # displacement, not with the positions (as it would from zero)
-            start = self._rest_start(values.detach())
-        else:
-            def start() -> Tensor:
-                return self.cold_start(E.detach(), values.detach())
-        x = self.equilibrium(E, values, start)
-        return x.reshape(values.shape[0], self.model.n_vertices, self.dim)
+            return self._rest_start(values.detach())
+
+        def start() -> Tensor:
+            return self.cold_start(E.detach(), values.detach())
+
+        return start
 
     @property
     def last_newton_iterations(self) -> list[int]:
