@@ -235,7 +235,7 @@ def test_equilibrium_agrees_with_superlu_forward_backward_and_jvp(backend, mater
 def test_default_backend_is_pardiso_for_3d_cpu_problems_only(backend):
     assert default_backend(3, "cpu") == "pardiso"
     assert default_backend(2, "cpu") == "scipy"
-    assert default_backend(3, torch.device("meta")) == "scipy"
+    assert default_backend(3, torch.device("meta")) == "cg"     # off the CPU: the any-device CG
 
 
 def test_missing_extra_is_one_line_naming_it(monkeypatch):

@@ -7,13 +7,16 @@ import json
 import math
 import subprocess
 import sys
+import tempfile
 import typing
+from pathlib import Path
 
 import pytest
 import torch
 from omegaconf import OmegaConf
 from omegaconf.errors import ValidationError
 
+from capsule_animation import write_capsule
 from conftest import REPO
 from torchfit.logging.results import jsonable, write_json
 from torchfit.physics.elasticity import ALIASES, MATERIALS
@@ -22,10 +25,16 @@ from torchfit.problems import (PROBLEMS, Backend, DataMode, DType,
                                Membrane2DConfig, MeshProblem, Model, ProblemConfig,
                                ProblemConfigError, ProblemEntry, Spring1D, Spring1DConfig,
                                build_problem)
-from torchfit.problems.base import choice_fields
+from torchfit.problems.base import BodyProblem, choice_fields
 
+#: Where the 3-D problems keep their meshes and animations during this test module.
+CACHE = Path(tempfile.mkdtemp(prefix="torchfit-test-cache-"))
 #: Small, quick instances of every registered problem.
-SMALL = {"spring1d": {"n": 8}, "poisson2d": {"N": 6}, "membrane2d": {"nx": 4, "ny": 2}}
+SMALL = {"spring1d": {"n": 8}, "poisson2d": {"N": 6}, "membrane2d": {"nx": 4, "ny": 2},
+         "arm3d": {"tet_edge_length": 0.12, "frames": [0, 3], "grid": [2, 2, 3],
+                   "cache_dir": str(CACHE)},
+         "animation": {"path": str(write_capsule(CACHE / "capsule")), "tet_edge_length": 0.15,
+                       "grid": [2, 2, 2], "cache_dir": str(CACHE)}}
 
 
 def numeric_fields(config_class: type) -> list[tuple[str, bool]]:
@@ -176,9 +185,14 @@ def test_metric_names_are_the_metric_keys(name):
     problem = build_problem(name, SMALL[name])
     assert isinstance(problem, InverseProblem)
     assert list(problem.metrics(problem.theta0)) == problem.metric_names()
-    expected = {"misfit", "u_err_inf", "u_err_2", "k_err_inf", "k_err_2", "k_err_rel"}
-    if problem.scale_free:
-        expected.add("k_err_rel_aligned")
+    expected = {"misfit"}
+    if problem.field_true is not None:
+        expected |= {"u_err_inf", "u_err_2", "k_err_inf", "k_err_2", "k_err_rel"}
+        if problem.scale_free:
+            expected.add("k_err_rel_aligned")
+    if isinstance(problem, BodyProblem):     # a body fitted to an animation (arm3d, animation)
+        expected |= {"surface_err_mean", "surface_err_max", "surface_err_reduction",
+                     "joint_volume_change"}
     assert set(problem.metric_names()) == expected
 
 
