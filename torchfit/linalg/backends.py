@@ -372,7 +372,13 @@ class PardisoBackend:
             raise SingularMatrixError("system matrix has NaN or infinite entries")
         plan = self.plan(pattern, symmetric)
         a = plan.structure.gather(values.detach().to(torch.float64).numpy())
-        handle, mnum = plan.slot(a)
+        try:
+            handle, mnum = plan.slot(a)
+        except PardisoError as err:      # an analysis that reads values (nonsymmetric)
+            if err.code in SINGULAR_CODES:
+                raise SingularMatrixError(f"sparse factorisation failed ({err}); "
+                                          + _SINGULAR_ADVICE) from err
+            raise
         report = handle.factorize(mnum, a)
         error, perturbed = report["error"], report["perturbed_pivots"]
         if error or perturbed:

@@ -130,6 +130,7 @@ class LevenbergMarquardt(LeastSquaresSolver):
     def __init__(self, config: LevenbergMarquardtConfig | None = None, *,
                  D: Tensor | None = None, groups: Tensor | None = None) -> None:
         super().__init__(config, D=D, groups=groups)
+        self._normal: DenseNormalEquations | None = None   # dense path: of self.lin
 
     def _setup(self, like: Tensor) -> None:
         cfg = self.config
@@ -235,7 +236,7 @@ class LevenbergMarquardt(LeastSquaresSolver):
         """The exact damped solver of the current linearisation (dense path only)."""
         if not self.dense:
             return None
-        normal = getattr(self, "_normal", None)
+        normal = self._normal
         if normal is None or normal.lin is not self.lin:
             normal = self._normal = DenseNormalEquations(self.lin,
                                                          self.residual.projector(self.theta))
