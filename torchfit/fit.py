@@ -492,10 +492,11 @@ def _write_outputs(problem: InverseProblem, result: FitResult, run_dir: Path,
         files.append(run_dir / "frames.npz")
     summary = result_dict(problem, result, config)
     if comparison:
-        summary["model_comparison"] = {
-            name: {k: v for k, v in values.items() if not k.endswith("_per_frame")}
-            for name, values in comparison["models"].items()}
-        summary["model_comparison"]["frame"] = comparison["frame"]
+        summary["model_comparison"] = {"frame": comparison["frame"]}
+        for material in ("homogeneous", "fitted"):
+            summary["model_comparison"][material] = {
+                name: {k: v for k, v in values.items() if not k.endswith("_per_frame")}
+                for name, values in comparison[material].items()}
     write_json(run_dir / RESULT_FILE, summary)
     files[:0] = write_run_pngs(run_dir, problem, result.theta, result.history, guard,
                                field_is_chain(problem))

@@ -136,11 +136,16 @@ class BodyOutputs:
         self.frames = sorted({reference, 0} if frames is None else {int(f) for f in frames})
         self.guard = guard or PlotGuard()
         self.history: dict[int, np.ndarray] = {}
+        self.initial: tuple[dict[str, np.ndarray], Tensor] | None = None
 
     def __call__(self, record: "IterationRecord") -> None:
         with torch.no_grad():
             x = self.problem.simulate(self.problem.field(record.theta))   # the cached state
-        self.history[int(record.iteration)] = self.problem.frame_errors(x)["surface_err_mean"]
+        curves = self.problem.frame_errors(x)
+        self.history[int(record.iteration)] = curves["surface_err_mean"]
+        if int(record.iteration) == 0:
+            # the homogeneous material (the initial guess): the model comparison's baseline
+            self.initial = (curves, x.detach().clone())
 
     # -- end of the run ---------------------------------------------------------------
     def finish(self, theta: Tensor) -> tuple[list[Path], dict[str, Any]]:
@@ -289,36 +294,49 @@ class BodyOutputs:
         return paths
 
     def _compare_models(self, x: Tensor, field: Tensor) -> tuple[list[Path], dict[str, Any]]:
+        """``linear`` against the fitted model, with the homogeneous material (the seed's
+        comparison: same animation, same rig, no fitting) and with the fitted field."""
         problem = self.problem
         model = problem.cfg.model.value
         frame = int(getattr(problem, "full_bend_frame", 0))
-        results = {model: x}
-        if model != "linear":
-            progress.info("simulating the linear model for the comparison (%d frames)",
-                          problem.n_frames)
-            results["linear"] = problem.simulate_model("linear", field)
         names = problem.frame_names()
-        summary: dict[str, Any] = {"frame": frame, "frame_name": names[frame], "models": {}}
-        panels = [("animation (target)", _numpy(problem.clean_surface())[frame], None)]
-        errors_at_frame = {}
-        for name in (["linear"] if "linear" in results else []) + \
-                ([model] if model != "linear" else []):
-            curves = problem.frame_errors(results[name])
-            summary["models"][name] = {
-                "surface_err_mean_per_frame": curves["surface_err_mean"].tolist(),
-                "joint_volume_change_per_frame": curves["joint_volume_change"].tolist(),
-                "surface_err_mean": float(np.mean(curves["surface_err_mean"])),
-                "joint_volume_change_at_frame": float(curves["joint_volume_change"][frame]),
-            }
-            errors_at_frame[name] = _numpy(problem.surface_error_field(results[name]))[frame]
-        vmax = max(float(e.max()) for e in errors_at_frame.values()) or 1.0
-        for name, error in errors_at_frame.items():
-            info = summary["models"][name]
-            panels.append((f"{name}: joint volume {100 * info['joint_volume_change_at_frame']:+.2f} %,"
-                           f"\nmean surface error {1e3 * float(error.mean()):.2f} mm",
-                           _numpy(problem.surface(results[name]))[frame], error))
+        homogeneous = problem.field(problem.theta0).detach()
+        if self.initial is not None:
+            x_homogeneous = self.initial[1]
+        else:      # a resumed run did not see iteration 0
+            x_homogeneous = problem.simulate_model(model, homogeneous)
+        progress.info("simulating the linear model for the comparison (%d frames)",
+                      problem.n_frames)
+        states = {"homogeneous": {model: x_homogeneous}, "fitted": {model: x}}
+        if model != "linear":
+            states["homogeneous"]["linear"] = problem.simulate_model("linear", homogeneous)
+            states["fitted"]["linear"] = problem.simulate_model("linear", field)
+        summary: dict[str, Any] = {"frame": frame, "frame_name": names[frame],
+                                   "homogeneous": {}, "fitted": {}}
+        for material, by_model in states.items():
+            for name in sorted(by_model, key=lambda n: n != "linear"):
+                curves = problem.frame_errors(by_model[name])
+                summary[material][name] = {
+                    "surface_err_mean": float(np.mean(curves["surface_err_mean"])),
+                    "joint_volume_change_at_frame": float(curves["joint_volume_change"][frame]),
+                    "surface_err_mean_per_frame": curves["surface_err_mean"].tolist(),
+                    "joint_volume_change_per_frame": curves["joint_volume_change"].tolist(),
+                }
         json_path = self.run_dir / COMPARISON_JSON
         write_json(json_path, summary)
+        panels = [("animation (target)", _numpy(problem.clean_surface())[frame], None)]
+        shown = [("homogeneous", n) for n in sorted(states["homogeneous"], key=lambda n: n != "linear")]
+        shown.append(("fitted", model))
+        errors = {key: _numpy(problem.surface_error_field(states[key[0]][key[1]]))[frame]
+                  for key in shown}
+        vmax = max(float(e.max()) for e in errors.values()) or 1.0
+        for material, name in shown:
+            info = summary[material][name]
+            label = f"{name}, {'fitted E' if material == 'fitted' else 'homogeneous E'}"
+            panels.append((f"{label}\nelbow volume {100 * info['joint_volume_change_at_frame']:+.1f} %, "
+                           f"mean error {1e3 * float(errors[(material, name)].mean()):.2f} mm",
+                           _numpy(problem.surface(states[material][name]))[frame],
+                           errors[(material, name)]))
         fig = surface_figure(panels, np.asarray(problem.animation.faces), vmax,
                              title=f"{names[frame]} (colour: surface error, 0 to "
                                    f"{1e3 * vmax:.1f} mm)")

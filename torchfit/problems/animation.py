@@ -109,7 +109,7 @@ class AnimationConfig(ProblemConfig):
     cache_dir: str = ""                    # tet-mesh cache ("" : $TORCHFIT_CACHE_DIR or ~/.cache/torchfit)
     newton_rtol: float = 1e-10
     newton_atol: float = 1e-12
-    newton_max_iter: int = 40
+    newton_max_iter: int = 100
 
 
 #: largest distance (fraction of the bounding-box diagonal) of a surface vertex outside the
@@ -197,8 +197,11 @@ class AnimationProblem(InverseProblem):
                                                    device=self.device)
         start[:, dirichlet] = positions
         self.start_positions = torch.as_tensor(start, dtype=self.dtype, device=self.device)
+        # warm starts (the last solution, at the solver's next point) keep going rather than
+        # fall back to the animated pose: near full bend that cold start needs far more
+        # Newton iterations (folds and inverted elements at the inner elbow)
         newton = NewtonOptions(max_iter=cfg.newton_max_iter, rtol=cfg.newton_rtol,
-                               atol=cfg.newton_atol)
+                               atol=cfg.newton_atol, warm_max_iter=cfg.newton_max_iter)
         self.backend = resolve_backend(cfg.backend, self.device, 3)
         self.quasistatic = QuasistaticElasticity(self.model, dirichlet, backend=self.backend,
                                                  newton=newton, start="rest")

@@ -86,6 +86,11 @@ class LevenbergMarquardtConfig(LeastSquaresConfig):
     preconditioner_shift: float = 1e-2   # eps, relative to D^T D (eigenvalues in [0, 2 max degree])
     preconditioner_probes: int = 16      # products J^T w per linearisation estimating C
     seed: int = 0                   # of those random probes
+    # the largest step allowed in any single parameter, ||d||_inf (0: no limit); a longer
+    # step raises the damping until it fits (dense path) or is scaled down (matrix-free).
+    # With theta = log E, max_step = 1 lets a modulus change by a factor e per iteration:
+    # weakly observed parameters then cannot leap to values the simulation cannot solve.
+    max_step: float = 0.0
 
     def check(self) -> None:
         super().check()
@@ -111,6 +116,8 @@ class LevenbergMarquardtConfig(LeastSquaresConfig):
                 f"solver.preconditioner_shift must be > 0, got {self.preconditioner_shift}")
         require(self.preconditioner_probes >= 1,
                 f"solver.preconditioner_probes must be >= 1, got {self.preconditioner_probes}")
+        require(self.max_step >= 0, f"solver.max_step must be >= 0 (0: no limit), got "
+                f"{self.max_step}")
 
 
 class LevenbergMarquardt(LeastSquaresSolver):
@@ -188,6 +195,9 @@ class LevenbergMarquardt(LeastSquaresSolver):
             if self.laplacian is not None and self.precondition is None \
                     and inner.stop_reason == "max_iter":
                 self.laplacian_active = True
+        if cfg.max_step > 0:
+            inner, damping = self._limit_step(inner, damping, normal)
+            self.damping = used_damping = damping
         direction = inner.x
         # the model's residual at the trial point: r + J d (linear model)
         model_residual = lin.r + inner.Ax
@@ -231,6 +241,24 @@ class LevenbergMarquardt(LeastSquaresSolver):
                            gain_ratio=gain if math.isfinite(gain) else -1.0,
                            gradient_norm=float(torch.linalg.vector_norm(self.gradient)), **extra,
                            **self.path_extra())
+
+    def _limit_step(self, inner: CGLSResult, damping: float,
+                    normal: DenseNormalEquations | None) -> tuple[CGLSResult, float]:
+        """``inner`` with ``||d||_inf <= max_step``: the dense path raises the damping (x4
+        until it fits, the exact damped step of a larger ``lam``); the matrix-free path
+        scales the step (no new CGLS)."""
+        limit = self.config.max_step
+        assert self.lin is not None
+        for _ in range(60):
+            longest = float(inner.x.abs().max())
+            if longest <= limit:
+                break
+            if normal is None:
+                scale = limit / longest
+                return dataclasses.replace(inner, x=inner.x * scale, Ax=inner.Ax * scale), damping
+            damping *= 4.0
+            inner = normal.solve(-self.lin.r, damping, rmatvec_b=-self.gradient)
+        return inner, damping
 
     def _normal_equations(self) -> DenseNormalEquations | None:
         """The exact damped solver of the current linearisation (dense path only)."""
