@@ -42,7 +42,7 @@ import torch
 from torch import Tensor
 
 from ...errors import SimulationError
-from .kinematics import polar_rotation, rotation_differential
+from .kinematics import polar_rotation, rotation_differential, svd3
 
 
 class MaterialError(ValueError):
@@ -262,7 +262,10 @@ class Corotated(Material):
 
 def rotation_variant_svd(F: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """``F = U diag(sigma) V^T`` with ``det U = det V = +1`` (``(..., d, d)``): the last
-    singular value carries the sign of ``det F`` (negative for an inverted element)."""
+    singular value carries the sign of ``det F`` (negative for an inverted element).
+    3-D: :func:`~.kinematics.svd3` (vectorised Jacobi); 2-D: LAPACK."""
+    if F.shape[-1] == 3:
+        return svd3(F)
     U, sigma, Vh = torch.linalg.svd(F)
     sign_u = torch.sign(torch.linalg.det(U))
     sign_v = torch.sign(torch.linalg.det(Vh))
