@@ -429,7 +429,7 @@ class Equilibrium:
         source = self._warm_source(fixed_values)
         if source is not None:
             try:
-                sol = self._newton(params, fixed_values, self._predict(source, params),
+                sol = self._newton(params, fixed_values, source.x.detach().clone(),
                                    source.reference, max_iter=min(self.newton.warm_max_iter,
                                                                   self.newton.max_iter))
                 sol.warm_started = True
@@ -437,23 +437,6 @@ class Equilibrium:
             except (NewtonConvergenceError, SingularMatrixError):
                 pass   # the cold start below decides (and reports a failure)
         return self._newton(params, fixed_values, self._cold_start(params, fixed_values, x_init))
-
-    def _predict(self, source: _Solution, params: Tensor) -> Tensor:
-        """Warm start at new ``params`` from ``source``: its solution plus the first-order
-        change ``-K^{-1} R(x_source, params)`` solved with ``source``'s stored factors (no
-        factorisation: one solve per frame), kept per frame where it lowers ``||R||``.
-
-        Where the parameters moved a little (a solver's next point), this predictor is
-        what a first Newton iteration would give, one factorisation cheaper.
-        """
-        x = source.x.detach().clone()
-        free = self.free_dofs.to(x.device)
-        residual = self._free_residual(x, params)
-        step = self._solve(source.factors, -residual)
-        predicted = self._full(x[:, free] + step, source.fixed_values)
-        better = torch.linalg.vector_norm(self._free_residual(predicted, params), dim=1) \
-            < torch.linalg.vector_norm(residual, dim=1)
-        return torch.where(better[:, None], predicted, x)
 
     def _newton(self, params: Tensor, fixed_values: Tensor, x: Tensor,
                 reference: Tensor | None = None, max_iter: int | None = None) -> _Solution:
