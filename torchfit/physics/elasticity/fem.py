@@ -218,9 +218,10 @@ class SimplicialElasticity:
             F = self.deformation_gradients(x.detach())
             c0, c, U, Vh = self.material.stiffness_terms(F, mu.detach(), lam.detach(), projected)
             q = self._mode_gradients(U, Vh, self.material.TWIST_PAIRS[self.dim])
-            K = torch.einsum("...em,...emk,...eml->...ekl", c, q, q)
-            K = K + c0[..., None, None] * self._gram(K).reshape(-1, k, k)
-            return K * vol.to(K)[:, None, None]
+            vol = vol.to(q)
+            # volumes folded into the small coefficient arrays: two passes over K, not four
+            K = torch.einsum("...em,...emk,...eml->...ekl", c * vol[:, None], q, q)
+            return K.addcmul_((c0 * vol)[..., None, None], self._gram(K).reshape(-1, k, k))
         A = self.stress_derivative(x, E, projected)
         g = g.to(A)
         K = torch.einsum("...eijkl,eaj,ebl->...eaibk", A, g, g)
