@@ -12,12 +12,15 @@ from pathlib import Path
 import pytest
 import yaml
 
+from conftest import with_problem
+
 REPO = Path(__file__).resolve().parents[2]
 
 
 def fit(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
-    return subprocess.run([sys.executable, "experiments/fit.py", *args], cwd=REPO, env=env,
+    return subprocess.run([sys.executable, "experiments/fit.py", *with_problem(args)], cwd=REPO,
+                          env=env,
                           capture_output=True, text=True, timeout=timeout)
 
 
@@ -36,7 +39,7 @@ def composed(*overrides: str, part: str = "job") -> dict:
 
     register_configs()
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose(config_name="fit", overrides=list(overrides),
+        cfg = compose(config_name="fit", overrides=with_problem(overrides),
                       return_hydra_config=part == "hydra")
     config = OmegaConf.to_container(cfg, resolve=False)
     return config if part == "hydra" else {k: v for k, v in config.items() if k != "hydra"}

@@ -68,7 +68,7 @@ def test_linear_flattens_more_than_corotated_at_full_bend(cache):
 
 
 def test_bad_settings_are_one_line(cache):
-    with pytest.raises(ProblemConfigError, match="problem.path .*is not used by arm3d"):
+    with pytest.raises(ProblemConfigError, match="problem.path=/somewhere: is not used by arm3d"):
         build_problem("arm3d", {"path": "/somewhere"})
     with pytest.raises(ProblemConfigError, match="problem.frames.*frame 60 does not exist"):
         arm(cache, frames=[0, 60])

@@ -139,7 +139,8 @@ def test_real_joblib_sweep(tmp_path):
     """spring1d through the joblib launcher, one job invalid (tau <= 1 for Gauss-Newton)."""
     sweep = tmp_path / "sweep"
     env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
-    proc = subprocess.run([sys.executable, "experiments/fit.py", "-m", "hydra/launcher=joblib",
+    proc = subprocess.run([sys.executable, "experiments/fit.py", "-m", "problem=spring1d",
+                           "hydra/launcher=joblib",
                            "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={sweep}", "threads=1",
                            "problem.n=16", "problem.noise=1e-4", "solver.tau=0.5,1.5,2.0",
                            "progress=false"], cwd=REPO, env=env, capture_output=True,

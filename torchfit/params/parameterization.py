@@ -82,7 +82,23 @@ class Parameterization:
         values = torch.exp(theta) if self.transform == "exp" else theta
         if self.basis is None:
             return values
+        if self.basis.layout != torch.strided:
+            # a gather and a scatter-add instead of a sparse product: torch's sparse matmul
+            # has no forward-mode derivative (J v of the solvers)
+            rows, cols, weights = self._sparse_entries(values)
+            return values.new_zeros(self.n_field).index_add(0, rows, weights * values[cols])
         return self.basis.to(values) @ values
+
+    def _sparse_entries(self, like: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Rows, columns and values of the sparse basis on ``like``'s device/dtype (cached)."""
+        key = (like.dtype, like.device)
+        if getattr(self, "_entries_key", None) != key:
+            coo = self.basis.to_sparse_coo().coalesce()
+            rows, cols = coo.indices()
+            self._entries = (rows.to(like.device), cols.to(like.device),
+                             coo.values().to(like))
+            self._entries_key = key
+        return self._entries
 
     def jacobian(self, theta: Tensor) -> Tensor:
         """``d field / d theta`` as a dense ``(n_field, n_params)`` matrix at ``theta``.

@@ -182,6 +182,9 @@ class Equilibrium:
         # a symmetric model with an energy (R = dEnergy/dx) gets the energy line search
         self._has_energy = bool(model.symmetric) and callable(getattr(model, "energy", None))
         self._has_residual_and_energy = callable(getattr(model, "residual_and_energy", None))
+        # the residual of one frame depends on that frame's positions only (no per-frame
+        # loads): Newton's line search then evaluates the frames still iterating alone
+        self._frame_independent = bool(getattr(model, "frame_independent", False))
 
     # -- public -----------------------------------------------------------------------
     @property
@@ -365,6 +368,29 @@ class Equilibrium:
         """The model's energy per frame ``(F,)`` (the Dirichlet dofs' part is constant)."""
         return self.model.energy(x, params).detach()
 
+    def _evaluate(self, x_frames: Tensor, frames: Tensor, x_all: Tensor, params: Tensor,
+                  with_energy: bool) -> tuple[Tensor, Tensor | None]:
+        """Free residual (and energy) at positions ``x_frames`` of the frames ``frames``.
+
+        A model whose residual does not depend on the frame (``frame_independent``, e.g.
+        elasticity: the frames differ only in their Dirichlet values) is evaluated on those
+        frames alone; any other (per-frame loads) on every frame of ``x_all`` with
+        ``x_frames`` put in.
+        """
+        if self._frame_independent or frames.numel() == x_all.shape[0]:
+            x = x_frames
+        else:
+            x = x_all.clone()
+            x[frames] = x_frames
+        if with_energy:
+            residual, energy = self._residual_and_energy(x, params)
+        else:
+            residual, energy = self._free_residual(x, params), None
+        if x is not x_frames:
+            residual = residual[frames]
+            energy = None if energy is None else energy[frames]
+        return residual, energy
+
     def _residual_and_energy(self, x: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
         """Free residual ``(F, n_free)`` and energy ``(F,)`` (one pass where the model
         offers ``residual_and_energy``: one SVD per element instead of two)."""
@@ -507,19 +533,21 @@ class Equilibrium:
                     step[again] = self._solve(redo, -residual[again])
                     slope = (residual * step).sum(dim=1)
                     exact = exact & ~uphill
-            # Backtracking on ||R|| (and the energy), per frame; converged frames stay.
-            alpha = torch.ones(n_frames, dtype=x.dtype, device=x.device)
-            energy_trial = energy
+            # Backtracking on ||R|| (and the energy), per frame, on the active frames only
+            # (a converged frame costs nothing while a hard one is still iterating).
+            x_a, step_a, norms_a = x[frames], step[frames], norms[frames]
+            slope_a, targets_a, fixed_a = slope[frames], targets[frames], fixed_values[frames]
+            energy_a = energy[frames] if energy is not None else None
+            alpha = torch.ones(frames.numel(), dtype=x.dtype, device=x.device)
+            energy_trial = energy_a
             for _ in range(opts.max_backtracks):
-                x_trial = self._full(x[:, free] + alpha[:, None] * step, fixed_values)
-                if energy is not None:
-                    residual_trial, energy_trial = self._residual_and_energy(x_trial, params)
-                else:
-                    residual_trial = self._free_residual(x_trial, params)
+                x_trial = self._full(x_a[:, free] + alpha[:, None] * step_a, fixed_a)
+                residual_trial, energy_trial = self._evaluate(x_trial, frames, x, params,
+                                                              energy_a is not None)
                 norms_trial = torch.linalg.vector_norm(residual_trial, dim=1)
-                ok = (norms_trial <= (1 - 1e-4 * alpha) * norms) | ~active | (norms_trial <= targets)
-                if energy is not None:
-                    ok |= (slope < 0) & (energy_trial <= energy + 1e-4 * alpha * slope)
+                ok = (norms_trial <= (1 - 1e-4 * alpha) * norms_a) | (norms_trial <= targets_a)
+                if energy_a is not None:
+                    ok |= (slope_a < 0) & (energy_trial <= energy_a + 1e-4 * alpha * slope_a)
                     ok &= torch.isfinite(energy_trial)
                 ok &= torch.isfinite(norms_trial)
                 if bool(ok.all()):
@@ -528,21 +556,26 @@ class Equilibrium:
             if can_project:
                 # A failed line search tries the other tangent next; close to equilibrium
                 # the exact one (quadratic convergence).
-                failed = active & ~ok
-                slow = ~exact & (norms_trial > opts.stagnation * norms)
-                near = norms_trial <= opts.exact_below * reference
-                exact = torch.where(failed, ~exact, exact | near | slow)
+                exact_a = exact[frames]
+                slow = ~exact_a & (norms_trial > opts.stagnation * norms_a)
+                near = norms_trial <= opts.exact_below * reference[frames]
+                exact = exact.clone()
+                exact[frames] = torch.where(~ok, ~exact_a, exact_a | near | slow)
             for f in frames.tolist():
                 iterations[f] += 1
             finite = torch.isfinite(norms_trial)
-            if energy is not None:
+            if energy_a is not None:
                 finite &= torch.isfinite(energy_trial)
-                energy = torch.where(finite, energy_trial, energy)
+                energy = energy.clone()
+                energy[frames] = torch.where(finite, energy_trial, energy_a)
                 energies.append(energy)
             keep = ~finite[:, None]
-            x = torch.where(keep, x, x_trial)
-            residual = torch.where(keep, residual, residual_trial)
-            norms = torch.where(finite, norms_trial, norms)
+            x = x.clone()
+            x[frames] = torch.where(keep, x_a, x_trial)
+            residual = residual.clone()
+            residual[frames] = torch.where(keep, residual[frames], residual_trial)
+            norms = norms.clone()
+            norms[frames] = torch.where(finite, norms_trial, norms_a)
             history.append(norms)
         if bool((norms > targets).any()) or not torch.isfinite(norms).all():
             frame = int(torch.argmax(torch.nan_to_num(norms / targets, nan=math.inf)))

@@ -426,10 +426,25 @@ class AnimationProblem(InverseProblem):
         directions = self.parameterization.jacobian(theta.detach())          # (n_cells, n)
         dx = self.quasistatic.jacobian(E, self.dirichlet_positions.to(E), directions,
                                        x_init=self.start_positions.to(E))   # (F, V, 3, n)
-        corners = self._observed_corners.to(dx.device)
-        weights = self._observed_weights.to(dx)
-        columns = (dx[:, corners] * weights[None, :, :, None, None]).sum(2)  # (F, n_obs, 3, n)
-        return columns.reshape(-1, columns.shape[-1])
+        F, V, d, n = dx.shape
+        # the embedding as a sparse (n_obs, V) matrix on (V, F d n): one product, no
+        # (F, n_obs, 4, d, n) gather
+        stacked = dx.permute(1, 0, 2, 3).reshape(V, F * d * n)
+        columns = torch.sparse.mm(self._observation_matrix(dx), stacked)      # (n_obs, F d n)
+        return columns.reshape(-1, F, d, n).permute(1, 0, 2, 3).reshape(-1, n)
+
+    def _observation_matrix(self, like: Tensor) -> Tensor:
+        """The observed rows of the embedding, sparse ``(n_obs, n_vertices)`` (cached)."""
+        key = (like.dtype, like.device)
+        if getattr(self, "_observation_key", None) != key:
+            corners = self._observed_corners
+            rows = torch.arange(corners.shape[0]).repeat_interleave(corners.shape[1])
+            index = torch.stack([rows, corners.reshape(-1).cpu()])
+            self._observation = torch.sparse_coo_tensor(
+                index, self._observed_weights.reshape(-1).cpu(),
+                (corners.shape[0], self.model.n_vertices)).coalesce().to(like)
+            self._observation_key = key
+        return self._observation
 
     # -- what the metrics and outputs report ---------------------------------------------
     def clean_targets(self) -> Tensor:

@@ -111,6 +111,8 @@ class SimplicialElasticity:
     """
 
     symmetric = True
+    #: frames differ only in their positions (no per-frame loads): see ``Equilibrium``
+    frame_independent = True
 
     def __init__(self, points: Tensor, cells: Tensor, material: str | Material = "corotated",
                  nu: float | None = None, dtype: torch.dtype = torch.float64,
