@@ -173,8 +173,7 @@ class AnimationProblem(InverseProblem):
                 raise setting_error("frames", cfg.frames, str(err)) from err
         self.animation = animation
         for text in animation.warnings:
-            warnings.warn(f"{animation.path}: the rest surface is {text}", UserWarning,
-                          stacklevel=2)
+            warnings.warn(f"{animation.path}: rest surface: {text}", UserWarning, stacklevel=2)
         self.n_frames = animation.n_frames
         self.tet = self.tetrahedralize(cfg, animation)
         points, cells = self.tet.points, self.tet.cells
@@ -216,8 +215,9 @@ class AnimationProblem(InverseProblem):
         cache = Path(cfg.cache_dir).expanduser() / "tetmesh" if cfg.cache_dir else \
             default_cache_dir()
         try:
+            # the surface's warnings were given once above, with the animation's name
             return tetrahedralize(animation.rest_vertices, animation.faces, options,
-                                  cache_dir=cache)
+                                  cache_dir=cache, warn=False)
         except MeshError as err:
             raise ProblemConfigError(f"{animation.path}: {err}") from err
 
@@ -442,7 +442,8 @@ class AnimationProblem(InverseProblem):
             index = torch.stack([rows, corners.reshape(-1).cpu()])
             self._observation = torch.sparse_coo_tensor(
                 index, self._observed_weights.reshape(-1).cpu(),
-                (corners.shape[0], self.model.n_vertices)).coalesce().to(like)
+                (corners.shape[0], self.model.n_vertices), check_invariants=False
+            ).coalesce().to(like)
             self._observation_key = key
         return self._observation
 
