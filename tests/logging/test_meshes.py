@@ -1,0 +1,85 @@
+"""Outputs of a 3-D body (torchfit.logging.meshes): OBJ frames, VTU, regions, the model
+comparison, and TensorBoard meshes and per-frame curves read from a real ``tensorboard``
+server through its HTTP data API."""
+from __future__ import annotations
+
+import json
+
+import meshio
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from capsule_animation import write_capsule
+from torchfit import build_problem, fit
+
+
+@pytest.fixture(scope="module")
+def capsule_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("body")
+    folder = write_capsule(root / "capsule", "skeleton", "npz")
+    problem = build_problem("animation", {"path": str(folder), "cache_dir": str(root / "cache"),
+                                          "tet_edge_length": 0.12, "grid": [2, 2, 3]})
+    run = root / "run"
+    result = fit(problem, {"name": "levenberg_marquardt", "max_iter": 2, "max_step": 1.0},
+                 run_dir=run)
+    return problem, result, run
+
+
+def test_simulated_frames_are_obj_files_on_the_users_vertices(capsule_run):
+    problem, result, run = capsule_run
+    files = sorted((run / "frames").glob("frame_*.obj"))
+    assert [f.name for f in files] == ["frame_000.obj", "frame_001.obj", "frame_002.obj"]
+    surface = problem.surface(problem.simulate(result.field)).numpy()
+    for f, path in enumerate(files):
+        mesh = trimesh.load(str(path), process=False, maintain_order=True)
+        assert np.array_equal(mesh.faces, problem.animation.faces)
+        assert np.allclose(mesh.vertices, surface[f], rtol=0, atol=1e-8)
+
+
+def test_vtu_holds_the_field_and_every_frames_displacement(capsule_run):
+    problem, result, run = capsule_run
+    mesh = meshio.read(run / "body.vtu")
+    assert np.allclose(mesh.points, problem.mesh.points)
+    assert np.array_equal(mesh.cells_dict["tetra"], problem.mesh.cells)
+    assert np.allclose(mesh.cell_data["E"][0], result.field.numpy())
+    x = problem.simulate(result.field).numpy()
+    for f in range(problem.n_frames):
+        assert np.allclose(mesh.point_data[f"displacement_{f:03d}"], x[f] - problem.mesh.points)
+
+
+def test_regions_and_model_comparison(capsule_run):
+    problem, result, run = capsule_run
+    regions = json.loads((run / "regions.json").read_text())
+    body = regions["fitted"]["body"]
+    assert body["tets"] == problem.model.n_cells
+    assert body["min"] <= body["volume_mean"] <= body["max"]
+    comparison = json.loads((run / "model_comparison.json").read_text())
+    assert set(comparison["homogeneous"]) == {"linear", "corotated"}
+    assert comparison["frame"] == problem.full_bend_frame == 2
+    saved = json.loads((run / "result.json").read_text())["model_comparison"]
+    assert saved["fitted"]["corotated"]["surface_err_mean"] == pytest.approx(
+        result.metrics["surface_err_mean"])
+    assert (run / "frame_comparison.png").stat().st_size > 10_000
+    assert (run / "frame_errors.png").is_file()
+
+
+def test_tensorboard_shows_meshes_and_per_frame_curves(capsule_run, tensorboard_server):
+    problem, result, run = capsule_run
+    server = tensorboard_server(run / "tb")
+    tags = server.wait_until(lambda: server.get("/data/plugin/mesh/tags"), what="mesh tags")
+    (run_name, mesh_tags), = tags.items()
+    frames = sorted({0, problem.full_bend_frame})
+    assert set(mesh_tags) == {f"mesh/{kind}_frame{f}" for f in frames
+                              for kind in ("surface_error", "E")}
+    meta = server.get("/data/plugin/mesh/meshes", run=run_name,
+                      tag=f"mesh/surface_error_frame{frames[-1]}", sample=0)
+    # content types of the mesh plugin's proto: 1 vertices, 2 faces, 3 colours
+    shapes = {m["content_type"]: m["data_shape"] for m in meta}
+    assert shapes[1] == shapes[3] == [1, problem.animation.n_vertices, 3]
+    assert shapes[2] == [1, len(problem.animation.faces), 3]
+    curves = server.scalars(run_name, "frames/surface_err_mean")
+    assert [step for step, _ in curves] == list(range(problem.n_frames))
+    errors = problem.frame_errors(problem.simulate(result.field))["surface_err_mean"]
+    assert np.allclose([v for _, v in curves], errors, rtol=1e-6)
