@@ -89,8 +89,15 @@ def main(cfg: DictConfig) -> float:
               file=sys.stderr, flush=True)
         sys.exit(1)
     print(result.summary())
-    print(f"results: {run_dir / 'result.json'} (beside it: "
-          + ", ".join(p.name for p in result.files) + ", checkpoint.pt)")
+    names = list(dict.fromkeys(  # frames/frame_000.obj ... shown once as frames/
+        p.relative_to(run_dir).parts[0] + ("/" if len(p.relative_to(run_dir).parts) > 1 else "")
+        for p in result.files if p.is_relative_to(run_dir)))
+    print(f"results: {run_dir / 'result.json'} (beside it: " + ", ".join(names)
+          + ", checkpoint.pt)")
+    if (run_dir / "frame_comparison.png").is_file():
+        print(f"pictures: {run_dir / 'frame_comparison.png'} (animation | linear | fitted "
+              f"model at full bend), fitted field per region: {run_dir / 'regions.json'}, "
+              f"for ParaView: {run_dir / 'body.vtu'}")
     print(f"tensorboard --logdir {run_dir / 'tb'}", flush=True)
     return result.value(str(config["objective_metric"]))
 

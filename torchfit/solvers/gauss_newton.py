@@ -152,8 +152,13 @@ class GaussNewton(LeastSquaresSolver):
                      max_iter=cfg.cg_max_iter, project=residual.projector(theta),
                      rmatvec_b=-self.gradient, preconditioner=self.preconditioner,
                      **({"normal_rtol": cfg.cg_rtol} if cfg.cg_rtol > 0 else {}))
-        direction = inner.x
-        slope = float(torch.dot(lin.r, inner.Ax))  # d/da 0.5||r + a J d||^2 at a = 0
+        direction, model_change = inner.x, inner.Ax
+        longest = float(direction.abs().max()) if direction.numel() else 0.0
+        if cfg.max_step > 0 and longest > cfg.max_step:
+            # solver.max_step: the same direction, shorter (the line search starts there)
+            direction = direction * (cfg.max_step / longest)
+            model_change = model_change * (cfg.max_step / longest)
+        slope = float(torch.dot(lin.r, model_change))  # d/da 0.5||r + a J d||^2 at a = 0
         if slope >= 0 or not math.isfinite(slope):
             return Stop(True, "tolerance")
         trial, step = self._line_search(theta, direction, slope)

@@ -33,11 +33,19 @@ class LeastSquaresConfig(SolverConfig):
     # dense J (one simulator pass per linearisation) when the residual provides a
     # jacobian and n <= this; 0: always matrix-free products
     dense_jacobian_max_params: int = 1000
+    # the largest change of any single parameter in one step, ||d||_inf (0: no limit).
+    # Levenberg-Marquardt raises its damping until the step fits (dense path) or scales
+    # it (matrix-free); Gauss-Newton scales its direction before the line search. With
+    # theta = log E, max_step = 1 lets a modulus change by at most a factor e per step:
+    # weakly observed parameters cannot leap to values the simulation cannot solve.
+    max_step: float = 0.0
 
     def check(self) -> None:
         require(self.dense_jacobian_max_params >= 0,
                 f"solver.dense_jacobian_max_params must be >= 0 (0 disables the dense "
                 f"Jacobian), got {self.dense_jacobian_max_params}")
+        require(self.max_step >= 0, f"solver.max_step must be >= 0 (0: no limit), got "
+                f"{self.max_step}")
 
 
 def require_difference_operator(D: Optional[Tensor]) -> None:

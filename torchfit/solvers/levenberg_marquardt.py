@@ -86,11 +86,6 @@ class LevenbergMarquardtConfig(LeastSquaresConfig):
     preconditioner_shift: float = 1e-2   # eps, relative to D^T D (eigenvalues in [0, 2 max degree])
     preconditioner_probes: int = 16      # products J^T w per linearisation estimating C
     seed: int = 0                   # of those random probes
-    # the largest step allowed in any single parameter, ||d||_inf (0: no limit); a longer
-    # step raises the damping until it fits (dense path) or is scaled down (matrix-free).
-    # With theta = log E, max_step = 1 lets a modulus change by a factor e per iteration:
-    # weakly observed parameters then cannot leap to values the simulation cannot solve.
-    max_step: float = 0.0
 
     def check(self) -> None:
         super().check()
@@ -116,8 +111,6 @@ class LevenbergMarquardtConfig(LeastSquaresConfig):
                 f"solver.preconditioner_shift must be > 0, got {self.preconditioner_shift}")
         require(self.preconditioner_probes >= 1,
                 f"solver.preconditioner_probes must be >= 1, got {self.preconditioner_probes}")
-        require(self.max_step >= 0, f"solver.max_step must be >= 0 (0: no limit), got "
-                f"{self.max_step}")
 
 
 class LevenbergMarquardt(LeastSquaresSolver):

@@ -109,10 +109,13 @@ class SplitBregmanConfig(SolverConfig):
     power_iterations: int = 20      # for ||J(theta0)||_2, ||J(theta0)||_F and ||D||_2
     divergence_factor: float = 10.0  # reject an outer step whose objective grows this much
     max_rejections: int = 8
+    max_step: float = 0.0           # inner steps: largest change of one parameter (0: no limit)
     dense_jacobian_max_params: int = 1000   # dense J in the inner solve when the residual
                                             # provides one and n <= this (0: never)
 
     def check(self) -> None:
+        require(self.max_step >= 0, f"solver.max_step must be >= 0 (0: no limit), got "
+                f"{self.max_step}")
         require(self.mu is None or self.mu > 0,
                 f"solver.mu must be > 0 (the weight of mu/2 ||r||^2), got {self.mu}")
         require(self.beta is None or self.beta > 0,
@@ -204,11 +207,12 @@ class SplitBregman(Solver):
         if cfg.inner_solver == "gauss_newton":
             self.inner = GaussNewton(GaussNewtonConfig(
                 max_iter=cfg.inner_max_iter, cg_max_iter=cfg.cg_max_iter, eta_min=1e-14,
-                eta_max=1e-14, cg_rtol=cfg.cg_rtol, dense_jacobian_max_params=dense))
+                eta_max=1e-14, cg_rtol=cfg.cg_rtol, dense_jacobian_max_params=dense,
+                max_step=cfg.max_step))
         else:
             self.inner = LevenbergMarquardt(LevenbergMarquardtConfig(
                 max_iter=cfg.inner_max_iter, cg_max_iter=cfg.cg_max_iter, cg_rtol=cfg.cg_rtol,
-                dense_jacobian_max_params=dense))
+                dense_jacobian_max_params=dense, max_step=cfg.max_step))
 
     def start(self, theta0: Tensor) -> IterationRecord:
         theta = theta0.detach().clone()
