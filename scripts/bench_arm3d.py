@@ -79,8 +79,8 @@ def bench_case(edge_length: float, model: str, frames: int, cache: str,
     solver = entry.solver_class(config)
     t, result, counts = timed(lambda: solver.solve(problem.residual(), theta, []))
     out["lm_iteration"] = {"s": t, "counts": counts,
-                           "misfit_before": float(result.history[0]["misfit"])
-                           if result.history and "misfit" in result.history[0] else None}
+                           "misfit": [float(r.misfit) for r in result.history],
+                           "accepted": [bool(r.accepted) for r in result.history]}
     return out
 
 

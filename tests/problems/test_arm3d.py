@@ -50,7 +50,8 @@ def test_forward_jacobian_matches_jvps(cache):
         assert torch.allclose(J[:, j], column, rtol=1e-9, atol=1e-12 * column.abs().max())
 
 
-@pytest.mark.parametrize("model", ["linear", "corotated", "stable_neo_hookean"])
+@pytest.mark.parametrize("model", ["linear", pytest.param("corotated", marks=pytest.mark.slow),
+                                   pytest.param("stable_neo_hookean", marks=pytest.mark.slow)])
 def test_verify_passes_for_each_model(cache, tmp_path, model):
     problem = arm(cache, frames=[0, 3], model=model)
     report = verify(problem, run_dir=tmp_path)

@@ -94,7 +94,9 @@ class AnimationConfig(ProblemConfig):
     nu: float = 0.45                       # Poisson ratio, fixed
     target: Target = Target.rig
     truth: Truth = Truth.blocks            # synthetic targets only
-    E_regions: List[float] = dataclasses.field(default_factory=lambda: [8.0, 3.0, 1.0])
+    # truth=regions: one modulus per label (arm: bone, muscle, fat; the bone core is attached
+    # to the rig, so its modulus is unobservable: it gets the muscle's value by default)
+    E_regions: List[float] = dataclasses.field(default_factory=lambda: [4.0, 4.0, 1.0])
     E_blocks: List[float] = dataclasses.field(default_factory=lambda: [1.0, 4.0, 0.4])
     parameters: Layout = Layout.grid
     grid: List[int] = dataclasses.field(default_factory=lambda: [4, 4, 12])   # nodes x, y, z
