@@ -4,7 +4,8 @@ import pytest
 import torch
 
 from torchfit.problems import Spring1D, Spring1DConfig
-from torchfit.solvers import LevenbergMarquardt, LevenbergMarquardtConfig, levenberg_marquardt
+from torchfit.solvers import (LevenbergMarquardt, LevenbergMarquardtConfig, ResidualFunction,
+                              levenberg_marquardt)
 
 from conftest import CountingResidual, distinct
 from resume import check_resume, fresh, roundtrip, run_with_snapshots
@@ -56,3 +57,25 @@ def test_resume_from_any_iteration_is_bit_identical(noise, config):
         # noise-free and converged, the geodesic probe repeats a point of the previous
         # (rejected) iteration, which the simulator's cache serves in the uninterrupted run
         check_resume(full, resumed, k, counters=noise > 0 or not config.geodesic_acceleration)
+
+
+@pytest.mark.parametrize("solver", ["levenberg_marquardt", "gauss_newton"])
+def test_max_step_clips_every_component_and_still_converges(solver):
+    """A badly scaled linear least-squares problem: the unlimited first step moves one
+    parameter by 50; with max_step = 1 no component of any step exceeds 1, the well
+    observed parameter still converges, and so does the weak one, 1 per iteration."""
+    from torchfit.solvers import SOLVERS
+
+    A = torch.tensor([[1.0, 0.0], [0.0, 0.02], [1.0, 0.0]], dtype=torch.float64)
+    truth = torch.tensor([0.5, 20.0], dtype=torch.float64)
+    residual = ResidualFunction(lambda t: A @ t, A @ truth)
+    entry = SOLVERS[solver]
+    config = entry.config_class(max_iter=60, max_step=1.0, **(
+        {"rtol": 0.0, "gtol": 0.0} if solver == "levenberg_marquardt" else {}))
+    seen = []
+    result = entry.solver_class(config).solve(residual, torch.zeros(2, dtype=torch.float64),
+                                              [lambda r: seen.append(r.theta.clone())])
+    steps = torch.stack(seen).diff(dim=0).abs()
+    assert float(steps.max()) <= 1.0 + 1e-12
+    assert float(steps[:, 0].max()) > 0.4               # the well observed one moves at once
+    assert torch.allclose(result.theta, truth, atol=1e-6)

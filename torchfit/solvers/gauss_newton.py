@@ -155,9 +155,9 @@ class GaussNewton(LeastSquaresSolver):
         direction, model_change = inner.x, inner.Ax
         longest = float(direction.abs().max()) if direction.numel() else 0.0
         if cfg.max_step > 0 and longest > cfg.max_step:
-            # solver.max_step: the same direction, shorter (the line search starts there)
-            direction = direction * (cfg.max_step / longest)
-            model_change = model_change * (cfg.max_step / longest)
+            # solver.max_step: every component clipped (the line search starts there)
+            direction = direction.clamp(-cfg.max_step, cfg.max_step)
+            model_change = lin.jvp(direction)
         slope = float(torch.dot(lin.r, model_change))  # d/da 0.5||r + a J d||^2 at a = 0
         if slope >= 0 or not math.isfinite(slope):
             return Stop(True, "tolerance")

@@ -33,11 +33,11 @@ class LeastSquaresConfig(SolverConfig):
     # dense J (one simulator pass per linearisation) when the residual provides a
     # jacobian and n <= this; 0: always matrix-free products
     dense_jacobian_max_params: int = 1000
-    # the largest change of any single parameter in one step, ||d||_inf (0: no limit).
-    # Levenberg-Marquardt raises its damping until the step fits (dense path) or scales
-    # it (matrix-free); Gauss-Newton scales its direction before the line search. With
+    # the largest change of any single parameter in one step (0: no limit): every
+    # component of a step is clipped to [-max_step, max_step] (and J d recomputed). With
     # theta = log E, max_step = 1 lets a modulus change by at most a factor e per step:
-    # weakly observed parameters cannot leap to values the simulation cannot solve.
+    # weakly observed parameters cannot leap to values the simulation cannot solve, and
+    # the well observed ones still take their full step.
     max_step: float = 0.0
 
     def check(self) -> None:

@@ -237,21 +237,17 @@ class LevenbergMarquardt(LeastSquaresSolver):
 
     def _limit_step(self, inner: CGLSResult, damping: float,
                     normal: DenseNormalEquations | None) -> tuple[CGLSResult, float]:
-        """``inner`` with ``||d||_inf <= max_step``: the dense path raises the damping (x4
-        until it fits, the exact damped step of a larger ``lam``); the matrix-free path
-        scales the step (no new CGLS)."""
+        """``inner`` with every component clipped to ``[-max_step, max_step]`` and ``J d``
+        recomputed for the clipped step (a matrix product on the dense path, one ``J v``
+        otherwise). Clipping per parameter, not raising the damping: a few weakly observed
+        parameters (a grid node outside the body) would otherwise damp every other
+        direction as well."""
         limit = self.config.max_step
         assert self.lin is not None
-        for _ in range(60):
-            longest = float(inner.x.abs().max())
-            if longest <= limit:
-                break
-            if normal is None:
-                scale = limit / longest
-                return dataclasses.replace(inner, x=inner.x * scale, Ax=inner.Ax * scale), damping
-            damping *= 4.0
-            inner = normal.solve(-self.lin.r, damping, rmatvec_b=-self.gradient)
-        return inner, damping
+        if float(inner.x.abs().max()) <= limit:
+            return inner, damping
+        clipped = inner.x.clamp(-limit, limit)
+        return dataclasses.replace(inner, x=clipped, Ax=self.lin.jvp(clipped)), damping
 
     def _normal_equations(self) -> DenseNormalEquations | None:
         """The exact damped solver of the current linearisation (dense path only)."""
