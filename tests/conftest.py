@@ -49,7 +49,7 @@ def with_problem(overrides: Sequence[str], default: str = "spring1d") -> list[st
     tests exercise the app on the quick spring1d chain instead, named explicitly.
     """
     chosen = any(o.startswith(("problem=", "experiment=", "+experiment=")) for o in overrides)
-    return list(overrides) if chosen else [f"problem={default}", *overrides]
+    return list(overrides) if chosen else [*overrides, f"problem={default}"]
 
 
 def run_fit_app(run_dir: Path, *overrides: str, timeout: float = 300) -> subprocess.CompletedProcess:

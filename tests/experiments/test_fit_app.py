@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from conftest import run_fit_app
+from conftest import with_problem, run_fit_app
 
 REPO = Path(__file__).resolve().parents[2]
 HAS_CUDA = torch.cuda.is_available()
@@ -23,6 +23,8 @@ HAS_CUDA = torch.cuda.is_available()
 
 def app(script: str, *args: str, timeout: float = 180) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    if script == "fit.py":      # the app's default problem is the short arm; these use spring1d
+        args = tuple(with_problem(args))
     return subprocess.run([sys.executable, f"experiments/{script}", *args], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=timeout)
 
