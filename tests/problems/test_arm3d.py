@@ -60,8 +60,11 @@ def test_verify_passes_for_each_model(cache, tmp_path, model):
     assert report.dot.rel_error <= 1e-10
 
 
+@pytest.mark.slow
 def test_linear_flattens_more_than_corotated_at_full_bend(cache):
-    problem = arm(cache, frames=[11])
+    # at the README's resolution or finer: the coarsest meshes fold the inner elbow too
+    # crudely to show it (0.1: linear -8 %, corotated -14 %; 0.06: -31 %, -16 %)
+    problem = arm(cache, frames=[11], tet_edge_length=0.06)
     E = problem.field(problem.theta0)
     linear = problem.joint_volume_change(problem.simulate_model("linear", E))[0]
     corotated = problem.joint_volume_change(problem.simulate_model("corotated", E))[0]
