@@ -182,17 +182,10 @@ def test_float32_values_give_float32_solutions(backend):
 
 
 def box_equilibrium(material: str, backend: str):
-    from torchfit.mesh import box_tetrahedra
-    from torchfit.physics import NewtonOptions
-    from torchfit.physics.elasticity import QuasistaticElasticity, SimplicialElasticity
-    mesh = box_tetrahedra(3, 2, 4, (0.6, 0.4, 1.0))
-    model = SimplicialElasticity(torch.from_numpy(mesh.points), torch.from_numpy(mesh.cells),
-                                 material, nu=0.3)
+    from tetbox import clamped_box
+
+    model, qs, bottom, top = clamped_box((3, 2, 4), (0.6, 0.4, 1.0), material, backend)
     X = model.rest.points
-    bottom = torch.nonzero(X[:, 2] <= 1e-12).reshape(-1)
-    top = torch.nonzero(X[:, 2] >= 1.0 - 1e-12).reshape(-1)
-    qs = QuasistaticElasticity(model, torch.cat([bottom, top]), backend=backend,
-                               newton=NewtonOptions(rtol=1e-13, atol=1e-14))
     frames = []
     for twist, lift in ((0.3, 0.1), (-0.2, -0.15)):
         c, s = np.cos(twist), np.sin(twist)

@@ -50,7 +50,7 @@ from ..params import Parameterization, per_element, per_grid_node, per_region
 from ..physics import NewtonOptions
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
 from .base import (Backend, Choice, InverseProblem, ProblemConfig, ProblemConfigError,
-                   require_setting, resolve_backend, setting_error)
+                   check_newton_settings, require_setting, resolve_backend, setting_error)
 
 
 class ElasticModel(Choice):
@@ -146,9 +146,7 @@ class AnimationProblem(InverseProblem):
                         "must list three moduli: background, stiff block, soft block")
         for key in ("tet_edge_length", "tet_epsilon", "tet_stop_energy"):
             require_setting(getattr(cfg, key) > 0, cfg, key, "must be positive")
-        require_setting(cfg.newton_rtol >= 0, cfg, "newton_rtol", "must be >= 0")
-        require_setting(cfg.newton_atol > 0, cfg, "newton_atol", "must be > 0")
-        require_setting(cfg.newton_max_iter >= 1, cfg, "newton_max_iter", "must be >= 1")
+        check_newton_settings(cfg)
         require_setting(cfg.frames is None or len(cfg.frames) >= 1, cfg, "frames",
                         "must list at least one frame (or be null for all)")
         require_setting(cfg.backend != Backend.banded, cfg, "backend", "banded suits thin 2-D "

@@ -191,6 +191,13 @@ def require_setting(condition: bool, cfg: Any, key: str, allowed: str) -> None:
 
 
 # -- generic validation ---------------------------------------------------------------
+def check_newton_settings(cfg: Any) -> None:
+    """``newton_rtol >= 0``, ``newton_atol > 0``, ``newton_max_iter >= 1`` (elastic problems)."""
+    require_setting(cfg.newton_rtol >= 0, cfg, "newton_rtol", "must be >= 0")
+    require_setting(cfg.newton_atol > 0, cfg, "newton_atol", "must be > 0")
+    require_setting(cfg.newton_max_iter >= 1, cfg, "newton_max_iter", "must be >= 1")
+
+
 def _is_number(value: Any) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
 

@@ -42,7 +42,7 @@ from ..params import Parameterization, per_element
 from ..physics import NewtonOptions
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
 from .base import (Backend, Choice, DType, InverseProblem, ProblemConfig, ProblemConfigError,
-                   require_setting, resolve_backend)
+                   check_newton_settings, require_setting, resolve_backend)
 
 
 class Model(Choice):
@@ -142,9 +142,7 @@ class Membrane2D(InverseProblem):
                         "of an isotropic material; 0.5 would be incompressible)")
         for key in ("E_background", "E_ink", "E0"):
             require_setting(getattr(cfg, key) > 0, cfg, key, "must be a positive Young's modulus")
-        require_setting(cfg.newton_rtol >= 0, cfg, "newton_rtol", "must be >= 0")
-        require_setting(cfg.newton_atol > 0, cfg, "newton_atol", "must be > 0")
-        require_setting(cfg.newton_max_iter >= 1, cfg, "newton_max_iter", "must be >= 1")
+        check_newton_settings(cfg)
         # float32: Newton residuals of the nonlinear models stall near 1e-5 force units on
         # the canonical sheet, so the float64 tolerances can never be met.
         require_setting(cfg.dtype != DType.float32 or cfg.model in (Model.linear,)
