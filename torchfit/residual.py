@@ -122,12 +122,16 @@ class ResidualFunction:
         jacobian: ``theta (n,) -> (m, n)``, the dense ``d forward / d theta`` in one pass,
             or ``None``. Solvers use it for problems with few parameters (see their
             ``dense_jacobian_max_params``); it must agree with the products of ``forward``.
+        accuracy: relative accuracy of ``forward`` (e.g. a Newton tolerance), or ``None``
+            for machine precision; derivative checks choose their finite-difference step
+            from it.
     """
 
     def __init__(self, forward: Callable[[Tensor], Tensor], data: Tensor,
                  noise_level: float | None = None,
                  gauge: Callable[[Tensor], Tensor] | None = None,
-                 jacobian: Callable[[Tensor], Tensor] | None = None) -> None:
+                 jacobian: Callable[[Tensor], Tensor] | None = None,
+                 accuracy: float | None = None) -> None:
         if data.dim() != 1:
             raise ValueError(f"data must be a flat vector, got shape {tuple(data.shape)}")
         if not bool(torch.isfinite(data).all()):
@@ -139,6 +143,7 @@ class ResidualFunction:
         self.noise_level = noise_level
         self.gauge = gauge
         self.jacobian = jacobian
+        self.accuracy = accuracy
 
     @property
     def size(self) -> int:

@@ -307,8 +307,9 @@ def finite_difference_test(residual: _Residual, lin: _Linearization, v: Tensor,
 
     Args:
         theta: the point of ``lin`` (default ``lin.theta``).
-        step: ``h``; default ``eps^(1/3) ||theta|| / ||v||`` (``||theta||`` taken as 1 at
-            zero), which balances the ``h^2`` truncation and ``eps / h`` round-off errors.
+        step: ``h``; default ``a^(1/3) ||theta|| / ||v||`` (``||theta||`` taken as 1 at
+            zero) with ``a`` the residual's ``accuracy`` (machine epsilon by default), which
+            balances the ``h^2`` truncation and ``a / h`` errors.
     """
     if theta is None:
         theta = getattr(lin, "theta", None)
@@ -318,7 +319,10 @@ def finite_difference_test(residual: _Residual, lin: _Linearization, v: Tensor,
     v = v.detach().to(theta)
     v_norm = _direction_norm(v)
     if step is None:
-        step = torch.finfo(theta.dtype).eps ** (1.0 / 3.0) * _scale(theta) / v_norm
+        # balance the h^2 truncation against the error of r itself: round-off, or the
+        # tolerance a simulation is solved to (residual.accuracy, e.g. Newton's rtol)
+        accuracy = max(getattr(residual, "accuracy", None) or 0.0, torch.finfo(theta.dtype).eps)
+        step = accuracy ** (1.0 / 3.0) * _scale(theta) / v_norm
     jv = lin.jvp(v).detach()
     fd = (residual.value(theta + step * v) - residual.value(theta - step * v)).detach() / (2 * step)
     jv_norm, fd_norm = _norm(jv), _norm(fd)

@@ -409,6 +409,10 @@ class AnimationProblem(InverseProblem):
         return self.quasistatic(E, self.dirichlet_positions.to(E),
                                 x_init=self.start_positions.to(E))
 
+    def simulation_accuracy(self) -> float | None:
+        """Newton's relative tolerance: 48 nonlinear frames are solved to it, not to round-off."""
+        return max(float(self.cfg.newton_rtol), torch.finfo(self.dtype).eps)
+
     def surface(self, x: Tensor) -> Tensor:
         """The user's surface vertices ``(..., V_surface, 3)`` of tet positions ``(..., n, 3)``."""
         return self.embedding.apply(x)

@@ -611,7 +611,13 @@ class InverseProblem:
         """The residual the solvers get (with :meth:`forward_jacobian` where implemented)."""
         gauge = self.parameterization.scale_direction if self.scale_free else None
         jacobian = self.forward_jacobian if self.has_forward_jacobian() else None
-        return ResidualFunction(self.forward, self.data, self.noise_level, gauge, jacobian)
+        return ResidualFunction(self.forward, self.data, self.noise_level, gauge, jacobian,
+                                accuracy=self.simulation_accuracy())
+
+    def simulation_accuracy(self) -> float | None:
+        """Relative accuracy of :meth:`simulate` (``None``: machine precision); problems
+        solved by Newton to a tolerance say so, for the finite-difference check."""
+        return None
 
     def field(self, theta: Tensor) -> Tensor:
         return self.parameterization(theta.detach())
