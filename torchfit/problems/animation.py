@@ -111,7 +111,7 @@ class AnimationConfig(ProblemConfig):
     cache_dir: str = ""                    # tet-mesh cache ("" : $TORCHFIT_CACHE_DIR or ~/.cache/torchfit)
     newton_rtol: float = 1e-10
     newton_atol: float = 1e-12
-    newton_max_iter: int = 100
+    newton_max_iter: int = 300
 
 
 #: largest distance (fraction of the bounding-box diagonal) of a surface vertex outside the
