@@ -170,6 +170,7 @@ def taylor_test(residual: _Residual, theta: Tensor, direction: Tensor, *,
     data = getattr(residual, "data", None)
     data_norm = _norm(data) if isinstance(data, Tensor) else 0.0
     r0_norm = _norm(r0)
+    accuracy = float(getattr(residual, "accuracy", None) or 0.0)
 
     h0 = relative_step * _scale(theta) / v_norm
     steps = [h0 * 2.0 ** -i for i in range(n_steps)]
@@ -184,7 +185,10 @@ def taylor_test(residual: _Residual, theta: Tensor, direction: Tensor, *,
             continue
         e = _norm(r_h - r0 - h * jv)
         remainders.append(e if math.isfinite(e) else math.nan)
-        floors.append(eps * (_norm(r_h) + r0_norm + data_norm + h * jv_norm))
+        size = _norm(r_h) + r0_norm + data_norm + h * jv_norm
+        # round-off (safety * eps), or the simulation's own tolerance (residual.accuracy,
+        # e.g. Newton's rtol: remainders below ~10x that are its noise, not Taylor's h^2)
+        floors.append(max(safety * eps, 10.0 * accuracy) * size / safety)
 
     finite = [e for e in remainders if math.isfinite(e)]
     if not finite:
