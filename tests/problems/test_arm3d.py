@@ -11,6 +11,7 @@ import torch
 
 from torchfit import build_problem, fit, verify
 from torchfit.verification import format_report
+from torchfit.mesh import signed_volumes
 from torchfit.mesh.animation import load_animation
 from torchfit.problems import ProblemConfigError
 
@@ -66,13 +67,22 @@ def test_verify_passes_for_each_model(cache, tmp_path, model):
 
 @pytest.mark.slow
 def test_linear_flattens_more_than_corotated_at_full_bend(cache):
-    # at the README's resolution or finer: the coarsest meshes fold the inner elbow too
-    # crudely to show it (0.1: linear -8 %, corotated -14 %; 0.06: -31 %, -16 %)
+    """At 120 degrees the linear model flattens the rotated forearm (its linearised strain
+    of a rotation is not zero); the corotated one keeps its volume. The elbow region's own
+    figure depends on how pytetwild's mesh folds there (default resolution, two meshes:
+    linear -30 % and -28 %, corotated -16 % and -15 %; at 0.06 anywhere from -9 % to -31 %
+    for linear), so it is reported, and the forearm is what this test holds to."""
     problem = arm(cache, frames=[11], tet_edge_length=0.06)
     E = problem.field(problem.theta0)
-    linear = problem.joint_volume_change(problem.simulate_model("linear", E))[0]
-    corotated = problem.joint_volume_change(problem.simulate_model("corotated", E))[0]
-    assert abs(linear) > abs(corotated)
+    forearm = problem.mesh.centroids()[:, 2] > 0.35
+    cells = problem.mesh.cells[forearm]
+    rest = float(signed_volumes(problem.mesh.points, cells).sum())
+    change = {}
+    for model in ("linear", "corotated"):
+        x = problem.simulate_model(model, E)
+        change[model] = float(signed_volumes(x[0].numpy(), cells).sum()) / rest - 1.0
+        assert np.isfinite(problem.joint_volume_change(x)[0])
+    assert change["linear"] < -0.3 and abs(change["corotated"]) < 0.05, change
 
 
 def test_bad_settings_are_one_line(cache):
