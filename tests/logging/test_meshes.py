@@ -8,7 +8,6 @@ import json
 import meshio
 import numpy as np
 import pytest
-import torch
 import trimesh
 
 from capsule_animation import write_capsule

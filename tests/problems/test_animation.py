@@ -7,14 +7,13 @@ a fit, and the bad-input errors of the issue.
 from __future__ import annotations
 
 import json
-import shutil
 
 import numpy as np
 import pytest
 import torch
 import yaml
 
-from capsule_animation import HALF, RADIUS, write_capsule
+from capsule_animation import write_capsule
 from conftest import run_fit_app
 from torchfit import build_problem, fit
 from torchfit.problems import ProblemConfigError

@@ -42,7 +42,7 @@ import torch
 from torch import Tensor
 
 from ...errors import SimulationError
-from .kinematics import polar_rotation, rotation_differential, svd3
+from .kinematics import polar_rotation, svd3
 
 
 class MaterialError(ValueError):
