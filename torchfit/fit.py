@@ -205,7 +205,11 @@ def build_solver(problem: InverseProblem, solver: Solver | SolverConfig | Mappin
     config = solver_config(solver)
     entry = SOLVERS[config.name]
     inputs: dict[str, Any] = {}
-    if entry.needs_difference_operator(config):
+    if entry.takes_difference_operator(config) and not entry.needs_difference_operator(config):
+        operator = getattr(problem.parameterization, "difference_operator", None)
+        if operator is not None:
+            inputs["D"] = operator()
+    elif entry.needs_difference_operator(config):
         param = problem.parameterization
         operator = getattr(param, "difference_operator", None)
         if operator is None:

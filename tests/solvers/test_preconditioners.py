@@ -49,6 +49,8 @@ def test_registry_hands_D_to_gauss_newton_only_when_preconditioned():
     problem = Poisson2D(N=6)
     entry = SOLVERS["gauss_newton"]
     assert not entry.needs_difference_operator(GaussNewtonConfig())
+    assert entry.takes_difference_operator(GaussNewtonConfig())          # auto: where there is one
+    assert not entry.takes_difference_operator(GaussNewtonConfig(preconditioner="none"))
     assert entry.needs_difference_operator(GaussNewtonConfig(preconditioner="difference"))
     D = problem.parameterization.difference_operator()
     assert D.shape == (2 * 5 * 4, 25)
@@ -57,7 +59,8 @@ def test_registry_hands_D_to_gauss_newton_only_when_preconditioned():
 
 def test_preconditioned_gauss_newton_is_accurate_with_far_fewer_cgls_iterations():
     problem = Poisson2D(N=20)
-    plain, plain_metrics, _ = timed_fit(problem, gauss_newton, GaussNewtonConfig(max_iter=12))
+    plain, plain_metrics, _ = timed_fit(problem, gauss_newton,
+                                        GaussNewtonConfig(max_iter=12, preconditioner="none"))
     pre, pre_metrics, _ = timed_fit(problem, gauss_newton,
                               GaussNewtonConfig(max_iter=12, preconditioner="difference"))
     assert pre_metrics["k_err_rel_aligned"] < 1e-6
@@ -84,3 +87,38 @@ def test_acceptance_A_dense_noise_free_n64_preconditioned_gauss_newton():
     # iterations, 9,000 CGLS iterations to 1.2e-5).
     assert result.iterations <= 14
     assert sum(r.cg_iterations for r in result.history) <= 2000
+
+
+@pytest.mark.parametrize("data, noise, expected", [
+    ("dense", 0.0, True),      # m >= n, clean: nothing for early stopping to regularise
+    ("dense", 1e-3, False),    # noisy: the discrepancy stop regularises
+    ("sparse", 0.0, False),    # m < n: early stopping regularises
+])
+def test_auto_preconditioner_is_on_for_clean_determined_data_only(data, noise, expected):
+    problem = Poisson2D(N=12, data=data, noise=noise, seed=0)
+    D = problem.parameterization.difference_operator()
+    result = gauss_newton(problem.residual(), problem.theta0, GaussNewtonConfig(max_iter=1), D=D)
+    assert result.history[0].extra["preconditioned"] == float(expected)
+    # without D there is nothing to precondition with: plain CGLS, no error
+    plain = gauss_newton(problem.residual(), problem.theta0, GaussNewtonConfig(max_iter=1))
+    assert plain.history[0].extra["preconditioned"] == 0.0
+
+
+def test_auto_preconditioner_rule_thresholds():
+    from torchfit.solvers.gauss_newton import wants_difference_preconditioner as wants
+
+    assert wants(True, 100, 100, None, 1.0, 1e-3)          # unknown noise: no discrepancy stop
+    assert wants(True, 100, 50, 1e-3, 1.0, 1e-3)           # at the threshold
+    assert not wants(True, 100, 50, 1.1e-3, 1.0, 1e-3)
+    assert not wants(True, 49, 50, 0.0, 1.0, 1e-3)         # fewer data than parameters
+    assert not wants(False, 100, 50, 0.0, 1.0, 1e-3)       # no D
+
+
+def test_fit_hands_D_to_the_auto_rule():
+    """Through torchfit.fit (what experiments/fit.py runs) the default GN preconditions
+    clean dense data: the rule needs D, which only the registry can hand over."""
+    from torchfit import fit
+
+    problem = Poisson2D(N=12)
+    result = fit(problem, "gauss_newton")
+    assert result.history[0]["preconditioned"] == 1.0

@@ -9,6 +9,7 @@ through ``state_dict``); :data:`SOLVERS` maps a config name to its
     config = entry.config_class(**section)
     config.validate()
     D = param.difference_operator() if entry.needs_difference_operator(config) else None
+    # (or, where entry.takes_difference_operator(config), the parameterisation's D if any)
     groups = param.difference_groups() if entry.uses_groups(config) else None
     result = entry.solver_class(config, D=D, groups=groups).solve(residual, theta0, callbacks)
 """
@@ -44,10 +45,17 @@ class SolverEntry:
     solver_class: type[Solver]
     needs_difference_operator: Callable[[Any], bool]
     uses_groups: Callable[[Any], bool]
+    # ``config -> bool``: the solver uses ``D`` where the parameterisation has one and runs
+    # without it otherwise (Gauss-Newton's ``preconditioner=auto``)
+    takes_difference_operator: Callable[[Any], bool] = lambda config: False
 
 
 def _difference_preconditioned(config: Any) -> bool:
     return config.preconditioner == "difference"
+
+
+def _auto_preconditioned(config: Any) -> bool:
+    return config.preconditioner == "auto"
 
 
 def _always(config: Any) -> bool:
@@ -65,7 +73,7 @@ def _isotropic(config: Any) -> bool:
 #: config name -> :class:`SolverEntry`
 SOLVERS: dict[str, SolverEntry] = {
     "gauss_newton": SolverEntry(GaussNewtonConfig, GaussNewton, _difference_preconditioned,
-                                _never),
+                                _never, _auto_preconditioned),
     "levenberg_marquardt": SolverEntry(LevenbergMarquardtConfig, LevenbergMarquardt,
                                        _difference_preconditioned, _never),
     "split_bregman": SolverEntry(SplitBregmanConfig, SplitBregman, _always, _isotropic),

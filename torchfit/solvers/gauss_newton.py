@@ -14,7 +14,12 @@ descent direction, ``line_search`` when no step length decreases the objective.
 ``J S`` with ``S S^T = D^T D + s I`` (:class:`~.preconditioners.DifferencePreconditioner`);
 the shift ``s`` starts at ``preconditioner_shift`` (units of the largest diagonal of
 ``D^T D``) and is scaled by ``||r_k|| / ||r_0||``: rough steps only once the linear model
-is good. Measurements: ``docs/solvers/gauss_newton.md``.
+is good. ``preconditioner=auto`` (the default) decides once, at ``theta0``
+(:func:`wants_difference_preconditioner`): ``difference`` when ``D`` is given, the data
+are at least as many as the parameters (``m >= n``) and the noise level is unknown, zero
+or at most ``auto_noise_ratio`` times ``||r_0||``; ``none`` otherwise, where the
+discrepancy principle's early stopping is the regularisation (the preconditioner's first
+Krylov vectors are the rough modes). Measurements: ``docs/solvers/gauss_newton.md``.
 
 Cost of one accepted full step with ``m`` CG iterations: one factorisation (the new
 point) and at most ``2m + 1`` solves.
@@ -44,7 +49,7 @@ from .base import Stop, clone, least_squares_stop, require
 from .least_squares import LeastSquaresConfig, LeastSquaresSolver
 from .preconditioners import DifferencePreconditioner
 
-PRECONDITIONERS = ("none", "difference")
+PRECONDITIONERS = ("auto", "none", "difference")
 
 
 @dataclasses.dataclass
@@ -64,7 +69,9 @@ class GaussNewtonConfig(LeastSquaresConfig):
     atol: float = 0.0               # stop when ||r|| <= atol
     armijo: float = 1e-4            # sufficient-decrease constant of the line search
     max_backtracks: int = 12        # step halvings before giving up
-    preconditioner: str = "none"    # CGLS in parameter space: none | difference (D^T D + s I)
+    preconditioner: str = "auto"    # CGLS in parameter space: auto | none | difference
+                                    # (D^T D + s I); auto: see wants_difference_preconditioner
+    auto_noise_ratio: float = 1e-3  # auto: data with noise level <= this * ||r_0|| are clean
     preconditioner_shift: float = 4.0  # s at theta0, in units of the largest diagonal of
                                        # D^T D; scaled by ||r_k|| / ||r_0|| as r falls
 
@@ -80,11 +87,31 @@ class GaussNewtonConfig(LeastSquaresConfig):
                 "solver.rtol, solver.gtol and solver.atol must be >= 0")
         require(0 < self.armijo < 0.5, f"solver.armijo must be in (0, 0.5), got {self.armijo}")
         require(self.max_backtracks >= 0, "solver.max_backtracks must be >= 0")
+        require(self.auto_noise_ratio >= 0,
+                f"solver.auto_noise_ratio must be >= 0, got {self.auto_noise_ratio}")
         require(self.preconditioner_shift >= 0,
                 f"solver.preconditioner_shift must be >= 0, got {self.preconditioner_shift}")
         require(self.preconditioner in PRECONDITIONERS,
                 f"solver.preconditioner={self.preconditioner!r}; choose one of "
                 f"{PRECONDITIONERS}")
+
+
+def wants_difference_preconditioner(has_D: bool, m: int, n: int, noise_level: float | None,
+                                    initial_misfit: float, noise_ratio: float) -> bool:
+    """``preconditioner=auto``: whether CGLS is preconditioned by ``D^T D`` for this run.
+
+    Yes when ``D`` is there, the data determine the parameters (``m >= n``) and are clean
+    (noise level unknown, zero, or ``<= noise_ratio * ||r_0||``): nothing is left for early
+    stopping to regularise, and the preconditioner takes CGLS from its iteration cap to
+    tens of iterations (poisson2d N = 64: 1.2e-5 after the 50-iteration cap without it,
+    1e-8 in 19 iterations with it). No on noisy or sparse data, where the discrepancy
+    principle stops a Krylov method early on purpose and the preconditioned one keeps a
+    rougher field (poisson2d N = 64, ``k_err_rel_aligned``: 0.48 -> 0.55 dense with noise
+    1e-3, 0.34 -> 0.47 sparse noise-free). ``docs/solvers/gauss_newton.md`` has the table.
+    """
+    if not has_D or m < n:
+        return False
+    return noise_level is None or noise_level <= noise_ratio * initial_misfit
 
 
 class GaussNewton(LeastSquaresSolver):
@@ -104,16 +131,28 @@ class GaussNewton(LeastSquaresSolver):
                  groups: Tensor | None = None) -> None:
         super().__init__(config, D=D, groups=groups)
         self.preconditioner: DifferencePreconditioner | None = None
+        self.preconditioned = False
 
     def _setup(self, like: Tensor) -> None:
-        if self.config.preconditioner == "difference":
-            self.preconditioner = DifferencePreconditioner(self.D, like)
+        self.preconditioner = DifferencePreconditioner(self.D, like) \
+            if self.preconditioned else None
+
+    def _choose_preconditioner(self, lin: Linearization) -> bool:
+        """Whether this run preconditions CGLS (``auto`` decides from the start point)."""
+        cfg = self.config
+        if cfg.preconditioner != "auto":
+            return cfg.preconditioner == "difference"
+        return wants_difference_preconditioner(
+            self.D is not None, lin.r.numel(), lin.theta.numel(), self.residual.noise_level,
+            lin.norm, cfg.auto_noise_ratio)
 
     def start(self, theta0: Tensor) -> IterationRecord:
         theta = theta0.detach().clone()
-        self._setup(theta)
         self.choose_path(theta)
-        self.lin = self.adopt(self.residual.linearize(theta))
+        self.lin = self.residual.linearize(theta)
+        self.preconditioned = self._choose_preconditioner(self.lin)
+        self._setup(theta)
+        self.lin = self.adopt(self.lin)
         self.gradient = self.lin.vjp(self.lin.r)
         self.gradient_norm0 = float(torch.linalg.vector_norm(self.gradient))
         self.eta = self.config.eta_max
@@ -125,7 +164,8 @@ class GaussNewton(LeastSquaresSolver):
         lin = self.lin
         assert lin is not None
         return self.record(lin.theta, 0.5 * lin.norm ** 2, lin.norm, step_norm, cg_iterations,
-                           math.nan, True, **extra, **self.path_extra())
+                           math.nan, True, **extra, preconditioned=float(self.preconditioned),
+                           **self.path_extra())
 
     def stop_rule(self) -> Stop | None:
         cfg = self.config
@@ -195,7 +235,7 @@ class GaussNewton(LeastSquaresSolver):
     def _get_state(self) -> dict[str, Any]:
         return {"gradient": clone(self.gradient), "eta": self.eta,
                 "previous_norm": self.previous_norm, "gradient_norm0": self.gradient_norm0,
-                "norm0": self.norm0}
+                "norm0": self.norm0, "preconditioned": self.preconditioned}
 
     def _set_state(self, state: dict[str, Any]) -> None:
         self._saved_theta = state["theta"].detach().clone()
@@ -205,6 +245,8 @@ class GaussNewton(LeastSquaresSolver):
             else float(state["previous_norm"])
         self.gradient_norm0 = float(state["gradient_norm0"])
         self.norm0 = float(state["norm0"])
+        self.preconditioned = bool(state.get("preconditioned",
+                                             self.config.preconditioner == "difference"))
 
     def resume(self) -> None:
         self._setup(self._saved_theta)
@@ -225,4 +267,5 @@ def gauss_newton(residual: ResidualFunction, theta0: Tensor,
     return GaussNewton(config, D=D, groups=groups).solve(residual, theta0, callbacks)
 
 
-__all__ = ["GaussNewton", "GaussNewtonConfig", "PRECONDITIONERS", "gauss_newton"]
+__all__ = ["GaussNewton", "GaussNewtonConfig", "PRECONDITIONERS", "gauss_newton",
+           "wants_difference_preconditioner"]

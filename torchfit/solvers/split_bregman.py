@@ -38,8 +38,8 @@ One outer iteration (split Bregman = scaled ADMM on ``d = D theta + c``)::
 * A stage is at its fixed point when the relative ADMM primal residual is below
   ``stage_tol`` and the relative dual residual is too, or the objective changed by less
   than ``stage_tol^2`` over the last 10 iterations. A stage clearly above the
-  discrepancy level (misfit above ``tau delta`` by more than ten times its change over
-  10 iterations) ends early.
+  discrepancy level (misfit above ``tau delta`` by more than ``above_factor`` times its
+  change over 10 iterations) ends early.
 
 The reasons for these choices, the weights of other libraries (skimage) and measured
 figures: ``docs/solvers/split_bregman.md``.
@@ -77,7 +77,7 @@ from .base import Solver, SolverConfig, Stop, clone, require
 from .gauss_newton import GaussNewton, GaussNewtonConfig
 from .least_squares import wants_dense_jacobian
 from .levenberg_marquardt import LevenbergMarquardt, LevenbergMarquardtConfig
-from .stacked import CachedResidual, LinearResidual, StackedResidual
+from .stacked import CachedResidual, LinearResidual, ShiftedResidual, StackedResidual
 from .total_variation import GroupTV, check_difference_operator
 
 INNER_SOLVERS = ("gauss_newton", "levenberg_marquardt")
@@ -96,6 +96,14 @@ class SplitBregmanConfig(SolverConfig):
     beta_rel: float = 1.0           # beta_0 = beta_rel * mu_0 * ||J||_2^2 / ||D||_2^2
     adapt_beta: bool = True         # spectral penalty update (after Xu et al. 2017) every 2 iters
     continuation: bool = True       # noise level known: discrepancy-driven stages in mu
+    # Without a noise level (clean data): Bregman on the data as well ("adding back the
+    # residual", Goldstein and Osher 2009, sec. 2.2): the data term is mu/2 ||r - e||^2
+    # with e <- e - r after every outer iteration, so the fixed point fits the data
+    # exactly (min TV subject to r = 0) whatever mu, and mu can be moderate (better
+    # conditioned inner solves). auto: on when the run has no noise level and mu is not
+    # set; off: a fixed mu/2 ||r||^2 (the answer is then biased by 1/mu).
+    data_bregman: str = "auto"      # auto | on | off
+    mu_rel_bregman: float = 1e3     # data Bregman: mu = mu_rel_bregman / ||J(theta0)||_2^2
     tau: float = 1.0                # a stage is accepted when ||r|| <= tau * delta
     growth: float = 4.0             # mu_{k+1} = growth * mu_k
     max_stages: int = 20
@@ -103,10 +111,20 @@ class SplitBregmanConfig(SolverConfig):
     stage_max_iter: int = 400       # outer iterations per stage
     stage_tol: float = 1e-3         # relative ADMM primal and dual residual of a fixed point
     inner_solver: str = "gauss_newton"   # gauss_newton | levenberg_marquardt
-    inner_max_iter: int = 2         # inner steps per outer iteration
+    inner_max_iter: int = 1         # inner steps per outer iteration (Goldstein-Osher: one)
     cg_max_iter: int = 200          # CGLS iterations per inner step
-    cg_rtol: float = 1e-3           # inner CGLS: relative normal-equation residual
+    # Inner CGLS stops at the relative normal-equation residual
+    #   cg_rtol_k = clip(cg_rtol_factor * max(primal_rel, dual_rel), cg_rtol, cg_rtol_max)
+    # (the ADMM residuals of the previous outer iteration; cg_rtol_max at a stage's start):
+    # loose while the splitting is far from its fixed point, tight near it.
+    # cg_rtol_factor = 0: the fixed tolerance cg_rtol.
+    cg_rtol: float = 1e-2
+    cg_rtol_max: float = 0.3
+    cg_rtol_factor: float = 10.0
     power_iterations: int = 20      # for ||J(theta0)||_2, ||J(theta0)||_F and ||D||_2
+    above_factor: float = 3.0       # a stage ends early when its misfit is above the
+                                    # discrepancy level by more than this times its change
+                                    # over the last 10 iterations (it will not get there)
     divergence_factor: float = 10.0  # reject an outer step whose objective grows this much
     max_rejections: int = 8
     max_step: float = 0.0           # inner steps: largest change of one parameter (0: no limit)
@@ -132,14 +150,26 @@ class SplitBregmanConfig(SolverConfig):
                 f"solver.stage_max_iter must be >= 1, got {self.stage_max_iter}")
         require(0 < self.stage_tol < 1, f"solver.stage_tol must be in (0, 1), got "
                 f"{self.stage_tol}")
+        require(self.data_bregman in ("auto", "on", "off"),
+                f"solver.data_bregman={self.data_bregman!r}; choose auto, on or off")
+        require(self.mu_rel_bregman > 0,
+                f"solver.mu_rel_bregman must be > 0, got {self.mu_rel_bregman}")
         require(self.inner_solver in INNER_SOLVERS,
                 f"solver.inner_solver={self.inner_solver!r}; choose one of {INNER_SOLVERS}")
         require(self.inner_max_iter >= 1,
                 f"solver.inner_max_iter must be >= 1, got {self.inner_max_iter}")
         require(self.cg_max_iter >= 1, f"solver.cg_max_iter must be >= 1, got {self.cg_max_iter}")
         require(0 < self.cg_rtol < 1, f"solver.cg_rtol must be in (0, 1), got {self.cg_rtol}")
+        require(self.cg_rtol <= self.cg_rtol_max < 1,
+                f"need solver.cg_rtol <= solver.cg_rtol_max < 1, got {self.cg_rtol}, "
+                f"{self.cg_rtol_max}")
+        require(self.cg_rtol_factor >= 0,
+                f"solver.cg_rtol_factor must be >= 0 (0: fixed cg_rtol), got "
+                f"{self.cg_rtol_factor}")
         require(self.power_iterations >= 1,
                 f"solver.power_iterations must be >= 1, got {self.power_iterations}")
+        require(self.above_factor > 0,
+                f"solver.above_factor must be > 0, got {self.above_factor}")
         require(self.divergence_factor > 1,
                 f"solver.divergence_factor must be > 1, got {self.divergence_factor}")
         require(self.max_rejections >= 0,
@@ -200,6 +230,10 @@ class SplitBregman(Solver):
         noise = self.residual.noise_level
         self.staged = bool(cfg.continuation and noise is not None and noise > 0)
         self.level = cfg.tau * noise if self.staged else math.nan
+        # auto: only for clean data with the scale-aware weight; a mu given by the user
+        # asks for the penalised problem TV + mu/2 ||r||^2 itself (e.g. denoising)
+        self.data_bregman = cfg.data_bregman == "on" or (
+            cfg.data_bregman == "auto" and not self.staged and cfg.mu is None)
         # The inner problem has a non-zero minimum: its CGLS stops on the normal-equation
         # residual (REGINN's ||J d + r|| <= eta ||r|| could never be met there).
         dense = cfg.dense_jacobian_max_params
@@ -208,6 +242,7 @@ class SplitBregman(Solver):
             self.inner = GaussNewton(GaussNewtonConfig(
                 max_iter=cfg.inner_max_iter, cg_max_iter=cfg.cg_max_iter, eta_min=1e-14,
                 eta_max=1e-14, cg_rtol=cfg.cg_rtol, dense_jacobian_max_params=dense,
+                preconditioner="none",
                 max_step=cfg.max_step))
         else:
             self.inner = LevenbergMarquardt(LevenbergMarquardtConfig(
@@ -224,8 +259,10 @@ class SplitBregman(Solver):
             self.lin.use_dense()      # the scale estimates below are then matrix products
         self.mu, self.beta = self._initial_weights(theta)
         self._theta, self.norm, self.stage = theta, self.lin.norm, 0
+        self.norm0 = self.lin.norm
         self.Dtheta = self.diff.matvec(theta) + self.c
         self.d, self.b = self.Dtheta.clone(), torch.zeros_like(self.Dtheta)
+        self.e = torch.zeros_like(self.lin.r)     # data Bregman variable (stays 0 when off)
         self.direction: str | None = None        # continuation: 'weaker' | 'stronger'
         self.accepted: dict[str, Any] | None = None   # strongest-TV stage fitting (stronger)
         self.restore_pending = False
@@ -251,7 +288,8 @@ class SplitBregman(Solver):
             if critical is not None:
                 mu = max(mu, critical)   # weaker than critical: the field would stay constant
         else:
-            mu = cfg.mu_rel / self._jacobian_norm_sq()
+            mu = (cfg.mu_rel_bregman if self.data_bregman else cfg.mu_rel) \
+                / self._jacobian_norm_sq()
         if cfg.beta is not None:
             beta = float(cfg.beta)
         else:
@@ -283,6 +321,8 @@ class SplitBregman(Solver):
     # -- stages ----------------------------------------------------------------------------
     def _begin_stage(self) -> None:
         self.stage_iteration = 0
+        self.admm_residual = math.inf    # max(primal_rel, dual_rel) of the last accepted step
+        self.inner_rtol = math.inf       # the inner tolerance so far in this stage
         self.best = self._objective()[0]
         self.spectral: tuple[Tensor, Tensor] | None = None
         self.objectives: list[float] = []
@@ -319,14 +359,15 @@ class SplitBregman(Solver):
         self.objectives.append(new_obj)
         stagnant = len(self.objectives) > 10 and \
             abs(self.objectives[-11] - new_obj) <= cfg.stage_tol ** 2 * abs(new_obj)
-        if last["primal_rel"] <= cfg.stage_tol and (last["dual_rel"] <= cfg.stage_tol
-                                                    or stagnant):
+        fits = not self.data_bregman or self.norm <= cfg.stage_tol * self.norm0
+        if fits and last["primal_rel"] <= cfg.stage_tol and (last["dual_rel"] <= cfg.stage_tol
+                                                             or stagnant):
             return "converged"
         if last["primal"] == 0.0 and last["step_norm"] == 0.0:
             return "converged"           # nothing moves (e.g. a constant field)
         self.misfits.append(self.norm)
         if self.staged and len(self.misfits) > 10 and self.misfits[-1] - self.level > \
-                10.0 * abs(self.misfits[-1] - self.misfits[-11]):
+                cfg.above_factor * abs(self.misfits[-1] - self.misfits[-11]):
             return "above"
         if cfg.adapt_beta and (self.spectral is None or last["stage_iteration"] % 2 == 1):
             self._adapt_beta(last["lam_hat"], last["primal_rel"], last["dual_rel"])
@@ -400,7 +441,9 @@ class SplitBregman(Solver):
         new_lin = (self.lin if torch.equal(inner.theta, self._theta)
                    else self.model.linearize(inner.theta))   # cached: the inner end point
         new_Dtheta = self.diff.matvec(inner.theta) + self.c
-        new_obj = self.tv.value(new_Dtheta) + 0.5 * self.mu * new_lin.norm ** 2
+        data_norm = float(torch.linalg.vector_norm(new_lin.r - self.e)) if self.data_bregman \
+            else new_lin.norm
+        new_obj = self.tv.value(new_Dtheta) + 0.5 * self.mu * data_norm ** 2
         if self._inner_stuck(inner) or not math.isfinite(new_obj) \
                 or new_obj > self.config.divergence_factor * self.best:
             return self._reject(cg_its, damping, inner.iterations)
@@ -412,6 +455,8 @@ class SplitBregman(Solver):
         dual = self.beta * float(torch.linalg.vector_norm(self.diff.rmatvec(d - self.d)))
         self._theta, self.lin, self.norm = inner.theta, new_lin, new_lin.norm
         self.Dtheta, self.d, self.b = new_Dtheta, d, b
+        if self.data_bregman:
+            self.e = self.e - new_lin.r
         self.best = min(self.best, new_obj)
         primal = float(torch.linalg.vector_norm(new_Dtheta - d))
         primal_rel = primal / max(float(torch.linalg.vector_norm(new_Dtheta)),
@@ -419,18 +464,35 @@ class SplitBregman(Solver):
         dual_rel = dual / max(self.beta * float(torch.linalg.vector_norm(self.diff.rmatvec(b))),
                               1e-300)
         self.pending = "accepted"
+        self.admm_residual = max(primal_rel, dual_rel)
         self.last = {"objective": new_obj, "primal": primal, "primal_rel": primal_rel,
                      "dual_rel": dual_rel, "step_norm": step_norm, "lam_hat": lam_hat,
                      "stage_iteration": self.stage_iteration - 1}
         return self._record(step_norm, cg_its, damping, True, dual_residual=dual,
-                            inner_iterations=inner.iterations)
+                            inner_iterations=inner.iterations,
+                            inner_rtol=self.inner.config.cg_rtol)
 
     def _inner_solve(self) -> SolveResult:
         """``inner_max_iter`` GN/LM steps on ``mu/2 ||r||^2 + beta/2 ||D theta + c - d + b||^2``."""
         self.diff.target = self.d - self.b - self.c
-        stacked = StackedResidual([self.model, self.diff], [self.mu, self.beta],
-                                  projector_from=0)
+        data = ShiftedResidual(self.model, self.e) if self.data_bregman else self.model
+        stacked = StackedResidual([data, self.diff], [self.mu, self.beta], projector_from=0)
+        self.inner.config.cg_rtol = self._inner_tolerance()
         return self.inner.solve(stacked, self._theta)
+
+    def _inner_tolerance(self) -> float:
+        """The inner CGLS's relative normal-residual tolerance for this outer iteration.
+
+        ``clip(cg_rtol_factor * admm_residual, cg_rtol, cg_rtol_max)``, never rising
+        within a stage: inexact inner solves must get more exact for (inexact) ADMM and
+        Bregman iterations to converge (their errors accumulate in ``b`` and ``e``)."""
+        cfg = self.config
+        if cfg.cg_rtol_factor == 0:
+            return cfg.cg_rtol
+        rule = cfg.cg_rtol_max if not math.isfinite(self.admm_residual) else \
+            min(cfg.cg_rtol_max, max(cfg.cg_rtol, cfg.cg_rtol_factor * self.admm_residual))
+        self.inner_rtol = min(self.inner_rtol, rule)
+        return self.inner_rtol
 
     def _inner_stuck(self, inner: SolveResult) -> bool:
         """An inner solve whose line search found no descent although its gradient is not
@@ -451,6 +513,7 @@ class SplitBregman(Solver):
         """Keep ``theta``, ``d``, ``b`` exactly; stiffen the splitting (keeping ``beta b``),
         which conditions the inner problem better."""
         self.rejections += 1
+        self.admm_residual = 0.0         # the retry solves its inner problem tightly
         self.model.restore(self.lin)
         self.beta, self.b = 2.0 * self.beta, self.b / 2.0
         self.spectral = None
@@ -498,7 +561,8 @@ class SplitBregman(Solver):
                 "objectives": list(self.objectives), "misfits": list(self.misfits),
                 "rejections": self.rejections, "direction": self.direction,
                 "accepted": accepted, "pending": self.pending, "last": last,
-                "restore_pending": self.restore_pending}
+                "restore_pending": self.restore_pending, "admm_residual": self.admm_residual,
+                "e": clone(self.e), "norm0": self.norm0, "inner_rtol": self.inner_rtol}
 
     def _set_state(self, state: dict[str, Any]) -> None:
         self._theta = state["theta"].detach().clone()
@@ -520,6 +584,10 @@ class SplitBregman(Solver):
         last = state["last"]
         self.last = None if last is None else {k: clone(v) for k, v in last.items()}
         self.restore_pending = bool(state["restore_pending"])
+        self.admm_residual = float(state.get("admm_residual", math.inf))
+        self.e = clone(state["e"])
+        self.inner_rtol = float(state["inner_rtol"])
+        self.norm0 = float(state["norm0"])
 
     def resume(self) -> None:
         self._setup(self._theta)

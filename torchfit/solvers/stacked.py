@@ -178,6 +178,58 @@ class CachedResidual:
         return self.residual.projector(theta)
 
 
+class _ShiftedLinearization:
+    """A linearisation with ``r - shift`` in place of ``r`` (same Jacobian)."""
+
+    def __init__(self, lin: LinearizationLike, shift: Tensor) -> None:
+        self._lin = lin
+        self.theta = lin.theta
+        self.r = lin.r - shift
+        self.norm = float(torch.linalg.vector_norm(self.r))
+
+    @property
+    def dense(self) -> bool:
+        return bool(getattr(self._lin, "dense", False))
+
+    def jacobian(self) -> Tensor:
+        return self._lin.jacobian()  # type: ignore[attr-defined]
+
+    def use_dense(self) -> "_ShiftedLinearization":
+        self._lin.use_dense()  # type: ignore[attr-defined]
+        return self
+
+    def jvp(self, v: Tensor) -> Tensor:
+        return self._lin.jvp(v)
+
+    def vjp(self, w: Tensor) -> Tensor:
+        return self._lin.vjp(w)
+
+
+class ShiftedResidual:
+    """``r(theta) - shift`` for a residual ``r`` and a constant ``(m,)`` ``shift``.
+
+    Split Bregman's data-side Bregman variable (``r(theta) = e`` in place of ``r = 0``,
+    "adding back the residual"). The wrapped residual's linearisations (and their cache)
+    are reused as they are; only ``r`` and ``norm`` are shifted.
+    """
+
+    noise_level = None
+
+    def __init__(self, residual: ResidualLike, shift: Tensor) -> None:
+        self.residual = residual
+        self.shift = shift
+        self.jacobian = getattr(residual, "jacobian", None)
+
+    def linearize(self, theta: Tensor) -> _ShiftedLinearization:
+        return _ShiftedLinearization(self.residual.linearize(theta), self.shift)
+
+    def value(self, theta: Tensor) -> Tensor:
+        return self.residual.value(theta) - self.shift
+
+    def projector(self, theta: Tensor) -> Callable[[Tensor], Tensor] | None:
+        return self.residual.projector(theta)
+
+
 class StackedLinearization:
     """Linearisation of a :class:`StackedResidual` at one ``theta``."""
 
@@ -279,4 +331,5 @@ class StackedResidual:
         return self.blocks[self.projector_from].projector(theta)
 
 
-__all__ = ["CachedResidual", "LinearResidual", "StackedLinearization", "StackedResidual"]
+__all__ = ["CachedResidual", "LinearResidual", "ShiftedResidual", "StackedLinearization",
+           "StackedResidual"]
