@@ -200,7 +200,9 @@ class SimplicialElasticity:
         """``A = dP/dF`` per frame and element ``(F, n_cells, d, d, d, d)``."""
         mu, lam = self.lame(E)
         F = self.deformation_gradients(x.detach())
-        if hasattr(self.material, "stiffness_terms"):
+        if hasattr(self.material, "stiffness_terms") or getattr(self.material,
+                                                                "projects_tangent", False):
+            # the material projects in closed form (no batched eigensolver)
             return self.material.stress_derivative(F, mu.detach(), lam.detach(), projected)
         A = self.material.stress_derivative(F, mu.detach(), lam.detach())
         return project_psd(A) if projected else A
