@@ -7,7 +7,8 @@ import pytest
 import torch
 
 import torchfit.linalg.cudss as cudss_module
-from torchfit.linalg import (BackendDeviceError, CudssUnavailableError, SingularMatrixError,
+from torchfit.linalg import (BackendDeviceError, CudssBackend, CudssUnavailableError,
+                             SingularMatrixError,
                              SparsePattern, counting, default_backend, get_backend, sparse_solve)
 from torchfit.linalg.cudss import gpu_memory_error
 from torchfit.mesh import box_tetrahedra
@@ -146,7 +147,7 @@ def test_cudss_solves_match_scipy_and_reuse_the_plan():
     assert (c.factorizations, c.solves, c.rhs_columns) == (1, 2, 12)
     assert torch.allclose(x.cpu(), reference, rtol=1e-10, atol=1e-12)
     assert torch.allclose(x1.cpu(), reference[:, 0], rtol=1e-10, atol=1e-12)
-    plan = backend.plan(pattern, True, values.device, values.dtype)
+    plan = backend.plan(pattern, "spd", values.device, values.dtype)
     assert plan.analyses == 1
     del factor
     import gc
@@ -175,7 +176,14 @@ def test_cudss_differentiable_solve_matches_cpu_and_refuses_non_spd():
     diagonal = pattern.row_indices.to(values.device) == pattern.col_indices.to(values.device)
     indefinite[diagonal] *= -1.0
     with pytest.raises(SingularMatrixError, match="not positive definite"):
-        get_backend("cudss").factorize(pattern, indefinite, True)
+        CudssBackend(indefinite=False).factorize(pattern, indefinite, True)
+    # by default an indefinite symmetric matrix (a Newton tangent) is factorised as such
+    factor = get_backend("cudss").factorize(pattern, indefinite, True)
+    assert factor.info["kind"] == "symmetric"
+    dense = torch.from_numpy(pattern.to_scipy(indefinite).toarray())
+    b = torch.randn(n, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    assert torch.allclose(factor.solve(b.cuda()).cpu(), torch.linalg.solve(dense, b),
+                          rtol=1e-8, atol=1e-10)
 
 
 @needs_cudss
@@ -204,3 +212,21 @@ def test_tet_box_nonlinear_on_cuda_matches_the_cpu(material):
         results[device] = (x.detach().cpu(), grad.cpu())
     assert float((results["cpu"][0] - results["cuda"][0]).abs().max()) < 1e-10
     assert torch.allclose(results["cpu"][1], results["cuda"][1], rtol=1e-8, atol=1e-10)
+
+
+def test_cg_refuses_a_matrix_that_is_not_positive_definite_in_one_line():
+    """Positive diagonal (passes the cheap check), but indefinite: CG meets negative
+    curvature and says so instead of returning garbage."""
+    pattern = SparsePattern([0, 0, 1, 1], [0, 1, 0, 1], (2, 2))
+    values = torch.tensor([1.0, 2.0, 2.0, 1.0], dtype=torch.float64)     # eigenvalues 3, -1
+    factor = get_backend("cg").factorize(pattern, values, True)
+    with pytest.raises(SingularMatrixError) as info:
+        factor.solve(torch.tensor([1.0, -0.5], dtype=torch.float64))
+    assert "\n" not in str(info.value) and "positive definite" in str(info.value)
+    # an SPD matrix still solves
+    spd = torch.tensor([2.0, 0.5, 0.5, 1.0], dtype=torch.float64)
+    x = get_backend("cg").factorize(pattern, spd, True).solve(torch.tensor([1.0, 2.0],
+                                                                           dtype=torch.float64))
+    assert torch.allclose(x, torch.linalg.solve(torch.tensor([[2.0, 0.5], [0.5, 1.0]],
+                                                             dtype=torch.float64),
+                                                torch.tensor([1.0, 2.0], dtype=torch.float64)))

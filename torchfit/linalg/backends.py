@@ -131,10 +131,23 @@ class CGFactor:
         # The matrix is symmetric (checked at factorisation), so A^T = A.
         _count_solve(rhs)
         columns = rhs.detach().reshape(rhs.shape[0], -1).T  # (c, n)
+        curvature = []       # min p^T A p / p^T p of every iteration: <= 0 means not SPD
+
+        def matvec(v: Tensor) -> Tensor:
+            product = self._pattern.matvec(self._values, v)
+            scale = (v * v).sum(dim=1)
+            ratio = (v * product).sum(dim=1) / torch.where(scale > 0, scale, 1.0)
+            curvature.append(torch.where(scale > 0, ratio, torch.inf).amin())
+            return product
+
         x, converged, iterations = batched_cg(
-            lambda v: self._pattern.matvec(self._values, v), columns,
-            preconditioner=lambda v: self._inv_diag * v, rtol=self._rtol,
+            matvec, columns, preconditioner=lambda v: self._inv_diag * v, rtol=self._rtol,
             max_iter=self._max_iter)
+        if curvature and float(torch.stack(curvature).min()) <= 0.0:
+            raise SingularMatrixError(
+                "the cg backend needs a symmetric positive definite matrix, and this one is "
+                "not (CG met a direction d with d^T A d <= 0); check that all stiffnesses are "
+                "positive, or use a direct backend (scipy, pardiso, cudss)")
         if not converged:
             raise SingularMatrixError(
                 f"preconditioned CG did not reach rtol={self._rtol} in {iterations} "

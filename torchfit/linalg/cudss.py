@@ -23,9 +23,13 @@ columns are solved ``rhs_block`` at a time, the last block zero-padded. One call
 counted solve (``rhs_columns += k``), as for the CPU backends. The triangular solves
 read the whole factor per block, so a block of 8 columns costs about what one costs.
 
-Matrix types: a symmetric matrix is factorised as SPD (Cholesky, cuDSS's fastest); a
-non-positive pivot (cuDSS's ``info > 0``) is a :class:`SingularMatrixError` saying that
-the matrix is not positive definite, never a silent fallback. Nonsymmetric matrices
+Matrix types: a symmetric matrix is factorised as SPD (Cholesky, cuDSS's fastest). A
+non-positive pivot (cuDSS's ``info > 0``) means it is not positive definite: a Newton
+tangent far from equilibrium may be indefinite, as on the CPU, where PARDISO factorises
+symmetric matrices as indefinite, so the matrix is then factorised as symmetric
+indefinite (``LDL^T`` with pivoting, a plan of its own; counted once); with
+``CudssBackend(indefinite=False)`` it is a :class:`SingularMatrixError` saying that the
+matrix is not positive definite instead. Nonsymmetric matrices
 get cuDSS's general LU (solves of ``A x = b``; a transposed solve is refused: no model
 of torchfit has a nonsymmetric tangent). Running out of GPU memory (planning is the
 largest allocation) is a :class:`GpuMemoryError` naming the matrix size and what to lower.
@@ -50,6 +54,8 @@ from .pattern import SparsePattern
 
 #: how the optional dependency is installed (named by every "not installed" error)
 CUDA_EXTRA = "pip install 'torchfit[cuda]'"
+#: cuDSS matrix types used: Cholesky, symmetric indefinite LDL^T, general LU
+MATRIX_KINDS = ("spd", "symmetric", "general")
 
 
 class CudssUnavailableError(ImportError):
@@ -128,8 +134,9 @@ class _Slot:
                                               size=(plan.n, plan.n), check_invariants=False)
         # column-major (n, block): the transpose of a contiguous (block, n)
         self.rhs = torch.zeros(plan.rhs_block, plan.n, dtype=plan.dtype, device=plan.device).T
-        kind = advanced.DirectSolverMatrixType.SPD if plan.symmetric else \
-            advanced.DirectSolverMatrixType.GENERAL
+        kind = {"spd": advanced.DirectSolverMatrixType.SPD,
+                "symmetric": advanced.DirectSolverMatrixType.SYMMETRIC,
+                "general": advanced.DirectSolverMatrixType.GENERAL}[plan.kind]
         options = advanced.DirectSolverOptions(sparse_system_type=kind)
         self.solver = advanced.DirectSolver(self.matrix, self.rhs, options=options)
         self.solver.plan()
@@ -146,7 +153,7 @@ class CudssPlan:
         slots_in_use: slots held by live factors.
     """
 
-    def __init__(self, pattern: SparsePattern, symmetric: bool, device: torch.device,
+    def __init__(self, pattern: SparsePattern, kind: str, device: torch.device,
                  dtype: torch.dtype, rhs_block: int) -> None:
         n = pattern.shape[0]
         if pattern.shape[0] != pattern.shape[1]:
@@ -155,7 +162,10 @@ class CudssPlan:
             raise ValueError(f"matrix with {pattern.nnz} stored entries is too large for "
                              "cuDSS's 32-bit indices")
         self.n, self.nnz = n, pattern.nnz
-        self.symmetric = bool(symmetric)
+        if kind not in MATRIX_KINDS:
+            raise ValueError(f"unknown cuDSS matrix kind {kind!r}; one of {MATRIX_KINDS}")
+        self.kind = kind
+        self.symmetric = kind != "general"
         self.device, self.dtype = device, dtype
         self.rhs_block = int(rhs_block)
         self.crow = pattern.crow_indices.to(device=device, dtype=torch.int32)
@@ -254,12 +264,16 @@ class CudssBackend:
 
     Args:
         rhs_block: right-hand sides solved per cuDSS call (the RHS buffer's columns).
+        indefinite: a symmetric matrix that is not positive definite is factorised as
+            symmetric indefinite (the default, as PARDISO on the CPU); ``False``: it is a
+            :class:`SingularMatrixError` naming it.
 
     Raises :class:`CudssUnavailableError` (an ``ImportError`` naming
     ``pip install 'torchfit[cuda]'``) when CUDA, nvmath-python or cuDSS is missing.
     """
 
     rhs_block: int = 8
+    indefinite: bool = True
     name: str = "cudss"
 
     def __post_init__(self) -> None:
@@ -267,15 +281,16 @@ class CudssBackend:
         if self.rhs_block < 1:
             raise ValueError(f"rhs_block must be >= 1, got {self.rhs_block}")
 
-    def plan(self, pattern: SparsePattern, symmetric: bool, device: torch.device,
+    def plan(self, pattern: SparsePattern, kind: str, device: torch.device,
              dtype: torch.dtype) -> CudssPlan:
-        """The plan of ``pattern`` for this matrix type, device and dtype (made once)."""
+        """The plan of ``pattern`` for this matrix kind (``'spd'``, ``'symmetric'``,
+        ``'general'``), device and dtype (made once, kept with the pattern)."""
         plans = _PLANS.get(pattern)
         if plans is None:
             plans = _PLANS[pattern] = {}
-        key = (bool(symmetric), device, dtype, self.rhs_block)
+        key = (kind, device, dtype, self.rhs_block)
         if key not in plans:
-            plans[key] = CudssPlan(pattern, symmetric, device, dtype, self.rhs_block)
+            plans[key] = CudssPlan(pattern, kind, device, dtype, self.rhs_block)
         return plans[key]
 
     def factorize(self, pattern: SparsePattern, values: Tensor, symmetric: bool) -> CudssFactor:
@@ -286,28 +301,40 @@ class CudssBackend:
             raise ValueError(f"the cudss backend takes float32 or float64 values, got {values.dtype}")
         if not bool(torch.isfinite(values).all()):
             raise SingularMatrixError("system matrix has NaN or infinite entries")
-        plan = self.plan(pattern, symmetric, values.device, values.dtype)
+        kind = "spd" if symmetric else "general"
+        factor = self._factorize(self.plan(pattern, kind, values.device, values.dtype), values)
+        if factor is None and symmetric and self.indefinite:
+            kind = "symmetric"
+            factor = self._factorize(self.plan(pattern, kind, values.device, values.dtype),
+                                     values)
+        if factor is None:
+            what = {"spd": "not positive definite", "symmetric": "singular",
+                    "general": "singular"}[kind]
+            raise SingularMatrixError(
+                f"cuDSS factorisation failed (zero or negative pivot): the matrix is {what}; "
+                "check that every connected part of the model has a Dirichlet (fixed) node "
+                "and that all stiffnesses are positive")
+        COUNTERS.factorizations += 1
+        return factor
+
+    @staticmethod
+    def _factorize(plan: CudssPlan, values: Tensor) -> CudssFactor | None:
+        """Numeric factorisation in a free slot of ``plan``; ``None`` when cuDSS reports a
+        zero or (Cholesky) non-positive pivot."""
         slot = plan.acquire()
         try:
             slot.values.copy_(values.detach())       # in place: the plan stays valid
-            fac_info = slot.solver.factorize()
-            info = int(fac_info.info)
-        except Exception as err:  # noqa: BLE001
+            info = int(slot.solver.factorize().info)
+        except Exception as err:  # noqa: BLE001 - nvmath/cuDSS raise their own types
             plan.release(slot)
             if _is_out_of_memory(err):
                 raise gpu_memory_error("the cuDSS factorisation", plan.size(), err) from None
             raise
         if info != 0:
             plan.release(slot)
-            what = "not positive definite" if symmetric else "singular"
-            raise SingularMatrixError(
-                f"cuDSS factorisation failed (info={info}: zero or negative pivot at row "
-                f"{info - 1 if info > 0 else '?'}): the matrix is {what}; check that every "
-                "connected part of the model has a Dirichlet (fixed) node and that all "
-                "stiffnesses are positive")
-        COUNTERS.factorizations += 1
-        return CudssFactor(plan, slot, {"info": info})
+            return None
+        return CudssFactor(plan, slot, {"info": info, "kind": plan.kind})
 
 
 __all__ = ["CUDA_EXTRA", "CudssBackend", "CudssFactor", "CudssPlan", "CudssUnavailableError",
-           "GpuMemoryError", "cudss_available", "gpu_memory_error", "load_nvmath"]
+           "GpuMemoryError", "MATRIX_KINDS", "cudss_available", "gpu_memory_error", "load_nvmath"]
