@@ -2,7 +2,6 @@
 (cuDSS) are present (skipped otherwise: CI has no GPU)."""
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 
@@ -230,3 +229,24 @@ def test_cg_refuses_a_matrix_that_is_not_positive_definite_in_one_line():
     assert torch.allclose(x, torch.linalg.solve(torch.tensor([[2.0, 0.5], [0.5, 1.0]],
                                                              dtype=torch.float64),
                                                 torch.tensor([1.0, 2.0], dtype=torch.float64)))
+
+
+def test_equilibrium_out_of_gpu_memory_is_one_line_with_the_size(monkeypatch):
+    """CUDA's allocator error inside a solve becomes one line naming frames, dofs and what
+    to lower (simulated: CI has no GPU to exhaust)."""
+    from torchfit.linalg.cudss import GpuMemoryError
+    from tetbox import clamped_box
+    _, qs, _, _ = clamped_box((2, 2, 2), (1.0, 1.0, 1.0), "linear")
+    eq = qs.equilibrium
+
+    def exhausted(*args, **kwargs):
+        raise torch.cuda.OutOfMemoryError("CUDA out of memory. Tried to allocate 30.00 GiB")
+
+    monkeypatch.setattr(eq, "_solve_forward", exhausted)
+    values = torch.zeros(3, eq.n_fixed, dtype=torch.float64)
+    with pytest.raises(GpuMemoryError) as info:
+        eq(torch.ones(qs.model.n_cells, dtype=torch.float64), values)
+    message = str(info.value)
+    assert "\n" not in message and "3 frame(s)" in message
+    assert f"{eq.free_dofs.numel():,} free dofs" in message and "Tried to allocate 30.00 GiB" in message
+    assert "lower the problem size" in message
