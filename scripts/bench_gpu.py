@@ -46,7 +46,9 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
+try:        # a torchfit on PYTHONPATH (another checkout: before/after figures) is used as is
+    import torchfit  # noqa: F401
+except ImportError:
     sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -193,7 +195,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     if args.threads:
         torch.set_num_threads(args.threads)
     devices = args.devices or (["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])
+    import torchfit
     report: dict[str, Any] = {"benchmark": "gpu", "machine": machine_info(),
+                              "torchfit": str(Path(torchfit.__file__).parent),
                               "loadavg_start": loadavg(), "settings": vars(args) | {
                                   "out": str(args.out) if args.out else None},
                               "rows": []}
