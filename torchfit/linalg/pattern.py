@@ -141,16 +141,18 @@ class SparsePattern:
         base = bs * bs * start[pair_row] + bs * position                  # (P,)
         row_stride = bs * degree[pair_row]                                 # (P,)
         comp = torch.arange(bs, device=device)
-        slots = (base[:, None, None] + comp[None, :, None] * row_stride[:, None, None]
-                 + comp[None, None, :])                                    # (P, bs, bs)
-        nnz = unique_keys.numel() * bs * bs
-        row_of_slot = torch.empty(nnz, dtype=torch.long, device=device)
-        col_of_slot = torch.empty(nnz, dtype=torch.long, device=device)
-        row_of_slot[slots.reshape(-1)] = (pair_row[:, None, None] * bs
-                                          + comp[None, :, None]).expand(-1, bs, bs).reshape(-1)
-        col_of_slot[slots.reshape(-1)] = (pair_col[:, None, None] * bs
-                                          + comp[None, None, :]).expand(-1, bs, bs).reshape(-1)
-        del slots
+        # CSR arrays in order: scalar row A bs + i holds the columns of block row A's
+        # pairs, (pair_col[p] bs + j for p in the row, for j), the same for every i
+        row_length = (bs * degree).repeat_interleave(bs)                    # (n,)
+        crow = _exclusive_cumsum(row_length)
+        nnz = int(crow[-1])
+        row_of_slot = torch.repeat_interleave(torch.arange(n, device=device), row_length,
+                                              output_size=nnz)
+        columns = (pair_col[:, None] * bs + comp).reshape(-1)              # (P bs,) pair order
+        block_row = torch.arange(n, device=device) // bs
+        offset = start[block_row] * bs - crow[:-1]                         # per scalar row
+        col_of_slot = columns[torch.arange(nnz, device=device)
+                              + torch.repeat_interleave(offset, row_length, output_size=nnz)]
         # contributions (g, a, i, b, j)
         pair_slot = pair_slot.reshape(m, k, k)
         block_base = base[pair_slot]                                       # (m, a, b)
