@@ -33,6 +33,8 @@ matrix is not positive definite instead. Nonsymmetric matrices
 get cuDSS's general LU (solves of ``A x = b``; a transposed solve is refused: no model
 of torchfit has a nonsymmetric tangent). Running out of GPU memory (planning is the
 largest allocation) is a :class:`GpuMemoryError` naming the matrix size and what to lower.
+cuDSS plans much faster with its multithreading layer: nvmath-python loads it from
+``CUDSS_THREADING_LIB`` (``.../nvidia/cu13/lib/libcudss_mtlayer_gomp.so.0``) when set.
 
 Untested on a GPU at the time of writing (no GPU was lent to the session that wrote it):
 ``tests/linalg/test_cudss.py`` runs it where CUDA and nvmath are present; its error
@@ -129,9 +131,10 @@ class _Slot:
 
     def __init__(self, plan: "CudssPlan") -> None:
         advanced = load_nvmath()
-        self.values = torch.zeros(plan.nnz, dtype=plan.dtype, device=plan.device)
-        self.matrix = torch.sparse_csr_tensor(plan.crow, plan.col, self.values,
-                                              size=(plan.n, plan.n), check_invariants=False)
+        self.matrix = torch.sparse_csr_tensor(
+            plan.crow, plan.col, torch.zeros(plan.nnz, dtype=plan.dtype, device=plan.device),
+            size=(plan.n, plan.n), check_invariants=False)
+        self.values = self.matrix.values()      # the matrix's own buffer: updated in place
         # column-major (n, block): the transpose of a contiguous (block, n)
         self.rhs = torch.zeros(plan.rhs_block, plan.n, dtype=plan.dtype, device=plan.device).T
         kind = {"spd": advanced.DirectSolverMatrixType.SPD,
