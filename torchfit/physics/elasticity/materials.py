@@ -99,13 +99,6 @@ def _identity4(d: int, like: Tensor) -> Tensor:
     return _basis(d, like).reshape(d, d, d, d).permute(2, 3, 0, 1).contiguous()
 
 
-def _symmetrize(A: Tensor) -> Tensor:
-    d = A.shape[-1]
-    M = A.reshape(*A.shape[:-4], d * d, d * d)
-    M = 0.5 * (M + M.transpose(-1, -2))
-    return M.reshape(A.shape)
-
-
 #: matrices per batched Cholesky/``eigh`` call in :func:`project_psd` (cuSOLVER's batched
 #: ``syevj`` fails or asks for hundreds of GiB at 10^5..10^6 matrices)
 PROJECT_PSD_CHUNK = 16384
@@ -303,6 +296,19 @@ def cofactor(F: Tensor) -> Tensor:
                         torch.linalg.cross(c0, c1)], dim=-1)
 
 
+def _cofactor_derivative_flat(f: Tensor, d: int) -> Tensor:
+    """``d cof(F) / dF`` as ``(N, d^2, d^2)`` matrices (row ``i d + j``, column ``k d + l``)
+    for ``f = vec(F)`` ``(N, d^2)``: constant in 2-D, linear in ``F`` in 3-D (one matmul
+    with the ``(9, 81)`` tensor ``eps_ikn eps_jlq``)."""
+    like = f
+    if d == 2:
+        return cofactor_derivative(torch.zeros(2, 2, dtype=f.dtype, device=f.device)
+                                   ).reshape(1, 4, 4).expand(f.shape[0], 4, 4)
+    eps = _levi_civita(like)
+    K = torch.einsum("ikn,jlq->nqijkl", eps, eps).reshape(9, 81)
+    return (f @ K).reshape(-1, 9, 9)
+
+
 def _levi_civita(like: Tensor) -> Tensor:
     eps = torch.zeros(3, 3, 3, dtype=like.dtype, device=like.device)
     for (i, j, k), s in (((0, 1, 2), 1), ((1, 2, 0), 1), ((2, 0, 1), 1),
@@ -363,20 +369,27 @@ class StableNeoHookean(Material):
         the largest diagonal entry of ``A`` (the others are returned exactly as the exact
         ``A``, as :func:`project_psd` does). The eigenvalues of every element are computed,
         the eigenmatrices only for those indefinite ones."""
-        d = F.shape[-1]
+        d, d2 = F.shape[-1], F.shape[-1] ** 2
         F = F.detach()
+        batch = F.shape[:-2]
         mu_s, lam_s, alpha = self._constants(mu, lam)
         I_C, J = self._invariants(F)
-        C = cofactor(F)
 
-        def s(x: Tensor) -> Tensor:
-            return x[..., None, None, None, None]
+        def flat(x: Tensor | float) -> Tensor:
+            return torch.broadcast_to(torch.as_tensor(x, dtype=F.dtype, device=F.device),
+                                      batch).reshape(-1)
 
-        A = (s(mu_s * (1.0 - 1.0 / (I_C + 1.0))) * _identity4(d, F)
-             + s(2.0 * mu_s / (I_C + 1.0) ** 2) * _outer(F, F)
-             + s(lam_s) * _outer(C, C)
-             + s(lam_s * (J - alpha)) * cofactor_derivative(F))
-        A = _symmetrize(A)
+        # A = a I + b vec(F) vec(F)^T + lam' vec(C) vec(C)^T + e dcof(F)/dF as d^2 x d^2
+        # matrices: one batched (d^2 x 2) (2 x d^2) product and one (d^2 -> d^4) matmul
+        # for the cofactor derivative, which is linear in F (no d^4 einsum chain)
+        f = F.reshape(-1, d2)
+        vectors = torch.stack([f, cofactor(F).reshape(-1, d2)], dim=-1)    # (N, d^2, 2)
+        weights = torch.stack([flat(2.0 * mu_s / (I_C + 1.0) ** 2), flat(lam_s)], dim=-1)
+        A = (vectors * weights[:, None, :]) @ vectors.transpose(-1, -2)
+        A = A + flat(lam_s * (J - alpha))[:, None, None] * _cofactor_derivative_flat(f, d)
+        A.diagonal(dim1=-2, dim2=-1).add_(flat(mu_s * (1.0 - 1.0 / (I_C + 1.0)))[:, None])
+        A = 0.5 * (A + A.transpose(-1, -2))
+        A = A.reshape(*batch, d, d, d, d)
         if not projected:
             return A
         # eigenvalues of every element (cheap), eigenmatrices of the indefinite ones only
