@@ -3,6 +3,9 @@ from .backends import (BandedBackend, Backend, CGBackend, Factor, PardisoBackend
                        PardisoPlan, ScipyBackend, SingularMatrixError, default_backend,
                        get_backend)
 from .cg import CGLSResult, batched_cg, cgls
+from .cudss import (CUDA_EXTRA, CudssBackend, CudssUnavailableError, GpuMemoryError,
+                    cudss_available)
+from .errors import BackendDeviceError
 from .counters import COUNTERS, SolveCounters, counting, reset_counters
 from .pardiso import PardisoError, PardisoUnavailableError, pardiso_available
 from .pattern import SparsePattern
@@ -10,7 +13,8 @@ from .sparse_solve import DEFAULT_CACHE, FactorCache, sparse_solve
 from .threads import blas_threads, set_threads
 
 __all__ = [
-    "BandedBackend", "Backend", "CGBackend", "CGLSResult", "COUNTERS", "DEFAULT_CACHE", "Factor",
+    "BackendDeviceError", "BandedBackend", "Backend", "CUDA_EXTRA", "CudssBackend",
+    "CudssUnavailableError", "GpuMemoryError", "cudss_available", "CGBackend", "CGLSResult", "COUNTERS", "DEFAULT_CACHE", "Factor",
     "FactorCache", "PardisoBackend", "PardisoError", "PardisoFactor", "PardisoPlan",
     "PardisoUnavailableError", "ScipyBackend", "SingularMatrixError", "SolveCounters",
     "SparsePattern", "batched_cg", "blas_threads", "cgls", "counting", "default_backend",

@@ -46,16 +46,12 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 import torch
 from torch import Tensor
 
-from ..errors import SimulationError
 from .cg import batched_cg
 from .counters import COUNTERS
+from .errors import SingularMatrixError, cpu_only
 from .pardiso import (REAL_NONSYMMETRIC, REAL_SYMMETRIC_INDEFINITE, SINGULAR_CODES, PardisoError,
                       PardisoHandle, PardisoStructure, load_pardiso, pardiso_available)
 from .pattern import SparsePattern
-
-
-class SingularMatrixError(SimulationError):
-    """Raised when a system matrix cannot be factorised (or CG breaks down)."""
 
 
 class Factor(Protocol):
@@ -85,8 +81,7 @@ class ScipyFactor:
 
     def solve(self, rhs: Tensor, transpose: bool = False) -> Tensor:
         if rhs.device.type != "cpu":
-            raise ValueError("the scipy backend runs on the CPU; use backend='cg' for "
-                             f"tensors on {rhs.device}")
+            raise cpu_only("scipy", rhs.device)
         _count_solve(rhs)
         trans = "T" if (transpose and not self._symmetric) else "N"
         x = self._lu.solve(np.ascontiguousarray(rhs.detach().numpy()), trans=trans)
@@ -101,8 +96,7 @@ class ScipyBackend:
 
     def factorize(self, pattern: SparsePattern, values: Tensor, symmetric: bool) -> ScipyFactor:
         if values.device.type != "cpu":
-            raise ValueError("the scipy backend runs on the CPU; use backend='cg' for "
-                             f"tensors on {values.device}")
+            raise cpu_only("scipy", values.device)
         if not torch.isfinite(values).all():
             raise SingularMatrixError("system matrix has NaN or infinite entries")
         matrix = pattern.to_scipy(values).tocsc()
@@ -137,10 +131,23 @@ class CGFactor:
         # The matrix is symmetric (checked at factorisation), so A^T = A.
         _count_solve(rhs)
         columns = rhs.detach().reshape(rhs.shape[0], -1).T  # (c, n)
+        curvature = []       # min p^T A p / p^T p of every iteration: <= 0 means not SPD
+
+        def matvec(v: Tensor) -> Tensor:
+            product = self._pattern.matvec(self._values, v)
+            scale = (v * v).sum(dim=1)
+            ratio = (v * product).sum(dim=1) / torch.where(scale > 0, scale, 1.0)
+            curvature.append(torch.where(scale > 0, ratio, torch.inf).amin())
+            return product
+
         x, converged, iterations = batched_cg(
-            lambda v: self._pattern.matvec(self._values, v), columns,
-            preconditioner=lambda v: self._inv_diag * v, rtol=self._rtol,
+            matvec, columns, preconditioner=lambda v: self._inv_diag * v, rtol=self._rtol,
             max_iter=self._max_iter)
+        if curvature and float(torch.stack(curvature).min()) <= 0.0:
+            raise SingularMatrixError(
+                "the cg backend needs a symmetric positive definite matrix, and this one is "
+                "not (CG met a direction d with d^T A d <= 0); check that all stiffnesses are "
+                "positive, or use a direct backend (scipy, pardiso, cudss)")
         if not converged:
             raise SingularMatrixError(
                 f"preconditioned CG did not reach rtol={self._rtol} in {iterations} "
@@ -178,8 +185,7 @@ class BandedFactor:
     def solve(self, rhs: Tensor, transpose: bool = False) -> Tensor:
         # A is symmetric: A^T x = b is the same solve.
         if rhs.device.type != "cpu":
-            raise ValueError("the banded backend runs on the CPU; use backend='cg' for "
-                             f"tensors on {rhs.device}")
+            raise cpu_only("banded", rhs.device)
         _count_solve(rhs)
         b = rhs.detach().numpy()
         x = np.empty_like(b)
@@ -198,8 +204,8 @@ class _BandPlan:
                                dtype=np.int64)
         inverse = np.empty(n, dtype=np.int64)
         inverse[self.perm] = np.arange(n)
-        rows = inverse[pattern.row_indices.numpy()]
-        cols = inverse[pattern.col_indices.numpy()]
+        rows = inverse[pattern.row_indices.cpu().numpy()]
+        cols = inverse[pattern.col_indices.cpu().numpy()]
         upper = rows <= cols
         self.slots = np.nonzero(upper)[0]
         self.bandwidth = int((cols - rows)[upper].max()) if upper.any() else 0
@@ -232,8 +238,7 @@ class BandedBackend:
 
     def factorize(self, pattern: SparsePattern, values: Tensor, symmetric: bool) -> Factor:
         if values.device.type != "cpu":
-            raise ValueError("the banded backend runs on the CPU; use backend='cg' for "
-                             f"tensors on {values.device}")
+            raise cpu_only("banded", values.device)
         if not symmetric:
             return self._fallback.factorize(pattern, values, symmetric)
         plan = self.plan(pattern)
@@ -277,8 +282,7 @@ class PardisoFactor:
 
     def solve(self, rhs: Tensor, transpose: bool = False) -> Tensor:
         if rhs.device.type != "cpu":
-            raise ValueError("the pardiso backend runs on the CPU; use backend='cg' for "
-                             f"tensors on {rhs.device}")
+            raise cpu_only("pardiso", rhs.device)
         _count_solve(rhs)
         b = rhs.detach().to(torch.float64).numpy()
         x = self._handle.solve(self._mnum, self._a, b,
@@ -305,8 +309,8 @@ class PardisoPlan:
     def __init__(self, pattern: SparsePattern, mtype: int, capacity: int) -> None:
         self.mtype = mtype
         self.capacity = int(capacity)
-        self.structure = PardisoStructure(pattern.row_indices.numpy(),
-                                          pattern.col_indices.numpy(), pattern.shape[0],
+        self.structure = PardisoStructure(pattern.row_indices.cpu().numpy(),
+                                          pattern.col_indices.cpu().numpy(), pattern.shape[0],
                                           symmetric=mtype != REAL_NONSYMMETRIC)
         self.handles: list[PardisoHandle] = []
         self.analyses = 0
@@ -366,8 +370,7 @@ class PardisoBackend:
 
     def factorize(self, pattern: SparsePattern, values: Tensor, symmetric: bool) -> PardisoFactor:
         if values.device.type != "cpu":
-            raise ValueError("the pardiso backend runs on the CPU; use backend='cg' for "
-                             f"tensors on {values.device}")
+            raise cpu_only("pardiso", values.device)
         if not torch.isfinite(values).all():
             raise SingularMatrixError("system matrix has NaN or infinite entries")
         plan = self.plan(pattern, symmetric)
@@ -398,18 +401,27 @@ class PardisoBackend:
 def default_backend(dim: int, device: torch.device | str = "cpu") -> str:
     """The backend a new problem should use: ``'pardiso'`` for 3-D problems on the CPU
     when MKL PARDISO is installed (several times faster than SuperLU there), else
-    ``'scipy'``; ``'cg'`` off the CPU. (Existing problems keep their own defaults.)"""
-    if torch.device(device).type != "cpu":
+    ``'scipy'``; on CUDA ``'cudss'`` where nvmath-python and cuDSS import
+    (``torchfit[cuda]``), else ``'cg'``; ``'cg'`` on any other device. (Existing problems
+    keep their own defaults.)"""
+    kind = torch.device(device).type
+    if kind == "cuda":
+        from .cudss import cudss_available
+
+        return "cudss" if cudss_available() else "cg"
+    if kind != "cpu":
         return "cg"
-    if int(dim) == 3 and torch.device(device).type == "cpu" and pardiso_available():
+    if int(dim) == 3 and pardiso_available():
         return "pardiso"
     return "scipy"
 
 
 def get_backend(name: str | Backend) -> Backend:
-    """``'scipy'``, ``'banded'``, ``'pardiso'`` or ``'cg'`` (or an object with ``factorize``).
+    """``'scipy'``, ``'banded'``, ``'pardiso'``, ``'cudss'`` or ``'cg'`` (or an object with
+    ``factorize``).
 
-    ``'pardiso'`` without its extra raises :class:`~.pardiso.PardisoUnavailableError`.
+    ``'pardiso'`` without its extra raises :class:`~.pardiso.PardisoUnavailableError`,
+    ``'cudss'`` without CUDA or ``torchfit[cuda]`` :class:`~.cudss.CudssUnavailableError`.
     """
     if not isinstance(name, str):
         return name
@@ -421,6 +433,11 @@ def get_backend(name: str | Backend) -> Backend:
         return PardisoBackend()
     if name == "cg":
         return CGBackend()
+    if name == "cudss":
+        from .cudss import CudssBackend
+
+        return CudssBackend()
     raise ValueError(f"unknown linear-solve backend {name!r}; choose 'scipy' (CPU direct), "
                      "'banded' (CPU banded Cholesky, SPD), 'pardiso' (CPU, MKL PARDISO, "
-                     "optional extra) or 'cg' (torch CG, CPU or CUDA)")
+                     "optional extra), 'cudss' (CUDA sparse direct, optional extra "
+                     "torchfit[cuda]) or 'cg' (torch CG, CPU or CUDA)")

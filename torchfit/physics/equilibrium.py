@@ -60,6 +60,7 @@ from torch import Tensor
 from ..errors import SimulationError
 from ..linalg import SparsePattern
 from ..linalg.backends import Backend, Factor, SingularMatrixError, get_backend
+from ..linalg.cudss import gpu_memory_error
 
 
 class EquilibriumModel(Protocol):
@@ -601,7 +602,14 @@ class Equilibrium:
         cached = self._lookup(params, fixed_values)
         if cached is not None:
             return cached
-        sol = self._solve_forward(params, fixed_values, x_init)
+        try:
+            sol = self._solve_forward(params, fixed_values, x_init)
+        except torch.cuda.OutOfMemoryError as err:
+            # one line naming the size and what to lower, not a traceback from the allocator
+            raise gpu_memory_error(
+                "the equilibrium solve", f"{fixed_values.shape[0]} frame(s) of "
+                f"{self.free_dofs.numel():,} free dofs, {self.free_pattern.nnz:,} stored "
+                f"tangent entries, {self.backend.name} backend", err) from None
         sol.params, sol.fixed_values = params.clone(), fixed_values.clone()
         self._remember(sol)
         self.last_newton_iterations = sol.newton_iterations

@@ -42,7 +42,8 @@ import torch
 from torch import Tensor
 
 from ..errors import ConfigurationError
-from ..linalg import pardiso_available
+from ..linalg import cudss_available, pardiso_available
+from ..linalg.cudss import CUDA_EXTRA
 from ..linalg.pardiso import PARDISO_EXTRA
 from ..params import Parameterization
 from ..residual import ResidualFunction
@@ -89,13 +90,15 @@ class Transform(Choice):
 
 class Backend(Choice):
     """Linear-solve backend: ``scipy`` (CPU direct), ``banded`` (CPU banded Cholesky),
-    ``pardiso`` (CPU, MKL PARDISO, the optional extra ``torchfit[pardiso]``), ``cg`` (torch
-    Jacobi-CG, any device); ``auto`` lets the problem choose (3-D: pardiso where installed,
-    else scipy; ``cg`` off the CPU)."""
+    ``pardiso`` (CPU, MKL PARDISO, the optional extra ``torchfit[pardiso]``), ``cudss``
+    (CUDA sparse direct, the optional extra ``torchfit[cuda]``), ``cg`` (torch Jacobi-CG,
+    any device); ``auto`` lets the problem choose (3-D: pardiso where installed, else
+    scipy; on CUDA cudss where installed, else cg)."""
 
     scipy = "scipy"
     banded = "banded"
     pardiso = "pardiso"
+    cudss = "cudss"
     cg = "cg"
     auto = "auto"
 
@@ -271,7 +274,7 @@ def check_device(key: str, value: Any) -> torch.device:
 def resolve_backend(choice: Backend, device: torch.device, dim: int) -> str:
     """The backend name of a ``backend`` setting: ``auto`` is
     :func:`torchfit.linalg.backends.default_backend` (3-D CPU: ``pardiso`` where installed,
-    else ``scipy``; ``cg`` off the CPU)."""
+    else ``scipy``; CUDA: ``cudss`` where installed, else ``cg``)."""
     if choice != Backend.auto:
         return choice.value
     from ..linalg.backends import default_backend
@@ -310,7 +313,13 @@ def validate_config(cfg: ProblemConfig) -> None:
     device = check_device("device", cfg.device)
     require_setting(device.type == "cpu" or cfg.backend not in CPU_BACKENDS, cfg, "backend",
                     f"runs on the CPU only; with problem.device={cfg.device} use "
-                    "problem.backend=cg")
+                    "problem.backend=auto (cudss where installed, else cg), cudss or cg")
+    require_setting(cfg.backend != Backend.cudss or device.type == "cuda", cfg, "backend",
+                    f"runs on CUDA only; with problem.device={cfg.device} use "
+                    "problem.backend=scipy, pardiso or auto")
+    require_setting(cfg.backend != Backend.cudss or cudss_available(), cfg, "backend",
+                    f"needs nvmath-python with cuDSS, which is not installed here: "
+                    f"{CUDA_EXTRA}, or use problem.backend=cg")
     require_setting(cfg.backend != Backend.pardiso or pardiso_available(), cfg, "backend",
                     f"needs MKL PARDISO, which is not installed here: {PARDISO_EXTRA} "
                     "(x86-64 only, about 700 MB), or use problem.backend=scipy")

@@ -128,12 +128,11 @@ class SimplicialElasticity:
         # Lame parameters per unit Young's modulus (everything is linear in E).
         self.mu_per_E = 1.0 / (2.0 * (1.0 + self.nu))
         self.lam_per_E = self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
-        dofs = self.rest.element_dofs().cpu()
-        k = dofs.shape[1]
-        rows = dofs[:, :, None].expand(-1, k, k).reshape(-1)
-        cols = dofs[:, None, :].expand(-1, k, k).reshape(-1)
-        self.tangent_pattern = SparsePattern(rows, cols, (self.n_dofs, self.n_dofs))
-        self.local_dofs = k
+        # every element couples its d + 1 vertices' d x d blocks (local dof a * d + i):
+        # built on the device of the mesh, sorting only the (d + 1)^2 vertex pairs
+        self.tangent_pattern = SparsePattern.from_dense_blocks(self.rest.cells, self.dim,
+                                                               self.n_vertices)
+        self.local_dofs = (self.dim + 1) * self.dim
 
     # -- inputs ---------------------------------------------------------------------------
     def check_modulus(self, E: Tensor) -> None:
@@ -200,7 +199,9 @@ class SimplicialElasticity:
         """``A = dP/dF`` per frame and element ``(F, n_cells, d, d, d, d)``."""
         mu, lam = self.lame(E)
         F = self.deformation_gradients(x.detach())
-        if hasattr(self.material, "stiffness_terms"):
+        if hasattr(self.material, "stiffness_terms") or getattr(self.material,
+                                                                "projects_tangent", False):
+            # the material projects in closed form (no batched eigensolver)
             return self.material.stress_derivative(F, mu.detach(), lam.detach(), projected)
         A = self.material.stress_derivative(F, mu.detach(), lam.detach())
         return project_psd(A) if projected else A
