@@ -15,7 +15,11 @@ One outer iteration (split Bregman = scaled ADMM on ``d = D theta + c``)::
 
 * The inner solve is ``inner_max_iter`` Gauss-Newton (or Levenberg-Marquardt) steps on
   the stacked residual ``[sqrt(mu) r; sqrt(beta) (D theta + c - d + b)]``
-  (:mod:`.stacked`); CGLS stops on the relative normal residual ``cg_rtol``. The model
+  (:mod:`.stacked`); CGLS stops on the relative normal residual
+  ``clip(cg_rtol_factor * max(primal_rel, dual_rel), cg_rtol, cg_rtol_max)`` (never rising
+  within a stage). Without a noise level (and ``mu`` not set) the data are added back
+  (``data_bregman``: ``mu/2 ||r - e||^2``, ``e <- e - r`` after every outer iteration),
+  so the fixed point fits the data at a moderate ``mu``. The model
   residual is wrapped in :class:`~.stacked.CachedResidual`, so every distinct parameter
   vector is simulated (hence factorised) once.
 * Dense Jacobian (``dense_jacobian_max_params``, as for Gauss-Newton): when the model
