@@ -488,7 +488,7 @@ def _write_outputs(problem: InverseProblem, result: FitResult, run_dir: Path,
     tb.finish(problem, result.theta, final, hparams, guard)
     files[:0] = list(save_params(run_dir, result.theta, result.field, problem.field_name))
     if isinstance(problem, MeshProblem):
-        _save_frames(run_dir / "frames.npz", problem, result.field)
+        _save_frames(run_dir / "frames.npz", problem, result.theta)
         files.append(run_dir / "frames.npz")
     summary = result_dict(problem, result, config)
     if comparison:
@@ -534,10 +534,11 @@ def _finished_result(problem: InverseProblem, run_dir: Path, restart: _Resume) -
                      [], restart.iteration)
 
 
-def _save_frames(path: Path, problem: InverseProblem, field: Tensor) -> None:
+def _save_frames(path: Path, problem: InverseProblem, theta: Tensor) -> None:
     """Rest points, cells, fitted (and true) positions of every frame of a mesh problem."""
+    field = problem.field(theta)
     with torch.no_grad():
-        x = problem.simulate(field).detach().cpu().numpy()
+        x = problem.simulate(problem.simulation_input(theta)).detach().cpu().numpy()
     arrays = {"rest_points": problem.mesh.points, "cells": problem.mesh.cells, "positions": x,
               "field": field.detach().cpu().numpy()}
     if problem.x_true is not None:
@@ -572,7 +573,7 @@ def verification_point(problem: InverseProblem, at: str = "initial", perturbatio
         raise FitConfigError(f"at=truth needs a true field, but {problem.name} has none (user "
                              "targets); use at=initial")
     else:
-        theta = problem.parameterization.inverse(problem.field_true).detach()
+        theta = problem.true_theta().detach()
     if perturbation == 0:
         return theta
     generator = torch.Generator().manual_seed(int(seed) + OFFSET_STREAM)

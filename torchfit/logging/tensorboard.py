@@ -111,6 +111,7 @@ def tag_for(key: str) -> str:
 def field_is_chain(problem: "InverseProblem") -> bool:
     """Whether the problem's field is one value per cell of a 1-D chain (plot as a line)."""
     param = problem.parameterization
+    param = getattr(param, "field_parameterization", param)   # [field, scalars]: the field
     if param.basis is not None or param.n_field != param.n_params:
         return False
     edges = torch.as_tensor(param.edges).reshape(-1, 2)
@@ -569,7 +570,7 @@ class FieldSnapshots:
         if not self._needs_state:
             return None
         with torch.no_grad():   # a cache hit: the solver has just evaluated this point
-            return self.problem.simulate(self.problem.field(theta)).detach()
+            return self.problem.simulate(self.problem.simulation_input(theta)).detach()
 
     def _errors(self, x: Tensor | None) -> dict[str, np.ndarray] | None:
         if x is None or not self.framed or getattr(self.problem, "x_true", None) is None:

@@ -191,7 +191,7 @@ class StepParamDerivative:
             elastic = torch.stack([self._elastic_jvp(d_field[:, j]) for j in range(V.shape[1])],
                                   dim=-1)
         damping = self.system.scatter_elements(self.unit_forces[:, :, None] * d_field[:, None, :])
-        k0_dbv = self.system.stiffness_matvec(self.field, d_bv.T).T
+        k0_dbv = self.system.stiffness_matmul(self.field, d_bv)
         out = elastic + self.beta * damping \
             + (self.mass * self.velocity)[:, None] * d_alpha[None, :] \
             + self.k0_velocity[:, None] * d_beta[None, :] \

@@ -219,16 +219,29 @@ class DynamicSystem:
         out = u.new_zeros(*u.shape[:-1], self.n_dofs)
         return out.index_add(-1, dofs.reshape(-1), forces.reshape(*u.shape[:-1], -1))
 
+    def stiffness_matmul(self, field: Tensor, U: Tensor) -> Tensor:
+        """``K0(k) U`` ``(n_dofs, k)`` for ``U`` ``(n_dofs, k)`` (no graph; one sparse scatter)."""
+        local = U.T.contiguous()[:, self.element_dofs.to(U.device)]   # (k, n_field, d_el)
+        forces = torch.einsum("eab,keb->eak", self.unit_stiffness.to(U), local)
+        return self.scatter_elements(forces * field.detach().to(U)[:, None, None])
+
     def unit_element_forces(self, u: Tensor) -> Tensor:
         """``K0_e u`` per element at unit field, ``(..., n_field, d_el)`` (``dK0 u / dk``)."""
         local = u[..., self.element_dofs.to(u.device)]
         return torch.einsum("eab,...eb->...ea", self.unit_stiffness.to(u), local)
 
     def scatter_elements(self, forces: Tensor) -> Tensor:
-        """Element vectors ``(n_field, d_el, ...)`` summed into dofs, ``(n_dofs, ...)``."""
-        dofs = self.element_dofs.to(forces.device).reshape(-1)
-        flat = forces.reshape(-1, *forces.shape[2:])
-        return flat.new_zeros(self.n_dofs, *forces.shape[2:]).index_add(0, dofs, flat)
+        """Element vectors ``(n_field, d_el)`` or ``(n_field, d_el, k)`` summed into dofs,
+        ``(n_dofs,)`` or ``(n_dofs, k)``.
+
+        An ``index_add`` along the last (contiguous) dimension: the same along the first
+        one, or a sparse product, runs into torch's intra-op thread pool and was 100 times
+        slower with two threads on a loaded machine.
+        """
+        flat = forces.reshape(forces.shape[0] * forces.shape[1], -1).T.contiguous()
+        dofs = self.element_dofs.reshape(-1).to(flat.device)
+        out = flat.new_zeros(flat.shape[0], self.n_dofs).index_add_(1, dofs, flat)
+        return out.T.reshape(self.n_dofs, *forces.shape[2:])
 
     def rest_stiffness_contributions(self, field: Tensor) -> Tensor:
         """Contributions of ``K0(k)`` on the elastic tangent pattern, ``(n_contrib,)``."""
