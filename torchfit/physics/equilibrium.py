@@ -356,6 +356,12 @@ class Equilibrium:
         self._remember(sol)
         return sol.factors
 
+    def restore(self, solution: _Solution) -> None:
+        """Put a solution that :meth:`solution` returned earlier back into the cache (with its
+        factors and its parameter derivative): no Newton, no factorisation."""
+        if self._lookup(solution.params, solution.fixed_values) is None:
+            self._remember(solution)
+
     def clear_cache(self) -> None:
         self._cache.clear()
         self._alive = weakref.WeakSet()

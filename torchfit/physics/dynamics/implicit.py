@@ -47,7 +47,6 @@ import torch
 from torch import Tensor
 
 from ...linalg import SparsePattern
-from ...linalg.backends import Factor
 from ..equilibrium import Equilibrium, NewtonOptions
 from .errors import DynamicsInputError, NonFiniteStateError
 from .system import DynamicSystem, check_output_times
@@ -203,12 +202,13 @@ class StepParamDerivative:
 @dataclasses.dataclass
 class _Trajectory:
     """A forward solve: outputs, the states kept (checkpoints) and, with
-    ``checkpoint_every = 1``, every step's factors."""
+    ``checkpoint_every = 1``, every step's equilibrium solution (its factors and, once
+    built, its parameter derivative)."""
 
     params: Tensor
     outputs: Tensor                                # (K, n_dofs)
     states: dict[int, tuple[Tensor, Tensor]]       # step -> (x, v), full dofs
-    factors: list[list[Factor]] | None
+    solutions: list[Any] | None                    # every step's equilibrium solution (c = 1)
 
 
 class ImplicitIntegrator:
@@ -319,8 +319,8 @@ class ImplicitIntegrator:
         return p, self.system.fixed_positions(t_next), b_v
 
     def _advance(self, n: int, params: Tensor, state: tuple[Tensor, Tensor],
-                 previous: tuple[Tensor, Tensor] | None, keep_factors: bool = False
-                 ) -> tuple[Tensor, Tensor, list[Factor] | None]:
+                 previous: tuple[Tensor, Tensor] | None, keep: bool = False
+                 ) -> tuple[Tensor, Tensor, Any]:
         x, v = state
         x_prev, v_prev = previous if previous is not None else (None, None)
         p, fixed, b_v = self._inputs(n, params, x, v, x_prev, v_prev)
@@ -329,8 +329,8 @@ class ImplicitIntegrator:
             x_new = self.equilibrium(p, fixed, predictor)[0]
         self.system.check_state(x_new, float(self.step_times[n + 1]))
         v_new = self.coefficients[n][0] * x_new + b_v
-        factors = self.equilibrium.solution(p, fixed, None).factors if keep_factors else None
-        return x_new, v_new, factors
+        solution = self.equilibrium.solution(p, fixed, None) if keep else None
+        return x_new, v_new, solution
 
     def initial_state(self, like: Tensor) -> tuple[Tensor, Tensor]:
         """``(x0, v0)`` with the Dirichlet dofs on the trajectory at ``t0``."""
@@ -364,20 +364,20 @@ class ImplicitIntegrator:
         state = self.initial_state(params)
         previous = None
         states = {0: state}
-        factors: list[list[Factor]] | None = [] if keep_all else None
+        solutions: list[Any] | None = [] if keep_all else None
         outputs = params.new_zeros(len(self.output_steps), self.system.n_dofs)
         for k in self._output_of_step.get(0, []):
             outputs[k] = state[0]
         for n in range(self.n_steps):
-            x, v, step_factors = self._advance(n, params, state, previous, keep_all)
+            x, v, solution = self._advance(n, params, state, previous, keep_all)
             previous, state = state, (x, v)
             if keep_all or (n + 1) in kept:
                 states[n + 1] = state
-            if factors is not None:
-                factors.append(step_factors)
+            if solutions is not None:
+                solutions.append(solution)
             for k in self._output_of_step.get(n + 1, []):
                 outputs[k] = x
-        return _Trajectory(params.clone(), outputs, states, factors)
+        return _Trajectory(params.clone(), outputs, states, solutions)
 
     def _segment_states(self, traj: _Trajectory, a: int, b: int) -> dict[int, tuple[Tensor, Tensor]]:
         """States ``n = a - 1 .. b`` of segment ``[a, b)`` (recomputed from the checkpoint
@@ -407,8 +407,13 @@ class ImplicitIntegrator:
         self.equilibrium.clear_cache()
 
     # -- derivatives --------------------------------------------------------------------------
-    def _factors(self, traj: _Trajectory, n: int) -> list[Factor] | None:
-        return None if traj.factors is None else traj.factors[n]
+    def _prepare(self, traj: _Trajectory, n: int, p: Tensor, fixed: Tensor, x: Tensor) -> None:
+        """Make step ``n``'s solution the equilibrium's cached one: the stored solution
+        (``c = 1``: no factorisation) or the state ``x`` adopted (one factorisation)."""
+        if traj.solutions is not None:
+            self.equilibrium.restore(traj.solutions[n])
+        else:
+            self.equilibrium.adopt(p, fixed, x[None])
 
     def _tangents(self, traj: _Trajectory, V: Tensor) -> Tensor:
         n_dofs, k = self.system.n_dofs, V.shape[1]
@@ -425,7 +430,7 @@ class ImplicitIntegrator:
                 d_bv = c1 * dx + (c2 * dx_prev if c2 else 0.0)
                 d_ba = c0 * d_bv + c1 * dv + (c2 * dv_prev if c2 else 0.0)
                 directions = torch.cat([V, d_ba, d_bv, tail])
-                self.equilibrium.adopt(p, fixed, states[n + 1][0][None], self._factors(traj, n))
+                self._prepare(traj, n, p, fixed, states[n + 1][0])
                 dx_new = self.equilibrium.jacobian(p, fixed, directions)[0]
                 dv_new = c0 * dx_new + d_bv
                 dx_prev, dv_prev, dx, dv = dx, dv, dx_new, dv_new
@@ -455,7 +460,7 @@ class ImplicitIntegrator:
                 c0, c1, c2 = self.coefficients[n]
                 p, fixed, _ = self._inputs(n, traj.params, *states[n],
                                            *(states.get(n - 1) or (None, None)))
-                self.equilibrium.adopt(p, fixed, states[n + 1][0][None], self._factors(traj, n))
+                self._prepare(traj, n, p, fixed, states[n + 1][0])
                 with torch.enable_grad():
                     leaf = p.detach().requires_grad_(True)
                     x_solution = self.equilibrium(leaf, fixed)
