@@ -23,7 +23,8 @@ Run directory (``run_dir``; ``None``: no files at all, the fit still runs):
     steps that were lost with the killed process and never repeats one.
 PNGs
     ``field.png``, ``error_curves.png`` and, for 2-D fields, ``snapshots.png`` (and for
-    meshes ``frame_errors.png``, ``sheet_frame<f>.png``, ``frames.npz``).
+    meshes ``frame_errors.png``, ``sheet_frame<f>.png``, ``frames.npz``; for dynamic
+    problems ``time_errors.png`` and ``frames_strip.png``).
 
 Every input is checked before the first file is written (:class:`FitConfigError`,
 :class:`RunDirectoryError`); a refused resume touches nothing of the earlier run.
@@ -48,10 +49,12 @@ from .logging import (FieldSnapshots, MetricsCallback, PlotGuard, ProgressPrinte
                       TensorBoardLogger, field_is_chain, save_params, write_json,
                       write_run_pngs)
 from .logging.meshes import BodyOutputs
+from .logging.motion import MotionOutputs
 from .logging.results import (CHECKPOINT_FILE, RESULT_FILE, atomic_write, jsonable,
                               save_torch)
 from .problems import InverseProblem
-from .problems.base import BodyProblem, FieldImageProblem, FramedProblem, MeshProblem
+from .problems.base import (BodyProblem, FieldImageProblem, FramedProblem, MeshProblem,
+                            MotionProblem)
 from .records import IterationRecord, SolveResult
 from .solvers import SOLVERS, Solver, SolverConfig
 
@@ -430,7 +433,7 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
     if options.progress:
         chain.append(ProgressPrinter())
     guard = PlotGuard()    # a failed drawing is warned about once, never fails the fit
-    tb = snapshots = checkpointer = body = None
+    tb = snapshots = checkpointer = body = motion = None
     if run_path is not None:
         run_path.mkdir(parents=True, exist_ok=True)
         checkpointer = _Checkpointer(run_path, problem, solver, rows)
@@ -448,6 +451,10 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
         if isinstance(problem, BodyProblem):
             body = BodyOutputs(problem, tb, run_path, guard=guard)
             chain.append(body)
+        if isinstance(problem, MotionProblem):
+            motion = MotionOutputs(problem, tb, run_path, list(options.snapshot_iterations),
+                                   guard=guard)
+            chain.append(motion)
     else:
         chain.append(lambda record: rows.append(record.row()))
     chain.extend(callbacks)
@@ -468,7 +475,7 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
     if run_path is not None:
         assert tb is not None and checkpointer is not None
         result.files = _write_outputs(problem, result, run_path, tb, snapshots, guard, config,
-                                      body)
+                                      body, motion)
         checkpointer.commit(solved.iterations, solved.theta, solver.state_dict(),
                             stop_reason=solved.stop_reason)
     return result
@@ -476,9 +483,12 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
 
 def _write_outputs(problem: InverseProblem, result: FitResult, run_dir: Path,
                    tb: TensorBoardLogger, snapshots: FieldSnapshots | None, guard: PlotGuard,
-                   config: Mapping[str, Any], body: BodyOutputs | None = None) -> list[Path]:
+                   config: Mapping[str, Any], body: BodyOutputs | None = None,
+                   motion: MotionOutputs | None = None) -> list[Path]:
     """Every file of a finished run; returns the pictures and data files written."""
     files = snapshots.finish() if snapshots is not None else []
+    if motion is not None:
+        files.extend(motion.finish(result.theta))
     comparison: dict[str, Any] = {}
     if body is not None:
         body_files, comparison = body.finish(result.theta)

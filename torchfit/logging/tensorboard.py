@@ -95,6 +95,8 @@ if TYPE_CHECKING:  # pragma: no cover
 log = logging.getLogger(__name__)
 
 FIT_KEYS = ("misfit", "objective", "tv", "penalty")
+#: fitted scalars reported as metrics (dynamic problems: the Rayleigh damping coefficients)
+PARAMETER_KEYS = ("alpha_damping", "beta_damping")
 
 
 def tag_for(key: str) -> str:
@@ -103,7 +105,7 @@ def tag_for(key: str) -> str:
         return key
     if key in FIT_KEYS:
         return f"fit/{key}"
-    if key in METRIC_KEYS or "_err" in key:
+    if key in METRIC_KEYS or "_err" in key or key in PARAMETER_KEYS:
         return f"metrics/{key}"
     return f"solver/{key}"
 
@@ -173,7 +175,7 @@ def metric_tag(key: str) -> str:
     """Tag of a final metric of the HParams session: the per-iteration tag of a record key
     (``misfit`` -> ``fit/misfit``, ``k_err_rel`` -> ``metrics/k_err_rel``), else
     ``final/<key>`` (``iterations``, ``wall_s``: one value per run)."""
-    if "/" in key or key in FIT_KEYS or key in METRIC_KEYS:
+    if "/" in key or key in FIT_KEYS or key in METRIC_KEYS or key in PARAMETER_KEYS:
         return tag_for(key)
     return f"final/{key}"
 

@@ -359,7 +359,7 @@ class Equilibrium:
     def restore(self, solution: _Solution) -> None:
         """Put a solution that :meth:`solution` returned earlier back into the cache (with its
         factors and its parameter derivative): no Newton, no factorisation."""
-        if self._lookup(solution.params, solution.fixed_values) is None:
+        if not any(sol is solution for sol in self._cache):
             self._remember(solution)
 
     def clear_cache(self) -> None:

@@ -425,6 +425,22 @@ class FramedProblem(Protocol):
 
 
 @runtime_checkable
+class MotionProblem(Protocol):
+    """A dynamic problem (``problem.dynamic=true``): frames are output times.
+
+    ``output_times`` ``(K,)`` (s); ``frame_errors(x)`` per output time; ``x_true`` the
+    noise-free motion ``(K, n_nodes, dim)``; ``simulation_input(theta)`` what
+    ``simulate`` takes (``[k..., alpha, beta]``).
+    """
+
+    output_times: Tensor
+    integrator: Any
+
+    def frame_errors(self, x: Tensor) -> dict[str, Any]:
+        ...
+
+
+@runtime_checkable
 class MeshProblem(Protocol):
     """A problem on a simplicial mesh (``mesh.points``, ``mesh.cells``, ``mesh.extent``)."""
 

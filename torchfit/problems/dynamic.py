@@ -167,15 +167,16 @@ class DynamicMixin:
 
     def metric_names(self) -> list[str]:
         names = super().metric_names()  # type: ignore[misc]
-        return names + ["alpha", "beta", "alpha_err_rel", "beta_err_rel"]
+        return names + ["alpha_damping", "beta_damping", "alpha_damping_err_rel",
+                        "beta_damping_err_rel"]
 
     def metrics(self, theta: Tensor, x: Tensor | None = None) -> dict[str, float]:
         out = super().metrics(theta, x)  # type: ignore[misc]
         damping = self.damping(theta)
         truth = self.true_damping()
         for i, name in enumerate(DAMPING):
-            out[name] = float(damping[i])
-            out[f"{name}_err_rel"] = float(abs(damping[i] - truth[i]) / abs(truth[i])) \
+            out[f"{name}_damping"] = float(damping[i])
+            out[f"{name}_damping_err_rel"] = float(abs(damping[i] - truth[i]) / abs(truth[i])) \
                 if float(truth[i]) != 0 else float(abs(damping[i]))
         return out
 

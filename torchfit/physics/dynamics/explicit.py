@@ -119,7 +119,7 @@ class TorchdiffeqIntegrator:
             a = system.acceleration(t, x, v, params)[0]
             self.evaluations += 1
             if guard:
-                self._guard(float(t), y[:n_free].detach(), rest.to(y), x.detach()[0],
+                self._guard(float(t.detach()), y[:n_free].detach(), rest.to(y), x.detach()[0],
                             v.detach()[0], a.detach(), params)
             return torch.cat([y[n_free:], a[free.to(a.device)]])
 
