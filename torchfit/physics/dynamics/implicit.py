@@ -40,6 +40,7 @@ counted by :mod:`torchfit.linalg.counters` exactly as for quasistatic problems.
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 from typing import Any
 
@@ -72,8 +73,11 @@ class StepModel:
                                              torch.cat([system.element_cols.cpu(), diagonal]),
                                              (n, n))
         self.n_params = system.n_params + 3 * n + 2
-        from ..equilibrium import _accepts_keyword
-        self._projected = _accepts_keyword(system.elastic.tangent_values, "projected")
+        try:
+            parameters = inspect.signature(system.elastic.tangent_values).parameters
+        except (TypeError, ValueError):  # pragma: no cover - builtins
+            parameters = {}
+        self._projected = "projected" in parameters
 
     def pack(self, params: Tensor, b_a: Tensor, b_v: Tensor, force: Tensor, c_a: float,
              c_v: float) -> Tensor:
