@@ -64,8 +64,10 @@ def test_the_chain_falls_oscillates_and_settles():
                                         pytest.param("torchdiffeq", marks=pytest.mark.slow)])
 def test_spring1d_dynamic_recovers_stiffness_and_damping(integrator):
     # torchdiffeq's dense Jacobian is 14 forward-sensitivity columns through rk4 (slow)
-    problem = build_problem("spring1d", {**SMALL_CHAIN, "integrator": integrator,
-                                         "ode_method": "rk4", "dt": 0.01})
+    settings = {**SMALL_CHAIN, "integrator": integrator}
+    if integrator == "torchdiffeq":
+        settings.update(n=6, duration=1.0, frames=10, ode_method="rk4", dt=0.01)
+    problem = build_problem("spring1d", settings)
     result = torchfit.fit(problem, {"name": "gauss_newton", "max_iter": 15},
                           options=torchfit.FitOptions(progress=False))
     metrics = result.metrics
