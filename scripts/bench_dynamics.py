@@ -137,14 +137,17 @@ def bench_problem(key: str, target: float, quick: bool) -> dict[str, Any]:
     params = problem.true_simulation_input()
     dts = spec["dts"][:2] if quick else spec["dts"]
     reference_dt = dts[-1] / 16
-    reference = integrator_for(problem, "implicit", dt=reference_dt)(params).detach()
+    with torch.no_grad():      # nothing kept for a gradient: checkpoints only
+        reference = integrator_for(problem, "implicit", dt=reference_dt,
+                                   checkpoint_every=0)(params).detach()
     rest = problem.system.x0.to(reference)
     scale = float((reference - rest).abs().max())
     report: dict[str, Any] = {"problem": problem.describe(), "reference": {
         "scheme": "bdf2", "dt": reference_dt}, "target_error": target, "candidates": []}
     chosen: dict[str, Any] = {}
     for dt in dts:
-        error = relative_error(integrator_for(problem, "implicit", dt=dt)(params).detach(),
+        error = relative_error(integrator_for(problem, "implicit", dt=dt,
+                                              checkpoint_every=0)(params).detach(),
                                reference, scale)
         report["candidates"].append({"integrator": "implicit", "dt": dt, "error": error})
         if error <= target and "implicit" not in chosen:
