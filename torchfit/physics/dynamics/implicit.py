@@ -250,8 +250,10 @@ class ImplicitIntegrator:
         self.dt = float(dt)
         self.output_times = check_output_times(output_times, system.t0)
         self.model = StepModel(system)
+        newton = dataclasses.replace(newton) if newton is not None else NewtonOptions()
+        self._atol = newton.atol
         self.equilibrium = Equilibrium(self.model, system.fixed_dofs, backend=backend,
-                                       newton=newton or NewtonOptions(), cache_size=2,
+                                       newton=newton, cache_size=2,
                                        allow_no_dirichlet=True, warm_start=False)
         self._build_grid()
         self.checkpoint_every = checkpoint_every or max(1, math.ceil(math.sqrt(self.n_steps)))
@@ -329,6 +331,11 @@ class ImplicitIntegrator:
         x_prev, v_prev = previous if previous is not None else (None, None)
         p, fixed, b_v = self._inputs(n, params, x, v, x_prev, v_prev)
         predictor = (x + float(self.step_sizes[n]) * v)[None]
+        # Newton's absolute floor follows the inertia term's round-off (M c0^2 x grows as
+        # 1/h^2: a fixed floor cannot be met with small steps)
+        inertia = float(torch.linalg.vector_norm(self.system.mass.to(x) * x)) * \
+            self.coefficients[n][0] ** 2
+        self.equilibrium.newton.atol = max(self._atol, 100.0 * torch.finfo(x.dtype).eps * inertia)
         with torch.no_grad():
             x_new = self.equilibrium(p, fixed, predictor)[0]
         self.system.check_state(x_new, float(self.step_times[n + 1]))
