@@ -23,7 +23,8 @@ Run directory (``run_dir``; ``None``: no files at all, the fit still runs):
     steps that were lost with the killed process and never repeats one.
 PNGs
     ``field.png``, ``error_curves.png`` and, for 2-D fields, ``snapshots.png`` (and for
-    meshes ``frame_errors.png``, ``sheet_frame<f>.png``, ``frames.npz``).
+    meshes ``frame_errors.png``, ``sheet_frame<f>.png``, ``frames.npz``; for dynamic
+    problems ``time_errors.png`` and ``frames_strip.png``).
 
 Every input is checked before the first file is written (:class:`FitConfigError`,
 :class:`RunDirectoryError`); a refused resume touches nothing of the earlier run.
@@ -48,10 +49,12 @@ from .logging import (FieldSnapshots, MetricsCallback, PlotGuard, ProgressPrinte
                       TensorBoardLogger, field_is_chain, save_params, write_json,
                       write_run_pngs)
 from .logging.meshes import BodyOutputs
+from .logging.motion import MotionOutputs
 from .logging.results import (CHECKPOINT_FILE, RESULT_FILE, atomic_write, jsonable,
                               save_torch)
 from .problems import InverseProblem
-from .problems.base import BodyProblem, FieldImageProblem, FramedProblem, MeshProblem
+from .problems.base import (BodyProblem, FieldImageProblem, FramedProblem, MeshProblem,
+                            MotionProblem)
 from .records import IterationRecord, SolveResult
 from .solvers import SOLVERS, Solver, SolverConfig
 
@@ -434,7 +437,7 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
     if options.progress:
         chain.append(ProgressPrinter())
     guard = PlotGuard()    # a failed drawing is warned about once, never fails the fit
-    tb = snapshots = checkpointer = body = None
+    tb = snapshots = checkpointer = body = motion = None
     if run_path is not None:
         run_path.mkdir(parents=True, exist_ok=True)
         checkpointer = _Checkpointer(run_path, problem, solver, rows)
@@ -452,6 +455,10 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
         if isinstance(problem, BodyProblem):
             body = BodyOutputs(problem, tb, run_path, guard=guard)
             chain.append(body)
+        if isinstance(problem, MotionProblem):
+            motion = MotionOutputs(problem, tb, run_path, list(options.snapshot_iterations),
+                                   guard=guard)
+            chain.append(motion)
     else:
         chain.append(lambda record: rows.append(record.row()))
     chain.extend(callbacks)
@@ -472,7 +479,7 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
     if run_path is not None:
         assert tb is not None and checkpointer is not None
         result.files = _write_outputs(problem, result, run_path, tb, snapshots, guard, config,
-                                      body)
+                                      body, motion)
         checkpointer.commit(solved.iterations, solved.theta, solver.state_dict(),
                             stop_reason=solved.stop_reason)
     return result
@@ -480,9 +487,12 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
 
 def _write_outputs(problem: InverseProblem, result: FitResult, run_dir: Path,
                    tb: TensorBoardLogger, snapshots: FieldSnapshots | None, guard: PlotGuard,
-                   config: Mapping[str, Any], body: BodyOutputs | None = None) -> list[Path]:
+                   config: Mapping[str, Any], body: BodyOutputs | None = None,
+                   motion: MotionOutputs | None = None) -> list[Path]:
     """Every file of a finished run; returns the pictures and data files written."""
     files = snapshots.finish() if snapshots is not None else []
+    if motion is not None:
+        files.extend(motion.finish(result.theta))
     comparison: dict[str, Any] = {}
     if body is not None:
         body_files, comparison = body.finish(result.theta)
@@ -492,7 +502,7 @@ def _write_outputs(problem: InverseProblem, result: FitResult, run_dir: Path,
     tb.finish(problem, result.theta, final, hparams, guard)
     files[:0] = list(save_params(run_dir, result.theta, result.field, problem.field_name))
     if isinstance(problem, MeshProblem):
-        _save_frames(run_dir / "frames.npz", problem, result.field)
+        _save_frames(run_dir / "frames.npz", problem, result.theta)
         files.append(run_dir / "frames.npz")
     summary = result_dict(problem, result, config)
     if comparison:
@@ -538,10 +548,11 @@ def _finished_result(problem: InverseProblem, run_dir: Path, restart: _Resume) -
                      [], restart.iteration)
 
 
-def _save_frames(path: Path, problem: InverseProblem, field: Tensor) -> None:
+def _save_frames(path: Path, problem: InverseProblem, theta: Tensor) -> None:
     """Rest points, cells, fitted (and true) positions of every frame of a mesh problem."""
+    field = problem.field(theta)
     with torch.no_grad():
-        x = problem.simulate(field).detach().cpu().numpy()
+        x = problem.simulate(problem.simulation_input(theta)).detach().cpu().numpy()
     arrays = {"rest_points": problem.mesh.points, "cells": problem.mesh.cells, "positions": x,
               "field": field.detach().cpu().numpy()}
     if problem.x_true is not None:
@@ -576,7 +587,7 @@ def verification_point(problem: InverseProblem, at: str = "initial", perturbatio
         raise FitConfigError(f"at=truth needs a true field, but {problem.name} has none (user "
                              "targets); use at=initial")
     else:
-        theta = problem.parameterization.inverse(problem.field_true).detach()
+        theta = problem.true_theta().detach()
     if perturbation == 0:
         return theta
     generator = torch.Generator().manual_seed(int(seed) + OFFSET_STREAM)

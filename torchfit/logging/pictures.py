@@ -152,7 +152,8 @@ def chain_figure(problem: "InverseProblem", field: Tensor, title: str | None = N
 
 
 def error_curve_keys(history: Sequence[Mapping[str, float]]) -> list[str]:
-    """What ``error_curves.png`` draws: ``misfit``, the field error, ``tv`` if recorded."""
+    """What ``error_curves.png`` draws: ``misfit``, the field error, the damping errors
+    (dynamic problems), ``tv`` if recorded."""
     present = set().union(*(row.keys() for row in history)) if history else set()
     keys = ["misfit"]
     # k_err_rel_aligned exists only for a scale-free problem, whose k_err_rel mostly
@@ -161,6 +162,7 @@ def error_curve_keys(history: Sequence[Mapping[str, float]]) -> list[str]:
         if key in present:
             keys.append(key)
             break
+    keys.extend(key for key in ("alpha_damping_err_rel", "beta_damping_err_rel") if key in present)
     if "tv" in present:
         keys.append("tv")
     return keys

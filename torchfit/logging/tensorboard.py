@@ -95,6 +95,8 @@ if TYPE_CHECKING:  # pragma: no cover
 log = logging.getLogger(__name__)
 
 FIT_KEYS = ("misfit", "objective", "tv", "penalty")
+#: fitted scalars reported as metrics (dynamic problems: the Rayleigh damping coefficients)
+PARAMETER_KEYS = ("alpha_damping", "beta_damping")
 
 
 def tag_for(key: str) -> str:
@@ -103,7 +105,7 @@ def tag_for(key: str) -> str:
         return key
     if key in FIT_KEYS:
         return f"fit/{key}"
-    if key in METRIC_KEYS or "_err" in key:
+    if key in METRIC_KEYS or "_err" in key or key in PARAMETER_KEYS:
         return f"metrics/{key}"
     return f"solver/{key}"
 
@@ -111,6 +113,7 @@ def tag_for(key: str) -> str:
 def field_is_chain(problem: "InverseProblem") -> bool:
     """Whether the problem's field is one value per cell of a 1-D chain (plot as a line)."""
     param = problem.parameterization
+    param = getattr(param, "field_parameterization", param)   # [field, scalars]: the field
     if param.basis is not None or param.n_field != param.n_params:
         return False
     edges = torch.as_tensor(param.edges).reshape(-1, 2)
@@ -172,7 +175,7 @@ def metric_tag(key: str) -> str:
     """Tag of a final metric of the HParams session: the per-iteration tag of a record key
     (``misfit`` -> ``fit/misfit``, ``k_err_rel`` -> ``metrics/k_err_rel``), else
     ``final/<key>`` (``iterations``, ``wall_s``: one value per run)."""
-    if "/" in key or key in FIT_KEYS or key in METRIC_KEYS:
+    if "/" in key or key in FIT_KEYS or key in METRIC_KEYS or key in PARAMETER_KEYS:
         return tag_for(key)
     return f"final/{key}"
 
@@ -569,7 +572,7 @@ class FieldSnapshots:
         if not self._needs_state:
             return None
         with torch.no_grad():   # a cache hit: the solver has just evaluated this point
-            return self.problem.simulate(self.problem.field(theta)).detach()
+            return self.problem.simulate(self.problem.simulation_input(theta)).detach()
 
     def _errors(self, x: Tensor | None) -> dict[str, np.ndarray] | None:
         if x is None or not self.framed or getattr(self.problem, "x_true", None) is None:

@@ -321,3 +321,99 @@ def per_grid_node(shape: tuple[int, int, int], points: np.ndarray, lower, upper,
         check_invariants=False).coalesce()
     return Parameterization(n_nodes, grid_edges(shape), basis, transform, name,
                             grid_groups(shape), dtype)
+
+
+class FieldAndScalars(Parameterization):
+    """A field parameterisation followed by a few named scalars (``[k..., alpha, beta]``).
+
+    ``theta = [theta_field (n_field_params,), theta_scalars (n_scalars,)]`` maps to the
+    physical vector ``[field(theta_field) (n_field,), transform(theta_scalars)]``: the
+    field by its own parameterisation, each scalar by this parameterisation's transform
+    (``exp``: positive; ``identity``: as is). The solvers see one vector and one residual.
+
+    * ``D`` (TV) has the field's rows and zero columns for the scalars: TV never penalises
+      them; isotropic groups are the field's.
+    * :meth:`constant` sets the field to a constant and the scalars to their
+      ``initial`` values.
+    * ``scale_direction`` is the field's (scalars held): the direction that multiplies the
+      field by a constant.
+
+    Args:
+        field: the field's :class:`Parameterization`.
+        names: the scalars' names (``('alpha', 'beta')``).
+        initial: their values for :meth:`constant`.
+        transform: ``'exp'`` or ``'identity'`` for the scalars.
+    """
+
+    def __init__(self, field: Parameterization, names: tuple[str, ...] | list[str],
+                 initial: tuple[float, ...] | list[float], transform: str = "exp") -> None:
+        names = tuple(str(n) for n in names)
+        if len(names) != len(initial) or not names:
+            raise ValueError(f"give one initial value per scalar: names {names}, "
+                             f"initial {list(initial)}")
+        super().__init__(field.n_params + len(names), field.edges.numpy(), None, transform,
+                         f"{field.name} and {', '.join(names)}", field.groups, field.dtype)
+        self.field_parameterization = field
+        self.scalar_names = names
+        self.scalar_initial = tuple(float(v) for v in initial)
+        self.n_scalars = len(names)
+        self.n_field = field.n_field + self.n_scalars
+
+    @property
+    def n_field_params(self) -> int:
+        return self.field_parameterization.n_params
+
+    def _scalars(self, theta_scalars: Tensor) -> Tensor:
+        return torch.exp(theta_scalars) if self.transform == "exp" else theta_scalars
+
+    def __call__(self, theta: Tensor) -> Tensor:
+        """``[field (n_field - n_scalars,), scalars (n_scalars,)]`` (differentiable)."""
+        self.check(theta)
+        m = self.n_field_params
+        return torch.cat([self.field_parameterization(theta[:m]), self._scalars(theta[m:])])
+
+    def split(self, physical: Tensor) -> tuple[Tensor, Tensor]:
+        """``(field, scalars)`` of a physical vector."""
+        k = self.field_parameterization.n_field
+        return physical[:k], physical[k:]
+
+    def jacobian(self, theta: Tensor) -> Tensor:
+        """Block-diagonal ``d physical / d theta`` ``(n_field, n_params)``."""
+        self.check(theta)
+        m = self.n_field_params
+        field = self.field_parameterization.jacobian(theta[:m])
+        theta_s = theta.detach()[m:]
+        scalars = torch.diag(torch.exp(theta_s) if self.transform == "exp"
+                             else torch.ones_like(theta_s))
+        return torch.block_diag(field.to(theta), scalars.to(theta))
+
+    def inverse(self, physical: Tensor) -> Tensor:
+        """``theta`` of a physical vector ``[field, scalars]``."""
+        field, scalars = self.split(physical)
+        if self.transform == "exp":
+            if not bool((scalars > 0).all()):
+                raise ValueError(f"{', '.join(self.scalar_names)} must be positive under the exp "
+                                 "parameterisation")
+            theta_s = torch.log(scalars)
+        else:
+            theta_s = scalars.clone()
+        return torch.cat([self.field_parameterization.inverse(field), theta_s])
+
+    def constant(self, value: float, dtype: torch.dtype | None = None,
+                 device: torch.device | str = "cpu") -> Tensor:
+        """``theta`` of the constant field ``value`` with the scalars at their initial values."""
+        dtype = self.dtype if dtype is None else dtype
+        field = self.field_parameterization.constant(value, dtype, device)
+        scalars = torch.tensor(self.scalar_initial, dtype=dtype, device=device)
+        if self.transform == "exp":
+            if not bool((scalars > 0).all()):
+                raise ValueError(f"{', '.join(self.scalar_names)} must be positive under the exp "
+                                 f"parameterisation, got {list(self.scalar_initial)}")
+            scalars = torch.log(scalars)
+        return torch.cat([field, scalars])
+
+    def scale_direction(self, theta: Tensor) -> Tensor:
+        m = self.n_field_params
+        direction = torch.zeros_like(theta)
+        direction[:m] = self.field_parameterization.scale_direction(theta[:m])
+        return direction

@@ -327,6 +327,42 @@ class Equilibrium:
                     out[:, free, j] = column.detach()
         return out
 
+    def adopt(self, params: Tensor, fixed_values: Tensor, x: Tensor,
+              factors: list[Factor] | None = None) -> list[Factor]:
+        """Register a known solution ``x`` ``(F, n_dofs)`` of ``(params, fixed_values)``.
+
+        For callers that stored or recomputed an equilibrium themselves (a time
+        integrator replaying its steps for an adjoint): no Newton iteration is run; the
+        exact tangent at ``x`` is factorised (one counted factorisation per stored factor,
+        none when ``factors`` from an earlier solve of the same point are handed in) and
+        the solution is cached, so that a following call with the same ``params`` and
+        ``fixed_values`` returns ``x`` and its backward, jvp and :meth:`jacobian` are the
+        usual implicit-function adjoint with that factor. The caller vouches that
+        ``R(x, params) = 0`` on the free dofs; the Dirichlet dofs of ``x`` are replaced by
+        ``fixed_values``. Returns the factors used.
+        """
+        params = params.detach()
+        fixed_values = fixed_values.detach()
+        cached = self._lookup(params, fixed_values)
+        if cached is not None:
+            return cached.factors
+        if x.dim() != 2 or x.shape != (fixed_values.shape[0], self.model.n_dofs):
+            raise ValueError(f"x must have shape {(fixed_values.shape[0], self.model.n_dofs)}, "
+                             f"got {tuple(x.shape)}")
+        x = self._full(x.detach()[:, self.free_dofs.to(x.device)], fixed_values)
+        if factors is None:
+            factors = self._factorize(x, params)
+        sol = _Solution(params.clone(), fixed_values.clone(), x, list(factors),
+                        [0] * x.shape[0])
+        self._remember(sol)
+        return sol.factors
+
+    def restore(self, solution: _Solution) -> None:
+        """Put a solution that :meth:`solution` returned earlier back into the cache (with its
+        factors and its parameter derivative): no Newton, no factorisation."""
+        if not any(sol is solution for sol in self._cache):
+            self._remember(solution)
+
     def clear_cache(self) -> None:
         self._cache.clear()
         self._alive = weakref.WeakSet()

@@ -105,6 +105,12 @@ class SpringParamDerivative:
         out = tension.new_zeros(tension.shape[0], self._n_dofs)
         return out.index_add_(1, self._b, tension).index_add_(1, self._a, -tension)
 
+    def matmul(self, V: Tensor) -> Tensor:
+        """``(dR/dk) V`` of every frame, ``(F, n_nodes, k)``, for ``V`` ``(n_springs, k)``."""
+        tension = self.stretch[:, :, None] * V.to(self.stretch)[None]      # (F, n_springs, k)
+        out = tension.new_zeros(tension.shape[0], self._n_dofs, tension.shape[2])
+        return out.index_add_(1, self._b, tension).index_add_(1, self._a, -tension)
+
     def vjp(self, w: Tensor) -> Tensor:
         """``(dR/dk)^T w`` ``(n_springs,)`` for ``w`` ``(F, n_nodes)`` (summed over frames)."""
         w = w.to(self.stretch)

@@ -434,6 +434,22 @@ class FramedProblem(Protocol):
 
 
 @runtime_checkable
+class MotionProblem(Protocol):
+    """A dynamic problem (``problem.dynamic=true``): frames are output times.
+
+    ``output_times`` ``(K,)`` (s); ``frame_errors(x)`` per output time; ``x_true`` the
+    noise-free motion ``(K, n_nodes, dim)``; ``simulation_input(theta)`` what
+    ``simulate`` takes (``[k..., alpha, beta]``).
+    """
+
+    output_times: Tensor
+    integrator: Any
+
+    def frame_errors(self, x: Tensor) -> dict[str, Any]:
+        ...
+
+
+@runtime_checkable
 class MeshProblem(Protocol):
     """A problem on a simplicial mesh (``mesh.points``, ``mesh.cells``, ``mesh.extent``)."""
 
@@ -528,7 +544,7 @@ class InverseProblem:
         truth = self.true_field(cfg)
         if truth is not None:
             self.field_true = truth.to(device=self.device, dtype=self.dtype)
-            self.x_true = self.simulate(self.field_true).detach()
+            self.x_true = self.simulate(self.true_simulation_input()).detach()
             clean, what = self.observe(self.x_true), "simulated target"
         else:
             self.field_true = None
@@ -629,7 +645,23 @@ class InverseProblem:
         return None
 
     def field(self, theta: Tensor) -> Tensor:
+        """The fitted field at ``theta`` (what metrics, images and ``field.npy`` show)."""
         return self.parameterization(theta.detach())
+
+    def simulation_input(self, theta: Tensor) -> Tensor:
+        """What :meth:`simulate` takes at ``theta`` (no graph): the parameterisation's
+        output. It equals :meth:`field` unless the parameterisation also maps scalars
+        that are not part of the field (dynamics: ``[k, alpha, beta]``)."""
+        return self.parameterization(theta.detach())
+
+    def true_simulation_input(self) -> Tensor:
+        """:meth:`simulation_input` of the truth (the true field by default)."""
+        assert self.field_true is not None
+        return self.field_true
+
+    def true_theta(self) -> Tensor:
+        """``theta`` of the truth (``parameterization.inverse`` of its simulation input)."""
+        return self.parameterization.inverse(self.true_simulation_input())
 
     def metric_names(self) -> list[str]:
         """Keys of PROBLEMS.md's metric table that :meth:`metrics` reports, in its order."""
@@ -647,7 +679,7 @@ class InverseProblem:
         with torch.no_grad():
             field = self.field(theta)
             if x is None:
-                x = self.simulate(field)
+                x = self.simulate(self.simulation_input(theta))
             out: dict[str, float] = {
                 "misfit": float(torch.linalg.vector_norm(self.observe(x) - self.data))}
             if self.x_true is not None:

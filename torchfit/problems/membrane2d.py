@@ -23,6 +23,15 @@ Every load is a prescribed displacement, so ``x(a E) = x(E)``: scale-free (metri
 report ``k_err_rel_aligned``; solvers get the gauge direction). Data ``dense``: both
 coordinates of every free vertex (neither edge) in every frame.
 
+``problem.dynamic=true`` (:class:`DynamicMembrane2D`): the sheet starts at rest; the left
+edge stays, the right edge follows a keyed motion (translations ``motion_dx``,
+``motion_dy`` at ``motion_times``, eased C2 between keys) and then stops, so the sheet
+jiggles and settles under Rayleigh damping ``alpha``, ``beta``; lumped mass from
+``density`` (per unit area), optional in-plane ``gravity`` (along ``-y``). Targets: both
+coordinates of every free vertex at the output times. Fitted: ``E`` per triangle with
+``alpha`` and ``beta`` (:mod:`torchfit.problems.dynamic`). Not scale-free (inertia).
+``conf/problem/membrane2d_dynamic.yaml`` is the preset (a 48 x 12 sheet).
+
 ``problem.dtype=float32`` works for every model, but the Newton residuals of the nonlinear
 ones stall near ``1e-5`` (force units) in single precision: it needs
 ``problem.newton_atol >= 1e-4`` (checked); the ``linear`` model has no such limit.
@@ -31,7 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, List, Optional
 
 import numpy as np
 import torch
@@ -40,9 +49,11 @@ from torch import Tensor
 from ..mesh import ipam_mask, normalized_points, rectangle_triangles
 from ..params import Parameterization, per_element
 from ..physics import NewtonOptions
+from ..physics.dynamics import DynamicSystem, KeyedMotion
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
 from .base import (Backend, Choice, DType, InverseProblem, ProblemConfig, ProblemConfigError,
-                   check_newton_settings, require_setting, resolve_backend)
+                   check_newton_settings, make_config, require_setting, resolve_backend)
+from .dynamic import DynamicMixin, Integrator, OdeMethod, Scheme, check_dynamic_settings
 
 
 class Model(Choice):
@@ -96,6 +107,27 @@ class Membrane2DConfig(ProblemConfig):
     newton_rtol: float = 1e-11          # relative to the residual of the cold start
     newton_atol: float = 1e-13          # absolute floor (force units)
     newton_max_iter: int = 50
+    # -- problem.dynamic=true (see torchfit.problems.dynamic) --
+    dynamic: bool = False
+    integrator: Integrator = Integrator.implicit   # implicit | torchdiffeq
+    scheme: Scheme = Scheme.bdf2                   # implicit: bdf2 | backward_euler
+    ode_method: OdeMethod = OdeMethod.dopri5       # torchdiffeq: dopri5 | rk4 | ...
+    dt: float = 0.02                    # s: implicit step, fixed explicit step
+    ode_rtol: float = 1e-6
+    ode_atol: float = 1e-8
+    duration: float = 2.0               # s
+    frames: int = 20                    # output times duration * (1..frames) / frames
+    output_times: Optional[List[float]] = None   # or these (s, strictly increasing)
+    density: float = 1.0                # mass per unit area (lumped: a third per vertex)
+    gravity: float = 0.0                # in-plane, along -y (m/s^2)
+    alpha: float = 0.5                  # true mass damping (1/s)
+    beta: float = 0.002                 # true stiffness damping (s)
+    alpha0: float = 0.2                 # initial guess
+    beta0: float = 0.004
+    motion_times: List[float] = dataclasses.field(default_factory=lambda: [0.0, 0.3, 0.6])
+    motion_dx: List[float] = dataclasses.field(default_factory=lambda: [0.0, 0.2, 0.1])
+    motion_dy: List[float] = dataclasses.field(default_factory=lambda: [0.0, 0.15, 0.05])
+    checkpoint_every: int = 1           # implicit: 1 all states and factors; c; 0 sqrt(steps)
 
 
 def animation(right_rest: Tensor, width: float, height: float) -> Tensor:
@@ -129,6 +161,11 @@ class Membrane2D(InverseProblem):
     dim = 2
     scale_free = True
     default_sheet_frame = 5            # bend by 20 degrees: the most telling frame to draw
+
+    def __new__(cls, cfg: Any = None, **overrides: Any) -> "Membrane2D":
+        if cls is Membrane2D and make_config(Membrane2DConfig, cfg, overrides).dynamic:
+            return super().__new__(DynamicMembrane2D)
+        return super().__new__(cls)
 
     def check(self, cfg: Membrane2DConfig) -> None:
         for key in ("nx", "ny"):
@@ -251,3 +288,76 @@ class Membrane2D(InverseProblem):
                     "n_triangles": self.model.n_cells, "n_vertices": self.model.n_vertices,
                     "n_frames": self.n_frames, "n_ink": int(self.ink.sum())})
         return out
+
+
+class DynamicMembrane2D(DynamicMixin, Membrane2D):
+    """The sheet in motion (``problem.dynamic=true``; module docstring): fit ``E`` per
+    triangle with ``alpha`` and ``beta`` to vertex positions at the output times."""
+
+    scale_free = False
+
+    def check(self, cfg: Membrane2DConfig) -> None:
+        super().check(cfg)
+        check_dynamic_settings(cfg)
+        keys = len(cfg.motion_times)
+        require_setting(keys >= 1 and len(cfg.motion_dx) == keys == len(cfg.motion_dy), cfg,
+                        "motion_dx", f"motion_dx and motion_dy need one value per key time "
+                        f"(problem.motion_times has {keys})")
+        times = list(cfg.motion_times)
+        require_setting(all(b > a for a, b in zip(times[:-1], times[1:])), cfg, "motion_times",
+                        "must increase strictly (s)")
+
+    def build_model(self, cfg: Membrane2DConfig) -> None:
+        dtype, device = self.dtype, self.device
+        self.mesh = rectangle_triangles(cfg.nx, cfg.ny, cfg.width, cfg.height)
+        self.model = SimplicialElasticity(torch.from_numpy(self.mesh.points),
+                                          torch.from_numpy(self.mesh.cells), cfg.model.value,
+                                          nu=cfg.nu, dtype=dtype, device=device)
+        left = self.mesh.boundary_vertices("left")
+        right = self.mesh.boundary_vertices("right")
+        self.left_vertices = torch.as_tensor(left)
+        self.right_vertices = torch.as_tensor(right)
+        dirichlet = np.sort(np.concatenate([left, right]))
+        self.free_vertices = torch.as_tensor(np.setdiff1d(np.arange(self.model.n_vertices),
+                                                          dirichlet))
+        fixed = torch.as_tensor((dirichlet[:, None] * 2 + np.arange(2)).reshape(-1))
+        rest = self.model.rest.points.to(dtype)                     # (n_vertices, 2)
+        # keyed translation of the right edge; the left edge stays
+        key_times = torch.as_tensor(cfg.motion_times, dtype=dtype)
+        shift = torch.stack([torch.as_tensor(cfg.motion_dx, dtype=dtype),
+                             torch.as_tensor(cfg.motion_dy, dtype=dtype)], dim=1)   # (K, 2)
+        moving = torch.as_tensor(np.isin(dirichlet, right), device=device)
+        base = rest[torch.as_tensor(dirichlet)]                     # (n_dirichlet, 2)
+        keys = base[None] + shift[:, None, :] * moving[None, :, None].to(dtype)
+        # lumped mass: a third of each triangle's mass on each of its vertices
+        areas = self.model.rest.volumes.to(dtype)
+        vertex_mass = torch.zeros(self.model.n_vertices, dtype=dtype, device=device).index_add(
+            0, torch.as_tensor(self.mesh.cells.reshape(-1), device=device),
+            (cfg.density * areas / 3.0).repeat_interleave(3))
+        gravity = torch.zeros(self.model.n_vertices, 2, dtype=dtype, device=device)
+        gravity[:, 1] = -cfg.gravity
+        self.system = DynamicSystem(
+            self.model, self.model.n_cells, vertex_mass.repeat_interleave(2), fixed,
+            KeyedMotion(key_times, keys.reshape(len(cfg.motion_times), -1)), None,
+            gravity.reshape(-1), rest.reshape(-1), vertex_dim=2)
+        newton = NewtonOptions(max_iter=cfg.newton_max_iter, rtol=cfg.newton_rtol,
+                               atol=cfg.newton_atol)
+        self.build_integrator(cfg, resolve_backend(cfg.backend, self.device, 2), newton)
+
+    def build_parameterization(self, cfg: Membrane2DConfig) -> Parameterization:
+        return self.damped(super().build_parameterization(cfg), cfg)
+
+    def build_observation(self, cfg: Membrane2DConfig) -> None:
+        self.observed_vertices = self.free_vertices.to(self.device)
+        self.observed_nodes = self.observed_vertices
+
+    def simulate(self, physical: Tensor) -> Tensor:
+        """Vertex positions ``(K, n_vertices, 2)`` at the output times for ``[E, alpha, beta]``."""
+        return self.positions(physical)
+
+    @property
+    def default_sheet_frame(self) -> int:
+        """The first output time after the motion stops (the sheet jiggles there)."""
+        stop = float(self.cfg.motion_times[-1])
+        later = torch.nonzero(self.output_times > stop).reshape(-1)
+        return int(later[0]) if later.numel() else self.n_frames - 1

@@ -4,12 +4,20 @@
 (positions measured along gravity). Rest length ``1/n`` and node mass ``1/n``; every
 node carries its weight ``g / n`` and the last node an extra end load ``F`` per frame
 (load cases ``F in (0, 1, 2)``). Not scale-free: gravity and loads are forces.
+
+``problem.dynamic=true`` (:class:`DynamicSpring1D`): the chain is released at rest length
+(``x_i = i/n``, at rest) at ``t = 0`` under gravity, node masses ``density / n``, Rayleigh
+damping ``alpha``, ``beta``; an end load eases (C2) from ``load_values[0]`` to
+``load_values[-1]`` between ``load_times``. It falls, oscillates and settles. Targets:
+positions at the output times (``data=dense``: every free node; ``sparse``: every
+``sparse_stride``-th). Fitted: ``k`` per spring, ``alpha``, ``beta``
+(:mod:`torchfit.problems.dynamic`).
 """
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import List, Optional
+from typing import Any, List, Optional
 
 import numpy as np
 import torch
@@ -17,8 +25,10 @@ from torch import Tensor
 
 from ..params import Parameterization, chain_edges, per_element
 from ..physics import Equilibrium, SpringChain1D
-from .base import (DataMode, InverseProblem, ProblemConfig, ProblemConfigError, require,
-                   require_setting, resolve_backend)
+from ..physics.dynamics import DynamicSystem, KeyedMotion
+from .base import (DataMode, InverseProblem, ProblemConfig, ProblemConfigError, make_config,
+                   require, require_setting, resolve_backend)
+from .dynamic import DynamicMixin, Integrator, OdeMethod, Scheme, check_dynamic_settings
 
 DATA_MODES = tuple(DataMode.choices())
 
@@ -38,6 +48,25 @@ class Spring1DConfig(ProblemConfig):
     k_background: float = 100.0
     k0: float = 100.0                   # initial guess, constant
     targets: Optional[str] = None       # .npy of user target positions (frames, n + 1)
+    # -- problem.dynamic=true (see torchfit.problems.dynamic) --
+    dynamic: bool = False
+    integrator: Integrator = Integrator.implicit   # implicit | torchdiffeq
+    scheme: Scheme = Scheme.bdf2                   # implicit: bdf2 | backward_euler
+    ode_method: OdeMethod = OdeMethod.dopri5       # torchdiffeq: dopri5 | rk4 | ...
+    dt: float = 0.01                    # s: implicit step, fixed explicit step
+    ode_rtol: float = 1e-8
+    ode_atol: float = 1e-10
+    duration: float = 6.0               # s
+    frames: int = 60                    # output times duration * (1..frames) / frames
+    output_times: Optional[List[float]] = None   # or these (s, strictly increasing)
+    density: float = 1.0                # mass per unit length: node mass density / n
+    alpha: float = 1.0                  # true mass damping (1/s)
+    beta: float = 0.001                 # true stiffness damping (s)
+    alpha0: float = 0.5                 # initial guess
+    beta0: float = 0.002
+    load_times: List[float] = dataclasses.field(default_factory=lambda: [0.5, 1.0])   # s
+    load_values: List[float] = dataclasses.field(default_factory=lambda: [0.0, 2.0])  # end load
+    checkpoint_every: int = 1           # implicit: 1 all states and factors; c; 0 sqrt(steps)
 
 
 def true_stiffness(n: int, background: float = 100.0,
@@ -64,6 +93,11 @@ class Spring1D(InverseProblem):
     scale_free = False
     initial_setting = "k0"
     dim = 1
+
+    def __new__(cls, cfg: Any = None, **overrides: Any) -> "Spring1D":
+        if cls is Spring1D and make_config(Spring1DConfig, cfg, overrides).dynamic:
+            return super().__new__(DynamicSpring1D)
+        return super().__new__(cls)
 
     def check(self, cfg: Spring1DConfig) -> None:
         require_setting(isinstance(cfg.n, int) and cfg.n >= 1, cfg, "n",
@@ -146,3 +180,49 @@ class Spring1D(InverseProblem):
     def observe(self, x: Tensor) -> Tensor:
         """Observed node positions, flattened frame-major ``(F * n_observed,)``."""
         return x[:, self.observed_nodes.to(x.device), :].reshape(-1)
+
+
+class DynamicSpring1D(DynamicMixin, Spring1D):
+    """The chain in motion (``problem.dynamic=true``; module docstring): fit ``k`` per
+    spring with ``alpha`` and ``beta`` to node positions at the output times."""
+
+    def check(self, cfg: Spring1DConfig) -> None:
+        super().check(cfg)
+        check_dynamic_settings(cfg)
+        require_setting(cfg.targets is None, cfg, "targets", "user targets are static frames; "
+                        "a dynamic chain is fitted to its simulated motion (problem.targets=null)")
+        require_setting(len(cfg.load_times) == len(cfg.load_values) >= 1, cfg, "load_values",
+                        f"needs one end load per key time (problem.load_times has "
+                        f"{len(cfg.load_times)})")
+        times = list(cfg.load_times)
+        require_setting(all(b > a for a, b in zip(times[:-1], times[1:])), cfg, "load_times",
+                        "must increase strictly (s)")
+
+    def build_model(self, cfg: Spring1DConfig) -> None:
+        n, dtype, device = cfg.n, self.dtype, self.device
+        nodes = torch.arange(n + 1)
+        edges = torch.stack([nodes[:-1], nodes[1:]], dim=1)
+        self.model = SpringChain1D(edges.to(device),
+                                   torch.full((n,), 1.0 / n, dtype=dtype, device=device),
+                                   torch.zeros(1, n + 1, dtype=dtype, device=device))
+        self.fixed = torch.as_tensor(sorted(int(i) for i in cfg.fixed_nodes), dtype=torch.long)
+        rest = torch.arange(n + 1, dtype=dtype, device=device) / n
+        end_load = torch.zeros(len(cfg.load_values), n + 1, dtype=dtype, device=device)
+        end_load[:, n] = torch.as_tensor(cfg.load_values, dtype=dtype)
+        self.system = DynamicSystem(
+            self.model, n, torch.full((n + 1,), cfg.density / n, dtype=dtype, device=device),
+            self.fixed, KeyedMotion(torch.zeros(1), rest[self.fixed][None]),
+            KeyedMotion(torch.as_tensor(cfg.load_times, dtype=dtype), end_load),
+            torch.full((n + 1,), cfg.gravity, dtype=dtype, device=device), rest, vertex_dim=1)
+        self.build_integrator(cfg, resolve_backend(cfg.backend, self.device, 1))
+
+    def build_parameterization(self, cfg: Spring1DConfig) -> Parameterization:
+        return self.damped(super().build_parameterization(cfg), cfg)
+
+    def simulate(self, physical: Tensor) -> Tensor:
+        """Node positions ``(K, n + 1, 1)`` at the output times for ``[k (n,), alpha, beta]``."""
+        return self.positions(physical)
+
+    @property
+    def default_sheet_frame(self) -> int:
+        return self.n_frames // 2

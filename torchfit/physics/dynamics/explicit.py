@@ -1,0 +1,322 @@
+"""The first-order system integrated by torchdiffeq (``odeint_adjoint``).
+
+State ``y = [x_free, v_free]``, ``y' = [v_free, a_free(t, x, v; params)]`` with the
+Dirichlet dofs placed on their trajectory at every ``t``
+(:meth:`~.system.DynamicSystem.acceleration`). Methods: the adaptive ``dopri5`` (also
+``dopri8``, ``bosh3``, ``adaptive_heun``: tolerances ``rtol``, ``atol``) and the fixed-step
+``rk4``, ``midpoint``, ``euler`` (step ``step_size``).
+
+Derivatives:
+
+* ``J^T w``: ``torchdiffeq.odeint_adjoint`` with the physical parameters as its
+  ``adjoint_params`` (the continuous adjoint integrated backward in time, memory
+  independent of the number of steps). Its graph is built once per parameter vector and
+  kept with the trajectory, so repeated products do not integrate forward again.
+* ``J v``: forward sensitivities ``s' = (df/dy) s + (df/dparams) v`` integrated beside
+  the state by the same method (``torch.func.jvp`` of the right-hand side).
+
+Both are accurate to the integration tolerance (not to round-off, as the implicit
+integrator's discrete adjoint is): the dot-product test reaches ``1e-10`` with
+``rtol = 1e-12``.
+
+Stability: explicit methods need ``h omega_max`` below a constant (``rk4``: 2.8;
+``omega_max`` is the stiffest mode, :meth:`~.system.DynamicSystem.max_frequency`). A
+fixed step that blows up, or an adaptive step that collapses, raises
+:class:`~.errors.UnstableStepError` naming ``integrator=implicit``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from .errors import DynamicsInputError, NonFiniteStateError, UnstableStepError
+from .system import DynamicSystem, check_output_times
+
+ADAPTIVE_METHODS = ("dopri5", "dopri8", "bosh3", "adaptive_heun")
+FIXED_METHODS = ("rk4", "midpoint", "euler")
+METHODS = ADAPTIVE_METHODS + FIXED_METHODS
+#: ``h omega_max`` an explicit method tolerates on the imaginary axis (0: none, it needs damping)
+STABILITY_LIMIT = {"rk4": 2.83, "dopri5": 3.3, "dopri8": 4.0, "bosh3": 1.7, "midpoint": 0.0,
+                   "euler": 0.0, "adaptive_heun": 0.0}
+#: A state this many rest extents (at least 1) away from the rest shape has blown up
+BLOWUP_FACTOR = 1e3
+
+
+@dataclasses.dataclass
+class _Solve:
+    params: Tensor
+    outputs: Tensor                 # (K, n_dofs)
+    graph_out: Tensor | None = None     # odeint_adjoint's output (graph kept), free states
+    graph_leaf: Tensor | None = None
+
+
+class TorchdiffeqIntegrator:
+    """torchdiffeq integration of a :class:`DynamicSystem` (module docstring).
+
+    Args:
+        system: the dynamics.
+        output_times: ``(K,)`` strictly increasing times ``>= t0``.
+        method: one of :data:`METHODS`.
+        rtol, atol: tolerances of the adaptive methods (forward and adjoint).
+        step_size: step of the fixed-step methods (s); required for them.
+        cache_size: solves kept, keyed by the parameters.
+    """
+
+    name = "torchdiffeq"
+
+    def __init__(self, system: DynamicSystem, output_times: Tensor | list[float],
+                 method: str = "dopri5", rtol: float = 1e-8, atol: float = 1e-10,
+                 step_size: float | None = None, cache_size: int = 2) -> None:
+        if method not in METHODS:
+            raise DynamicsInputError(f"unknown torchdiffeq method {method!r}; choose one of "
+                                     f"{', '.join(METHODS)}")
+        if method in FIXED_METHODS and not (step_size is not None and math.isfinite(step_size)
+                                            and step_size > 0):
+            raise DynamicsInputError(f"the fixed-step method {method} needs a step size > 0, got "
+                                     f"{step_size!r}")
+        for name, value in (("rtol", rtol), ("atol", atol)):
+            if not (math.isfinite(value) and value > 0):
+                raise DynamicsInputError(f"{name} = {value!r} must be a positive number")
+        self.system = system
+        self.method = method
+        self.rtol, self.atol = float(rtol), float(atol)
+        self.step_size = None if step_size is None else float(step_size)
+        self.output_times = check_output_times(output_times, system.t0)
+        self.cache_size = int(cache_size)
+        self._cache: list[_Solve] = []
+        self.evaluations = 0
+        rest = system.x0
+        extent = float((rest.max() - rest.min()).abs()) if rest.numel() else 1.0
+        self.blowup_distance = BLOWUP_FACTOR * max(extent, 1.0)
+
+    @property
+    def stored_states(self) -> int:
+        """States kept for the gradient: the outputs and the adjoint's own (one)."""
+        return len(self.output_times) + 1
+
+    # -- the ODE ------------------------------------------------------------------------------
+    def _times(self, like: Tensor) -> tuple[Tensor, bool]:
+        t = self.output_times.to(like)
+        t0 = self.system.t0
+        if float(t[0]) > t0:
+            return torch.cat([t.new_tensor([t0]), t]), True
+        return t, False
+
+    def _rhs(self, params: Tensor, guard: bool = True):
+        system = self.system
+        free = system.free_dofs
+        n_free = free.numel()
+        rest = system.x0[free]
+
+        def f(t: Tensor, y: Tensor) -> Tensor:
+            t1 = t.reshape(1).to(y)
+            x = system.full(y[None, :n_free], system.fixed_positions(t1))
+            v = system.full(y[None, n_free:], system.fixed_velocities(t1))
+            a = system.acceleration(t, x, v, params)[0]
+            self.evaluations += 1
+            if guard:
+                self._guard(float(t.detach()), y[:n_free].detach(), rest.to(y), x.detach()[0],
+                            v.detach()[0], a.detach(), params)
+            return torch.cat([y[n_free:], a[free.to(a.device)]])
+
+        return f
+
+    def _guard(self, t: float, x_free: Tensor, rest: Tensor, x: Tensor, v: Tensor, a: Tensor,
+               params: Tensor) -> None:
+        """Raise on a blown-up or non-finite state (one check per right-hand side)."""
+        distance = (x_free - rest).abs().max() if x_free.numel() else x_free.new_zeros(())
+        if not bool(torch.isfinite(distance)) or float(distance) > self.blowup_distance:
+            if bool(torch.isfinite(x).all()) or self.method in FIXED_METHODS:
+                raise self._unstable(params, f"blew up by t = {t:.6g}")
+        if bool(torch.isfinite(a).all()):
+            return
+        self.system.check_state(x, t)
+        self.system.check_state(v, t, "velocity")
+        dof = int(torch.nonzero(~torch.isfinite(a))[0])
+        raise NonFiniteStateError(
+            f"the state is not finite at t = {t:.6g}: the acceleration of vertex "
+            f"{dof // self.system.vertex_dim} (dof {dof}) is {float(a[dof])} (a load or a "
+            "parameter is not finite)")
+
+    def _y0(self, like: Tensor) -> Tensor:
+        system = self.system
+        free = system.free_dofs.to(like.device)
+        return torch.cat([system.x0.to(like)[free], system.v0.to(like)[free]])
+
+    def _options(self) -> dict[str, Any]:
+        options: dict[str, Any] = {"method": self.method}
+        if self.method in FIXED_METHODS:
+            options["options"] = {"step_size": self.step_size}
+        else:
+            options.update(rtol=self.rtol, atol=self.atol)
+        return options
+
+    def _positions(self, states: Tensor, times: Tensor) -> Tensor:
+        """Full positions ``(K, n_dofs)`` from free states ``(K, 2 n_free)``."""
+        n_free = self.system.free_dofs.numel()
+        return self.system.full(states[:, :n_free], self.system.fixed_positions(times))
+
+    def _integrate(self, params: Tensor, adjoint: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        from torchdiffeq import odeint, odeint_adjoint
+
+        times, prepended = self._times(params)
+        y0 = self._y0(params)
+        try:
+            if adjoint:
+                with torch.enable_grad():
+                    leaf = params.detach().requires_grad_(True)
+                    states = odeint_adjoint(self._rhs(leaf), y0, times, adjoint_params=(leaf,),
+                                            **self._options())
+                    states = states[1:] if prepended else states
+            else:
+                leaf = None
+                with torch.no_grad():
+                    states = odeint(self._rhs(params), y0, times, **self._options())
+                states = states[1:] if prepended else states
+        except AssertionError as error:       # torchdiffeq: "underflow in dt"
+            raise self._unstable(params, f"failed: its adaptive step collapsed ({error})") from None
+        self._check(states.detach(), params)
+        return states, leaf, prepended
+
+    def _check(self, states: Tensor, params: Tensor) -> None:
+        """The outputs are finite and not blown up (the right-hand side checks every stage)."""
+        n_free = self.system.free_dofs.numel()
+        rest = self.system.x0.to(states)[self.system.free_dofs.to(states.device)]
+        far = ~torch.isfinite(states).all(dim=1) | \
+            ((states[:, :n_free] - rest).abs().amax(dim=1) > self.blowup_distance)
+        if bool(far.any()):
+            k = int(torch.nonzero(far)[0])
+            raise self._unstable(params, f"blew up by t = {float(self.output_times[k]):.6g}")
+
+    def _unstable(self, params: Tensor, why: str) -> UnstableStepError:
+        field = self.system.split(params.detach())[0]
+        omega = self.system.max_frequency(field)
+        limit = STABILITY_LIMIT.get(self.method, 0.0)
+        if self.method in FIXED_METHODS:
+            if limit > 0 and omega > 0:
+                detail = (f" (step {self.step_size:g} s; the stiffest mode, omega_max = "
+                          f"{omega:.4g} rad/s, needs a step below about {limit / omega:.3g} s)")
+            else:
+                detail = (f" (step {self.step_size:g} s; {self.method} is unstable for an "
+                          f"undamped oscillation at any step; omega_max = {omega:.4g} rad/s)")
+        else:
+            detail = f" (stiffest mode omega_max = {omega:.4g} rad/s)"
+        return UnstableStepError(
+            f"the explicit integrator torchdiffeq/{self.method} {why}{detail}; use "
+            "problem.integrator=implicit (backward Euler or BDF2, unconditionally stable) or a "
+            "smaller step")
+
+    # -- public -------------------------------------------------------------------------------
+    def solve(self, params: Tensor) -> _Solve:
+        """The forward integration at ``params`` (cached by value), with the adjoint graph."""
+        params = params.detach()
+        for i, solve in enumerate(self._cache):
+            if solve.params.shape == params.shape and torch.equal(solve.params, params):
+                self._cache.append(self._cache.pop(i))
+                return solve
+        self.system.check_params(params)
+        states, leaf, _ = self._integrate(params, adjoint=True)
+        outputs = self._positions(states.detach(), self.output_times.to(params))
+        solve = _Solve(params.clone(), outputs, states, leaf)
+        self._cache.append(solve)
+        while len(self._cache) > self.cache_size:
+            self._cache.pop(0)
+        return solve
+
+    def __call__(self, params: Tensor) -> Tensor:
+        """Positions ``(K, n_dofs)`` at the output times (reverse and forward mode)."""
+        return _ODETrajectory.apply(params, self)
+
+    def jacobian(self, params: Tensor, directions: Tensor) -> Tensor:
+        """``(d positions / d params) V`` ``(K, n_dofs, k)`` by forward sensitivities."""
+        params = params.detach()
+        self.solve(params)
+        return self._sensitivities(params, directions.detach().to(params))
+
+    def clear_cache(self) -> None:
+        self._cache.clear()
+
+    # -- derivatives ----------------------------------------------------------------------------
+    def _adjoint(self, solve: _Solve, grad_outputs: Tensor) -> Tensor:
+        n_free = self.system.free_dofs.numel()
+        free = self.system.free_dofs.to(grad_outputs.device)
+        grad_states = torch.zeros_like(solve.graph_out)
+        grad_states[:, :n_free] = grad_outputs[:, free]
+        try:
+            (grad,) = torch.autograd.grad(solve.graph_out, solve.graph_leaf, grad_states,
+                                          retain_graph=True, allow_unused=True)
+        except AssertionError as error:
+            raise self._unstable(solve.params, f"failed: its adjoint step collapsed ({error})") from None
+        return torch.zeros_like(solve.params) if grad is None else grad
+
+    def _sensitivities(self, params: Tensor, V: Tensor) -> Tensor:
+        """Forward sensitivities of the positions along the columns of ``V`` (n_params, k)."""
+        from torchdiffeq import odeint
+
+        times, prepended = self._times(params)
+        def f_of(p: Tensor):
+            return self._rhs(p, guard=False)
+
+        n_state = 2 * self.system.free_dofs.numel()
+        k = V.shape[1]
+
+        def augmented(t: Tensor, z: Tensor) -> Tensor:
+            # (df/dy) s + (df/dparams) v by two reverse passes (forward-mode AD cannot nest
+            # inside a custom Function's jvp, which is where this runs)
+            y, s = z[:n_state], z[n_state:].reshape(n_state, k)
+            with torch.enable_grad():
+                p_leaf = params.detach().requires_grad_(True)
+                y_leaf = y.detach().requires_grad_(True)
+                value = f_of(p_leaf)(t, y_leaf)
+                probe = torch.zeros_like(value, requires_grad=True)
+                g_p, g_y = torch.autograd.grad(value, (p_leaf, y_leaf), probe, create_graph=True,
+                                               allow_unused=True)
+                columns = []
+                for j in range(k):
+                    pairing = sum((g * d).sum() for g, d in ((g_p, V[:, j]), (g_y, s[:, j]))
+                                  if g is not None)
+                    (column,) = torch.autograd.grad(pairing, probe, retain_graph=True,
+                                                    allow_unused=True)
+                    columns.append(torch.zeros_like(value) if column is None else column)
+            return torch.cat([value.detach(), torch.stack(columns, dim=1).reshape(-1).detach()])
+
+        z0 = torch.cat([self._y0(params), params.new_zeros(n_state * k)])
+        with torch.no_grad():
+            z = odeint(augmented, z0, times, **self._options())
+        if prepended:
+            z = z[1:]
+        s = z[:, n_state:].reshape(-1, n_state, k)[:, :n_state // 2, :]
+        out = params.new_zeros(s.shape[0], self.system.n_dofs, k)
+        out[:, self.system.free_dofs.to(out.device), :] = s
+        return out
+
+
+class _ODETrajectory(torch.autograd.Function):
+    @staticmethod
+    def forward(params: Tensor, integrator: TorchdiffeqIntegrator) -> Tensor:  # type: ignore[override]
+        return integrator.solve(params).outputs.clone()
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple, output: Tensor) -> None:
+        params, integrator = inputs
+        ctx.integrator = integrator
+        ctx.solve = integrator.solve(params)
+        ctx.set_materialize_grads(False)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: Any, grad_outputs: Tensor | None) -> tuple:  # type: ignore[override]
+        if grad_outputs is None:
+            return None, None
+        return ctx.integrator._adjoint(ctx.solve, grad_outputs.detach()), None
+
+    @staticmethod
+    def jvp(ctx: Any, d_params: Tensor | None, *_: Any) -> Tensor:  # type: ignore[override]
+        solve = ctx.solve
+        if d_params is None:
+            return torch.zeros_like(solve.outputs)
+        return ctx.integrator._sensitivities(solve.params, d_params.detach().to(solve.params)[:, None])[..., 0]

@@ -1,0 +1,317 @@
+"""The semi-discrete elastodynamics both integrators solve.
+
+``M a = f_int(x; k) - C v + f_ext(t)`` on the free degrees of freedom, with
+
+* ``f_int = -R_el(x; k)``: the internal force of an elastic model (springs, simplicial
+  FEM: anything with ``residual``, ``tangent_pattern`` and ``tangent_values`` whose
+  residual is linear in its per-element field ``k``);
+* ``M``: a lumped (diagonal) mass, ``(n_dofs,)``, from a positive density;
+* ``C = alpha M + beta K0(k)``: Rayleigh damping with fittable ``alpha`` (1/s) and
+  ``beta`` (s); ``K0(k)`` is the stiffness at the rest shape (linear Rayleigh damping,
+  the same matrix for every state; equal to ``dR_el/dx`` for linear models);
+* ``f_ext(t) = M g + loads(t)``: gravity and prescribed time-varying loads;
+* Dirichlet dofs whose positions follow a prescribed trajectory ``x_D(t)`` (with its
+  velocity ``v_D(t)``).
+
+The parameters of a dynamic simulation are one physical vector
+``params = [k (n_field,), alpha, beta]`` (:meth:`DynamicSystem.split`).
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from .errors import DynamicsInputError, InvalidFieldError, NegativeDampingError, NonFiniteStateError
+
+#: times ``(T,)`` -> values ``(T, n)``
+TimeFunction = Callable[[Tensor], Tensor]
+
+
+def smootherstep(s: Tensor) -> tuple[Tensor, Tensor]:
+    """Quintic ``w(s) = 6 s^5 - 15 s^4 + 10 s^3`` on ``[0, 1]`` (clamped) and ``dw/ds``;
+    ``w`` is C2 at both ends (zero first and second derivatives)."""
+    s = s.clamp(0.0, 1.0)
+    w = s * s * s * (s * (6.0 * s - 15.0) + 10.0)
+    dw = 30.0 * s * s * (1.0 - s) * (1.0 - s)
+    return w, dw
+
+
+class KeyedMotion:
+    """Values keyed at times and eased between keys by :func:`smootherstep` (C2).
+
+    Before the first key the value is the first key's, after the last key the last
+    key's (the motion stops): velocity zero there. Vectorised over times.
+
+    Args:
+        key_times: ``(K,)`` strictly increasing times (s).
+        key_values: ``(K, n)`` values at the keys (positions or forces).
+    """
+
+    def __init__(self, key_times: Tensor, key_values: Tensor) -> None:
+        key_times = torch.as_tensor(key_times)
+        if key_times.dim() != 1 or key_values.dim() != 2 or key_values.shape[0] != key_times.numel():
+            raise DynamicsInputError(f"keys need times (K,) and values (K, n), got "
+                                     f"{tuple(key_times.shape)} and {tuple(key_values.shape)}")
+        if key_times.numel() > 1 and not bool((key_times[1:] > key_times[:-1]).all()):
+            raise DynamicsInputError(f"key times must increase strictly, got {key_times.tolist()}")
+        self.key_times = key_times.to(key_values)
+        self.key_values = key_values
+
+    def _segment(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        times = self.key_times.to(t)
+        k = times.numel()
+        if k == 1:
+            zero = torch.zeros_like(t)
+            index = torch.zeros(t.shape, dtype=torch.long, device=t.device)
+            return index, index, zero, zero
+        upper = torch.searchsorted(times, t.contiguous(), right=True).clamp(1, k - 1)
+        lower = upper - 1
+        span = times[upper] - times[lower]
+        w, dw = smootherstep((t - times[lower]) / span)
+        inside = (t > times[lower]) & (t < times[upper])
+        return lower, upper, w, torch.where(inside, dw / span, torch.zeros_like(dw))
+
+    def __call__(self, t: Tensor) -> Tensor:
+        """Values ``(T, n)`` at times ``t`` ``(T,)``."""
+        values = self.key_values.to(t)
+        lower, upper, w, _ = self._segment(t)
+        return values[lower] + w[:, None] * (values[upper] - values[lower])
+
+    def velocity(self, t: Tensor) -> Tensor:
+        """Time derivative ``(T, n)`` at times ``t`` ``(T,)``."""
+        values = self.key_values.to(t)
+        lower, upper, _, dw = self._segment(t)
+        return dw[:, None] * (values[upper] - values[lower])
+
+
+def check_output_times(times: Tensor | list[float], t0: float = 0.0) -> Tensor:
+    """``times`` as a float64 tensor if they are finite, increase strictly and start at or
+    after ``t0``; else a one-line :class:`DynamicsInputError`."""
+    t = torch.as_tensor(times, dtype=torch.float64).reshape(-1)
+    if t.numel() == 0:
+        raise DynamicsInputError("no output time given; give at least one time > 0")
+    if not bool(torch.isfinite(t).all()):
+        raise DynamicsInputError(f"output times must be finite, got {t.tolist()}")
+    if float(t[0]) < t0:
+        raise DynamicsInputError(f"output time {float(t[0]):g} is before the start t0 = {t0:g}")
+    steps = t[1:] - t[:-1]
+    if t.numel() > 1 and not bool((steps > 0).all()):
+        i = int(torch.nonzero(steps <= 0)[0]) + 1
+        raise DynamicsInputError(f"output times must increase strictly: t[{i}] = "
+                                 f"{float(t[i]):g} is not after t[{i - 1}] = {float(t[i - 1]):g}")
+    return t
+
+
+class DynamicSystem:
+    """Elastodynamics of an elastic model with lumped mass, Rayleigh damping, gravity,
+    loads and moving Dirichlet dofs (module docstring).
+
+    Args:
+        elastic: the elastic model: ``n_dofs``, ``linear``, ``residual(x (B, n_dofs), k)``
+            (``dEnergy/dx``, no external force), ``tangent_pattern``,
+            ``tangent_values(x, k)`` (element-major contributions of ``dR/dx``, the same
+            number per element), optionally ``param_derivative`` and ``check_modulus``.
+        n_field: number of per-element field values ``k`` (springs, triangles).
+        mass: ``(n_dofs,)`` lumped mass of every dof (> 0).
+        fixed_dofs: ``(n_fixed,)`` sorted Dirichlet dofs.
+        dirichlet: ``t (T,) -> (T, n_fixed)`` prescribed positions of the fixed dofs, with
+            ``dirichlet.velocity(t)``: a :class:`KeyedMotion` (or anything with both).
+        loads: ``t (T,) -> (T, n_dofs)`` prescribed external forces besides gravity, or
+            ``None``.
+        gravity: ``(n_dofs,)`` gravitational acceleration of every dof (force ``M g``).
+        x0, v0: ``(n_dofs,)`` initial positions and velocities (Dirichlet dofs are
+            overwritten by the trajectory at ``t0``).
+        vertex_dim: dofs per vertex (for messages naming a vertex).
+        t0: start time.
+        rest: ``(n_dofs,)`` rest positions, where ``K0`` is taken (default ``x0``).
+    """
+
+    def __init__(self, elastic, n_field: int, mass: Tensor, fixed_dofs: Tensor, dirichlet,
+                 loads: TimeFunction | None, gravity: Tensor, x0: Tensor, v0: Tensor | None = None,
+                 vertex_dim: int = 1, t0: float = 0.0, rest: Tensor | None = None) -> None:
+        self.elastic = elastic
+        self.n_dofs = int(elastic.n_dofs)
+        self.n_field = int(n_field)
+        self.vertex_dim = int(vertex_dim)
+        self.t0 = float(t0)
+        mass = torch.as_tensor(mass)
+        if mass.shape != (self.n_dofs,):
+            raise DynamicsInputError(f"mass must have one value per dof ({self.n_dofs},), got "
+                                     f"{tuple(mass.shape)}")
+        if not bool((torch.isfinite(mass) & (mass > 0)).all()):
+            raise DynamicsInputError("the lumped mass must be positive and finite at every "
+                                     "dof: the density must be > 0")
+        self.mass = mass
+        dtype, device = mass.dtype, mass.device
+        self.fixed_dofs = torch.sort(torch.as_tensor(fixed_dofs, dtype=torch.long).reshape(-1)).values
+        free = torch.ones(self.n_dofs, dtype=torch.bool)
+        free[self.fixed_dofs] = False
+        self.free_dofs = torch.nonzero(free).reshape(-1)
+        self.dirichlet = dirichlet
+        self.loads = loads
+        self.gravity = torch.as_tensor(gravity, dtype=dtype, device=device).reshape(self.n_dofs)
+        self.x0 = torch.as_tensor(x0, dtype=dtype, device=device).reshape(self.n_dofs)
+        self.v0 = torch.zeros_like(self.x0) if v0 is None else \
+            torch.as_tensor(v0, dtype=dtype, device=device).reshape(self.n_dofs)
+        # rest stiffness per unit field: element blocks (n_field, d_el, d_el), element dofs
+        pattern = elastic.tangent_pattern
+        rows = pattern.row_indices[pattern.scatter]
+        cols = pattern.col_indices[pattern.scatter]
+        self.element_rows, self.element_cols = rows, cols
+        per_element = rows.numel() // self.n_field
+        d_el = int(round(math.sqrt(per_element)))
+        if d_el * d_el * self.n_field != rows.numel():
+            raise ValueError("the elastic model's tangent contributions are not square "
+                             "element blocks, one per field value")
+        self.element_dofs = rows.reshape(self.n_field, d_el, d_el)[:, :, 0].to(device)
+        with torch.no_grad():
+            at = self.x0 if rest is None else torch.as_tensor(rest).to(self.x0).reshape(-1)
+            unit = elastic.tangent_values(at[None].clone(),
+                                          torch.ones(self.n_field, dtype=dtype, device=device))
+        self.unit_stiffness = unit.reshape(self.n_field, d_el, d_el).to(dtype).contiguous()
+        self._check_initial_state()
+
+    # -- parameters ---------------------------------------------------------------------
+    @property
+    def n_params(self) -> int:
+        """Length of the physical parameter vector ``[k, alpha, beta]``."""
+        return self.n_field + 2
+
+    def split(self, params: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``(k (n_field,), alpha (), beta ())`` of ``params``."""
+        return params[:self.n_field], params[self.n_field], params[self.n_field + 1]
+
+    def check_params(self, params: Tensor) -> None:
+        """Raise naming the bad entry: shape, a field value that is not positive and finite
+        (:class:`InvalidFieldError` or the model's own error), a damping coefficient that is
+        negative or not finite (:class:`NegativeDampingError`)."""
+        if params.shape != (self.n_params,):
+            raise ValueError(f"dynamics parameters must have shape ({self.n_params},) "
+                             f"(field of {self.n_field}, alpha, beta), got {tuple(params.shape)}")
+        field, alpha, beta = (p.detach() for p in self.split(params))
+        for name, value, unit in (("alpha", alpha, "1/s"), ("beta", beta, "s")):
+            if not (math.isfinite(float(value)) and float(value) >= 0):
+                raise NegativeDampingError(
+                    f"Rayleigh damping coefficient {name} = {float(value):g} {unit} is negative "
+                    f"or not finite (C = alpha M + beta K must not feed energy in); with "
+                    f"problem.transform=identity keep {name} >= 0, or use problem.transform=exp")
+        check = getattr(self.elastic, "check_modulus", None)
+        if check is not None:
+            check(field)
+            return
+        bad = ~(torch.isfinite(field) & (field > 0))
+        if bool(bad.any()):
+            e = int(torch.nonzero(bad)[0])
+            raise InvalidFieldError(f"stiffness must be positive and finite: element {e} has "
+                                    f"{float(field[e]):g}; with problem.transform=identity keep it "
+                                    "> 0, or use problem.transform=exp")
+
+    # -- forces ---------------------------------------------------------------------------
+    def stiffness_matvec(self, field: Tensor, u: Tensor) -> Tensor:
+        """``K0(k) u`` ``(..., n_dofs)`` for ``u`` ``(..., n_dofs)`` (differentiable in both)."""
+        dofs = self.element_dofs.to(u.device)
+        local = u[..., dofs]                                          # (..., n_field, d_el)
+        forces = torch.einsum("eab,...eb->...ea", self.unit_stiffness.to(u), local)
+        forces = forces * field.to(u)[:, None]
+        out = u.new_zeros(*u.shape[:-1], self.n_dofs)
+        return out.index_add(-1, dofs.reshape(-1), forces.reshape(*u.shape[:-1], -1))
+
+    def stiffness_matmul(self, field: Tensor, U: Tensor) -> Tensor:
+        """``K0(k) U`` ``(n_dofs, k)`` for ``U`` ``(n_dofs, k)`` (no graph; one sparse scatter)."""
+        local = U.T.contiguous()[:, self.element_dofs.to(U.device)]   # (k, n_field, d_el)
+        forces = torch.einsum("eab,keb->eak", self.unit_stiffness.to(U), local)
+        return self.scatter_elements(forces * field.detach().to(U)[:, None, None])
+
+    def unit_element_forces(self, u: Tensor) -> Tensor:
+        """``K0_e u`` per element at unit field, ``(..., n_field, d_el)`` (``dK0 u / dk``)."""
+        local = u[..., self.element_dofs.to(u.device)]
+        return torch.einsum("eab,...eb->...ea", self.unit_stiffness.to(u), local)
+
+    def scatter_elements(self, forces: Tensor) -> Tensor:
+        """Element vectors ``(n_field, d_el)`` or ``(n_field, d_el, k)`` summed into dofs,
+        ``(n_dofs,)`` or ``(n_dofs, k)``.
+
+        An ``index_add`` along the last (contiguous) dimension: the same along the first
+        one, or a sparse product, runs into torch's intra-op thread pool and was 100 times
+        slower with two threads on a loaded machine.
+        """
+        flat = forces.reshape(forces.shape[0] * forces.shape[1], -1).T.contiguous()
+        dofs = self.element_dofs.reshape(-1).to(flat.device)
+        out = flat.new_zeros(flat.shape[0], self.n_dofs).index_add_(1, dofs, flat)
+        return out.T.reshape(self.n_dofs, *forces.shape[2:])
+
+    def rest_stiffness_contributions(self, field: Tensor) -> Tensor:
+        """Contributions of ``K0(k)`` on the elastic tangent pattern, ``(n_contrib,)``."""
+        return (self.unit_stiffness.to(field) * field[:, None, None]).reshape(-1)
+
+    def external_force(self, t: Tensor) -> Tensor:
+        """``M g + loads(t)``, ``(T, n_dofs)`` at times ``t`` ``(T,)``."""
+        force = (self.mass * self.gravity).to(t)[None, :].expand(t.numel(), -1)
+        if self.loads is not None:
+            force = force + self.loads(t).to(t)
+        return force
+
+    def fixed_positions(self, t: Tensor) -> Tensor:
+        """Dirichlet positions ``(T, n_fixed)`` at times ``t``."""
+        return self.dirichlet(t).to(t)
+
+    def fixed_velocities(self, t: Tensor) -> Tensor:
+        """Dirichlet velocities ``(T, n_fixed)`` at times ``t``."""
+        return self.dirichlet.velocity(t).to(t)
+
+    def acceleration(self, t: Tensor, x: Tensor, v: Tensor, params: Tensor) -> Tensor:
+        """``M^-1 (f_int - C v + f_ext)`` ``(B, n_dofs)`` for full states ``x, v`` ``(B, n_dofs)``
+        at one time ``t`` (a scalar tensor); differentiable in ``x``, ``v``, ``params``."""
+        field, alpha, beta = self.split(params)
+        force = -self.elastic.residual(x, field) - alpha * self.mass.to(x) * v \
+            - beta * self.stiffness_matvec(field, v) + self.external_force(t.reshape(1))
+        return force / self.mass.to(x)
+
+    # -- scales and checks ------------------------------------------------------------------
+    def max_frequency(self, field: Tensor, iterations: int = 60) -> float:
+        """Largest angular frequency (rad/s) of ``M^-1 K0(k)`` on the free dofs, by power
+        iteration (the stiffest mode that an explicit step must resolve)."""
+        with torch.no_grad():
+            free = self.free_dofs.to(field.device)
+            inv_sqrt_m = self.mass.to(field).rsqrt()
+            generator = torch.Generator().manual_seed(0)
+            u = torch.randn(self.n_dofs, generator=generator, dtype=torch.float64).to(field)
+            mask = torch.zeros_like(u)
+            mask[free] = 1.0
+            u = u * mask
+            value = 0.0
+            for _ in range(iterations):
+                u = u / torch.linalg.vector_norm(u)
+                w = inv_sqrt_m * self.stiffness_matvec(field.detach(), inv_sqrt_m * u) * mask
+                value = float(torch.dot(u, w))
+                u = w
+            return math.sqrt(max(value, 0.0))
+
+    def _check_initial_state(self) -> None:
+        for name, state in (("position", self.x0), ("velocity", self.v0)):
+            bad = ~torch.isfinite(state)
+            if bool(bad.any()):
+                dof = int(torch.nonzero(bad)[0])
+                raise NonFiniteStateError(
+                    f"the state is not finite at t = {self.t0:g}: initial {name} of vertex "
+                    f"{dof // self.vertex_dim} (dof {dof}) is {float(state[dof])}")
+
+    def check_state(self, x: Tensor, t: float, what: str = "position") -> None:
+        """Raise :class:`NonFiniteStateError` naming time and vertex if ``x`` ``(n_dofs,)``
+        is not finite."""
+        bad = ~torch.isfinite(x.detach())
+        if bool(bad.any()):
+            dof = int(torch.nonzero(bad.reshape(-1))[0]) % self.n_dofs
+            raise NonFiniteStateError(
+                f"the state is not finite at t = {t:.6g}: {what} of vertex "
+                f"{dof // self.vertex_dim} (dof {dof}) is {float(x.reshape(-1)[dof])}; check the "
+                "loads, the prescribed motion and the parameters")
+
+    def full(self, free_values: Tensor, fixed_values: Tensor) -> Tensor:
+        """Full vectors ``(B, n_dofs)`` from free ``(B, n_free)`` and fixed ``(B, n_fixed)``."""
+        out = free_values.new_zeros(free_values.shape[0], self.n_dofs)
+        out = out.index_copy(1, self.free_dofs.to(out.device), free_values)
+        return out.index_copy(1, self.fixed_dofs.to(out.device), fixed_values.to(out))
