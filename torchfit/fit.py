@@ -56,6 +56,7 @@ from .problems import InverseProblem
 from .problems.base import (BodyProblem, FieldImageProblem, FramedProblem, MeshProblem,
                             MotionProblem)
 from .records import IterationRecord, SolveResult
+from .residual import warm_up_autograd
 from .solvers import SOLVERS, Solver, SolverConfig
 
 log = logging.getLogger("torchfit.fit")
@@ -462,6 +463,7 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
     else:
         chain.append(lambda record: rows.append(record.row()))
     chain.extend(callbacks)
+    warm_up_autograd()     # torch's lazy one-time set-up, outside the solver's clock
     try:
         solved = solver.solve(problem.residual(), problem.theta0, chain,
                               state=restart.state if restart else None)

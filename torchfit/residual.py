@@ -26,6 +26,29 @@ from torch import Tensor
 from .errors import SimulationError
 
 
+_WARM = False
+
+
+def warm_up_autograd() -> None:
+    """Pay torch's one-time lazy initialisation of derivative products now.
+
+    The first forward-mode product of a process loads torch's jvp decompositions
+    (compiled by TorchScript) and the first ``autograd.grad`` imports sympy through
+    ``symbolic_shapes``: 0.7-0.8 s together on the 2-core machine, once per process.
+    :func:`torchfit.fit` calls this during set-up, so solver clocks and iteration
+    records measure solving (``docs/solvers/time_to_accuracy.md``). Idempotent.
+    """
+    global _WARM
+    if _WARM:
+        return
+    x = torch.ones(2, dtype=torch.float64, requires_grad=True)
+    with fwAD.dual_level():
+        fwAD.unpack_dual(torch.exp(fwAD.make_dual(x.detach(), torch.ones_like(x))))
+    with torch.enable_grad():
+        torch.autograd.grad(torch.exp(x).sum(), x)
+    _WARM = True
+
+
 class Linearization:
     """The residual at one ``theta`` and its Jacobian products.
 
