@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 
 from .errors import DynamicsInputError, NonFiniteStateError, UnstableStepError
-from .system import DynamicSystem, check_output_times
+from .system import DynamicSystem, TrajectoryFunction, check_output_times
 
 ADAPTIVE_METHODS = ("dopri5", "dopri8", "bosh3", "adaptive_heun")
 FIXED_METHODS = ("rk4", "midpoint", "euler")
@@ -229,7 +229,7 @@ class TorchdiffeqIntegrator:
 
     def __call__(self, params: Tensor) -> Tensor:
         """Positions ``(K, n_dofs)`` at the output times (reverse and forward mode)."""
-        return _ODETrajectory.apply(params, self)
+        return TrajectoryFunction.apply(params, self)
 
     def jacobian(self, params: Tensor, directions: Tensor) -> Tensor:
         """``(d positions / d params) V`` ``(K, n_dofs, k)`` by forward sensitivities."""
@@ -239,6 +239,16 @@ class TorchdiffeqIntegrator:
 
     def clear_cache(self) -> None:
         self._cache.clear()
+
+    # -- the TrajectoryFunction protocol ---------------------------------------------------------
+    def run(self, params: Tensor) -> _Solve:
+        return self.solve(params)
+
+    def adjoint(self, solve: _Solve, grad_outputs: Tensor) -> Tensor:
+        return self._adjoint(solve, grad_outputs)
+
+    def tangents(self, solve: _Solve, V: Tensor) -> Tensor:
+        return self._sensitivities(solve.params, V)
 
     # -- derivatives ----------------------------------------------------------------------------
     def _adjoint(self, solve: _Solve, grad_outputs: Tensor) -> Tensor:
@@ -293,30 +303,3 @@ class TorchdiffeqIntegrator:
         out = params.new_zeros(s.shape[0], self.system.n_dofs, k)
         out[:, self.system.free_dofs.to(out.device), :] = s
         return out
-
-
-class _ODETrajectory(torch.autograd.Function):
-    @staticmethod
-    def forward(params: Tensor, integrator: TorchdiffeqIntegrator) -> Tensor:  # type: ignore[override]
-        return integrator.solve(params).outputs.clone()
-
-    @staticmethod
-    def setup_context(ctx: Any, inputs: tuple, output: Tensor) -> None:
-        params, integrator = inputs
-        ctx.integrator = integrator
-        ctx.solve = integrator.solve(params)
-        ctx.set_materialize_grads(False)
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx: Any, grad_outputs: Tensor | None) -> tuple:  # type: ignore[override]
-        if grad_outputs is None:
-            return None, None
-        return ctx.integrator._adjoint(ctx.solve, grad_outputs.detach()), None
-
-    @staticmethod
-    def jvp(ctx: Any, d_params: Tensor | None, *_: Any) -> Tensor:  # type: ignore[override]
-        solve = ctx.solve
-        if d_params is None:
-            return torch.zeros_like(solve.outputs)
-        return ctx.integrator._sensitivities(solve.params, d_params.detach().to(solve.params)[:, None])[..., 0]

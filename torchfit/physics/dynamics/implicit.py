@@ -50,7 +50,7 @@ from torch import Tensor
 from ...linalg import SparsePattern
 from ..equilibrium import Equilibrium, NewtonOptions
 from .errors import DynamicsInputError, NonFiniteStateError
-from .system import DynamicSystem, check_output_times
+from .system import DynamicSystem, TrajectoryFunction, check_output_times
 
 SCHEMES = ("backward_euler", "bdf2")
 
@@ -405,7 +405,7 @@ class ImplicitIntegrator:
     def __call__(self, params: Tensor) -> Tensor:
         """Positions ``(K, n_dofs)`` at the output times; differentiable in reverse mode
         (discrete adjoint) and forward mode (tangent propagation)."""
-        return _ImplicitTrajectory.apply(params, self)
+        return TrajectoryFunction.apply(params, self)
 
     def jacobian(self, params: Tensor, directions: Tensor) -> Tensor:
         """``(d positions / d params) V``: ``(K, n_dofs, k)`` for ``V`` ``(n_params, k)``
@@ -416,6 +416,16 @@ class ImplicitIntegrator:
     def clear_cache(self) -> None:
         self._cache.clear()
         self.equilibrium.clear_cache()
+
+    # -- the TrajectoryFunction protocol -------------------------------------------------------
+    def run(self, params: Tensor) -> _Trajectory:
+        return self.trajectory(params)
+
+    def adjoint(self, traj: _Trajectory, grad_outputs: Tensor) -> Tensor:
+        return self._adjoint(traj, grad_outputs)
+
+    def tangents(self, traj: _Trajectory, V: Tensor) -> Tensor:
+        return self._tangents(traj, V)
 
     # -- derivatives --------------------------------------------------------------------------
     def _prepare(self, traj: _Trajectory, n: int, p: Tensor, fixed: Tensor, x: Tensor) -> None:
@@ -485,30 +495,3 @@ class ImplicitIntegrator:
                     xbar[n - 1] = xbar.get(n - 1, 0.0) + c2 * bv_bar
                     vbar[n - 1] = vbar.get(n - 1, 0.0) + c2 * ba_bar
         return grad
-
-
-class _ImplicitTrajectory(torch.autograd.Function):
-    @staticmethod
-    def forward(params: Tensor, integrator: ImplicitIntegrator) -> Tensor:  # type: ignore[override]
-        return integrator.trajectory(params).outputs.clone()
-
-    @staticmethod
-    def setup_context(ctx: Any, inputs: tuple, output: Tensor) -> None:
-        params, integrator = inputs
-        ctx.integrator = integrator
-        ctx.trajectory = integrator.trajectory(params)        # cache hit
-        ctx.set_materialize_grads(False)
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx: Any, grad_outputs: Tensor | None) -> tuple:  # type: ignore[override]
-        if grad_outputs is None:
-            return None, None
-        return ctx.integrator._adjoint(ctx.trajectory, grad_outputs.detach()), None
-
-    @staticmethod
-    def jvp(ctx: Any, d_params: Tensor | None, *_: Any) -> Tensor:  # type: ignore[override]
-        traj = ctx.trajectory
-        if d_params is None:
-            return torch.zeros_like(traj.outputs)
-        return ctx.integrator._tangents(traj, d_params.detach().to(traj.params)[:, None])[..., 0]

@@ -19,7 +19,7 @@ The parameters of a dynamic simulation are one physical vector
 from __future__ import annotations
 
 import math
-from typing import Callable
+from typing import Any, Callable
 
 import torch
 from torch import Tensor
@@ -315,3 +315,38 @@ class DynamicSystem:
         out = free_values.new_zeros(free_values.shape[0], self.n_dofs)
         out = out.index_copy(1, self.free_dofs.to(out.device), free_values)
         return out.index_copy(1, self.fixed_dofs.to(out.device), fixed_values.to(out))
+
+
+class TrajectoryFunction(torch.autograd.Function):
+    """Positions at the output times as one autograd node, for either integrator.
+
+    The integrator provides ``run(params)`` (its cached solve, with ``outputs``
+    ``(K, n_dofs)`` and ``params``), ``adjoint(run, grad_outputs)`` (reverse mode) and
+    ``tangents(run, V)`` (forward mode, ``V`` ``(n_params, k)``).
+    """
+
+    @staticmethod
+    def forward(params: Tensor, integrator: Any) -> Tensor:  # type: ignore[override]
+        return integrator.run(params).outputs.clone()
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple, output: Tensor) -> None:
+        params, integrator = inputs
+        ctx.integrator = integrator
+        ctx.run = integrator.run(params)          # cache hit
+        ctx.set_materialize_grads(False)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: Any, grad_outputs: Tensor | None) -> tuple:  # type: ignore[override]
+        if grad_outputs is None:
+            return None, None
+        return ctx.integrator.adjoint(ctx.run, grad_outputs.detach()), None
+
+    @staticmethod
+    def jvp(ctx: Any, d_params: Tensor | None, *_: Any) -> Tensor:  # type: ignore[override]
+        run = ctx.run
+        if d_params is None:
+            return torch.zeros_like(run.outputs)
+        return ctx.integrator.tangents(run, d_params.detach().to(run.params)[:, None])[..., 0]
+
