@@ -174,18 +174,27 @@ class ProblemBench:
         """
         residual = self.problem.residual()
         evaluated: list[torch.Tensor] = []
-        forward = residual.forward
+        forward, products = residual.forward, residual.products
 
-        def recording_forward(theta: torch.Tensor) -> torch.Tensor:
+        def record(theta: torch.Tensor) -> None:
             primal = fwAD.unpack_dual(theta).primal.detach()
             if not any(torch.equal(primal, seen) for seen in evaluated):
                 evaluated.append(primal.clone())
+
+        def recording_forward(theta: torch.Tensor) -> torch.Tensor:
+            record(theta)
             return forward(theta)
+
+        def recording_products(theta: torch.Tensor):
+            record(theta)
+            return products(theta)
 
         self.eq.clear_cache()
         if warm:
             residual.linearize(start)
         residual.forward = recording_forward
+        if products is not None:     # the explicit products linearise without forward
+            residual.products = recording_products
         config = dataclasses.replace(config, max_iter=1)
         t, result, counts = timed(lambda: gauss_newton(residual, start, config, **inputs))
         distinct = len(evaluated)

@@ -7,6 +7,14 @@ adjoints do the work: ``J^T w`` is a reverse pass over one retained graph and ``
 forward-mode pass (the simulator returns its stored solution for an unchanged
 ``theta``, so neither product refactorises anything).
 
+Explicit products: a problem whose forward is a chain of explicit derivatives (a
+parameterisation, an equilibrium with the model's ``param_derivative``, a gather) may hand
+over ``products(theta) -> ForwardProducts``: the forward value and ``J v`` / ``J^T w`` as
+plain functions. :class:`Linearization` then builds no autograd graph and runs no
+autograd engine: on poisson2d N = 64 that halves a CGLS iteration, whose two triangular
+solves cost as much as the engine's bookkeeping around them. The autograd route stays the
+definition (tests compare the two).
+
 Few parameters: a problem may also hand over ``jacobian(theta) -> (m, n)``, the whole
 ``d forward / d theta`` in one pass (the simulator solves with ``n`` right-hand sides per
 stored factor). :meth:`Linearization.jacobian` returns it (computed once per
@@ -17,6 +25,7 @@ for a solver that does not ask.
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Callable
 
 import torch
@@ -49,12 +58,29 @@ def warm_up_autograd() -> None:
     _WARM = True
 
 
+@dataclasses.dataclass
+class ForwardProducts:
+    """The forward model at one ``theta`` with explicit derivative products.
+
+    Attributes:
+        y: ``(m,)`` the forward value ``forward(theta)`` (no graph).
+        jvp: ``v (n,) -> J v (m,)``.
+        vjp: ``w (m,) -> J^T w (n,)``.
+    """
+
+    y: Tensor
+    jvp: Callable[[Tensor], Tensor]
+    vjp: Callable[[Tensor], Tensor]
+
+
 class Linearization:
     """The residual at one ``theta`` and its Jacobian products.
 
     Args:
         forward, data, theta: the residual ``forward(theta) - data`` at ``theta``.
         jacobian: ``theta -> (m, n)`` dense ``d forward / d theta`` or ``None``.
+        products: ``theta -> ForwardProducts`` (explicit products, no graph) or ``None``
+            (autograd: one retained graph for ``J^T w``, forward mode for ``J v``).
 
     Attributes:
         theta: ``(n,)`` the point (detached).
@@ -64,15 +90,20 @@ class Linearization:
     """
 
     def __init__(self, forward: Callable[[Tensor], Tensor], data: Tensor, theta: Tensor,
-                 jacobian: Callable[[Tensor], Tensor] | None = None) -> None:
+                 jacobian: Callable[[Tensor], Tensor] | None = None,
+                 products: Callable[[Tensor], ForwardProducts] | None = None) -> None:
         self._forward = forward
         self._jacobian_fn = jacobian
         self._J: Tensor | None = None
         self.dense = False
         self.theta = theta.detach()
-        self._theta_leaf = self.theta.clone().requires_grad_(True)
-        with torch.enable_grad():
-            self._y = forward(self._theta_leaf)
+        self._products = None if products is None else products(self.theta)
+        if self._products is not None:
+            self._y = self._products.y.detach()
+        else:
+            self._theta_leaf = self.theta.clone().requires_grad_(True)
+            with torch.enable_grad():
+                self._y = forward(self._theta_leaf)
         if self._y.shape != data.shape:
             raise ValueError(f"forward model returned shape {tuple(self._y.shape)} but the data "
                              f"have shape {tuple(data.shape)}")
@@ -116,6 +147,8 @@ class Linearization:
         return self._forward_jvp(v)
 
     def _forward_jvp(self, v: Tensor) -> Tensor:
+        if self._products is not None:
+            return self._products.jvp(v.to(self.theta)).detach()
         with fwAD.dual_level():
             y = self._forward(fwAD.make_dual(self.theta, v.to(self.theta)))
             tangent = fwAD.unpack_dual(y).tangent
@@ -127,6 +160,8 @@ class Linearization:
         if self.dense:
             assert self._J is not None
             return self._J.T @ w.to(self._J)
+        if self._products is not None:
+            return self._products.vjp(w.to(self.r)).detach()
         (grad,) = torch.autograd.grad(self._y, self._theta_leaf, grad_outputs=w.to(self._y),
                                       retain_graph=True, allow_unused=True)
         return torch.zeros_like(self.theta) if grad is None else grad.detach()
@@ -148,13 +183,17 @@ class ResidualFunction:
         accuracy: relative accuracy of ``forward`` (e.g. a Newton tolerance), or ``None``
             for machine precision; derivative checks choose their finite-difference step
             from it.
+        products: ``theta (n,) -> ForwardProducts``: ``forward(theta)`` with explicit
+            ``J v`` and ``J^T w`` (no autograd), or ``None``; it must agree with
+            ``forward`` and its autograd products.
     """
 
     def __init__(self, forward: Callable[[Tensor], Tensor], data: Tensor,
                  noise_level: float | None = None,
                  gauge: Callable[[Tensor], Tensor] | None = None,
                  jacobian: Callable[[Tensor], Tensor] | None = None,
-                 accuracy: float | None = None) -> None:
+                 accuracy: float | None = None,
+                 products: Callable[[Tensor], ForwardProducts] | None = None) -> None:
         if data.dim() != 1:
             raise ValueError(f"data must be a flat vector, got shape {tuple(data.shape)}")
         if not bool(torch.isfinite(data).all()):
@@ -167,6 +206,7 @@ class ResidualFunction:
         self.gauge = gauge
         self.jacobian = jacobian
         self.accuracy = accuracy
+        self.products = products
 
     @property
     def size(self) -> int:
@@ -178,7 +218,7 @@ class ResidualFunction:
             return self.forward(theta.detach()) - self.data
 
     def linearize(self, theta: Tensor) -> Linearization:
-        return Linearization(self.forward, self.data, theta, self.jacobian)
+        return Linearization(self.forward, self.data, theta, self.jacobian, self.products)
 
     def try_linearize(self, theta: Tensor) -> Linearization | None:
         """:func:`try_linearize` of this residual."""

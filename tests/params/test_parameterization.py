@@ -172,3 +172,38 @@ def test_jacobian_matches_finite_differences(kind, transform):
         fd = (param(theta + e) - param(theta - e)) / (2 * h)
         assert torch.allclose(J[:, j], fd, rtol=1e-8, atol=1e-10), j
     assert torch.allclose(J, torch.autograd.functional.jacobian(param, theta), atol=1e-14)
+
+
+@pytest.mark.parametrize("transform", ["exp", "identity"])
+@pytest.mark.parametrize("kind", ["per_element", "per_region", "coarse_grid", "dense_basis"])
+def test_explicit_jvp_and_vjp_are_the_jacobian_products(kind, transform):
+    g = torch.Generator().manual_seed(1)
+    if kind == "per_element":
+        param = per_element(6, chain_edges(6), transform=transform)
+    elif kind == "per_region":
+        param = per_region(np.array([0, 0, 1, 2, 2, 1, 0]), chain_edges(7), transform=transform)
+    else:
+        weights = torch.rand(9, 4, generator=g, dtype=torch.float64)
+        weights = weights / weights.sum(1, keepdim=True)
+        param = Parameterization(4, chain_edges(4), weights.to_sparse() if kind == "coarse_grid"
+                                 else weights, transform)
+    theta = torch.randn(param.n_params, generator=g, dtype=torch.float64)
+    J = param.jacobian(theta)
+    v = torch.randn(param.n_params, generator=g, dtype=torch.float64)
+    w = torch.randn(param.n_field, generator=g, dtype=torch.float64)
+    assert torch.allclose(param.jvp(theta, v), J @ v, rtol=1e-13, atol=1e-14)
+    assert torch.allclose(param.vjp(theta, w), J.T @ w, rtol=1e-13, atol=1e-14)
+
+
+def test_field_and_scalars_explicit_products():
+    from torchfit.params import FieldAndScalars
+
+    g = torch.Generator().manual_seed(2)
+    param = FieldAndScalars(per_region(np.array([0, 1, 1, 2]), chain_edges(4)),
+                            ("alpha", "beta"), (0.1, 0.2))
+    theta = torch.randn(param.n_params, generator=g, dtype=torch.float64)
+    J = param.jacobian(theta)
+    v = torch.randn(param.n_params, generator=g, dtype=torch.float64)
+    w = torch.randn(param.n_field, generator=g, dtype=torch.float64)
+    assert torch.allclose(param.jvp(theta, v), J @ v, rtol=1e-13, atol=1e-14)
+    assert torch.allclose(param.vjp(theta, w), J.T @ w, rtol=1e-13, atol=1e-14)

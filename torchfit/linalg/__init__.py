@@ -8,7 +8,7 @@ from .cudss import (CUDA_EXTRA, CudssBackend, CudssUnavailableError, GpuMemoryEr
 from .errors import BackendDeviceError
 from .counters import COUNTERS, SolveCounters, counting, reset_counters
 from .pardiso import PardisoError, PardisoUnavailableError, pardiso_available
-from .pattern import SparsePattern
+from .pattern import SparsePattern, coo_to_csr, csr_matrix
 from .sparse_solve import DEFAULT_CACHE, FactorCache, sparse_solve
 from .threads import blas_threads, set_threads
 
@@ -17,6 +17,6 @@ __all__ = [
     "CudssUnavailableError", "GpuMemoryError", "cudss_available", "CGBackend", "CGLSResult", "COUNTERS", "DEFAULT_CACHE", "Factor",
     "FactorCache", "PardisoBackend", "PardisoError", "PardisoFactor", "PardisoPlan",
     "PardisoUnavailableError", "ScipyBackend", "SingularMatrixError", "SolveCounters",
-    "SparsePattern", "batched_cg", "blas_threads", "cgls", "counting", "default_backend",
+    "SparsePattern", "batched_cg", "coo_to_csr", "csr_matrix", "blas_threads", "cgls", "counting", "default_backend",
     "get_backend", "pardiso_available", "reset_counters", "set_threads", "sparse_solve",
 ]

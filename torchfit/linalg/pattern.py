@@ -22,6 +22,28 @@ import torch
 from torch import Tensor
 
 
+def csr_matrix(crow: Tensor, col: Tensor, values: Tensor, size: tuple[int, int]) -> Tensor:
+    """``torch.sparse_csr_tensor`` without invariant checks (the structure is built here,
+    sorted and in range) and without torch's one-time "beta" warning, which would reach
+    every user of a product built on it (torchfit changes no process-wide filter)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta",
+                                category=UserWarning)
+        return torch.sparse_csr_tensor(crow, col, values, size, check_invariants=False)
+
+
+def coo_to_csr(rows: Tensor, cols: Tensor, values: Tensor, size: tuple[int, int]) -> Tensor:
+    """CSR ``(size)`` of COO entries (duplicates summed), built once per operator."""
+    coo = torch.sparse_coo_tensor(torch.stack([rows, cols]), values, size,
+                                  check_invariants=False).coalesce()
+    r, c = coo.indices()
+    counts = torch.bincount(r, minlength=size[0])
+    crow = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)])
+    return csr_matrix(crow, c.contiguous(), coo.values(), size)
+
+
 def _as_index(values: Tensor | np.ndarray | list, device: torch.device | None = None) -> Tensor:
     """A 1-D int64 tensor (numpy and lists become CPU tensors)."""
     index = torch.as_tensor(np.asarray(values) if not isinstance(values, Tensor) else values,

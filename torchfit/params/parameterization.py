@@ -118,6 +118,34 @@ class Parameterization:
             return dense * torch.exp(theta)[None, :]
         return dense.clone()
 
+    def _transform_derivative(self, theta: Tensor) -> Tensor | None:
+        """Diagonal of ``d transform / d theta`` ``(n_params,)``, ``None`` for the identity."""
+        return torch.exp(theta.detach()) if self.transform == "exp" else None
+
+    def jvp(self, theta: Tensor, v: Tensor) -> Tensor:
+        """``(d field / d theta) v`` ``(n_field,)`` for ``v`` ``(n_params,)``, explicit (no
+        autograd): the transform's diagonal, then the basis."""
+        scale = self._transform_derivative(theta)
+        values = v if scale is None else scale * v
+        if self.basis is None:
+            return values
+        if self.basis.layout != torch.strided:
+            rows, cols, weights = self._sparse_entries(values)
+            return values.new_zeros(self.n_field).index_add_(0, rows, weights * values[cols])
+        return self.basis.to(values) @ values
+
+    def vjp(self, theta: Tensor, w: Tensor) -> Tensor:
+        """``(d field / d theta)^T w`` ``(n_params,)`` for ``w`` ``(n_field,)``, explicit."""
+        if self.basis is None:
+            values = w
+        elif self.basis.layout != torch.strided:
+            rows, cols, weights = self._sparse_entries(w)
+            values = w.new_zeros(self.n_params).index_add_(0, cols, weights * w[rows])
+        else:
+            values = self.basis.to(w).T @ w
+        scale = self._transform_derivative(theta)
+        return values if scale is None else scale * values
+
     def inverse(self, field: Tensor) -> Tensor:
         """``theta`` whose image is ``field`` (basis must be the identity or one-hot)."""
         if self.basis is not None:
@@ -386,6 +414,18 @@ class FieldAndScalars(Parameterization):
         scalars = torch.diag(torch.exp(theta_s) if self.transform == "exp"
                              else torch.ones_like(theta_s))
         return torch.block_diag(field.to(theta), scalars.to(theta))
+
+    def jvp(self, theta: Tensor, v: Tensor) -> Tensor:
+        """``(d physical / d theta) v`` ``(n_field,)``: the field's, then the scalars'."""
+        m = self.n_field_params
+        scalars = v[m:] if self.transform != "exp" else torch.exp(theta.detach()[m:]) * v[m:]
+        return torch.cat([self.field_parameterization.jvp(theta[:m], v[:m]), scalars])
+
+    def vjp(self, theta: Tensor, w: Tensor) -> Tensor:
+        """``(d physical / d theta)^T w`` ``(n_params,)``."""
+        m, k = self.n_field_params, self.field_parameterization.n_field
+        scalars = w[k:] if self.transform != "exp" else torch.exp(theta.detach()[m:]) * w[k:]
+        return torch.cat([self.field_parameterization.vjp(theta[:m], w[:k]), scalars])
 
     def inverse(self, physical: Tensor) -> Tensor:
         """``theta`` of a physical vector ``[field, scalars]``."""

@@ -111,6 +111,19 @@ class SpringParamDerivative:
         out = tension.new_zeros(tension.shape[0], self._n_dofs, tension.shape[2])
         return out.index_add_(1, self._b, tension).index_add_(1, self._a, -tension)
 
+    def matrix_entries(self) -> tuple[Tensor, Tensor, Tensor, tuple[int, int]]:
+        """``dR/dk`` as sparse entries ``(rows, cols, values, shape)`` of a
+        ``(F * n_nodes, n_springs)`` matrix, row ``f * n_nodes + node``: ``+stretch`` at node
+        ``b``, ``-stretch`` at node ``a``. Rows and columns are the same for every
+        solution with ``F`` frames (:class:`~torchfit.physics.Equilibrium` builds its
+        sparse layout once and refills the values)."""
+        n_frames, n_springs = self.stretch.shape
+        offset = (torch.arange(n_frames, device=self._a.device) * self._n_dofs)[:, None]
+        rows = torch.cat([(offset + self._b[None]).reshape(-1), (offset + self._a[None]).reshape(-1)])
+        springs = torch.arange(n_springs, device=self._a.device).repeat(2 * n_frames)
+        values = torch.cat([self.stretch.reshape(-1), -self.stretch.reshape(-1)])
+        return rows, springs, values, (n_frames * self._n_dofs, n_springs)
+
     def vjp(self, w: Tensor) -> Tensor:
         """``(dR/dk)^T w`` ``(n_springs,)`` for ``w`` ``(F, n_nodes)`` (summed over frames)."""
         w = w.to(self.stretch)

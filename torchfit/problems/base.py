@@ -46,7 +46,7 @@ from ..linalg import cudss_available, pardiso_available
 from ..linalg.cudss import CUDA_EXTRA
 from ..linalg.pardiso import PARDISO_EXTRA
 from ..params import Parameterization
-from ..residual import ResidualFunction
+from ..residual import ForwardProducts, ResidualFunction
 
 
 class ProblemConfigError(ConfigurationError):
@@ -627,17 +627,35 @@ class InverseProblem:
         return cls.forward_jacobian is not InverseProblem.forward_jacobian or \
             cls.simulate_jacobian is not InverseProblem.simulate_jacobian
 
+    # -- optional: explicit derivative products (no autograd graph) -------------------
+    def forward_products(self, theta: Tensor) -> ForwardProducts:
+        """Optional hook: :meth:`forward` at ``theta`` with explicit ``J v`` and ``J^T w``
+        (:class:`~torchfit.residual.ForwardProducts`), built from explicit pieces (the
+        parameterisation's ``jvp``/``vjp``, :meth:`torchfit.physics.Equilibrium.linearization`,
+        the transpose of a gather) instead of the autograd engine. Where implemented,
+        :meth:`residual` hands it to the solvers; it must agree with :meth:`forward`'s
+        autograd products (each problem's tests compare them)."""
+        raise NotImplementedError(f"{type(self).__name__} has no explicit products")
+
+    def has_forward_products(self) -> bool:
+        """Whether the subclass implements :meth:`forward_products`."""
+        return type(self).forward_products is not InverseProblem.forward_products
+
     # -- shared -----------------------------------------------------------------------
     def forward(self, theta: Tensor) -> Tensor:
         """``observe(simulate(map(theta)))``, ``(m,)``."""
         return self.observe(self.simulate(self.parameterization(theta)))
 
-    def residual(self) -> ResidualFunction:
-        """The residual the solvers get (with :meth:`forward_jacobian` where implemented)."""
+    def residual(self, explicit_products: bool = True) -> ResidualFunction:
+        """The residual the solvers get (with :meth:`forward_jacobian` and
+        :meth:`forward_products` where implemented; ``explicit_products=False`` keeps the
+        autograd products, the reference the explicit ones are checked against)."""
         gauge = self.parameterization.scale_direction if self.scale_free else None
         jacobian = self.forward_jacobian if self.has_forward_jacobian() else None
+        products = self.forward_products if explicit_products and self.has_forward_products() \
+            else None
         return ResidualFunction(self.forward, self.data, self.noise_level, gauge, jacobian,
-                                accuracy=self.simulation_accuracy())
+                                accuracy=self.simulation_accuracy(), products=products)
 
     def simulation_accuracy(self) -> float | None:
         """Relative accuracy of :meth:`simulate` (``None``: machine precision); problems

@@ -21,8 +21,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..linalg import coo_to_csr
 from ..params import Parameterization, grid_edges, grid_groups, per_element
 from ..physics import Equilibrium, SpringChain1D
+from ..residual import ForwardProducts
 from .base import (Choice, DataMode, InverseProblem, ProblemConfig, ProblemConfigError,
                    node_frame_index, require, require_setting, resolve_backend)
 
@@ -172,6 +174,48 @@ class Poisson2D(InverseProblem):
                              stiffness.index_select(0, self.edge_cells[:, 1]), 0.5)
         components = self.equilibrium(weights, self.fixed_values)      # (2, N*N)
         return components.T[None]
+
+    def forward_products(self, theta: Tensor) -> ForwardProducts:
+        """:meth:`forward` at ``theta`` with explicit ``J v`` and ``J^T w``: the exp map's
+        diagonal, the edge mean ``W`` (sparse, built once) and its transpose, the
+        equilibrium's free-dof products (one solve with the stored factor, both
+        components as two right-hand sides) and the gather of the observed nodes' rows and
+        its transpose. No autograd graph."""
+        theta = theta.detach()
+        stiffness = self.parameterization(theta)
+        first, second = self.edge_cells[:, 0], self.edge_cells[:, 1]
+        weights = torch.lerp(stiffness.index_select(0, first), stiffness.index_select(0, second), 0.5)
+        state = self.equilibrium.linearization(weights, self.fixed_values)     # (2, N*N)
+        edge_mean, edge_mean_t, rows = self._explicit_operators(stiffness)
+        n_free = self.equilibrium.free_dofs.numel()
+
+        def jvp(v: Tensor) -> Tensor:
+            dw = edge_mean @ self.parameterization.jvp(theta, v)
+            return state.free_jvp(dw).view(-1).index_select(0, rows)
+
+        def vjp(w: Tensor) -> Tensor:
+            grad = w.new_zeros(2 * n_free).index_copy_(0, rows, w).view(n_free, 2)
+            return self.parameterization.vjp(theta, edge_mean_t @ state.free_vjp(grad))
+
+        return ForwardProducts(state.x.index_select(1, self.observed_nodes.to(state.x.device))
+                               .T.reshape(-1), jvp, vjp)
+
+    def _explicit_operators(self, like: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The edge mean ``W`` ``(n_edges, n_cells)`` and ``W^T`` as CSR, and the positions
+        of the observed values in the free-dof block ``(n_free, 2)`` flattened (node-major,
+        both components: the data's order), built once per device and dtype."""
+        key = (like.device, like.dtype)
+        if getattr(self, "_explicit_key", None) != key:
+            n_edges, n_cells = self.edge_cells.shape[0], (self.cfg.N - 1) ** 2
+            edges = torch.arange(n_edges, device=like.device).repeat(2)
+            cells = self.edge_cells.T.reshape(-1).to(like.device)
+            half = torch.full((2 * n_edges,), 0.5, dtype=like.dtype, device=like.device)
+            node_rows = self.equilibrium.free_position(self.observed_nodes)
+            rows = (2 * node_rows[:, None] + torch.arange(2)).reshape(-1).to(like.device)
+            self._explicit = (coo_to_csr(edges, cells, half, (n_edges, n_cells)),
+                              coo_to_csr(cells, edges, half, (n_cells, n_edges)), rows)
+            self._explicit_key = key
+        return self._explicit
 
     def observe(self, x: Tensor) -> Tensor:
         """Both components of the observed nodes, ``(2 * n_observed,)``."""

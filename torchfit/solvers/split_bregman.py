@@ -107,7 +107,9 @@ class SplitBregmanConfig(SolverConfig):
     # conditioned inner solves). auto: on when the run has no noise level and mu is not
     # set; off: a fixed mu/2 ||r||^2 (the answer is then biased by 1/mu).
     data_bregman: str = "auto"      # auto | on | off
-    mu_rel_bregman: float = 1e3     # data Bregman: mu = mu_rel_bregman / ||J(theta0)||_2^2
+    mu_rel_bregman: float = 1e4     # data Bregman: mu = mu_rel_bregman / ||J(theta0)||_2^2
+                                    # (1e3 reached 1e-2 as fast on sparse poisson2d but then
+                                    # oscillated for hundreds of iterations; docs/solvers)
     tau: float = 1.0                # a stage is accepted when ||r|| <= tau * delta
     growth: float = 4.0             # mu_{k+1} = growth * mu_k
     max_stages: int = 20

@@ -244,7 +244,12 @@ class Corotated(Material):
         lam_b = torch.broadcast_to(lam, I1.shape)
         twist = (lam_b * (I1 - d) - 2.0 * mu_b)[..., None] * 2.0 / denominator.clamp(min=tiny)
         if projected:
-            twist = (2.0 * mu_b[..., None] + twist).clamp(min=0.0) - 2.0 * mu_b[..., None]
+            # clamp the twist eigenvalues 2 mu + twist that are negative beyond round-off:
+            # at rest they are 0 (rotation invariance) up to the SVD's last bit, and those
+            # elements must keep their exact tangent (as project_psd leaves them)
+            eigenvalue = 2.0 * mu_b[..., None] + twist
+            negative = eigenvalue < -1e-12 * (2.0 * mu_b[..., None]).abs()
+            twist = torch.where(negative, -2.0 * mu_b[..., None], twist)
         c = torch.cat([twist, lam_b[..., None]], dim=-1)
         return 2.0 * mu_b, c, U, Vh
 
