@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Independent numpy/scipy reference for the poisson2d fits of issue 13 (no torch).
 
-A plain implementation of ``/work/shared/PROBLEMS.md``, section "poisson2d", and of the
+A plain implementation of PROBLEMS.md (the shared problem contract), "poisson2d", and of the
 two solvers the issue compares torchfit against:
 
 * :func:`gauss_newton`: Gauss-Newton on ``theta = log k``, inner CGLS on ``J d = -r``
@@ -47,6 +47,7 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -494,10 +495,14 @@ def split_bregman(case: Case, lam_rel: float = 5e-5, noise_factor: float = 1.0,
 # self-test and CLI
 
 
-def selftest() -> dict:
-    """Forward model against the shared test vector; dot-product and Taylor tests, N = 16."""
+VECTORS = Path(__file__).resolve().parents[1] / "tests" / "data" / "vectors"
+
+
+def selftest(vectors: Path = VECTORS) -> dict:
+    """Forward model against the independent test vector (the repository's vendored copy
+    of ``shared/vectors``); dot-product and Taylor tests, N = 16."""
     out = {}
-    vec = np.load("/work/shared/vectors/poisson2d_N16_blocks.npz")
+    vec = np.load(Path(vectors) / "poisson2d_N16_blocks.npz")
     N = int(vec["N"])
     assert abs(float(vec["s"]) - SIDE) < 1e-15
     case = make_case(N=N, data="dense")

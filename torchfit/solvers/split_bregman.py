@@ -41,7 +41,9 @@ One outer iteration (split Bregman = scaled ADMM on ``d = D theta + c``)::
   halves). ``max_rejections`` in a row stop the run (``stalled``).
 * A stage is at its fixed point when the relative ADMM primal residual is below
   ``stage_tol`` and the relative dual residual is too, or the objective changed by less
-  than ``stage_tol^2`` over the last 10 iterations. A stage clearly above the
+  than ``stage_tol^2`` over the last 10 iterations (``bregman_tol`` in place of
+  ``stage_tol`` for a data-Bregman run, whose fixed point is the answer). A stage
+  clearly above the
   discrepancy level (misfit above ``tau delta`` by more than ``above_factor`` times its
   change over 10 iterations) ends early.
 
@@ -116,6 +118,9 @@ class SplitBregmanConfig(SolverConfig):
     max_iter: int = 2000            # outer (split Bregman) iterations over all stages
     stage_max_iter: int = 400       # outer iterations per stage
     stage_tol: float = 1e-3         # relative ADMM primal and dual residual of a fixed point
+    bregman_tol: float = 5e-4       # the same for a data-Bregman run (clean data: its fixed
+                                    # point is the answer; 1e-3 left poisson2d dense clean at
+                                    # 3.9e-5 where 5e-4 gives 1.9e-5 in 3% more time)
     inner_solver: str = "gauss_newton"   # gauss_newton | levenberg_marquardt
     inner_max_iter: int = 1         # inner steps per outer iteration (Goldstein-Osher: one)
     cg_max_iter: int = 200          # CGLS iterations per inner step
@@ -156,6 +161,8 @@ class SplitBregmanConfig(SolverConfig):
                 f"solver.stage_max_iter must be >= 1, got {self.stage_max_iter}")
         require(0 < self.stage_tol < 1, f"solver.stage_tol must be in (0, 1), got "
                 f"{self.stage_tol}")
+        require(0 < self.bregman_tol < 1, f"solver.bregman_tol must be in (0, 1), got "
+                f"{self.bregman_tol}")
         require(self.data_bregman in ("auto", "on", "off"),
                 f"solver.data_bregman={self.data_bregman!r}; choose auto, on or off")
         require(self.mu_rel_bregman > 0,
@@ -363,11 +370,11 @@ class SplitBregman(Solver):
         assert last is not None
         new_obj = last["objective"]
         self.objectives.append(new_obj)
+        tol = cfg.bregman_tol if self.data_bregman else cfg.stage_tol
         stagnant = len(self.objectives) > 10 and \
-            abs(self.objectives[-11] - new_obj) <= cfg.stage_tol ** 2 * abs(new_obj)
-        fits = not self.data_bregman or self.norm <= cfg.stage_tol * self.norm0
-        if fits and last["primal_rel"] <= cfg.stage_tol and (last["dual_rel"] <= cfg.stage_tol
-                                                             or stagnant):
+            abs(self.objectives[-11] - new_obj) <= tol ** 2 * abs(new_obj)
+        fits = not self.data_bregman or self.norm <= tol * self.norm0
+        if fits and last["primal_rel"] <= tol and (last["dual_rel"] <= tol or stagnant):
             return "converged"
         if last["primal"] == 0.0 and last["step_norm"] == 0.0:
             return "converged"           # nothing moves (e.g. a constant field)
