@@ -175,3 +175,19 @@ def test_bad_arguments():
         taylor_test(residual, theta, torch.zeros(10, dtype=torch.float64))
     with pytest.raises(ValueError, match="taylor_tol"):
         verify(residual, theta, taylor_tol=-1)
+
+
+def test_default_fd_tolerance_follows_the_simulation_accuracy():
+    """Exact simulations keep 1e-6; one solved to a tolerance ``a`` gets what a central
+    difference can resolve, ``100 a^(2/3)``; an explicit tolerance wins."""
+    from torchfit.verification import default_fd_tol, verify
+
+    data = torch.zeros(3, dtype=torch.float64)
+    exact = ResidualFunction(lambda t: t, data)
+    newton = ResidualFunction(lambda t: t, data, accuracy=1e-10)
+    assert default_fd_tol(exact) == 1e-6
+    assert default_fd_tol(newton) == pytest.approx(100 * 1e-10 ** (2 / 3))
+    assert default_fd_tol(ResidualFunction(lambda t: t, data, accuracy=1e-20)) == 1e-6
+    theta = torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64)
+    assert verify(newton, theta).fd_tol == pytest.approx(2.154e-5, rel=1e-3)
+    assert verify(newton, theta, fd_tol=1e-7).fd_tol == 1e-7

@@ -56,7 +56,8 @@ class VerifyConfig:
     perturbation: float = 0.1   # random offset of theta from that point (relative)
     taylor_tol: float = 0.05    # |rate - 2| allowed
     dot_tol: float = 1e-10      # relative |<Jv, w> - <v, J^T w>|
-    fd_tol: float = 1e-6        # relative |Jv - central FD|
+    fd_tol: Optional[float] = None   # relative |Jv - central FD|; null: max(1e-6, 100 a^(2/3))
+                                     # with a the simulation's accuracy (Newton's rtol)
     solver: Any = None          # unused; a problem's default solver (membrane2d) may fill it
     threads: int = 0            # torch and BLAS CPU threads (0: default), as in fit
 

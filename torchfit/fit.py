@@ -604,17 +604,21 @@ def verification_point(problem: InverseProblem, at: str = "initial", perturbatio
 
 def verify(problem: InverseProblem, *, run_dir: str | Path | None = None, at: str = "initial",
            perturbation: float = 0.1, seed: int = 0, taylor_tol: float = 0.05,
-           dot_tol: float = 1e-10, fd_tol: float = 1e-6,
+           dot_tol: float = 1e-10, fd_tol: float | None = None,
            config: Mapping[str, Any] | None = None):
     """Taylor, dot-product and finite-difference checks of ``problem``'s Jacobian at
     :func:`verification_point`; writes ``verify.json`` into ``run_dir`` (if given).
 
     Returns the :class:`~torchfit.verification.VerificationReport` (``passed``). Every
-    setting is checked before anything is written (:class:`FitConfigError`).
+    setting is checked before anything is written (:class:`FitConfigError`). ``fd_tol``
+    ``None``: the simulation's own resolution
+    (:func:`~torchfit.verification.default_fd_tol`).
     """
     from .verification import verify as verify_residual
 
     for name, value in (("taylor_tol", taylor_tol), ("dot_tol", dot_tol), ("fd_tol", fd_tol)):
+        if name == "fd_tol" and value is None:
+            continue
         if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
             raise FitConfigError(f"{name}={value!r} must be a finite number > 0")
     theta = verification_point(problem, at, perturbation, seed)
