@@ -150,18 +150,23 @@ def test_per_grid_node_checks_its_grid():
         per_grid_node((2, 3, 3), np.zeros((2, 2)), LOWER, UPPER)
     with pytest.raises(ValueError, match="same length"):
         grid_node_positions((2, 3, 3), LOWER[:2], UPPER)
+def _parameterization(kind: str, transform: str, g: torch.Generator) -> Parameterization:
+    if kind == "per_element":
+        return per_element(6, chain_edges(6), transform=transform)
+    if kind == "per_region":
+        return per_region(np.array([0, 0, 1, 2, 2, 1, 0]), chain_edges(7), transform=transform)
+    # trilinear-like weights of a coarse grid: non-negative rows summing to 1
+    weights = torch.rand(9, 4, generator=g, dtype=torch.float64)
+    weights = weights / weights.sum(1, keepdim=True)
+    return Parameterization(4, chain_edges(4), weights.to_sparse() if kind == "coarse_grid"
+                            else weights, transform)
+
+
 @pytest.mark.parametrize("transform", ["exp", "identity"])
 @pytest.mark.parametrize("kind", ["per_element", "per_region", "coarse_grid"])
 def test_jacobian_matches_finite_differences(kind, transform):
     g = torch.Generator().manual_seed(0)
-    if kind == "per_element":
-        param = per_element(6, chain_edges(6), transform=transform)
-    elif kind == "per_region":
-        param = per_region(np.array([0, 0, 1, 2, 2, 1, 0]), chain_edges(7), transform=transform)
-    else:   # trilinear-like weights of a coarse grid: dense, non-negative rows summing to 1
-        weights = torch.rand(9, 4, generator=g, dtype=torch.float64)
-        param = Parameterization(4, chain_edges(4), (weights / weights.sum(1, keepdim=True))
-                                 .to_sparse(), transform)
+    param = _parameterization(kind, transform, g)
     theta = torch.randn(param.n_params, generator=g, dtype=torch.float64) * 0.5 + 1.0
     J = param.jacobian(theta)
     assert J.shape == (param.n_field, param.n_params) and J.layout == torch.strided
@@ -174,36 +179,26 @@ def test_jacobian_matches_finite_differences(kind, transform):
     assert torch.allclose(J, torch.autograd.functional.jacobian(param, theta), atol=1e-14)
 
 
-@pytest.mark.parametrize("transform", ["exp", "identity"])
-@pytest.mark.parametrize("kind", ["per_element", "per_region", "coarse_grid", "dense_basis"])
-def test_explicit_jvp_and_vjp_are_the_jacobian_products(kind, transform):
-    g = torch.Generator().manual_seed(1)
-    if kind == "per_element":
-        param = per_element(6, chain_edges(6), transform=transform)
-    elif kind == "per_region":
-        param = per_region(np.array([0, 0, 1, 2, 2, 1, 0]), chain_edges(7), transform=transform)
-    else:
-        weights = torch.rand(9, 4, generator=g, dtype=torch.float64)
-        weights = weights / weights.sum(1, keepdim=True)
-        param = Parameterization(4, chain_edges(4), weights.to_sparse() if kind == "coarse_grid"
-                                 else weights, transform)
+def _check_explicit_products(param: Parameterization, g: torch.Generator) -> None:
+    """``jvp``/``vjp`` against the dense Jacobian at a random point."""
     theta = torch.randn(param.n_params, generator=g, dtype=torch.float64)
     J = param.jacobian(theta)
     v = torch.randn(param.n_params, generator=g, dtype=torch.float64)
     w = torch.randn(param.n_field, generator=g, dtype=torch.float64)
     assert torch.allclose(param.jvp(theta, v), J @ v, rtol=1e-13, atol=1e-14)
     assert torch.allclose(param.vjp(theta, w), J.T @ w, rtol=1e-13, atol=1e-14)
+
+
+@pytest.mark.parametrize("transform", ["exp", "identity"])
+@pytest.mark.parametrize("kind", ["per_element", "per_region", "coarse_grid", "dense_basis"])
+def test_explicit_jvp_and_vjp_are_the_jacobian_products(kind, transform):
+    g = torch.Generator().manual_seed(1)
+    _check_explicit_products(_parameterization(kind, transform, g), g)
 
 
 def test_field_and_scalars_explicit_products():
     from torchfit.params import FieldAndScalars
 
-    g = torch.Generator().manual_seed(2)
     param = FieldAndScalars(per_region(np.array([0, 1, 1, 2]), chain_edges(4)),
                             ("alpha", "beta"), (0.1, 0.2))
-    theta = torch.randn(param.n_params, generator=g, dtype=torch.float64)
-    J = param.jacobian(theta)
-    v = torch.randn(param.n_params, generator=g, dtype=torch.float64)
-    w = torch.randn(param.n_field, generator=g, dtype=torch.float64)
-    assert torch.allclose(param.jvp(theta, v), J @ v, rtol=1e-13, atol=1e-14)
-    assert torch.allclose(param.vjp(theta, w), J.T @ w, rtol=1e-13, atol=1e-14)
+    _check_explicit_products(param, torch.Generator().manual_seed(2))

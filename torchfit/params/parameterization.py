@@ -79,7 +79,10 @@ class Parameterization:
     def __call__(self, theta: Tensor) -> Tensor:
         """Field ``(n_field,)`` from ``theta`` ``(n_params,)`` (differentiable)."""
         self.check(theta)
-        values = torch.exp(theta) if self.transform == "exp" else theta
+        return self._apply_basis(torch.exp(theta) if self.transform == "exp" else theta)
+
+    def _apply_basis(self, values: Tensor) -> Tensor:
+        """``basis @ values`` ``(n_field,)`` (differentiable, forward mode included)."""
         if self.basis is None:
             return values
         if self.basis.layout != torch.strided:
@@ -126,13 +129,7 @@ class Parameterization:
         """``(d field / d theta) v`` ``(n_field,)`` for ``v`` ``(n_params,)``, explicit (no
         autograd): the transform's diagonal, then the basis."""
         scale = self._transform_derivative(theta)
-        values = v if scale is None else scale * v
-        if self.basis is None:
-            return values
-        if self.basis.layout != torch.strided:
-            rows, cols, weights = self._sparse_entries(values)
-            return values.new_zeros(self.n_field).index_add_(0, rows, weights * values[cols])
-        return self.basis.to(values) @ values
+        return self._apply_basis(v if scale is None else scale * v)
 
     def vjp(self, theta: Tensor, w: Tensor) -> Tensor:
         """``(d field / d theta)^T w`` ``(n_params,)`` for ``w`` ``(n_field,)``, explicit."""
