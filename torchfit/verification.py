@@ -186,10 +186,15 @@ def taylor_test(residual: _Residual, theta: Tensor, direction: Tensor, *,
             continue
         e = _norm(r_h - r0 - h * jv)
         remainders.append(e if math.isfinite(e) else math.nan)
-        size = _norm(r_h) + r0_norm + data_norm + h * jv_norm
-        # round-off (safety * eps), or the simulation's own tolerance (residual.accuracy,
-        # e.g. Newton's rtol: remainders below ~10x that are its noise, not Taylor's h^2)
-        floors.append(max(safety * eps, 10.0 * accuracy) * size / safety)
+        # round-off of forming r = y - data (relative to everything, the data included),
+        # or the simulation's own tolerance (residual.accuracy, e.g. Newton's rtol:
+        # remainders below ~10x that are its noise, not Taylor's h^2). The latter is
+        # relative to the residuals, not to the data: a Newton-solved position is exact to
+        # rtol of what it moved, not of where it is (the arm: ||data|| = 160 m against
+        # ||r|| = 0.64 m put the floor 100x above the measured plateau and cut the window
+        # off before its rate had settled).
+        size = _norm(r_h) + r0_norm + h * jv_norm
+        floors.append(max(eps * (size + data_norm), 10.0 * accuracy * size / safety))
 
     finite = [e for e in remainders if math.isfinite(e)]
     if not finite:

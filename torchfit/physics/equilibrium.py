@@ -844,8 +844,9 @@ class EquilibriumLinearization:
         if len(factors) == 1:
             # SuperLU returns column-major blocks: row gathers on them are 10x slower
             return factors[0].solve(rhs.contiguous(), transpose=transpose).to(rhs).contiguous()
-        return torch.stack([f.solve(rhs[:, i].contiguous(), transpose=transpose).to(rhs)
-                            for i, f in enumerate(factors)], dim=1)
+        rows = rhs.T.contiguous()          # one frame per row: contiguous right-hand sides
+        return torch.stack([f.solve(row, transpose=transpose).to(rhs)
+                            for f, row in zip(factors, rows)], dim=1)
 
     def _param_matrices(self) -> tuple[Tensor, Tensor] | None:
         """``dR_free/dparams`` as CSR ``(n_free * F, n_params)`` (row ``i * F + f``) and its

@@ -51,6 +51,7 @@ from ..params import Parameterization, per_element
 from ..physics import NewtonOptions
 from ..physics.dynamics import DynamicSystem, KeyedMotion
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
+from ..residual import ForwardProducts
 from .base import (Backend, Choice, DType, InverseProblem, ProblemConfig, ProblemConfigError,
                    check_newton_settings, make_config, require_setting, resolve_backend)
 from .dynamic import DynamicMixin, Integrator, OdeMethod, Scheme, check_dynamic_settings
@@ -240,6 +241,38 @@ class Membrane2D(InverseProblem):
         """Both coordinates of every free vertex, frame-major ``(F * n_free * 2,)``."""
         return x[:, self.observed_vertices.to(x.device), :].reshape(-1)
 
+    def forward_products(self, theta: Tensor) -> ForwardProducts:
+        """:meth:`forward` at ``theta`` with explicit ``J v`` and ``J^T w``: the map's
+        diagonal, the equilibrium's free-dof products (one solve per frame with its stored
+        factor, ``dR/dE`` by the model's ``param_derivative``) and the gather of the
+        observed dofs. No autograd graph (the static problem only; ``dynamic=true`` keeps
+        autograd through its trajectory)."""
+        theta = theta.detach()
+        E = self.parameterization(theta)
+        state = self.quasistatic.linearization(E, self.dirichlet_positions.to(E))
+        rows = self._observed_free_rows(state.x.device)
+        n_free, n_frames = self.quasistatic.equilibrium.free_dofs.numel(), state.n_frames
+
+        def jvp(v: Tensor) -> Tensor:
+            dx = state.free_jvp(self.parameterization.jvp(theta, v))      # (n_free, F)
+            return dx.index_select(0, rows).T.reshape(-1)
+
+        def vjp(w: Tensor) -> Tensor:
+            grad = w.new_zeros(n_free, n_frames)
+            grad.index_copy_(0, rows, w.view(n_frames, -1).T)
+            return self.parameterization.vjp(theta, state.free_vjp(grad))
+
+        x = state.x.reshape(n_frames, self.model.n_vertices, -1)
+        return ForwardProducts(self.observe(x), jvp, vjp)
+
+    def _observed_free_rows(self, device: torch.device) -> Tensor:
+        """Rows of the observed dofs (vertex-major, both coordinates) among the free dofs."""
+        if getattr(self, "_free_rows", None) is None:
+            dim = self.model.rest.points.shape[1]
+            dofs = (dim * self.observed_vertices.cpu()[:, None] + torch.arange(dim)).reshape(-1)
+            self._free_rows = self.quasistatic.equilibrium.free_position(dofs)
+        return self._free_rows.to(device)
+
     def simulate_jacobian(self, E: Tensor, directions: Tensor) -> Tensor:
         """``(dx/dE) directions`` ``(8, n_vertices, 2, k)``: one solve with ``k`` right-hand
         sides per frame at the stored solution (gives :meth:`forward_jacobian`; the
@@ -293,6 +326,9 @@ class Membrane2D(InverseProblem):
 class DynamicMembrane2D(DynamicMixin, Membrane2D):
     """The sheet in motion (``problem.dynamic=true``; module docstring): fit ``E`` per
     triangle with ``alpha`` and ``beta`` to vertex positions at the output times."""
+
+    # the motion goes through the trajectory's own autograd Function, not the equilibrium
+    forward_products = InverseProblem.forward_products
 
     scale_free = False
 

@@ -142,6 +142,17 @@ class QuasistaticElasticity:
         x = self.equilibrium(E, values, self._start(E, values, x_init))
         return x.reshape(values.shape[0], self.model.n_vertices, self.dim)
 
+    def linearization(self, E: Tensor, positions: Tensor | Sequence[Tensor],
+                      x_init: Tensor | None = None):
+        """The equilibrium of every frame at ``E`` with explicit derivative products
+        (:class:`~torchfit.physics.equilibrium.EquilibriumLinearization`; ``x`` is
+        ``(F, n_dofs)``, the free-dof products are ``(n_free, F)``). Solved exactly as
+        :meth:`__call__` solves (or taken from its cache); no autograd graph."""
+        self.model.check_modulus(E)
+        values = self.dirichlet_values(positions).to(E)
+        return self.equilibrium.linearization(E.detach(), values.detach(),
+                                              self._start(E, values, x_init))
+
     def jacobian(self, E: Tensor, positions: Tensor | Sequence[Tensor], directions: Tensor,
                  x_init: Tensor | None = None) -> Tensor:
         """``(dx/dE) directions``: ``(F, n_vertices, d, k)`` for ``directions`` ``(n_cells, k)``.
