@@ -87,16 +87,11 @@ def test_taylor_and_dot_product(model):
 def test_explicit_products_equal_the_autograd_products(model):
     """The solvers' explicit J v / J^T w (free-dof layout, per-frame factors) against the
     autograd route through the same equilibrium."""
+    from conftest import explicit_and_autograd
+
     problem = Membrane2D(nx=12, ny=3, model=model)
-    g = torch.Generator().manual_seed(2)
-    theta = problem.theta0 + 0.3 * torch.randn(problem.theta0.shape, generator=g,
-                                               dtype=torch.float64)
-    explicit, autograd = problem.residual(), problem.residual(explicit_products=False)
-    assert explicit.products is not None and autograd.products is None
-    lin, reference = explicit.linearize(theta), autograd.linearize(theta)
+    _, lin, reference, v, w = explicit_and_autograd(problem, 2)
     assert torch.allclose(lin.r, reference.r, rtol=0, atol=1e-14)
-    v = torch.randn(theta.shape, generator=g, dtype=torch.float64)
-    w = torch.randn(lin.r.shape, generator=g, dtype=torch.float64)
     assert torch.allclose(lin.jvp(v), reference.jvp(v), rtol=1e-11, atol=1e-14)
     assert torch.allclose(lin.vjp(w), reference.vjp(w), rtol=1e-11, atol=1e-14)
     dynamic = Membrane2D(nx=6, ny=2, dynamic=True)

@@ -76,20 +76,15 @@ def test_explicit_products_equal_the_autograd_products_and_cost_one_solve(data):
     (the definition), a dot-product identity, and one solve per product."""
     from torchfit.verification import dot_product_test, taylor_test
 
+    from conftest import explicit_and_autograd
+
     problem = Poisson2D(N=13, data=data, noise=1e-3)
-    g = torch.Generator().manual_seed(3)
-    theta = problem.theta0 + 0.3 * torch.randn(problem.theta0.shape, generator=g,
-                                               dtype=torch.float64)
-    explicit, autograd = problem.residual(), problem.residual(explicit_products=False)
-    assert explicit.products is not None and autograd.products is None
-    lin, reference = explicit.linearize(theta), autograd.linearize(theta)
+    theta, lin, reference, v, w = explicit_and_autograd(problem, 3)
     assert torch.equal(lin.r, reference.r)
-    v = torch.randn(theta.shape, generator=g, dtype=torch.float64)
-    w = torch.randn(lin.r.shape, generator=g, dtype=torch.float64)
     with counting() as count:
         jv, jtw = lin.jvp(v), lin.vjp(w)
     assert count.factorizations == 0 and count.solves == 2
     assert torch.allclose(jv, reference.jvp(v), rtol=1e-12, atol=1e-15)
     assert torch.allclose(jtw, reference.vjp(w), rtol=1e-12, atol=1e-15)
     assert dot_product_test(lin, v, w).passed(1e-12)
-    assert taylor_test(explicit, theta, v).passed()
+    assert taylor_test(problem.residual(), theta, v).passed()
