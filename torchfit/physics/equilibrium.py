@@ -164,6 +164,8 @@ class Equilibrium:
         # position of every dof among the free ones (-1: Dirichlet)
         self.free_positions = torch.full((model.n_dofs,), -1, dtype=torch.long)
         self.free_positions[self.free_dofs] = torch.arange(self.free_dofs.numel())
+        # CSR layouts of dR_free/dparams, one per entry pattern (EquilibriumLinearization)
+        self._layouts: list[_FreeMatrixLayout] = []
         if self.free_dofs.numel() == 0:
             raise ValueError("every degree of freedom is fixed; nothing to solve")
         self.backend = get_backend(backend)
@@ -307,7 +309,7 @@ class Equilibrium:
                             n_frames: int) -> "_FreeMatrixLayout | None":
         """The CSR layout for this entry pattern (cached: one per pattern in use), or
         ``None`` when the entries repeat a position (then the products use jvp/vjp)."""
-        layouts = self.__dict__.setdefault("_layouts", [])
+        layouts = self._layouts
         for layout in layouts:
             if layout.matches(rows, cols, shape):
                 return layout if layout.unique else None
