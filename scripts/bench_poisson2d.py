@@ -47,6 +47,7 @@ if str(ROOT) not in sys.path:
 from benchtools import (ProblemBench, emit_report, loadavg, machine_info,  # noqa: E402
                         timed)
 from torchfit.problems import Poisson2D  # noqa: E402
+from torchfit.problems.poisson2d import Poisson2DConfig  # noqa: E402
 from torchfit.solvers.gauss_newton import GaussNewtonConfig, gauss_newton  # noqa: E402
 
 BACKWARD_RATIO_TARGET = 0.15
@@ -113,7 +114,8 @@ def run(sizes: list[int], gn_sizes: list[int], repeats: int, noise: float, seed:
         "machine": machine_info(),
         "loadavg_start": loadavg(),
         "settings": {"sizes": sizes, "gn_sizes": gn_sizes, "repeats": repeats,
-                     "noise": noise, "seed": seed, "backend": "scipy", "dtype": "float64",
+                     "noise": noise, "seed": seed,
+                     "backend": Poisson2DConfig.backend.value, "dtype": "float64",
                      "solver": dataclasses.asdict(solver),
                      "timing": "time.perf_counter; median over repeats after one warm-up; "
                                "forward from a cleared equilibrium cache"},

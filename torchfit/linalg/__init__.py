@@ -6,6 +6,7 @@ from .cg import CGLSResult, batched_cg, cgls
 from .cudss import (CUDA_EXTRA, CudssBackend, CudssUnavailableError, GpuMemoryError,
                     cudss_available)
 from .errors import BackendDeviceError
+from .ldl import LdlBackend, LdlFactor
 from .counters import COUNTERS, SolveCounters, counting, reset_counters
 from .pardiso import PardisoError, PardisoUnavailableError, pardiso_available
 from .pattern import SparsePattern, coo_to_csr, csr_matrix
@@ -14,7 +15,7 @@ from .threads import blas_threads, set_threads
 
 __all__ = [
     "BackendDeviceError", "BandedBackend", "Backend", "CUDA_EXTRA", "CudssBackend",
-    "CudssUnavailableError", "GpuMemoryError", "cudss_available", "CGBackend", "CGLSResult", "COUNTERS", "DEFAULT_CACHE", "Factor",
+    "CudssUnavailableError", "GpuMemoryError", "cudss_available", "CGBackend", "LdlBackend", "LdlFactor", "CGLSResult", "COUNTERS", "DEFAULT_CACHE", "Factor",
     "FactorCache", "PardisoBackend", "PardisoError", "PardisoFactor", "PardisoPlan",
     "PardisoUnavailableError", "ScipyBackend", "SingularMatrixError", "SolveCounters",
     "SparsePattern", "batched_cg", "coo_to_csr", "csr_matrix", "blas_threads", "cgls", "counting", "default_backend",

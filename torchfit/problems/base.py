@@ -89,13 +89,16 @@ class Transform(Choice):
 
 
 class Backend(Choice):
-    """Linear-solve backend: ``scipy`` (CPU direct), ``banded`` (CPU banded Cholesky),
+    """Linear-solve backend: ``scipy`` (CPU direct, SuperLU), ``ldl`` (CPU sparse
+    ``L D L^T`` with the analysis reused, SPD; SuperLU otherwise), ``banded`` (CPU banded
+    Cholesky),
     ``pardiso`` (CPU, MKL PARDISO, the optional extra ``torchfit[pardiso]``), ``cudss``
     (CUDA sparse direct, the optional extra ``torchfit[cuda]``), ``cg`` (torch Jacobi-CG,
     any device); ``auto`` lets the problem choose (3-D: pardiso where installed, else
     scipy; on CUDA cudss where installed, else cg)."""
 
     scipy = "scipy"
+    ldl = "ldl"
     banded = "banded"
     pardiso = "pardiso"
     cudss = "cudss"
@@ -111,7 +114,7 @@ class DType(Choice):
 
 
 #: Backends that factorise on the CPU (a problem on another device needs ``cg``).
-CPU_BACKENDS = (Backend.scipy, Backend.banded, Backend.pardiso)
+CPU_BACKENDS = (Backend.scipy, Backend.ldl, Backend.banded, Backend.pardiso)
 #: Device names understood by :func:`resolve_device` (``cuda:N`` picks a GPU).
 DEVICE_CHOICES = ("cpu", "cuda", "cuda:N", "mps")
 _DEVICE = re.compile(r"^(cpu|cuda|mps)(?::(\d+))?$")

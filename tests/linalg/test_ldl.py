@@ -1,0 +1,101 @@
+"""The ``ldl`` backend (qdldl): agreement with SuperLU, one ordering per pattern, live
+factors that stay valid, fallbacks for matrices an unpivoted ``L D L^T`` must not take."""
+from __future__ import annotations
+
+import gc
+
+import pytest
+import torch
+
+from torchfit.linalg import (ScipyBackend, SingularMatrixError, SparsePattern, counting,
+                             get_backend, sparse_solve)
+from torchfit.linalg.ldl import LdlBackend
+
+from grid_matrices import grid_laplacian
+
+
+def test_ldl_solve_matches_superlu_and_counts():
+    pattern, values = grid_laplacian(20, 15)          # scrambled numbering
+    rhs = torch.randn(pattern.shape[0], 3, dtype=torch.float64,
+                      generator=torch.Generator().manual_seed(1))
+    backend = get_backend("ldl")
+    with counting() as count:
+        factor = backend.factorize(pattern, values, symmetric=True)
+        x = factor.solve(rhs)
+        x1 = factor.solve(rhs[:, 0], transpose=True)
+    assert count.as_dict() == {"factorizations": 1, "solves": 2, "rhs_columns": 4}
+    assert type(factor).__name__ == "LdlFactor" and backend.fallbacks == 0
+    ref = ScipyBackend().factorize(pattern, values, True).solve(rhs)
+    assert torch.allclose(x, ref, rtol=0, atol=1e-11)
+    assert torch.allclose(x1, ref[:, 0], rtol=0, atol=1e-11)
+    assert torch.allclose(pattern.matvec(values, x1), rhs[:, 0], rtol=0, atol=1e-10)
+
+
+def test_one_analysis_per_pattern_and_live_factors_stay_valid():
+    """A second factor of the pattern (the first one alive) gets a solver of its own; a
+    factor that was garbage collected gives its solver (and its ordering) to the next one,
+    which re-runs only the numeric factorisation."""
+    pattern, values = grid_laplacian(12, 9, seed=3)
+    backend = LdlBackend(fallback=ScipyBackend())
+    plan = backend.plan(pattern)
+    rhs = torch.randn(pattern.shape[0], dtype=torch.float64,
+                      generator=torch.Generator().manual_seed(2))
+    first = backend.factorize(pattern, values, True)
+    second = backend.factorize(pattern, 2.0 * values, True)
+    assert plan.analyses == 2
+    # each factor still solves its own matrix
+    assert torch.allclose(pattern.matvec(values, first.solve(rhs)), rhs, atol=1e-10)
+    assert torch.allclose(pattern.matvec(2.0 * values, second.solve(rhs)), rhs, atol=1e-10)
+    del first
+    gc.collect()
+    for scale in (3.0, 4.0, 5.0):                    # reuse: no further analysis
+        factor = backend.factorize(pattern, scale * values, True)
+        assert torch.allclose(pattern.matvec(scale * values, factor.solve(rhs)), rhs,
+                              atol=1e-10)
+        del factor
+    assert plan.analyses == 2
+    # another backend object shares the plan (sparse_solve makes one per call)
+    assert get_backend("ldl").plan(pattern) is plan
+
+
+def test_ldl_hands_indefinite_nonsymmetric_and_singular_matrices_to_superlu():
+    pattern, values = grid_laplacian(10, 6, shift=-2.0)        # indefinite
+    backend = LdlBackend(fallback=ScipyBackend())
+    factor = backend.factorize(pattern, values, symmetric=True)
+    assert type(factor).__name__ == "ScipyFactor" and backend.fallbacks == 1
+    rhs = torch.randn(pattern.shape[0], dtype=torch.float64)
+    assert torch.allclose(pattern.matvec(values, factor.solve(rhs)), rhs, atol=1e-9)
+    # the indefinite attempt left its solver in the pool: the next SPD matrix reuses it
+    spd_values = grid_laplacian(10, 6)[1]
+    factor = backend.factorize(pattern, spd_values, symmetric=True)
+    assert type(factor).__name__ == "LdlFactor" and backend.plan(pattern).analyses == 1
+    # nonsymmetric matrices are never factorised without pivoting
+    assert type(backend.factorize(pattern, values, symmetric=False)).__name__ == "ScipyFactor"
+    # a singular matrix (pure Neumann Laplacian) is reported by SuperLU, not solved
+    singular = SparsePattern(torch.tensor([0, 0, 1, 1]), torch.tensor([0, 1, 0, 1]), (2, 2))
+    with pytest.raises(SingularMatrixError):
+        backend.factorize(singular, torch.tensor([1.0, -1.0, -1.0, 1.0],
+                                                 dtype=torch.float64), True)
+    with pytest.raises(SingularMatrixError, match="NaN"):
+        backend.factorize(pattern, torch.full_like(values, float("nan")), True)
+
+
+def test_ldl_sparse_solve_gradients_match_superlu():
+    pattern, values = grid_laplacian(8, 5)
+    rhs = torch.randn(pattern.shape[0], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda b: sparse_solve(pattern, values, b, backend="ldl"),
+                                    (rhs,))
+    grads = []
+    for backend in ("ldl", "scipy"):
+        v = values.clone().requires_grad_(True)
+        x = sparse_solve(pattern, v, rhs.detach(), backend=backend)
+        grads.append(torch.autograd.grad(x.square().sum(), v)[0])
+    assert torch.allclose(grads[0], grads[1], rtol=0, atol=1e-10)
+
+
+def test_ldl_refuses_cuda_tensors_by_name():
+    pattern, values = grid_laplacian(4, 3)
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    with pytest.raises(Exception, match="ldl"):
+        get_backend("ldl").factorize(pattern, values.cuda(), True)
