@@ -7,8 +7,8 @@ import gc
 import pytest
 import torch
 
-from torchfit.linalg import (ScipyBackend, SingularMatrixError, SparsePattern, counting,
-                             get_backend, sparse_solve)
+from torchfit.linalg import (BackendDeviceError, ScipyBackend, SingularMatrixError,
+                             SparsePattern, counting, get_backend, sparse_solve)
 from torchfit.linalg.ldl import LdlBackend
 
 from grid_matrices import grid_laplacian
@@ -93,9 +93,13 @@ def test_ldl_sparse_solve_gradients_match_superlu():
     assert torch.allclose(grads[0], grads[1], rtol=0, atol=1e-10)
 
 
-def test_ldl_refuses_cuda_tensors_by_name():
+def test_ldl_refuses_tensors_off_the_cpu_by_name():
+    """Checked on the ``meta`` device, which every machine has (CUDA tensors take the same
+    branch: ``device.type != 'cpu'``)."""
     pattern, values = grid_laplacian(4, 3)
-    if not torch.cuda.is_available():
-        pytest.skip("no CUDA device")
-    with pytest.raises(Exception, match="ldl"):
-        get_backend("ldl").factorize(pattern, values.cuda(), True)
+    backend = get_backend("ldl")
+    with pytest.raises(BackendDeviceError, match="the ldl backend runs on the CPU"):
+        backend.factorize(pattern, values.to("meta"), True)
+    factor = backend.factorize(pattern, values, True)
+    with pytest.raises(BackendDeviceError, match="the ldl backend runs on the CPU"):
+        factor.solve(torch.zeros(pattern.shape[0], dtype=torch.float64, device="meta"))

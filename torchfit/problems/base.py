@@ -91,11 +91,10 @@ class Transform(Choice):
 class Backend(Choice):
     """Linear-solve backend: ``scipy`` (CPU direct, SuperLU), ``ldl`` (CPU sparse
     ``L D L^T`` with the analysis reused, SPD; SuperLU otherwise), ``banded`` (CPU banded
-    Cholesky),
-    ``pardiso`` (CPU, MKL PARDISO, the optional extra ``torchfit[pardiso]``), ``cudss``
-    (CUDA sparse direct, the optional extra ``torchfit[cuda]``), ``cg`` (torch Jacobi-CG,
-    any device); ``auto`` lets the problem choose (3-D: pardiso where installed, else
-    scipy; on CUDA cudss where installed, else cg)."""
+    Cholesky), ``pardiso`` (CPU, MKL PARDISO, the optional extra ``torchfit[pardiso]``),
+    ``cudss`` (CUDA sparse direct, the optional extra ``torchfit[cuda]``), ``cg`` (torch
+    Jacobi-CG, any device); ``auto`` lets the problem choose (3-D: pardiso where
+    installed, else scipy; on CUDA cudss where installed, else cg)."""
 
     scipy = "scipy"
     ldl = "ldl"
