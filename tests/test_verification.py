@@ -191,3 +191,41 @@ def test_default_fd_tolerance_follows_the_simulation_accuracy():
     theta = torch.tensor([0.3, -0.2, 0.1], dtype=torch.float64)
     assert verify(newton, theta).fd_tol == pytest.approx(2.154e-5, rel=1e-3)
     assert verify(newton, theta, fd_tol=1e-7).fd_tol == 1e-7
+
+
+class _SolverFloorResidual:
+    """A quadratic residual observed through an iterative solve: away from ``theta0`` every
+    value carries a solver error of about ``floor`` that shrinks only slowly with the step
+    (the 2-frame stable neo-Hookean arm: remainders 5.8e-7 at rate 2 down to 6.8e-10, then
+    2.9e-10 for 14 halvings, each a little lower than the last)."""
+
+    def __init__(self, floor: float, theta0: torch.Tensor) -> None:
+        g = torch.Generator().manual_seed(5)
+        self.a = torch.randn(40, theta0.numel(), generator=g, dtype=torch.float64)
+        self.u = torch.randn(40, generator=g, dtype=torch.float64)
+        self.u /= torch.linalg.vector_norm(self.u)
+        self.data = torch.randn(40, generator=g, dtype=torch.float64)
+        self.floor, self.theta0 = floor, theta0
+
+    def _exact(self, theta):
+        z = self.a @ theta
+        return z + 0.5 * z.square() - self.data
+
+    def value(self, theta):
+        distance = float(torch.linalg.vector_norm(theta - self.theta0))
+        error = 0.0 if distance == 0 else self.floor * (1.0 + 0.01 * math.log10(max(distance, 1e-300)) / 20)
+        return self._exact(theta) + error * self.u
+
+    def linearize(self, theta):
+        residual = ResidualFunction(lambda th: self.a @ th + 0.5 * (self.a @ th).square(),
+                                    self.data)
+        return residual.linearize(theta)
+
+
+def test_a_slowly_sinking_solver_floor_is_not_taken_for_the_asymptotic_window():
+    theta = torch.full((6,), 0.1, dtype=torch.float64)
+    residual = _SolverFloorResidual(3e-10, theta)
+    direction = torch.linspace(-1.0, 1.0, 6, dtype=torch.float64)
+    result = taylor_test(residual, theta, direction, relative_step=0.003)
+    assert abs(result.rate - 2.0) <= 0.05, result.rates
+    assert result.window[1] <= 12          # the window ends before the floor
