@@ -411,9 +411,13 @@ class SplitBregman(Solver):
             return
         self.admm_window.append(admm_residual)
         if len(self.admm_window) > window and self.admm_window[-1] >= self.admm_window[-1 - window]:
-            self.b = self.b * 0.5
-            self.beta = 2.0 * self.beta
+            self._rescale_beta(2.0 * self.beta)
             self.admm_window = []
+
+    def _rescale_beta(self, beta_new: float) -> None:
+        """Change the splitting weight keeping the multiplier ``beta b`` (scaled ADMM)."""
+        self.b = self.b * (self.beta / beta_new)
+        self.beta = beta_new
 
     def _adapt_beta(self, lam_hat: Tensor, primal_rel: float, dual_rel: float) -> None:
         """Spectral (Barzilai-Borwein) estimate, else residual balancing; keeps ``beta b``."""
@@ -427,8 +431,7 @@ class SplitBregman(Solver):
                 # relative residuals as Wohlberg 2017).
                 beta_new = self.beta * (2.0 if primal_rel > dual_rel else 0.5)
         if beta_new is not None and beta_new != self.beta:
-            self.b = self.b * (self.beta / beta_new)
-            self.beta = beta_new
+            self._rescale_beta(beta_new)
         self.spectral = (self.Dtheta, lam_hat)
 
     def _end_stage(self, status: str) -> Stop | None:
@@ -557,7 +560,7 @@ class SplitBregman(Solver):
         self.rejections += 1
         self.admm_residual = 0.0         # the retry solves its inner problem tightly
         self.model.restore(self.lin)
-        self.beta, self.b = 2.0 * self.beta, self.b / 2.0
+        self._rescale_beta(2.0 * self.beta)
         self.spectral = None
         self.pending = "rejected"
         return self._record(0.0, cg_its, damping, False, dual_residual=math.nan,
