@@ -80,5 +80,18 @@ def test_tensorboard_shows_meshes_and_per_frame_curves(capsule_run, tensorboard_
     assert shapes[2] == [1, len(problem.animation.faces), 3]
     curves = server.scalars(run_name, "frames/surface_err_mean")
     assert [step for step, _ in curves] == list(range(problem.n_frames))
-    errors = problem.frame_errors(problem.simulate(result.field))["surface_err_mean"]
-    assert np.allclose([v for _, v in curves], errors, rtol=1e-6)
+    per_frame = problem.frame_errors(problem.simulate(result.field))
+    assert np.allclose([v for _, v in curves], per_frame["surface_err_mean"], rtol=1e-6)
+    inverted = server.scalars(run_name, f"frames/inverted_tets_{problem.cfg.model.value}")
+    assert [v for _, v in inverted] == per_frame["inverted_tets"].tolist()
+
+
+def test_frames_with_inverted_tetrahedra_are_named_in_one_warning(caplog):
+    from torchfit.logging.meshes import _warn_inverted
+
+    with caplog.at_level("WARNING", logger="torchfit.progress"):
+        _warn_inverted(np.array([0, 0, 3, 4, 0, 1, 0]))
+        _warn_inverted(np.zeros(5, dtype=int))       # nothing inverted: nothing said
+    (record,) = caplog.records
+    assert "frames 2-3, 5 have tetrahedra turned inside out" in record.getMessage()
+    assert "(at most 4)" in record.getMessage()

@@ -293,3 +293,44 @@ def test_linearization_needs_a_param_derivative():
     model, eq, fixed = make_hardening(4)
     with pytest.raises(TypeError, match="param_derivative"):
         eq.linearization(torch.ones(4), fixed)
+
+
+class DoubleWell:
+    """One free dof in the energy ``x^4 / 4 - x^2 / 2 - a x``: two stable equilibria (near
+    -1 and +1) while ``|a| < 0.385``, one beyond. Dof 0 is a fixed dummy."""
+
+    linear = False
+    symmetric = True
+    n_dofs = 2
+    tangent_pattern = SparsePattern(torch.tensor([0, 1]), torch.tensor([0, 1]), (2, 2))
+
+    def residual(self, x, a):
+        free = x[:, 1:] ** 3 - x[:, 1:] - a
+        return torch.cat([torch.zeros_like(free), free], dim=1)
+
+    def tangent_values(self, x, a):
+        return torch.stack([torch.ones_like(x[:, 1]), 3 * x[:, 1] ** 2 - 1], dim=-1)
+
+
+@pytest.mark.parametrize("derivative_taken", [True, False])
+def test_warm_start_comes_from_the_point_derivatives_were_taken_at(derivative_taken):
+    """A solver linearises at a point, tries a far one (rejected) and then a near one: the
+    near one starts from the linearisation point and stays in its well. Without a
+    linearisation the most recent solution is the start (the other well)."""
+    eq = Equilibrium(DoubleWell(), torch.tensor([0]), newton=NewtonOptions(rtol=1e-12))
+    fixed = torch.zeros(1, 1, dtype=torch.float64)
+    start = torch.tensor([[0.0, 1.2]], dtype=torch.float64)
+    a = torch.tensor([0.0], dtype=torch.float64, requires_grad=True)
+    x = eq(a, fixed, start)
+    assert abs(float(x[0, 1].detach()) - 1.0) < 1e-10
+    if derivative_taken:
+        (slope,) = torch.autograd.grad(x[0, 1], a)     # dx/da = 1 / (3 x^2 - 1) = 0.5
+        assert abs(float(slope) - 0.5) < 1e-10
+    far = eq(torch.tensor([-1.0], dtype=torch.float64), fixed, start)
+    assert float(far[0, 1]) < -1.3                     # the only equilibrium there
+    near = eq(torch.tensor([0.05], dtype=torch.float64), fixed, start)
+    assert eq.last_warm_started
+    if derivative_taken:
+        assert abs(float(near[0, 1]) - 1.0) < 0.05     # the linearisation point's well
+    else:
+        assert abs(float(near[0, 1]) + 1.0) < 0.05     # the rejected trial's well

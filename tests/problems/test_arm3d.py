@@ -52,6 +52,28 @@ def test_forward_jacobian_matches_jvps(cache):
         assert torch.allclose(J[:, j], column, rtol=1e-9, atol=1e-12 * column.abs().max())
 
 
+@pytest.mark.parametrize("warm_start", [True, False])
+def test_warm_start_setting_decides_where_newton_starts(cache, warm_start):
+    """``problem.warm_start=false`` starts every simulation from the animated pose (the
+    definition in PROBLEMS.md): the answer at a parameter vector does not depend on the ones
+    simulated before it. The default starts from the last solution."""
+    problem = arm(cache, frames=[0, 11], warm_start=warm_start)
+    equilibrium = problem.quasistatic.equilibrium
+    E0 = problem.parameterization(problem.theta0)
+    E1 = E0 * torch.linspace(0.5, 2.0, E0.numel(), dtype=E0.dtype)
+    problem.simulate(E0)
+    after_other = problem.simulate(E1)
+    assert equilibrium.last_warm_started == warm_start
+    cold_iterations = None
+    if not warm_start:
+        equilibrium.clear_cache()
+        alone = problem.simulate(E1)
+        # the same Newton path: equal up to round-off of the threaded factorisation
+        assert float((after_other - alone).abs().max()) <= 1e-12
+        cold_iterations = equilibrium.last_newton_iterations
+    assert cold_iterations is None or cold_iterations[1] > 0
+
+
 @pytest.mark.parametrize("model", ["linear", pytest.param("corotated", marks=pytest.mark.slow),
                                    pytest.param("stable_neo_hookean", marks=pytest.mark.slow)])
 def test_verify_passes_for_each_model(cache, tmp_path, model):
@@ -83,6 +105,19 @@ def test_linear_flattens_more_than_corotated_at_full_bend(cache):
         change[model] = float(signed_volumes(x[0].numpy(), cells).sum()) / rest - 1.0
         assert np.isfinite(problem.joint_volume_change(x)[0])
     assert change["linear"] < -0.3 and abs(change["corotated"]) < 0.05, change
+
+
+def test_inverted_tetrahedra_are_counted_per_frame(cache):
+    problem = arm(cache, frames=[0, 11])
+    rest = torch.as_tensor(problem.mesh.points)
+    mirrored = rest * torch.tensor([-1.0, 1.0, 1.0], dtype=rest.dtype)   # every tet inside out
+    one = rest.clone()
+    a, b, c, d = problem.mesh.cells[0]
+    one[d] = one[a] - (one[d] - one[a])      # reflect one corner through another: one tet
+    counts = problem.inverted_tets(torch.stack([rest, mirrored, one]))
+    assert counts[0] == 0 and counts[1] == problem.model.n_cells and counts[2] >= 1
+    assert problem.metrics(problem.theta0)["inverted_tets"] == float(
+        problem.inverted_tets(problem.simulate(problem.field(problem.theta0))).max())
 
 
 def test_bad_settings_are_one_line(cache):

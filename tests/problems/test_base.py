@@ -192,7 +192,7 @@ def test_metric_names_are_the_metric_keys(name):
             expected.add("k_err_rel_aligned")
     if isinstance(problem, BodyProblem):     # a body fitted to an animation (arm3d, animation)
         expected |= {"surface_err_mean", "surface_err_max", "surface_err_reduction",
-                     "joint_volume_change"}
+                     "joint_volume_change", "inverted_tets"}
     assert set(problem.metric_names()) == expected
 
 

@@ -155,6 +155,7 @@ class BodyOutputs:
         field = problem.field(theta).detach()
         with torch.no_grad():
             x = problem.simulate(field)
+        _warn_inverted(problem.frame_errors(x).get("inverted_tets"))
         files: list[Path] = []
         comparison: dict[str, Any] = {}
         steps = [
@@ -263,6 +264,8 @@ class BodyOutputs:
         model = problem.cfg.model.value
         for f, value in enumerate(curves["joint_volume_change"]):
             writer.add_scalar(f"frames/joint_volume_change_{model}", float(value), f)
+        for f, value in enumerate(curves["inverted_tets"]):
+            writer.add_scalar(f"frames/inverted_tets_{model}", float(value), f)
         writer.flush()
         return []
 
@@ -321,6 +324,7 @@ class BodyOutputs:
                     "joint_volume_change_at_frame": float(curves["joint_volume_change"][frame]),
                     "surface_err_mean_per_frame": curves["surface_err_mean"].tolist(),
                     "joint_volume_change_per_frame": curves["joint_volume_change"].tolist(),
+                    "inverted_tets_per_frame": curves["inverted_tets"].tolist(),
                 }
         json_path = self.run_dir / COMPARISON_JSON
         write_json(json_path, summary)
@@ -353,3 +357,19 @@ class BodyOutputs:
             shutil.rmtree(target)
         shutil.copytree(source, target)
         return [target / source.joinpath("animation.yaml").name]
+
+
+def _warn_inverted(counts: np.ndarray | None) -> None:
+    """One log line naming the frames whose equilibrium has inverted tetrahedra (where
+    Newton can reach several equilibria, so the frame depends on where it started)."""
+    if counts is None or not np.any(counts > 0):
+        return
+    frames = np.flatnonzero(counts > 0)
+    # consecutive frames as ranges: 8-15, 30
+    breaks = np.flatnonzero(np.diff(frames) > 1)
+    starts, ends = np.r_[frames[0], frames[breaks + 1]], np.r_[frames[breaks], frames[-1]]
+    spans = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends))
+    progress.warning("frames %s have tetrahedra turned inside out at equilibrium (at most %d): "
+                     "a frame like that has several equilibria, and which one Newton reaches "
+                     "depends on where it starts (docs/problems/arm3d.md, 'Several equilibria "
+                     "near full bend')", spans, int(counts.max()))

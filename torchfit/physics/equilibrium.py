@@ -40,9 +40,11 @@ dense Jacobian in the time of about one forward-mode product per frame block, wh
 ``k`` separate jvps cost ``k F`` solves and ``k`` passes through the model.
 
 Warm start: with ``warm_start=True`` (the default), a new parameter vector with the
-same Dirichlet values as the most recently used solution starts Newton from that
-solution (Levenberg-Marquardt and Gauss-Newton evaluate nearby points one after the
-other). Convergence is still judged against the reference residual of the cold start,
+same Dirichlet values starts Newton from an earlier solution (Levenberg-Marquardt and
+Gauss-Newton evaluate nearby points one after the other): the one derivatives were last
+taken at (a solver's linearisation point) while it is alive, else the most recently used
+one. A trial point after a rejected step thus starts from the point the solver's model
+linearises, not from the rejected trial, which near a fold may sit in another equilibrium. Convergence is still judged against the reference residual of the cold start,
 so results agree with a cold start to the Newton tolerance; a warm start that fails
 falls back to the cold start.
 """
@@ -174,6 +176,8 @@ class Equilibrium:
         self._cache: list[_Solution] = []
         # Solutions still referenced by a live autograd graph (ctx.solution).
         self._alive: weakref.WeakSet[_Solution] = weakref.WeakSet()
+        # The solution derivatives were last taken at (the first choice of a warm start).
+        self._anchor: weakref.ref[_Solution] | None = None
         # Reduced (free-free) tangent pattern and the slots it takes, built once.
         self.free_pattern, self._free_slots = model.tangent_pattern.submatrix(
             self.free_dofs, self.free_dofs)
@@ -413,6 +417,7 @@ class Equilibrium:
     def clear_cache(self) -> None:
         self._cache.clear()
         self._alive = weakref.WeakSet()
+        self._anchor = None
 
     # -- internals --------------------------------------------------------------------
     def _lookup(self, params: Tensor, fixed_values: Tensor) -> _Solution | None:
@@ -515,13 +520,15 @@ class Equilibrium:
         return self._full(x_free, fixed_values)
 
     def _warm_source(self, fixed_values: Tensor) -> _Solution | None:
-        """The most recently used solution with the same Dirichlet values, if any."""
-        if not self.warm_start or self.model.linear or not self._cache:
+        """The solution derivatives were last taken at, else the most recently used one,
+        if it has the same Dirichlet values."""
+        if not self.warm_start or self.model.linear:
             return None
-        sol = self._cache[-1]
-        if sol.fixed_values.shape == fixed_values.shape and sol.reference is not None \
-                and torch.equal(sol.fixed_values, fixed_values):
-            return sol
+        anchor = self._anchor() if self._anchor is not None else None
+        for sol in ([anchor] if anchor is not None else []) + self._cache[-1:]:
+            if sol.fixed_values.shape == fixed_values.shape and sol.reference is not None \
+                    and torch.equal(sol.fixed_values, fixed_values):
+                return sol
         return None
 
     def _solve_forward(self, params: Tensor, fixed_values: Tensor,
@@ -700,6 +707,7 @@ class Equilibrium:
         return sol
 
     def _param_derivative(self, sol: _Solution) -> Any:
+        self._anchor = weakref.ref(sol)
         if sol.param_derivative is None:
             sol.param_derivative = self.model.param_derivative(sol.x.detach(), sol.params)
         return sol.param_derivative
@@ -919,6 +927,7 @@ def _residual_at_solution(eq: Equilibrium, sol: _Solution, wrt_params: bool,
     The stored full solution is used as is unless the Dirichlet values must be
     differentiated, which avoids rebuilding ``x`` in the common case.
     """
+    eq._anchor = weakref.ref(sol)
     params = sol.params.detach().requires_grad_(wrt_params)
     leaves = [params] if wrt_params else []
     if wrt_fixed:

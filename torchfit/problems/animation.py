@@ -112,6 +112,9 @@ class AnimationConfig(ProblemConfig):
     newton_rtol: float = 1e-10
     newton_atol: float = 1e-12
     newton_max_iter: int = 300
+    # Newton's start at a new parameter vector: the last solution (true) or the animated pose
+    # (false, the definition in PROBLEMS.md; see docs/problems/arm3d.md for when it matters)
+    warm_start: bool = True
 
 
 #: largest distance (fraction of the bounding-box diagonal) of a surface vertex outside the
@@ -203,7 +206,8 @@ class AnimationProblem(InverseProblem):
                                atol=cfg.newton_atol, warm_max_iter=cfg.newton_max_iter)
         self.backend = resolve_backend(cfg.backend, self.device, 3)
         self.quasistatic = QuasistaticElasticity(self.model, dirichlet, backend=self.backend,
-                                                 newton=newton, start="rest")
+                                                 newton=newton, start="rest",
+                                                 warm_start=cfg.warm_start)
         self.tet_regions, self.region_names = self.regions(cfg)
         self.joint_cells = self.joint_region(cfg)
         self.full_bend_frame = self.reference_frame()
@@ -479,15 +483,22 @@ class AnimationProblem(InverseProblem):
         """Relative volume change of the joint region per frame ``(F,)`` (``V / V_rest - 1``)."""
         cells = self.mesh.cells[self.joint_cells]
         rest = float(signed_volumes(self.mesh.points, cells).sum())
-        positions = x.detach().cpu().numpy()
-        corners = positions[:, cells]                                        # (F, c, 4, 3)
-        edges = corners[:, :, 1:] - corners[:, :, :1]
-        volumes = np.linalg.det(edges).sum(axis=1) / 6.0
-        return volumes / rest - 1.0
+        return _frame_volumes(x, cells).sum(axis=1) / rest - 1.0
+
+    def inverted_tets(self, x: Tensor) -> np.ndarray:
+        """Tetrahedra turned inside out (signed volume <= 0) per frame ``(F,)``.
+
+        Where a frame's equilibrium has inverted tetrahedra (the inner elbow folding at full
+        bend), Newton can reach several equilibria depending on where it starts, so that
+        frame's simulation is not a unique function of the material: see
+        docs/problems/arm3d.md, "Several equilibria near full bend".
+        """
+        return (_frame_volumes(x, self.mesh.cells) <= 0).sum(axis=1)
 
     def metric_names(self) -> list[str]:
         return super().metric_names() + ["surface_err_mean", "surface_err_max",
-                                         "surface_err_reduction", "joint_volume_change"]
+                                         "surface_err_reduction", "joint_volume_change",
+                                         "inverted_tets"]
 
     def homogeneous_surface_error(self) -> float:
         """Mean surface error of the homogeneous material (any constant: scale-free)."""
@@ -509,6 +520,7 @@ class AnimationProblem(InverseProblem):
         out["surface_err_reduction"] = self.homogeneous_surface_error() / mean if mean > 0 \
             else math.inf
         out["joint_volume_change"] = float(self.joint_volume_change(x)[self.full_bend_frame])
+        out["inverted_tets"] = float(self.inverted_tets(x).max())
         return out
 
     def frame_errors(self, x: Tensor) -> dict[str, np.ndarray]:
@@ -517,7 +529,8 @@ class AnimationProblem(InverseProblem):
             errors = self.surface_errors(x)
         return {"surface_err_mean": errors.mean(dim=1).cpu().numpy(),
                 "surface_err_max": errors.amax(dim=1).cpu().numpy(),
-                "joint_volume_change": self.joint_volume_change(x)}
+                "joint_volume_change": self.joint_volume_change(x),
+                "inverted_tets": self.inverted_tets(x)}
 
     def frame_names(self) -> list[str]:
         return list(self.animation.frame_files)
@@ -578,3 +591,10 @@ class AnimationProblem(InverseProblem):
         if os.environ.get("TORCHFIT_CACHE_DIR"):
             out["cache_dir"] = os.environ["TORCHFIT_CACHE_DIR"]
         return out
+
+
+def _frame_volumes(x: Tensor, cells: np.ndarray) -> np.ndarray:
+    """Signed volumes ``(F, len(cells))`` of ``cells`` at positions ``x`` ``(F, n, 3)``
+    (frame by frame: the corner array of 48 frames of 10k tetrahedra would be 110 MB)."""
+    positions = x.detach().cpu().numpy()
+    return np.stack([signed_volumes(frame, cells) for frame in positions])
