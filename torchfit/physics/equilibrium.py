@@ -44,9 +44,10 @@ same Dirichlet values starts Newton from an earlier solution (Levenberg-Marquard
 Gauss-Newton evaluate nearby points one after the other): the one derivatives were last
 taken at (a solver's linearisation point) while it is alive, else the most recently used
 one. A trial point after a rejected step thus starts from the point the solver's model
-linearises, not from the rejected trial, which near a fold may sit in another equilibrium. Convergence is still judged against the reference residual of the cold start,
-so results agree with a cold start to the Newton tolerance; a warm start that fails
-falls back to the cold start.
+linearises, not from the rejected trial, which near a fold may sit in another equilibrium.
+Convergence is still judged against the reference residual of the cold start, so results
+agree with a cold start to the Newton tolerance where the equilibrium is unique; a warm
+start that fails falls back to the cold start.
 """
 from __future__ import annotations
 

@@ -112,8 +112,9 @@ class AnimationConfig(ProblemConfig):
     newton_rtol: float = 1e-10
     newton_atol: float = 1e-12
     newton_max_iter: int = 300
-    # Newton's start at a new parameter vector: the last solution (true) or the animated pose
-    # (false, the definition in PROBLEMS.md; see docs/problems/arm3d.md for when it matters)
+    # Newton's start at a new parameter vector: an earlier solution (true; the solver's current
+    # point where it is known) or the animated pose (false, the definition in PROBLEMS.md; see
+    # docs/problems/arm3d.md, "Several equilibria near full bend", for when it matters)
     warm_start: bool = True
 
 
