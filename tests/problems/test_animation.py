@@ -49,7 +49,9 @@ def test_capsule_fits_and_rerun_hits_the_tet_cache(tmp_path, cache, mode, frames
         assert problem.observed_vertices.numel() == int((~problem.animation.driven.mask).sum())
     else:
         assert problem.observed_vertices.numel() == problem.animation.n_vertices
-    result = fit(problem, {"name": "levenberg_marquardt", "max_iter": 8, "max_step": 1.0})
+    # pytetwild's mesh differs from run to run (1.8k-4.2k tets here): 8 iterations fell short
+    # on 3 of 14 fresh meshes (up to 0.11, once in CI); with 20, 8 of 8 ended below 3e-7
+    result = fit(problem, {"name": "levenberg_marquardt", "max_iter": 20, "max_step": 1.0})
     assert result.metrics["k_err_rel_aligned"] < 1e-3
     assert result.metrics["surface_err_mean"] < 1e-6
     again = problem_for(folder, cache, target="synthetic", truth="blocks",
