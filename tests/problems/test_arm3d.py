@@ -64,14 +64,11 @@ def test_warm_start_setting_decides_where_newton_starts(cache, warm_start):
     problem.simulate(E0)
     after_other = problem.simulate(E1)
     assert equilibrium.last_warm_started == warm_start
-    cold_iterations = None
     if not warm_start:
         equilibrium.clear_cache()
         alone = problem.simulate(E1)
         # the same Newton path: equal up to round-off of the threaded factorisation
         assert float((after_other - alone).abs().max()) <= 1e-12
-        cold_iterations = equilibrium.last_newton_iterations
-    assert cold_iterations is None or cold_iterations[1] > 0
 
 
 @pytest.mark.parametrize("model", ["linear", pytest.param("corotated", marks=pytest.mark.slow),
