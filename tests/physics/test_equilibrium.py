@@ -198,6 +198,18 @@ def test_jacobian_columns_are_the_jvps_and_cost_one_solve_per_frame(material):
     reference = _jvp_columns(lambda e: qs(e, positions), E, V)
     assert _relative(J, reference) < 1e-10
     assert float(J[:, torch.cat([bottom, top])].abs().max()) == 0.0   # Dirichlet vertices
+    # an observation applied frame by frame: the same columns, observed; the same counts
+    n_dofs = model.n_vertices * 3
+    observe = torch.randn(5, n_dofs, generator=g, dtype=torch.float64)
+    observe[:, 1::2] = 0.0                       # sparse, some Dirichlet columns included
+    for given in (observe.to_sparse_coo(), observe.to_sparse_csr(), observe):
+        with counting() as count:
+            observed = qs.jacobian(E, positions, V, observe=given)
+        assert observed.shape == (2, 5, 7) and count.factorizations == 0
+        assert count.solves == (1 if material == "linear" else 2)
+        assert _relative(observed, observe @ J.reshape(2, n_dofs, 7)) < 1e-12
+    with pytest.raises(ValueError, match="observe"):
+        qs.jacobian(E, positions, V, observe=observe[:, :-1])
     # without a cached solution it solves exactly like the forward, then the same answer
     qs.clear_cache()
     J2 = qs.jacobian(E, positions, V)

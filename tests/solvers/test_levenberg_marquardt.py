@@ -79,3 +79,46 @@ def test_max_step_clips_every_component_and_still_converges(solver):
     assert float(steps.max()) <= 1.0 + 1e-12
     assert float(steps[:, 0].max()) > 0.4               # the well observed one moves at once
     assert torch.allclose(result.theta, truth, atol=1e-6)
+
+
+@pytest.mark.parametrize("solver", ["levenberg_marquardt", "gauss_newton"])
+def test_max_step_scales_a_clipped_step_that_would_not_descend(solver):
+    """Two nearly dependent columns: the step is large along a nearly cancelling pair,
+    and clipping each component to 1 makes the linear model predict an increase. LM
+    then raises its damping and solves again without a trial simulation, Gauss-Newton
+    scales the step into the box (its line search starts there): no iteration is
+    rejected and both reach the truth. Before, LM spent 11 of 30 iterations on rejected
+    trials and ended halfway (15.4, -14.4), and Gauss-Newton stopped at its first step
+    ('tolerance': the clipped step had no descent)."""
+    from torchfit.solvers import SOLVERS
+
+    A = torch.tensor([[1.0, 1.0], [1.0, 1.001], [0.0, 0.0]], dtype=torch.float64)
+    truth = torch.tensor([30.0, -29.0], dtype=torch.float64)
+    residual = ResidualFunction(lambda t: A @ t, A @ truth)
+    entry = SOLVERS[solver]
+    config = entry.config_class(max_iter=40, max_step=1.0, **(
+        {"damping_init": 1e-8, "rtol": 0.0, "gtol": 0.0} if solver == "levenberg_marquardt"
+        else {}))
+    result = entry.solver_class(config).solve(residual, torch.zeros(2, dtype=torch.float64))
+    assert all(r.accepted for r in result.history)
+    steps = torch.stack([r.theta for r in result.history]).diff(dim=0).abs()
+    assert float(steps.max()) <= 1.0 + 1e-12
+    assert torch.allclose(result.theta, truth, atol=1e-6)
+
+
+def test_a_step_the_model_says_does_not_descend_costs_no_simulation(monkeypatch):
+    """A step whose linear model predicts no decrease cannot have a positive gain ratio:
+    it is rejected without simulating the trial point."""
+    problem = Spring1D(Spring1DConfig(n=16))
+    residual = CountingResidual(problem.residual())
+    solver = LevenbergMarquardt(LevenbergMarquardtConfig(max_iter=3))
+
+    def uphill(inner, damping, normal):           # the step reversed: J d points uphill
+        return inner.__class__(**{**inner.__dict__, "x": -inner.x, "Ax": -inner.Ax}), damping
+
+    monkeypatch.setattr(solver, "_limit_step", uphill)
+    solver.config.max_step = 1e9                 # so that _limit_step is called
+    result = solver.solve(residual, problem.theta0)
+    assert [r.accepted for r in result.history] == [True, False, False, False]
+    assert len(residual.points) == 1             # theta0 only: no trial was simulated
+    assert all(r.extra["gain_ratio"] == -1.0 for r in result.history[1:])

@@ -54,6 +54,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import math
+import warnings
 import weakref
 from typing import Any, Callable, Protocol
 
@@ -260,14 +261,19 @@ class Equilibrium:
             return x_ref + dx
 
     def jacobian(self, params: Tensor, fixed_values: Tensor, directions: Tensor,
-                 x_init: Tensor | Callable[[], Tensor] | None = None) -> Tensor:
-        """``(dx*/dparams) directions`` of every frame, ``(F, n_dofs, k)`` (no graph).
+                 x_init: Tensor | Callable[[], Tensor] | None = None,
+                 observe: Tensor | None = None) -> Tensor:
+        """``(dx*/dparams) directions`` of every frame, ``(F, n_dofs, k)`` (no graph), or
+        ``observe (dx*/dparams) directions``, ``(F, n_rows, k)``.
 
         Args:
             params: the model's field (as for ``__call__``).
             fixed_values: ``(F, n_fixed)`` Dirichlet values (held fixed: zero rows there).
             directions: ``(n_params, k)`` parameter directions ``V``.
             x_init: cold start if the solution must be computed (as for ``__call__``).
+            observe: optional sparse ``(n_rows, n_dofs)`` matrix applied to every frame's
+                columns as soon as they are solved (what a problem observes of the
+                positions): the ``(F, n_dofs, k)`` result is then never formed.
 
         The solution for ``(params, fixed_values)`` is taken from the cache (or computed
         exactly as the forward does). ``K dX = -(dR/dparams) V`` is then solved with the
@@ -292,6 +298,8 @@ class Equilibrium:
         out = self._residual_directions(sol, directions)      # (F, n_dofs, k), overwritten
         free = self.free_dofs.to(out.device)
         n_frames, k = out.shape[0], out.shape[2]
+        if observe is not None:
+            return self._observed_jacobian(sol, out, observe)
         if len(sol.factors) == 1:
             # one shared factor: frames in blocks of about 1024 right-hand sides (one solve
             # of all F k columns was 3.6x slower with PARDISO on the arm: 9,216 columns)
@@ -308,6 +316,42 @@ class Equilibrium:
             dx_free = factor.solve(out[f, free, :].contiguous()).to(out)
             out[f].zero_()
             out[f, free, :] = -dx_free
+        return out
+
+    def _observed_jacobian(self, sol: _Solution, rhs: Tensor, observe: Tensor) -> Tensor:
+        """``-observe K^{-1} rhs`` per frame, ``(F, n_rows, k)``, for ``rhs``
+        ``(F, n_dofs, k)`` (the residual directions). Only the free columns of ``observe``
+        matter: Dirichlet dofs do not move."""
+        if observe.dim() != 2 or observe.shape[1] != self.model.n_dofs:
+            raise ValueError(f"observe must be a (rows, {self.model.n_dofs}) matrix, got "
+                             f"{tuple(observe.shape)}")
+        free = self.free_dofs.to(rhs.device)
+        with warnings.catch_warnings():   # "sparse CSR tensor support is in beta state"
+            warnings.simplefilter("ignore", UserWarning)
+            if observe.layout == torch.strided:
+                observe_free = observe.to(rhs)[:, free]
+            else:
+                entries = observe.to_sparse_coo().coalesce()
+                rows, cols = entries.indices()
+                columns = self.free_positions.to(cols.device)[cols]
+                keep = columns >= 0
+                observe_free = torch.sparse_coo_tensor(
+                    torch.stack([rows[keep], columns[keep]]), entries.values()[keep],
+                    (observe.shape[0], free.numel())).coalesce().to_sparse_csr().to(rhs)
+            n_frames, k = rhs.shape[0], rhs.shape[2]
+            out = rhs.new_empty(n_frames, observe.shape[0], k)
+            if len(sol.factors) == 1:
+                block = max(1, 1024 // max(k, 1))
+                for start in range(0, n_frames, block):
+                    stop = min(start + block, n_frames)
+                    columns = rhs[start:stop, free, :].permute(1, 0, 2).reshape(free.numel(), -1)
+                    dx_free = sol.factors[0].solve(columns.contiguous()).to(rhs)
+                    observed = observe_free @ dx_free                 # (n_rows, block k)
+                    out[start:stop] = -observed.reshape(-1, stop - start, k).permute(1, 0, 2)
+                return out
+            for f, factor in enumerate(sol.factors):
+                dx_free = factor.solve(rhs[f, free, :].contiguous()).to(rhs)
+                out[f] = -(observe_free @ dx_free)
         return out
 
     def _free_matrix_layout(self, rows: Tensor, cols: Tensor, shape: tuple[int, int],
@@ -568,7 +612,11 @@ class Equilibrium:
         max_iter = opts.max_iter if max_iter is None else max_iter
         n_frames = x.shape[0]
         free = self.free_dofs.to(x.device)
-        residual = self._free_residual(x, params)
+        if self._has_energy:
+            # one pass (one decomposition per element) for both; the tangent at x reuses it
+            residual, energy = self._residual_and_energy(x, params)
+        else:
+            residual, energy = self._free_residual(x, params), None
         norms = torch.linalg.vector_norm(residual, dim=1)
         if reference is None:
             reference = norms.clone()
@@ -583,7 +631,6 @@ class Equilibrium:
         # on it as well: a projected (PSD) Newton direction always descends the energy,
         # not always ||R|| (inverted elements, folds), so a step is taken when either the
         # energy or ||R|| decreases enough.
-        energy = self._energy(x, params) if self._has_energy else None
         energies = [energy]
         stalled = False
         for _ in range(max_iter):

@@ -433,25 +433,28 @@ class AnimationProblem(InverseProblem):
         direction as a right-hand side of the one factorisation per frame."""
         E = self.parameterization(theta.detach())
         directions = self.parameterization.jacobian(theta.detach())          # (n_cells, n)
-        dx = self.quasistatic.jacobian(E, self.dirichlet_positions.to(E), directions,
-                                       x_init=self.start_positions.to(E))   # (F, V, 3, n)
-        F, V, d, n = dx.shape
-        # the embedding as a sparse (n_obs, V) matrix on (V, F d n): one product, no
-        # (F, n_obs, 4, d, n) gather
-        stacked = dx.permute(1, 0, 2, 3).reshape(V, F * d * n)
-        columns = torch.sparse.mm(self._observation_matrix(dx), stacked)      # (n_obs, F d n)
-        return columns.reshape(-1, F, d, n).permute(1, 0, 2, 3).reshape(-1, n)
+        # the embedding applied to each frame's columns as soon as they are solved: the
+        # (F, V, 3, n) derivative of every vertex is never formed
+        observed = self.quasistatic.jacobian(E, self.dirichlet_positions.to(E), directions,
+                                             x_init=self.start_positions.to(E),
+                                             observe=self._observation_matrix(E))
+        return observed.reshape(-1, observed.shape[-1])                 # (F n_obs 3, n)
 
     def _observation_matrix(self, like: Tensor) -> Tensor:
-        """The observed rows of the embedding, sparse ``(n_obs, n_vertices)`` (cached)."""
+        """The observed rows of the embedding on the flat dofs, sparse
+        ``(n_obs 3, n_vertices 3)`` (rows and columns point-major, as ``observe``; cached)."""
         key = (like.dtype, like.device)
         if getattr(self, "_observation_key", None) != key:
-            corners = self._observed_corners
-            rows = torch.arange(corners.shape[0]).repeat_interleave(corners.shape[1])
-            index = torch.stack([rows, corners.reshape(-1).cpu()])
+            corners = self._observed_corners.cpu()                       # (n_obs, 4)
+            n_obs, n_corners = corners.shape
+            d = self.model.dim
+            rows = (torch.arange(n_obs)[:, None, None] * d
+                    + torch.arange(d)[None, None, :]).expand(n_obs, n_corners, d)
+            cols = corners[:, :, None] * d + torch.arange(d)[None, None, :]
+            values = self._observed_weights.cpu()[:, :, None].expand(n_obs, n_corners, d)
             self._observation = torch.sparse_coo_tensor(
-                index, self._observed_weights.reshape(-1).cpu(),
-                (corners.shape[0], self.model.n_vertices), check_invariants=False
+                torch.stack([rows.reshape(-1), cols.reshape(-1)]), values.reshape(-1),
+                (n_obs * d, self.model.n_vertices * d), check_invariants=False
             ).coalesce().to(like)
             self._observation_key = key
         return self._observation

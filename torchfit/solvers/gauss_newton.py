@@ -46,7 +46,7 @@ from ..linalg import cgls
 from ..records import Callback, IterationRecord, SolveResult
 from ..residual import Linearization, ResidualFunction, try_linearize
 from .base import Stop, clone, least_squares_stop, require
-from .least_squares import LeastSquaresConfig, LeastSquaresSolver
+from .least_squares import LeastSquaresConfig, LeastSquaresSolver, box_step
 from .preconditioners import DifferencePreconditioner
 
 PRECONDITIONERS = ("auto", "none", "difference")
@@ -193,11 +193,10 @@ class GaussNewton(LeastSquaresSolver):
                      rmatvec_b=-self.gradient, preconditioner=self.preconditioner,
                      **({"normal_rtol": cfg.cg_rtol} if cfg.cg_rtol > 0 else {}))
         direction, model_change = inner.x, inner.Ax
-        longest = float(direction.abs().max()) if direction.numel() else 0.0
-        if cfg.max_step > 0 and longest > cfg.max_step:
-            # solver.max_step: every component clipped (the line search starts there)
-            direction = direction.clamp(-cfg.max_step, cfg.max_step)
-            model_change = lin.jvp(direction)
+        if cfg.max_step > 0 and direction.numel():
+            # solver.max_step: every component clipped, or the step scaled where clipping
+            # would not descend (the line search starts there)
+            direction, model_change = box_step(lin, direction, model_change, cfg.max_step)
         slope = float(torch.dot(lin.r, model_change))  # d/da 0.5||r + a J d||^2 at a = 0
         if slope >= 0 or not math.isfinite(slope):
             return Stop(True, "tolerance")

@@ -37,7 +37,8 @@ class LeastSquaresConfig(SolverConfig):
     # component of a step is clipped to [-max_step, max_step] (and J d recomputed). With
     # theta = log E, max_step = 1 lets a modulus change by at most a factor e per step:
     # weakly observed parameters cannot leap to values the simulation cannot solve, and
-    # the well observed ones still take their full step.
+    # the well observed ones still take their full step. Where clipping would turn the
+    # step away from descent, the whole step is scaled into the box (box_step).
     max_step: float = 0.0
 
     def check(self) -> None:
@@ -57,6 +58,39 @@ def require_difference_operator(D: Optional[Tensor]) -> None:
             "solver.preconditioner=none")
     n = D.shape[1] if isinstance(D, Tensor) and D.dim() == 2 else 0
     check_difference_operator(D, n)
+
+
+def box_step(lin: Linearization, direction: Tensor, model_change: Tensor,
+             limit: float) -> tuple[Tensor, Tensor]:
+    """``(d, J d)`` with no component of ``d`` beyond ``limit`` (``solver.max_step``).
+
+    ``direction`` must descend the linear model (``||r + J d|| < ||r||``, as every
+    Gauss-Newton and damped step does) and ``model_change`` be its ``J d``. Each component
+    is clipped (the well observed parameters keep their full step while a weakly
+    observed one is held back) and ``J d`` recomputed (one product). Clipping a nearly
+    cancelling pair of large components can leave a step the linear model says does not
+    descend, which a line search would take for convergence and Levenberg-Marquardt
+    could only reject; the step scaled into the box is returned then (it descends:
+    ``||r + a J d||^2 < ||r||^2`` for ``0 < a <= 1``)."""
+    clipped, clipped_change, descends = clip_step(lin, direction, limit)
+    if clipped is direction:
+        return direction, model_change
+    if descends:
+        return clipped, clipped_change
+    scale = limit / float(direction.abs().max())
+    return direction * scale, model_change * scale
+
+
+def clip_step(lin: Linearization, direction: Tensor, limit: float
+              ) -> tuple[Tensor, Tensor | None, bool]:
+    """``(clipped d, J clipped d, whether ||r + J clipped d|| < ||r||)``; ``direction``
+    itself (and ``None``, ``True``) when no component exceeds ``limit``."""
+    if not direction.numel() or float(direction.abs().max()) <= limit:
+        return direction, None, True
+    clipped = direction.clamp(-limit, limit)
+    clipped_change = lin.jvp(clipped)
+    model = lin.r + clipped_change
+    return clipped, clipped_change, float(torch.dot(model, model)) < lin.norm ** 2
 
 
 def wants_dense_jacobian(residual: Any, n: int, max_params: int) -> bool:

@@ -9,7 +9,14 @@ decrease of ``0.5 ||r||^2`` with the one the model predicts (gain ratio ``rho``)
   ``lam *= max(decrease, 1 - (2 rho - 1)^3)`` (``damping_update='nielsen'``);
 * otherwise the step is rejected: ``theta`` stays exactly unchanged and ``lam`` grows by
   a doubling factor (2, 4, 8, ... until a step is accepted). A rejected step costs one
-  factorisation (the trial point); the current point's linearisation is kept.
+  factorisation (the trial point); the current point's linearisation is kept. A step
+  whose linear (or second-order) model predicts no decrease is rejected without
+  simulating the trial (its gain ratio could not be positive).
+
+``max_step`` (a bound on every parameter's change) clips each component of the step;
+where clipping leaves a step the linear model says does not descend, the damping doubles
+and the damped system is solved again before any trial is simulated (see
+:meth:`LevenbergMarquardt._limit_step`).
 
 Stop rules: :func:`~.base.least_squares_stop` (discrepancy first), then ``stalled``
 when ``lam`` exceeds ``damping_max`` times its start.
@@ -52,7 +59,8 @@ from ..linalg import CGLSResult, cgls
 from ..records import Callback, IterationRecord, SolveResult
 from ..residual import Linearization, ResidualFunction, try_linearize
 from .base import Stop, clone, least_squares_stop, require
-from .least_squares import DenseNormalEquations, LeastSquaresConfig, LeastSquaresSolver
+from .least_squares import (DenseNormalEquations, LeastSquaresConfig, LeastSquaresSolver,
+                            box_step, clip_step)
 from .preconditioners import ColumnScaledLaplacian, GraphLaplacian
 
 
@@ -86,6 +94,8 @@ class LevenbergMarquardtConfig(LeastSquaresConfig):
     preconditioner_shift: float = 1e-2   # eps, relative to D^T D (eigenvalues in [0, 2 max degree])
     preconditioner_probes: int = 16      # products J^T w per linearisation estimating C
     seed: int = 0                   # of those random probes
+    max_box_resolves: int = 30      # max_step: damping doublings while a clipped step does
+                                    # not descend (then the step is scaled into the box)
 
     def check(self) -> None:
         super().check()
@@ -109,6 +119,8 @@ class LevenbergMarquardtConfig(LeastSquaresConfig):
                 f"solver.preconditioner={self.preconditioner!r}; choose one of {PRECONDITIONERS}")
         require(self.preconditioner_shift > 0,
                 f"solver.preconditioner_shift must be > 0, got {self.preconditioner_shift}")
+        require(self.max_box_resolves >= 0,
+                f"solver.max_box_resolves must be >= 0, got {self.max_box_resolves}")
         require(self.preconditioner_probes >= 1,
                 f"solver.preconditioner_probes must be >= 1, got {self.preconditioner_probes}")
 
@@ -178,13 +190,10 @@ class LevenbergMarquardt(LeastSquaresSolver):
         theta = lin.theta
         used_damping = damping = self.damping
         normal = self._normal_equations()
-        if normal is not None:
-            inner = normal.solve(-lin.r, damping, rmatvec_b=-self.gradient)
-        else:
-            if self.laplacian_active and self.precondition is None:
-                self.precondition = _preconditioner(lin, self.laplacian, cfg, self.generator)
-            inner = _damped_solve(lin, self.gradient, damping, residual, theta, cfg,
-                                  self.precondition)
+        if normal is None and self.laplacian_active and self.precondition is None:
+            self.precondition = _preconditioner(lin, self.laplacian, cfg, self.generator)
+        inner = self._damped_step(damping, normal)
+        if normal is None:
             if self.laplacian is not None and self.precondition is None \
                     and inner.stop_reason == "max_iter":
                 self.laplacian_active = True
@@ -212,8 +221,11 @@ class LevenbergMarquardt(LeastSquaresSolver):
         predicted = 0.5 * lin.norm ** 2 - 0.5 * float(torch.dot(model_residual, model_residual))
         # Transtrum's safeguard: a correction comparable with the step means the
         # quadratic model of the path is not trustworthy either; reject without a trial.
+        # A step the model itself says does not descend (a clipped step, see _limit_step;
+        # a second-order correction) is rejected without one too: its gain ratio could
+        # not be positive, and a trial costs a simulation.
         candidate = try_linearize(residual, theta + direction) \
-            if not acceleration_ratio > cfg.geodesic_alpha else None
+            if predicted > 0 and not acceleration_ratio > cfg.geodesic_alpha else None
         actual = 0.5 * lin.norm ** 2 - 0.5 * candidate.norm ** 2 if candidate is not None \
             else -math.inf
         gain = actual / predicted if predicted > 0 else -math.inf
@@ -238,16 +250,41 @@ class LevenbergMarquardt(LeastSquaresSolver):
     def _limit_step(self, inner: CGLSResult, damping: float,
                     normal: DenseNormalEquations | None) -> tuple[CGLSResult, float]:
         """``inner`` with every component clipped to ``[-max_step, max_step]`` and ``J d``
-        recomputed for the clipped step (a matrix product on the dense path, one ``J v``
-        otherwise). Clipping per parameter, not raising the damping: a few weakly observed
-        parameters (a grid node outside the body) would otherwise damp every other
-        direction as well."""
-        limit = self.config.max_step
-        assert self.lin is not None
-        if float(inner.x.abs().max()) <= limit:
-            return inner, damping
-        clipped = inner.x.clamp(-limit, limit)
-        return dataclasses.replace(inner, x=clipped, Ax=self.lin.jvp(clipped)), damping
+        recomputed (a matrix product on the dense path, one ``J v`` otherwise), and the
+        damping it was solved with.
+
+        Clipping per parameter, not raising the damping: a few weakly observed parameters
+        (a grid node outside the body) would otherwise damp every other direction as
+        well. But clipping a nearly cancelling pair of large components can leave a step
+        the linear model says does not descend; then the damping doubles (2, 4, 8, ...
+        times) and the damped system is solved again, as a rejected trial would have
+        done, without simulating the trial (an exact solve on the dense path, CGLS
+        products otherwise). After ``max_rejections`` doublings the step is scaled into
+        the box instead (:func:`~.least_squares.box_step`), which descends."""
+        cfg = self.config
+        lin = self.lin
+        assert lin is not None
+        growth = 2.0
+        for _ in range(cfg.max_box_resolves):
+            clipped, j_clipped, descends = clip_step(lin, inner.x, cfg.max_step)
+            if clipped is inner.x:
+                return inner, damping
+            if descends:
+                return dataclasses.replace(inner, x=clipped, Ax=j_clipped), damping
+            damping *= growth
+            growth *= 2.0
+            inner = self._damped_step(damping, normal)
+        x, Ax = box_step(lin, inner.x, inner.Ax, cfg.max_step)
+        return (inner if x is inner.x else dataclasses.replace(inner, x=x, Ax=Ax)), damping
+
+    def _damped_step(self, damping: float, normal: DenseNormalEquations | None) -> CGLSResult:
+        """The damped step at the current linearisation (exact on the dense path)."""
+        lin = self.lin
+        assert lin is not None
+        if normal is not None:
+            return normal.solve(-lin.r, damping, rmatvec_b=-self.gradient)
+        return _damped_solve(lin, self.gradient, damping, self.residual, lin.theta, self.config,
+                             self.precondition)
 
     def _normal_equations(self) -> DenseNormalEquations | None:
         """The exact damped solver of the current linearisation (dense path only)."""

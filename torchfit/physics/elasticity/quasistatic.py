@@ -154,8 +154,10 @@ class QuasistaticElasticity:
                                               self._start(E, values, x_init))
 
     def jacobian(self, E: Tensor, positions: Tensor | Sequence[Tensor], directions: Tensor,
-                 x_init: Tensor | None = None) -> Tensor:
-        """``(dx/dE) directions``: ``(F, n_vertices, d, k)`` for ``directions`` ``(n_cells, k)``.
+                 x_init: Tensor | None = None, observe: Tensor | None = None) -> Tensor:
+        """``(dx/dE) directions``: ``(F, n_vertices, d, k)`` for ``directions`` ``(n_cells, k)``;
+        with ``observe`` (sparse ``(n_rows, n_vertices d)``, on the flat dofs) the observed
+        columns ``(F, n_rows, k)`` instead, applied frame by frame as they are solved.
 
         At the solution :meth:`__call__` gives for the same ``E`` and ``positions`` (cached,
         else solved the same way); one solve with ``k`` right-hand sides per frame, no
@@ -165,7 +167,9 @@ class QuasistaticElasticity:
         self.model.check_modulus(E)
         values = self.dirichlet_values(positions).to(E)
         dx = self.equilibrium.jacobian(E.detach(), values.detach(), directions,
-                                       self._start(E, values, x_init))
+                                       self._start(E, values, x_init), observe=observe)
+        if observe is not None:
+            return dx
         return dx.reshape(values.shape[0], self.model.n_vertices, self.dim, dx.shape[-1])
 
     def _start(self, E: Tensor, values: Tensor,
