@@ -297,26 +297,31 @@ class Equilibrium:
         directions = directions.detach().to(sol.x)
         out = self._residual_directions(sol, directions)      # (F, n_dofs, k), overwritten
         free = self.free_dofs.to(out.device)
-        n_frames, k = out.shape[0], out.shape[2]
         if observe is not None:
             return self._observed_jacobian(sol, out, observe)
+        for start, stop, dx_free in self._solve_directions(sol, out):
+            out[start:stop].zero_()               # the Dirichlet rows stay 0
+            out[start:stop, free, :] = -dx_free
+        return out
+
+    def _solve_directions(self, sol: _Solution, rhs: Tensor):
+        """Yield ``(start, stop, K^{-1} rhs)`` for frames ``start:stop`` on the free dofs,
+        ``(stop - start, n_free, k)``, for ``rhs`` ``(F, n_dofs, k)``. One shared factor:
+        frames in blocks of about 1024 right-hand sides (one solve of all ``F k`` columns
+        was 3.6x slower with PARDISO on the arm: 9,216 columns); else one solve per frame.
+        A block is read before it is yielded, so the caller may overwrite it in ``rhs``."""
+        free = self.free_dofs.to(rhs.device)
+        n_frames, k = rhs.shape[0], rhs.shape[2]
         if len(sol.factors) == 1:
-            # one shared factor: frames in blocks of about 1024 right-hand sides (one solve
-            # of all F k columns was 3.6x slower with PARDISO on the arm: 9,216 columns)
             block = max(1, 1024 // max(k, 1))
             for start in range(0, n_frames, block):
                 stop = min(start + block, n_frames)
-                rhs = out[start:stop, free, :].permute(1, 0, 2).reshape(free.numel(), -1)
-                dx_free = sol.factors[0].solve(rhs.contiguous()).to(out)
-                out[start:stop].zero_()
-                out[start:stop, free, :] = -dx_free.reshape(free.numel(), stop - start,
-                                                            k).permute(1, 0, 2)
-            return out
+                columns = rhs[start:stop, free, :].permute(1, 0, 2).reshape(free.numel(), -1)
+                dx_free = sol.factors[0].solve(columns.contiguous()).to(rhs)
+                yield start, stop, dx_free.reshape(free.numel(), stop - start, k).permute(1, 0, 2)
+            return
         for f, factor in enumerate(sol.factors):
-            dx_free = factor.solve(out[f, free, :].contiguous()).to(out)
-            out[f].zero_()
-            out[f, free, :] = -dx_free
-        return out
+            yield f, f + 1, factor.solve(rhs[f, free, :].contiguous()).to(rhs)[None]
 
     def _observed_jacobian(self, sol: _Solution, rhs: Tensor, observe: Tensor) -> Tensor:
         """``-observe K^{-1} rhs`` per frame, ``(F, n_rows, k)``, for ``rhs``
@@ -338,20 +343,11 @@ class Equilibrium:
                 observe_free = torch.sparse_coo_tensor(
                     torch.stack([rows[keep], columns[keep]]), entries.values()[keep],
                     (observe.shape[0], free.numel())).coalesce().to_sparse_csr().to(rhs)
-            n_frames, k = rhs.shape[0], rhs.shape[2]
-            out = rhs.new_empty(n_frames, observe.shape[0], k)
-            if len(sol.factors) == 1:
-                block = max(1, 1024 // max(k, 1))
-                for start in range(0, n_frames, block):
-                    stop = min(start + block, n_frames)
-                    columns = rhs[start:stop, free, :].permute(1, 0, 2).reshape(free.numel(), -1)
-                    dx_free = sol.factors[0].solve(columns.contiguous()).to(rhs)
-                    observed = observe_free @ dx_free                 # (n_rows, block k)
-                    out[start:stop] = -observed.reshape(-1, stop - start, k).permute(1, 0, 2)
-                return out
-            for f, factor in enumerate(sol.factors):
-                dx_free = factor.solve(rhs[f, free, :].contiguous()).to(rhs)
-                out[f] = -(observe_free @ dx_free)
+            out = rhs.new_empty(rhs.shape[0], observe.shape[0], rhs.shape[2])
+            for start, stop, dx_free in self._solve_directions(sol, rhs):
+                count, k = stop - start, dx_free.shape[2]
+                observed = observe_free @ dx_free.permute(1, 0, 2).reshape(free.numel(), -1)
+                out[start:stop] = -observed.reshape(-1, count, k).permute(1, 0, 2)
         return out
 
     def _free_matrix_layout(self, rows: Tensor, cols: Tensor, shape: tuple[int, int],
