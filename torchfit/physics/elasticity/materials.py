@@ -196,10 +196,13 @@ class SVDMemo:
     ``torch.equal`` confirms it bit for bit, so a hit returns exactly what
     :func:`rotation_variant_svd` returned for that frame; the frames that miss are
     decomposed together. At most ``capacity`` times the largest batch seen is kept
-    (least recently used dropped); only detached tensors are stored.
+    (least recently used dropped); only detached tensors are stored. On the arm (48
+    frames, 10,837 tets) ``capacity=1`` serves 1,119 of the 1,134 frames that 2 serves,
+    for 240 MB of peak memory instead of 420 MB (three linearisations with Jacobians:
+    65 and 60 s against 76 s without the memo, peak 3.76 GB without).
     """
 
-    def __init__(self, capacity: int = 2) -> None:
+    def __init__(self, capacity: int = 1) -> None:
         self.capacity = capacity
         self._frames: dict[tuple, tuple[Tensor, Tensor, Tensor, Tensor]] = {}
         self._largest = 1
