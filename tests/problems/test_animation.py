@@ -50,8 +50,10 @@ def test_capsule_fits_and_rerun_hits_the_tet_cache(tmp_path, cache, mode, frames
     else:
         assert problem.observed_vertices.numel() == problem.animation.n_vertices
     # pytetwild's mesh differs from run to run (1.8k-4.2k tets here): 8 iterations fell short
-    # on 3 of 14 fresh meshes (up to 0.11, once in CI); with 20, 8 of 8 ended below 3e-7
-    result = fit(problem, {"name": "levenberg_marquardt", "max_iter": 20, "max_step": 1.0})
+    # on 3 of 14 fresh meshes (up to 0.11, once in CI); with 20, 13 of 14 ended below 5e-7
+    # and one CI mesh at 0.037 (2026-11-25; about half the iterations are rejected trials
+    # there). A converged fit stops by its tolerance, so 40 costs only the slow meshes.
+    result = fit(problem, {"name": "levenberg_marquardt", "max_iter": 40, "max_step": 1.0})
     assert result.metrics["k_err_rel_aligned"] < 1e-3
     assert result.metrics["surface_err_mean"] < 1e-6
     again = problem_for(folder, cache, target="synthetic", truth="blocks",
