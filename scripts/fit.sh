@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Run the main job (experiments/fit.py) in the project's virtual environment.
-#   scripts/fit.sh                                     # the short arm (arm3d_short), about a minute
+#   scripts/fit.sh                                     # the short arm (arm3d_short), under a minute
 #   scripts/fit.sh solver=levenberg_marquardt problem.noise=1e-4
 #   scripts/fit.sh -m solver=gauss_newton,levenberg_marquardt hydra/launcher=joblib
 source "$(dirname "${BASH_SOURCE[0]}")/_venv.sh"

@@ -1,5 +1,7 @@
 """Levenberg-Marquardt: rejected steps, settings, exact resume."""
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -114,7 +116,7 @@ def test_a_step_the_model_says_does_not_descend_costs_no_simulation(monkeypatch)
     solver = LevenbergMarquardt(LevenbergMarquardtConfig(max_iter=3))
 
     def uphill(inner, damping, normal):           # the step reversed: J d points uphill
-        return inner.__class__(**{**inner.__dict__, "x": -inner.x, "Ax": -inner.Ax}), damping
+        return dataclasses.replace(inner, x=-inner.x, Ax=-inner.Ax), damping
 
     monkeypatch.setattr(solver, "_limit_step", uphill)
     solver.config.max_step = 1e9                 # so that _limit_step is called

@@ -259,7 +259,7 @@ class LevenbergMarquardt(LeastSquaresSolver):
         the linear model says does not descend; then the damping doubles (2, 4, 8, ...
         times) and the damped system is solved again, as a rejected trial would have
         done, without simulating the trial (an exact solve on the dense path, CGLS
-        products otherwise). After ``max_rejections`` doublings the step is scaled into
+        products otherwise). After ``max_box_resolves`` doublings the step is scaled into
         the box instead (:func:`~.least_squares.box_step`), which descends."""
         cfg = self.config
         lin = self.lin

@@ -196,10 +196,9 @@ class SVDMemo:
     ``torch.equal`` confirms it bit for bit, so a hit returns exactly what
     :func:`rotation_variant_svd` returned for that frame; the frames that miss are
     decomposed together. At most ``capacity`` times the largest batch seen is kept
-    (least recently used dropped); only detached tensors are stored. On the arm (48
-    frames, 10,837 tets) ``capacity=1`` serves 1,119 of the 1,134 frames that 2 serves,
-    for 240 MB of peak memory instead of 420 MB (three linearisations with Jacobians:
-    65 and 60 s against 76 s without the memo, peak 3.76 GB without).
+    (least recently used dropped); only detached tensors are stored. One batch
+    (``capacity=1``) already serves nearly every repeat of Newton's pattern; its cost and
+    hit counts on the arm are in ``docs/problems/arm3d.md``.
     """
 
     def __init__(self, capacity: int = 1) -> None:
@@ -241,9 +240,6 @@ class SVDMemo:
         else:
             out = tuple(torch.stack([entry[k] for entry in found]) for k in range(3))
         return out if F.dim() == 4 else tuple(t[0] for t in out)
-
-    def clear(self) -> None:
-        self._frames.clear()
 
 
 class Corotated(Material):
