@@ -202,3 +202,43 @@ def test_preconditioner_with_null_space_keeps_iterates_out_of_it():
     best = basis @ torch.linalg.lstsq(a @ basis, b[:, None]).solution[:, 0]
     assert abs(float(res.x.sum())) < 1e-12
     assert torch.allclose(res.x, best, atol=1e-9)
+
+
+def test_cgls_with_a_box_stops_on_its_boundary_along_the_last_update():
+    """Steihaug's rule with an infinity-norm box: the unconstrained least-squares solution
+    of an ill-conditioned system lies far outside the box; the iteration stops at the
+    first update that would leave it, on the boundary of that update, with ``Ax`` and the
+    residual of that point, and the residual is no larger than at the previous iterate."""
+    g = torch.Generator().manual_seed(5)
+    q, _ = torch.linalg.qr(torch.randn(40, 12, generator=g, dtype=torch.float64))
+    a = q * torch.logspace(0, -5, 12, dtype=torch.float64)
+    b = torch.randn(40, generator=g, dtype=torch.float64)
+    free = cgls(lambda v: a @ v, lambda w: a.T @ w, b, 12, max_iter=100, normal_rtol=1e-13)
+    assert float(free.x.abs().max()) > 100                  # far outside a box of 1
+    boxed = cgls(lambda v: a @ v, lambda w: a.T @ w, b, 12, max_iter=100, normal_rtol=1e-13,
+                 max_abs=1.0)
+    assert boxed.stop_reason == "boundary"
+    assert float(boxed.x.abs().max()) == pytest.approx(1.0, abs=1e-12)
+    assert torch.allclose(boxed.Ax, a @ boxed.x, atol=1e-12)
+    assert boxed.residual_norm == pytest.approx(float((a @ boxed.x - b).norm()), rel=1e-12)
+    # the last inside iterate: one iteration fewer, no box; the boundary point lies on
+    # the segment from it along the next update, and its residual is smaller
+    inside = cgls(lambda v: a @ v, lambda w: a.T @ w, b, 12, max_iter=boxed.iterations - 1)
+    assert float(inside.x.abs().max()) < 1.0
+    assert boxed.residual_norm < inside.residual_norm
+    after = cgls(lambda v: a @ v, lambda w: a.T @ w, b, 12, max_iter=boxed.iterations)
+    direction = after.x - inside.x
+    t = float(torch.dot(boxed.x - inside.x, direction) / torch.dot(direction, direction))
+    assert 0 < t < 1
+    assert torch.allclose(boxed.x, inside.x + t * direction, atol=1e-12)
+
+
+def test_cgls_with_a_box_that_holds_the_solution_is_plain_cgls():
+    g = torch.Generator().manual_seed(6)
+    a = torch.randn(30, 8, generator=g, dtype=torch.float64)
+    b = 0.01 * torch.randn(30, generator=g, dtype=torch.float64)
+    plain = cgls(lambda v: a @ v, lambda w: a.T @ w, b, 8, max_iter=50)
+    boxed = cgls(lambda v: a @ v, lambda w: a.T @ w, b, 8, max_iter=50, max_abs=1.0)
+    assert float(plain.x.abs().max()) < 1.0
+    assert boxed.stop_reason == plain.stop_reason == "tolerance"
+    assert torch.equal(boxed.x, plain.x) and boxed.iterations == plain.iterations

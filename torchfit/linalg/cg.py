@@ -62,7 +62,7 @@ class CGLSResult:
         iterations: CG iterations done (each costs one ``A v`` and one ``A^T w``).
         residual_norm: ``||A x - b||`` at the end (tracked by the recurrence).
         Ax: ``A x`` at the end (tracked by the recurrence, no extra product).
-        stop_reason: ``'tolerance'``, ``'max_iter'`` or ``'breakdown'``.
+        stop_reason: ``'tolerance'``, ``'max_iter'``, ``'breakdown'`` or ``'boundary'``.
     """
 
     x: Tensor
@@ -79,7 +79,8 @@ def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor]
          n: int, shift: float = 0.0, residual_target: float = 0.0, max_iter: int = 100,
          project: Callable[[Tensor], Tensor] | None = None,
          rmatvec_b: Tensor | None = None, normal_rtol: float = 1e-14,
-         preconditioner: Callable[[Tensor], Tensor] | None = None) -> CGLSResult:
+         preconditioner: Callable[[Tensor], Tensor] | None = None,
+         max_abs: float = 0.0) -> CGLSResult:
     """(Preconditioned) CGLS for ``min ||A x - b||^2 + shift ||x||^2`` from ``x = 0``.
 
     Stops when the least-squares residual ``||A x - b||`` drops to
@@ -96,6 +97,12 @@ def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor]
         project: optional orthogonal projector applied to search directions (keeps
             iterates out of a known null space, e.g. the stiffness scale).
         rmatvec_b: ``A^T b`` if the caller already has it (saves one product).
+        max_abs: ``> 0``: a trust region ``||x||_inf <= max_abs`` (Steihaug's truncated CG
+            with a box): the iteration stops where its next update would leave the box,
+            at the point of that update on the box's boundary (``stop_reason``
+            ``'boundary'``). The iterates' norms grow from ``x = 0``, so this keeps the
+            first, best-determined Krylov directions instead of clipping an iterate that
+            the later ones (small singular values) have taken far outside.
         preconditioner: ``s (n,) -> M s (n,)`` with ``M`` SPD, an approximation of
             ``(A^T A + shift I)^{-1}``: CG on the normal equations in the ``M^{-1}`` inner
             product. The iterates solve the same problem; only the Krylov space changes
@@ -137,6 +144,15 @@ def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor]
             iterations -= 1
             break
         alpha = gamma / delta
+        if max_abs > 0:
+            reach = _box_reach(x, p, max_abs)
+            if float(alpha) > reach:
+                x = x + reach * p
+                Ax = Ax + reach * q
+                r = r - reach * q
+                r_norm = float(torch.linalg.vector_norm(r))
+                stop = "boundary"
+                break
         x = x + alpha * p
         Ax = Ax + alpha * q
         r = r - alpha * q
@@ -153,3 +169,12 @@ def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor]
         p = z + (gamma_new / gamma) * p
         gamma = gamma_new
     return CGLSResult(x, iterations, r_norm, Ax, stop)
+
+
+def _box_reach(x: Tensor, p: Tensor, radius: float) -> float:
+    """The largest ``t >= 0`` with ``||x + t p||_inf <= radius`` (``x`` inside the box)."""
+    moving = p != 0
+    if not bool(moving.any()):
+        return float("inf")
+    room = radius - torch.sign(p[moving]) * x[moving]
+    return float(torch.clamp(room, min=0.0).div(p[moving].abs()).min())

@@ -10,6 +10,14 @@ linear residual below the noise level). A backtracking (Armijo) line search on
 decrease, gradient or residual negligible); ``tolerance`` also when CGLS finds no
 descent direction, ``line_search`` when no step length decreases the objective.
 
+``max_step`` (the largest change of one parameter per step) is a trust region for the
+inner CGLS (Steihaug's truncated CG with a box): it stops where its next update would
+leave ``||d||_inf <= max_step``, on the boundary. Far from the solution the linear model
+may be unable to reach ``eta ||r||`` at all (on the noisy short arm it can lower
+``||r||`` from 0.224 to 0.081 at best): an unbounded CGLS then runs to its cap on small
+singular values, and clipping that step afterwards leaves a useless direction
+(``docs/solvers/gauss_newton.md``).
+
 ``preconditioner=difference`` (needs the parameterisation's ``D``) runs CGLS on
 ``J S`` with ``S S^T = D^T D + s I`` (:class:`~.preconditioners.DifferencePreconditioner`);
 the shift ``s`` starts at ``preconditioner_shift`` (units of the largest diagonal of
@@ -191,11 +199,12 @@ class GaussNewton(LeastSquaresSolver):
         inner = cgls(lin.jvp, lin.vjp, -lin.r, theta.numel(), residual_target=target,
                      max_iter=cfg.cg_max_iter, project=residual.projector(theta),
                      rmatvec_b=-self.gradient, preconditioner=self.preconditioner,
+                     max_abs=cfg.max_step,
                      **({"normal_rtol": cfg.cg_rtol} if cfg.cg_rtol > 0 else {}))
         direction, model_change = inner.x, inner.Ax
         if cfg.max_step > 0 and direction.numel():
-            # solver.max_step: every component clipped, or the step scaled where clipping
-            # would not descend (the line search starts there)
+            # CGLS stopped on the box (max_abs above); what it returns is at most
+            # round-off outside it: clip that, or scale where clipping would not descend
             direction, model_change = box_step(lin, direction, model_change, cfg.max_step)
         slope = float(torch.dot(lin.r, model_change))  # d/da 0.5||r + a J d||^2 at a = 0
         if slope >= 0 or not math.isfinite(slope):

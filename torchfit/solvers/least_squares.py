@@ -39,6 +39,8 @@ class LeastSquaresConfig(SolverConfig):
     # weakly observed parameters cannot leap to values the simulation cannot solve, and
     # the well observed ones still take their full step. Where clipping would turn the
     # step away from descent, the whole step is scaled into the box (box_step).
+    # Gauss-Newton also stops its CGLS on the box's boundary (a trust region), so the
+    # step it clips is rarely more than round-off outside it.
     max_step: float = 0.0
 
     def check(self) -> None:
