@@ -36,6 +36,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 matplotlib.use("Agg")   # pictures are files and TensorBoard images; never a window
 from torchfit.config import register_configs  # noqa: E402
 from torchfit.fit import FitOptions, fit, solver_config  # noqa: E402
+from torchfit.linalg import set_threads  # noqa: E402
 from torchfit.logging import write_json  # noqa: E402
 from torchfit.problems import build_problem  # noqa: E402
 
@@ -50,6 +51,9 @@ def prepare(cfg: DictConfig) -> tuple[Any, Any, FitOptions, dict[str, Any]]:
     config = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True, enum_to_str=True)
     assert isinstance(config, dict)
     solver = solver_config(dict(config["solver"]))
+    threads = config.get("threads")
+    if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0:
+        set_threads(threads)     # before the build: a synthetic target is simulated there
     problem = build_problem(str(config["problem"].get("name")), dict(config["problem"]))
     options = FitOptions(progress=config["progress"], log_every=config["log_every"],
                          snapshot_iterations=list(config["snapshot_iterations"]),

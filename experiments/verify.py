@@ -46,9 +46,9 @@ def main(cfg: DictConfig) -> None:
         threads = config.get("threads", 0)
         if not (isinstance(threads, int) and threads >= 0):
             raise FitConfigError(f"threads={threads!r} must be an integer >= 0 (0: default)")
-        problem = build_problem(str(config["problem"].get("name")), dict(config["problem"]))
         if threads > 0:
-            set_threads(threads)
+            set_threads(threads)     # before the build: a synthetic target is simulated there
+        problem = build_problem(str(config["problem"].get("name")), dict(config["problem"]))
         report = verify(problem, run_dir=run_dir, at=config["at"],
                         perturbation=config["perturbation"], seed=config["seed"],
                         taylor_tol=config["taylor_tol"], dot_tol=config["dot_tol"],

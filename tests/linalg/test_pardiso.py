@@ -267,3 +267,74 @@ def test_thread_limit_of_set_threads_reaches_mkl(backend):
             threadpool_limits(limits=count)
         torch.set_num_threads(before_torch)
         thread_module._REQUESTED = before_requested
+
+
+def _laplacian_3d(n: int) -> sp.csr_matrix:
+    lap = sp.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(n, n))
+    eye = sp.identity(n)
+    return (sp.kron(sp.kron(lap, eye), eye) + sp.kron(sp.kron(eye, lap), eye)
+            + sp.kron(sp.kron(eye, eye), lap)).tocsr()
+
+
+_LOWER_LIMIT_SCRIPT = """
+import numpy as np, scipy.sparse as sp, torch
+from threadpoolctl import threadpool_limits
+from torchfit.linalg import SparsePattern, get_backend
+n = 20
+lap = sp.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(n, n)); eye = sp.identity(n)
+A = (sp.kron(sp.kron(lap, eye), eye) + sp.kron(sp.kron(eye, lap), eye)
+     + sp.kron(sp.kron(eye, eye), lap)).tocoo()
+pattern = SparsePattern(A.row, A.col, A.shape)
+values = pattern.assemble(torch.from_numpy(A.data))
+backend = get_backend("pardiso")
+threadpool_limits(limits=2)
+first = backend.factorize(pattern, values, True)
+threadpool_limits(limits=1)
+second = backend.factorize(pattern, 2 * values, True)
+b = np.ones(A.shape[0])
+x = second.solve(torch.from_numpy(b)).numpy()
+assert np.linalg.norm(2 * (A @ x) - b) < 1e-10 * np.linalg.norm(b)
+print("factorised under a lower thread limit")
+"""
+
+
+def test_a_lower_thread_limit_than_the_analysis_had_does_not_crash_mkl(backend):
+    """A problem built under two MKL threads and fitted under one (the app builds the
+    problem before ``fit`` applies ``threads=1``): factorising into the handle analysed
+    under two threads was a segmentation fault (8,000 unknowns; 1,000 did not crash).
+    Run in a child process, so that a regression fails this test instead of killing
+    the test session."""
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-c", _LOWER_LIMIT_SCRIPT], capture_output=True,
+                            text=True, timeout=300)
+    assert result.returncode == 0, (result.returncode, result.stderr[-2000:])
+    assert "factorised under a lower thread limit" in result.stdout
+
+
+def test_a_changed_thread_limit_gets_its_own_analysis(backend):
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    if not any(i.get("internal_api") == "mkl" for i in threadpool_info()):
+        pytest.skip("threadpoolctl does not see MKL here")
+    pattern, values = pattern_of(_laplacian_3d(8))
+    plan = backend.plan(pattern, True)
+    before = {i["filepath"]: i["num_threads"] for i in threadpool_info()}
+    rhs = torch.ones(pattern.shape[0], dtype=torch.float64)
+    dense = pattern.to_scipy(values).toarray()
+    try:
+        threadpool_limits(limits=2)
+        first = backend.factorize(pattern, values, True)
+        backend.factorize(pattern, values, True)              # same limit: same analysis
+        assert plan.analyses == 1
+        threadpool_limits(limits=1)
+        second = backend.factorize(pattern, 3 * values, True)
+        assert plan.analyses == 2
+        assert [h.threads for h in plan.handles] == [1]        # the old handle is dropped
+        # the factor made under two threads still solves (its handle lives with it)
+        assert relative_residual(dense, first.solve(rhs).numpy(), rhs.numpy()) < 1e-12
+        assert relative_residual(3 * dense, second.solve(rhs).numpy(), rhs.numpy()) < 1e-12
+    finally:
+        for count in set(before.values()):
+            threadpool_limits(limits=count)

@@ -305,7 +305,9 @@ class PardisoPlan:
     (upper-triangle CSR and the map from the pattern's values) and the handles.
 
     Symmetric types: one handle holds the analysis and up to ``capacity`` live factors;
-    a further handle (a second analysis) only when all of them are alive at once.
+    a further handle (a second analysis) only when all of them are alive at once, or when
+    MKL's thread limit changed since the analysis (``set_threads`` after a problem was
+    built: a factorisation under another limit than its analysis can crash MKL).
     Nonsymmetric: the analysis depends on the values (scaling, matching), so every
     factor has a handle (and an analysis) of its own.
 
@@ -329,6 +331,9 @@ class PardisoPlan:
             handle = PardisoHandle(library, self.structure, self.mtype, 1, a)
             self.analyses += 1
             return handle, handle.acquire()  # type: ignore[return-value]
+        threads = library.max_threads()
+        # a handle analysed under another limit is dropped here (its live factors keep it)
+        self.handles = [handle for handle in self.handles if handle.threads == threads]
         for handle in reversed(self.handles):
             mnum = handle.acquire()
             if mnum is not None:

@@ -103,6 +103,16 @@ class PardisoLibrary:
                              int_p]                              # error
         function.restype = None
         self._function = function
+        try:
+            self._max_threads = cdll["mkl_get_max_threads"]
+            self._max_threads.argtypes = []
+            self._max_threads.restype = ctypes.c_int
+        except (AttributeError, KeyError):  # pragma: no cover - every mkl_rt has it
+            self._max_threads = None
+
+    def max_threads(self) -> int:
+        """MKL's current thread limit (``mkl_get_max_threads``; 0 when unknown)."""
+        return int(self._max_threads()) if self._max_threads is not None else 0
 
     def call(self, pt: np.ndarray, maxfct: int, mnum: int, mtype: int, phase: int, n: int,
              a: np.ndarray, ia: np.ndarray, ja: np.ndarray, perm: np.ndarray, nrhs: int,
@@ -288,6 +298,12 @@ class PardisoHandle:
     The handle's memory is released (phase -1) when the handle is garbage collected
     (factors keep their handle alive); a slot's factor memory (phase 0) when its slot is
     released.
+
+    ``threads`` is MKL's thread limit at the analysis. A numeric factorisation under a
+    lower limit than the analysis had crashes MKL (a segmentation fault, measured with
+    MKL 2025 on the arm: analysis with 2 threads, factorisation with 1), so
+    :class:`~torchfit.linalg.backends.PardisoPlan` factorises only into handles analysed
+    under the current limit. Solves with existing factors are safe under any limit.
     """
 
     def __init__(self, library: PardisoLibrary, structure: PardisoStructure, mtype: int,
@@ -298,6 +314,7 @@ class PardisoHandle:
         self._free = list(range(int(capacity), 0, -1))    # pop() hands out 1, 2, ...
         self._finalizer = weakref.finalize(self, self._state.release_all)
         self._finalizer.atexit = False     # the OS takes the memory at exit; no MKL call then
+        self.threads = library.max_threads()
         with self._state.lock:
             error = self._state.call(11, a=values)
         if error:
