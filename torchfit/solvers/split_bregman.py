@@ -113,7 +113,9 @@ class SplitBregmanConfig(SolverConfig):
     mu_rel_bregman: float = 1e4     # data Bregman: mu = mu_rel_bregman / ||J(theta0)||_2^2
                                     # (1e3 reached 1e-2 as fast on sparse poisson2d but then
                                     # oscillated for hundreds of iterations; docs/solvers)
-    tau: float = 1.0                # a stage is accepted when ||r|| <= tau * delta
+    tau: float = 1.02               # a stage is accepted when ||r|| <= tau * delta; the 2 %
+                                    # margin: ||noise|| itself spreads by 1/sqrt(2m) around
+                                    # delta (docs/solvers/split_bregman.md, 2026-11-25)
     growth: float = 4.0             # mu_{k+1} = growth * mu_k
     max_stages: int = 20
     max_iter: int = 2000            # outer (split Bregman) iterations over all stages
