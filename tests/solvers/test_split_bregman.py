@@ -191,6 +191,47 @@ def test_stronger_tv_is_searched_when_the_first_stage_already_fits_the_noise():
     assert result.history[-1].misfit <= config.tau * problem.noise_level
 
 
+def _underestimated_noise(problem, factor: float = 0.8):
+    """The problem's residual with a noise level ``factor`` times too small: no stage can
+    reach ``tau delta``, so the misfits of later stages only creep down."""
+    def residual():
+        problem.equilibrium.clear_cache()
+        r = problem.residual()
+        r.noise_level = factor * r.noise_level
+        return r
+    return residual
+
+
+def test_a_stage_that_fits_no_closer_than_the_noise_spread_returns_the_one_before():
+    """With a noise level 20 % too small the misfit never reaches ``tau delta``. The
+    search used to walk on through weaker and weaker TV (stop ``max_iter`` at stage 19,
+    or ``stalled``); now the first stage that lowers the misfit by less than
+    ``delta / sqrt(2m)`` ends it, and the stage before it is the answer."""
+    problem = Spring1D(Spring1DConfig(n=16, noise=1e-4))
+    residual = _underestimated_noise(problem)()
+    config = SplitBregmanConfig(max_iter=600)
+    result = split_bregman(residual, problem.theta0, config,
+                           D=problem.parameterization.difference_operator())
+    assert result.stop_reason == "plateau" and result.converged
+    history = result.history
+    last = history[-1]
+    assert last.extra["restored"] == 1.0
+    stage_end = {}                       # the last record of every stage before the return
+    for record in history[:-1]:
+        stage_end[int(record.extra["stage"])] = record
+    plateau_stage = max(stage_end)
+    answer = stage_end[plateau_stage - 1]
+    assert int(last.extra["stage"]) == plateau_stage - 1
+    assert torch.equal(last.theta, answer.theta) and last.misfit == answer.misfit
+    spread = residual.noise_level / math.sqrt(2 * residual.data.numel())
+    assert 0 <= answer.misfit - stage_end[plateau_stage].misfit < spread
+    assert plateau_stage <= 4                 # a few stages, not the twenty of max_stages
+    assert last.misfit > config.tau * residual.noise_level   # no stage met the level
+    # the earlier stages did lower the misfit by more than the spread
+    for k in range(1, plateau_stage):
+        assert stage_end[k - 1].misfit - stage_end[k].misfit >= spread
+
+
 # -- exact resume ----------------------------------------------------------------------------
 def _resume_all(make, residual_factory, theta0, every=5, limit=600, extra=None, prepare=None):
     full, snapshots = run_with_snapshots(make(), residual_factory(), theta0,
@@ -203,12 +244,16 @@ def _resume_all(make, residual_factory, theta0, every=5, limit=600, extra=None, 
     return full, snapshots
 
 
-def test_resume_across_stage_changes_is_bit_identical():
+@pytest.mark.parametrize("noise_factor, stop", [(1.0, "discrepancy"), (0.8, "plateau")])
+def test_resume_across_stage_changes_is_bit_identical(noise_factor, stop):
+    """Also through the return to the stage before a plateau (noise level too small)."""
     problem = Spring1D(Spring1DConfig(n=16, noise=1e-4))
     D = problem.parameterization.difference_operator()
+    residual = fresh(problem) if noise_factor == 1.0 else \
+        _underestimated_noise(problem, noise_factor)
     full, snapshots = _resume_all(lambda: SplitBregman(SplitBregmanConfig(max_iter=200), D=D),
-                                  fresh(problem), problem.theta0, every=14)
-    assert full.stop_reason == "discrepancy"
+                                  residual, problem.theta0, every=14)
+    assert full.stop_reason == stop
     stages = {k: state["stage"] for k, (state, _) in snapshots.items()}
     assert len(set(stages.values())) >= 3                   # snapshots in three stages
 
@@ -695,3 +740,4 @@ def test_data_bregman_dense_clean_n64_converges_with_either_factorisation(backen
     assert result.stop_reason == "tolerance"
     assert result.iterations <= 200
     assert metrics["k_err_rel_aligned"] <= 3.4e-5      # the seed table before issue 13
+

@@ -32,7 +32,10 @@ One outer iteration (split Bregman = scaled ADMM on ``d = D theta + c``)::
   ``mu_k = mu_0 growth^k``, each run to its fixed point and warm-started from the
   previous one; the first stage whose fixed point has ``||r|| <= tau delta`` is the
   answer (if the first stage already fits, the search walks towards stronger TV and
-  returns the strongest stage that still fits). ``beta`` starts at
+  returns the strongest stage that still fits). A stage that lowers the misfit of the
+  one before by less than ``delta / sqrt(2m)`` (the spread of the noise's own norm about
+  ``delta`` over ``m`` data) ends the search too: the data cannot tell the two apart, so
+  the earlier, stronger-TV stage is returned (stop reason ``plateau``). ``beta`` starts at
   ``beta_rel mu ||J||_2^2 / ||D||_2^2`` and is adapted every second iteration (spectral
   estimate, else residual balancing), keeping ``beta b``; in a data-Bregman run it also
   doubles when the ADMM residual has not decreased over ``stall_window`` iterations.
@@ -58,7 +61,8 @@ current stage, ``misfit`` = ``||r||``, ``cg_iterations`` of the inner solve, ``d
 ``dual_residual``, ``inner_iterations`` (and ``restored = 1`` on the record that returns
 to an earlier stage).
 
-Stop reasons: ``discrepancy`` (the selected stage fits), ``tolerance`` (fixed weight:
+Stop reasons: ``discrepancy`` (the selected stage fits), ``plateau`` (a weaker-TV stage
+fitted no closer than the noise's spread: the stage before it), ``tolerance`` (fixed weight:
 fixed point), ``max_iter`` (outer iterations, the stage budget of a fixed-weight run, or
 stages exhausted), ``stalled``, ``interrupted``.
 
@@ -113,9 +117,7 @@ class SplitBregmanConfig(SolverConfig):
     mu_rel_bregman: float = 1e4     # data Bregman: mu = mu_rel_bregman / ||J(theta0)||_2^2
                                     # (1e3 reached 1e-2 as fast on sparse poisson2d but then
                                     # oscillated for hundreds of iterations; docs/solvers)
-    tau: float = 1.02               # a stage is accepted when ||r|| <= tau * delta; the 2 %
-                                    # margin: ||noise|| itself spreads by 1/sqrt(2m) around
-                                    # delta (docs/solvers/split_bregman.md, 2026-11-25)
+    tau: float = 1.0                # a stage is accepted when ||r|| <= tau * delta
     growth: float = 4.0             # mu_{k+1} = growth * mu_k
     max_stages: int = 20
     max_iter: int = 2000            # outer (split Bregman) iterations over all stages
@@ -252,6 +254,10 @@ class SplitBregman(Solver):
         noise = self.residual.noise_level
         self.staged = bool(cfg.continuation and noise is not None and noise > 0)
         self.level = cfg.tau * noise if self.staged else math.nan
+        # the spread of ||noise|| about delta = sigma sqrt(m) (chi distribution, m data):
+        # two stages whose misfits differ by less are the same to the data
+        m = self.residual.data.numel()
+        self.spread = noise / math.sqrt(2.0 * m) if self.staged and m > 0 else 0.0
         # auto: only for clean data with the scale-aware weight; a mu given by the user
         # asks for the penalised problem TV + mu/2 ||r||^2 itself (e.g. denoising)
         self.data_bregman = cfg.data_bregman == "on" or (
@@ -288,6 +294,7 @@ class SplitBregman(Solver):
         self.direction: str | None = None        # continuation: 'weaker' | 'stronger'
         self.accepted: dict[str, Any] | None = None   # strongest-TV stage fitting (stronger)
         self.restore_pending = False
+        self.restore_reason = "discrepancy"      # why a restored stage is the answer
         self._begin_stage()
         return self._record(0.0, 0, math.nan, True, dual_residual=math.nan, inner_iterations=0)
 
@@ -359,7 +366,7 @@ class SplitBregman(Solver):
         update after an accepted iteration, the stall test after a rejected one; at a
         stage's end, the continuation."""
         if self.pending == "restored":
-            return Stop(True, "discrepancy")
+            return Stop(True, self.restore_reason)
         status = None
         if self.pending == "accepted":
             status = self._after_accepted()
@@ -453,6 +460,13 @@ class SplitBregman(Solver):
         if self.direction == "weaker":
             if ok:
                 return Stop(True, "discrepancy")
+            if self.accepted is not None and self.accepted["norm"] - self.norm < self.spread:
+                # weaker TV fitted the data no closer than the noise's spread: the stage
+                # before is the answer
+                self.restore_pending, self.restore_reason = True, "plateau"
+                return None
+            # the stage to return to on a plateau (its linearisation is not kept: memory)
+            self.accepted = {**self._snapshot(), "lin": None}
             mu_next = self.mu * cfg.growth
         elif not ok:
             went_too_far = True
@@ -608,7 +622,8 @@ class SplitBregman(Solver):
                 "objectives": list(self.objectives), "misfits": list(self.misfits),
                 "rejections": self.rejections, "direction": self.direction,
                 "accepted": accepted, "pending": self.pending, "last": last,
-                "restore_pending": self.restore_pending, "admm_residual": self.admm_residual,
+                "restore_pending": self.restore_pending, "restore_reason": self.restore_reason,
+                "admm_residual": self.admm_residual,
                 "admm_window": list(self.admm_window),
                 "e": clone(self.e), "norm0": self.norm0, "inner_rtol": self.inner_rtol}
 
@@ -632,6 +647,7 @@ class SplitBregman(Solver):
         last = state["last"]
         self.last = None if last is None else {k: clone(v) for k, v in last.items()}
         self.restore_pending = bool(state["restore_pending"])
+        self.restore_reason = str(state.get("restore_reason", "discrepancy"))
         self.admm_residual = float(state.get("admm_residual", math.inf))
         self.admm_window = [float(x) for x in state.get("admm_window", [])]
         self.e = clone(state["e"])
