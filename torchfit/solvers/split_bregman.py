@@ -292,7 +292,9 @@ class SplitBregman(Solver):
         self.d, self.b = self.Dtheta.clone(), torch.zeros_like(self.Dtheta)
         self.e = torch.zeros_like(self.lin.r)     # data Bregman variable (stays 0 when off)
         self.direction: str | None = None        # continuation: 'weaker' | 'stronger'
-        self.accepted: dict[str, Any] | None = None   # strongest-TV stage fitting (stronger)
+        # the stage to return to: the strongest-TV stage that fits (direction 'stronger'),
+        # the one before the current stage (direction 'weaker': a plateau returns to it)
+        self.accepted: dict[str, Any] | None = None
         self.restore_pending = False
         self.restore_reason = "discrepancy"      # why a restored stage is the answer
         self._begin_stage()
