@@ -87,9 +87,9 @@ def test_max_step_clips_every_component_and_still_converges(solver):
 def test_max_step_scales_a_clipped_step_that_would_not_descend(solver):
     """Two nearly dependent columns: the step is large along a nearly cancelling pair,
     and clipping each component to 1 makes the linear model predict an increase. LM
-    then raises its damping and solves again without a trial simulation, Gauss-Newton
-    scales the step into the box (its line search starts there): no iteration is
-    rejected and both reach the truth. Before, LM spent 11 of 30 iterations on rejected
+    then raises its damping and solves again without a trial simulation; Gauss-Newton's
+    CGLS stops on the box (a trust region), so its step is never clipped: no iteration
+    is rejected and both reach the truth. Before, LM spent 11 of 30 iterations on rejected
     trials and ended halfway (15.4, -14.4), and Gauss-Newton stopped at its first step
     ('tolerance': the clipped step had no descent)."""
     from torchfit.solvers import SOLVERS

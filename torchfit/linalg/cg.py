@@ -147,7 +147,8 @@ def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor]
         if max_abs > 0:
             reach = _box_reach(x, p, max_abs)
             if float(alpha) > reach:
-                x = x + reach * p
+                # clamped: the point is on the boundary, not round-off outside it
+                x = (x + reach * p).clamp_(-max_abs, max_abs)
                 Ax = Ax + reach * q
                 r = r - reach * q
                 r_norm = float(torch.linalg.vector_norm(r))

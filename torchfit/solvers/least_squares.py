@@ -38,9 +38,9 @@ class LeastSquaresConfig(SolverConfig):
     # theta = log E, max_step = 1 lets a modulus change by at most a factor e per step:
     # weakly observed parameters cannot leap to values the simulation cannot solve, and
     # the well observed ones still take their full step. Where clipping would turn the
-    # step away from descent, the whole step is scaled into the box (box_step).
-    # Gauss-Newton also stops its CGLS on the box's boundary (a trust region), so the
-    # step it clips is rarely more than round-off outside it.
+    # step away from descent, the whole step is scaled into the box (box_step; LM).
+    # Gauss-Newton instead stops its CGLS on the box's boundary (a trust region): its
+    # steps are inside the box and never clipped.
     max_step: float = 0.0
 
     def check(self) -> None:
