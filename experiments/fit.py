@@ -4,6 +4,7 @@
     python experiments/fit.py problem.noise=1e-4 solver=levenberg_marquardt
     python experiments/fit.py -m experiment=seed_table          # a sweep preset (conf/experiment/)
     python experiments/fit.py hydra.run.dir=<run> resume=true   # continue a killed run exactly
+    python experiments/fit.py problem.frames=null init=<run>    # start from an earlier fit
 
 The run directory's files are those of :mod:`torchfit.fit` plus Hydra's ``.hydra/`` and
 ``fit.log`` (which has the progress table). Exit statuses: :mod:`app` (0 done, 1 the fit
@@ -72,7 +73,7 @@ def main(cfg: DictConfig) -> float:
     try:
         problem, solver, options, config = prepare(cfg)
         result = fit(problem, solver, run_dir=run_dir, resume=bool(config["resume"]),
-                     options=options, config=config)
+                     options=options, config=config, init=config["init"])
     except KeyboardInterrupt:
         print(f"interrupted; continue with: python experiments/fit.py hydra.run.dir={run_dir} "
               "resume=true (and the same overrides)", file=sys.stderr, flush=True)

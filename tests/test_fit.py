@@ -15,7 +15,8 @@ import torch
 from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
 
 from torchfit.fit import (FitConfigError, FitOptions, ResumeError, RunDirectoryError,
-                          build_solver, fit, verify)
+                          build_solver, fit, initial_theta, verify)
+from torchfit.logging import save_params
 from torchfit.problems import build_problem
 from torchfit.solvers import SolverConfigError
 
@@ -187,6 +188,15 @@ def test_resuming_a_finished_run_rewrites_nothing(tmp_path):
      ValueError, "sheet_frame"),
     (lambda p, d: fit(p, "gauss_newton", run_dir=d / "file" / "run"),
      RunDirectoryError, "is a file"),
+    (lambda p, d: fit(p, "gauss_newton", run_dir=d / "run", init=d / "missing"),
+     FitConfigError, "init=.*missing: no such file"),
+    (lambda p, d: fit(p, "gauss_newton", run_dir=d / "run", init=d / "file"),
+     FitConfigError, "is not a torchfit params.pt"),
+    (lambda p, d: fit(p, "gauss_newton", run_dir=d / "run", init=torch.zeros(9)),
+     FitConfigError, r"init has \(9,\) parameters.*\(8,\)"),
+    (lambda p, d: fit(p, "gauss_newton", run_dir=d / "run",
+                      init=torch.tensor([0.0] * 7 + [float("nan")])),
+     FitConfigError, "parameter 7 is nan"),
 ])
 def test_bad_input_writes_nothing(tmp_path, call, error, match):
     (tmp_path / "file").write_text("not a directory")
@@ -195,6 +205,42 @@ def test_bad_input_writes_nothing(tmp_path, call, error, match):
         call(problem, tmp_path)
     assert "\n" not in str(info.value)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_init_starts_where_an_earlier_run_ended_and_a_resume_must_repeat_it(tmp_path):
+    settings = {"n": 16, "noise": 1e-4, "seed": 1}
+    first = fit(build_problem("spring1d", settings), {"name": "gauss_newton", "max_iter": 1},
+                run_dir=tmp_path / "first", options=QUIET)
+    problem = build_problem("spring1d", settings)
+    second = fit(problem, "gauss_newton", run_dir=tmp_path / "second", options=QUIET,
+                 init=tmp_path / "first")
+    # record 0 of the second run is the first run's last point, not the initial guess
+    assert second.history[0]["misfit"] == first.metrics["misfit"]
+    initial = fit(problem, {"name": "gauss_newton", "max_iter": 0}, options=QUIET)
+    assert second.history[0]["misfit"] < 0.9 * initial.metrics["misfit"]
+    assert second.stop_reason == "discrepancy" and second.metrics["misfit"] < first.metrics["misfit"]
+    same = fit(problem, "gauss_newton", options=QUIET, init=first.theta)   # a tensor
+    assert torch.equal(same.theta, second.theta)
+    # the second run's checkpoint remembers its start: resuming from another one is refused
+    for other in (None, torch.zeros(16)):
+        with pytest.raises(ResumeError, match="init"):
+            fit(problem, "gauss_newton", run_dir=tmp_path / "second", resume=True,
+                options=QUIET, init=other)
+    again = fit(problem, "gauss_newton", run_dir=tmp_path / "second", resume=True,
+                options=QUIET, init=tmp_path / "first" / "params.pt")
+    assert torch.equal(again.theta, second.theta)
+
+
+def test_init_refuses_a_run_of_another_parameterisation(tmp_path):
+    problem = build_problem("spring1d", {"n": 8})
+    theta = problem.theta0
+    for key, saved in (("transform", ("k", "identity")), ("field_name", ("E", "exp"))):
+        save_params(tmp_path / key, theta, theta.exp(), *saved)
+        with pytest.raises(FitConfigError, match=f"{key} '.*', but spring1d's is") as info:
+            initial_theta(problem, tmp_path / key)
+        assert str(tmp_path / key / "params.pt") in str(info.value)
+    save_params(tmp_path / "same", theta + 1, theta.exp(), "k", "exp")
+    assert torch.equal(initial_theta(problem, tmp_path / "same"), theta + 1)
 
 
 def test_solvers_get_what_their_registry_entry_asks_of_the_parameterisation():

@@ -25,6 +25,10 @@ class FitConfig:
     problem: Any = MISSING
     solver: Any = MISSING
     resume: bool = False        # continue from the last checkpoint in the run directory
+    # Start from an earlier run's fitted parameters (its directory or params.pt) instead of
+    # the problem's initial guess: e.g. the frames whose equilibrium is unique first, then
+    # all frames; or a coarser mesh first. The parameterisation must be the same.
+    init: Optional[str] = None
     progress: bool = True       # one line per outer iteration on the terminal
     log_every: int = 1          # TensorBoard scalars every n iterations (the last always)
     threads: int = 0            # torch and BLAS CPU threads per job (0: default); 1 in joblib sweeps

@@ -11,7 +11,8 @@ Run directory (``run_dir``; ``None``: no files at all, the fit still runs):
     ``stop_reason``, ``status`` (``completed``), ``resumed_from_iteration`` (a resumed
     run), ``problem`` (sizes), ``config`` and ``history`` (one row per outer iteration).
 ``params.pt``, ``field.npy``
-    fitted ``theta`` and field (byte-identical for identical runs).
+    fitted ``theta`` and field (byte-identical for identical runs); ``init=`` of a later
+    run starts from ``params.pt`` (:func:`initial_theta`)).
 ``checkpoint.pt``
     after every outer iteration: ``theta``, the solver's :meth:`~torchfit.solvers.Solver.state_dict`,
     the iteration and the settings it belongs to; nothing time-dependent, so identical
@@ -50,8 +51,8 @@ from .logging import (FieldSnapshots, MetricsCallback, PlotGuard, ProgressPrinte
                       write_run_pngs)
 from .logging.meshes import BodyOutputs
 from .logging.motion import MotionOutputs
-from .logging.results import (CHECKPOINT_FILE, RESULT_FILE, atomic_write, jsonable,
-                              save_torch)
+from .logging.results import (CHECKPOINT_FILE, PARAMS_FILE, RESULT_FILE, atomic_write,
+                              jsonable, save_torch)
 from .problems import InverseProblem
 from .problems.base import (BodyProblem, FieldImageProblem, FramedProblem, MeshProblem,
                             MotionProblem)
@@ -227,6 +228,66 @@ def build_solver(problem: InverseProblem, solver: Solver | SolverConfig | Mappin
     return entry.solver_class(config, **inputs)
 
 
+# -- the starting point -----------------------------------------------------------------------
+def initial_theta(problem: InverseProblem, init: Tensor | str | Path | None = None) -> Tensor:
+    """Where the fit starts: ``problem.theta0`` (``init=None``), a given ``theta``, or the
+    ``theta`` of an earlier run (its directory or its ``params.pt``).
+
+    An earlier run is a start, not a resume: any problem and solver settings may differ
+    (other frames, another mesh of the same body, another solver) as long as the
+    parameterisation is the same: ``(n_params,)`` and, where ``params.pt`` records them, the
+    field's name and transform. Raises :class:`FitConfigError` naming the file and what
+    differs; nothing is read but that file.
+    """
+    if init is None:
+        return problem.theta0.detach().clone()
+    n = problem.parameterization.n_params
+    where = "init"
+    if isinstance(init, Tensor):
+        theta = init.detach()
+    else:
+        path = Path(init).expanduser()
+        if path.is_dir():
+            path = path / PARAMS_FILE
+        where = f"init={path}"
+        if not path.is_file():
+            raise FitConfigError(f"{where}: no such file; give the directory of a finished run "
+                                 f"(it holds {PARAMS_FILE}) or the {PARAMS_FILE} itself")
+        try:
+            with open(path, "rb") as f:
+                saved = torch.load(f, map_location="cpu", weights_only=True)
+            theta = saved["theta"]
+            if not isinstance(theta, Tensor):
+                raise TypeError("its theta is not a tensor")
+        except Exception as e:  # noqa: BLE001  (truncated, foreign or corrupt file)
+            first = (str(e).strip().splitlines() or [type(e).__name__])[0][:120]
+            raise FitConfigError(f"{where} is not a torchfit {PARAMS_FILE} ({first}); give the "
+                                 "directory of a finished run") from None
+        name = problem.parameterization.name
+        for key, ours in (("field_name", problem.field_name),
+                          ("transform", problem.parameterization.transform)):
+            if key in saved and saved[key] != ours:
+                raise FitConfigError(f"{where} holds a {name} with {key} {saved[key]!r}, but "
+                                     f"{problem.name}'s is {ours!r}; start from a run of the "
+                                     "same parameterisation")
+    if theta.shape != (n,):
+        raise FitConfigError(f"{where} has {tuple(theta.shape)} parameters, but {problem.name}'s "
+                             f"parameterisation has ({n},); start from a run with the same "
+                             "parameters (problem.parameters, problem.grid)")
+    if not bool(torch.isfinite(theta).all()):
+        bad = int(torch.nonzero(~torch.isfinite(theta))[0, 0])
+        raise FitConfigError(f"{where}: parameter {bad} is {float(theta[bad])}; a start must "
+                             "be finite")
+    return theta.to(dtype=problem.theta0.dtype, device=problem.theta0.device).clone()
+
+
+def _digest(theta: Tensor) -> str:
+    """A short hash of ``theta``'s bytes (a checkpoint remembers where its run started)."""
+    import hashlib
+    data = theta.detach().cpu().to(torch.float64).contiguous().numpy().tobytes()
+    return hashlib.sha256(data).hexdigest()[:16]
+
+
 # -- the run directory ------------------------------------------------------------------------
 def check_writable(run_dir: Path) -> None:
     """Raise :class:`RunDirectoryError` if ``run_dir`` cannot be created or written (writes
@@ -275,9 +336,11 @@ def _read_rows(path: Path, last: int) -> list[dict[str, Any]]:
     return rows
 
 
-def read_checkpoint(run_dir: Path, problem: InverseProblem, solver: Solver) -> _Resume | None:
-    """The checkpoint of ``run_dir`` if it belongs to this problem and solver (``None``
-    when there is none); :class:`ResumeError` naming what differs otherwise."""
+def read_checkpoint(run_dir: Path, problem: InverseProblem, solver: Solver,
+                    start: Tensor | None = None) -> _Resume | None:
+    """The checkpoint of ``run_dir`` if it belongs to this problem, solver and start
+    (``None``: the problem's ``theta0``); ``None`` when there is none;
+    :class:`ResumeError` naming what differs otherwise."""
     path = run_dir / CHECKPOINT_FILE
     if not path.is_file():
         return None
@@ -299,6 +362,14 @@ def read_checkpoint(run_dir: Path, problem: InverseProblem, solver: Solver) -> _
             raise ResumeError(f"cannot resume: {path} belongs to other {key.replace('_', ' ')} "
                               f"settings ({_difference(saved, value)}); repeat the first run's "
                               "settings, or use another run directory or resume=false")
+    started = None if start is None else _digest(start)
+    if payload.get("init") != started:
+        def origin(digest: str | None) -> str:
+            return "the initial guess" if digest is None else f"an init= start ({digest})"
+        raise ResumeError(f"cannot resume: {path} belongs to a run that started from "
+                          f"{origin(payload.get('init'))}, this one starts from "
+                          f"{origin(started)}; repeat the first run's init, or use another run "
+                          "directory or resume=false")
     iteration = int(payload["iteration"])
     rows = _read_rows(run_dir / HISTORY_FILE, iteration)
     if not rows or int(rows[-1]["iteration"]) != iteration:
@@ -334,7 +405,7 @@ class _Checkpointer:
     """
 
     def __init__(self, run_dir: Path, problem: InverseProblem, solver: Solver,
-                 rows: list[dict[str, Any]]) -> None:
+                 rows: list[dict[str, Any]], start: Tensor | None = None) -> None:
         self.run_dir = run_dir
         self.solver = solver
         self.rows = rows
@@ -342,7 +413,8 @@ class _Checkpointer:
                       "problem_config": json.dumps(_settings(problem.cfg)),
                       "solver": solver.config.name,
                       "solver_config": json.dumps(_resumable(_settings(solver.config))),
-                      "n_params": int(problem.theta0.numel())}
+                      "n_params": int(problem.theta0.numel()),
+                      "init": None if start is None else _digest(start)}
         with open(run_dir / HISTORY_FILE, "w", encoding="utf-8") as f:
             for row in rows:
                 f.write(json.dumps(jsonable(row)) + "\n")
@@ -382,7 +454,8 @@ def _cpu(value: Any) -> Any:
 def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, Any] | str, *,
         run_dir: str | Path | None = None, callbacks: Iterable[Callable[[IterationRecord], Any]] = (),
         resume: bool = False, options: FitOptions | None = None,
-        config: Mapping[str, Any] | None = None) -> FitResult:
+        config: Mapping[str, Any] | None = None,
+        init: Tensor | str | Path | None = None) -> FitResult:
     """Fit ``problem`` with ``solver`` and write the run directory (module docstring).
 
     Args:
@@ -396,6 +469,9 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
         options: :class:`FitOptions`.
         config: the settings to store in ``result.json`` and TensorBoard (the Hydra app's
             resolved config); default: the problem's and solver's settings.
+        init: where to start instead of ``problem.theta0``: a ``theta`` or an earlier run
+            (:func:`initial_theta`), e.g. the fit of the frames whose equilibrium is unique
+            before all frames, or of a coarser mesh. A resume must repeat it.
     Returns:
         :class:`FitResult`.
     Raises:
@@ -409,6 +485,7 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
                              f"{type(problem).__name__}")
     options.check(problem)
     solver = build_solver(problem, solver)
+    start = None if init is None else initial_theta(problem, init)
     run_path = None if run_dir is None else Path(run_dir).resolve()
     if resume and run_path is None:
         raise FitConfigError("resume=True needs the run_dir of the run to continue")
@@ -417,7 +494,7 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
         if not resume and (run_path / CHECKPOINT_FILE).exists():
             raise FitConfigError(f"{run_path} already holds a run (its checkpoint.pt); resume=true "
                                  "continues it, or choose another run directory")
-    restart = read_checkpoint(run_path, problem, solver) if resume and run_path else None
+    restart = read_checkpoint(run_path, problem, solver, start) if resume and run_path else None
     if resume and run_path is not None and restart is None:
         log.warning("resume: %s has no checkpoint; starting from the initial guess",
                     run_path / CHECKPOINT_FILE)
@@ -430,9 +507,10 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
         set_threads(options.threads)
     # -- from here on files are written ---------------------------------------------------
     described = problem.describe()
-    log.info("problem %s: %s parameters, %s data, noise level %s%s", described["name"],
+    log.info("problem %s: %s parameters, %s data, noise level %s%s%s", described["name"],
              described["n_params"], described["n_data"], described["noise_level"],
-             f"; resuming after iteration {restart.iteration}" if restart else "")
+             f"; starting from {init}" if start is not None and not isinstance(init, Tensor)
+             else "", f"; resuming after iteration {restart.iteration}" if restart else "")
     rows: list[dict[str, Any]] = list(restart.rows) if restart else []
     chain: list[Callable[[IterationRecord], Any]] = [MetricsCallback(problem)]
     if options.progress:
@@ -441,7 +519,7 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
     tb = snapshots = checkpointer = body = motion = None
     if run_path is not None:
         run_path.mkdir(parents=True, exist_ok=True)
-        checkpointer = _Checkpointer(run_path, problem, solver, rows)
+        checkpointer = _Checkpointer(run_path, problem, solver, rows, start)
         chain.append(checkpointer)
         tb = TensorBoardLogger(run_path / "tb", log_every=options.log_every)
         if restart is not None:
@@ -465,7 +543,8 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
     chain.extend(callbacks)
     warm_up_autograd()     # torch's lazy one-time set-up, outside the solver's clock
     try:
-        solved = solver.solve(problem.residual(), problem.theta0, chain,
+        solved = solver.solve(problem.residual(),
+                              problem.theta0 if start is None else start, chain,
                               state=restart.state if restart else None)
     finally:
         if checkpointer is not None:
@@ -502,7 +581,8 @@ def _write_outputs(problem: InverseProblem, result: FitResult, run_dir: Path,
     final = {**result.metrics, "iterations": result.iterations, "wall_s": result.wall_s}
     hparams = {"problem": config.get("problem", {}), "solver": config.get("solver", {})}
     tb.finish(problem, result.theta, final, hparams, guard)
-    files[:0] = list(save_params(run_dir, result.theta, result.field, problem.field_name))
+    files[:0] = list(save_params(run_dir, result.theta, result.field, problem.field_name,
+                                 problem.parameterization.transform))
     if isinstance(problem, MeshProblem):
         _save_frames(run_dir / "frames.npz", problem, result.theta)
         files.append(run_dir / "frames.npz")
@@ -639,5 +719,5 @@ def verify(problem: InverseProblem, *, run_dir: str | Path | None = None, at: st
 
 
 __all__ = ["FitConfigError", "FitOptions", "FitResult", "ResumeError", "RunDirectoryError",
-           "build_solver", "check_writable", "fit", "result_dict", "solver_config",
+           "build_solver", "check_writable", "fit", "initial_theta", "result_dict", "solver_config",
            "verification_point", "verify"]

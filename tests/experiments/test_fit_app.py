@@ -87,6 +87,7 @@ BAD_INPUT = [
     (["problem=membrane2d", "problem.model=mooney"], ["corotated"]),
     (["problem=membrane2d", "problem.nx=4", "problem.ny=2", "sheet_frame=9"], ["sheet_frame"]),
     (["snapshot_every=-1"], ["snapshot_every"]),
+    (["init=/nonexistent/run"], ["init=/nonexistent/run", "no such file"]),
 ]
 
 
@@ -178,6 +179,21 @@ def test_resume_through_the_app_continues_with_a_larger_budget(tmp_path):
     assert second["resumed_from_iteration"] == 2 and second["stop_reason"] == "discrepancy"
     assert [row["iteration"] for row in second["history"]] == list(range(second["iterations"] + 1))
     assert second["history"][2]["misfit"] == first["misfit"]
+
+
+def test_init_starts_from_an_earlier_run_of_the_same_parameterisation(tmp_path):
+    ok(run_fit_app(tmp_path / "first", "problem.n=16", "problem.noise=1e-4", "solver.max_iter=1"))
+    first = json.loads((tmp_path / "first" / "result.json").read_text())
+    ok(run_fit_app(tmp_path / "second", "problem.n=16", "problem.noise=1e-4",
+                   f"init={tmp_path / 'first'}"))
+    second = json.loads((tmp_path / "second" / "result.json").read_text())
+    assert second["history"][0]["misfit"] == first["misfit"]
+    assert second["config"]["init"] == str(tmp_path / "first")
+    refused = run_fit_app(tmp_path / "third", "problem.n=8", f"init={tmp_path / 'first'}")
+    errors = [line for line in refused.stderr.splitlines() if line.startswith("error: ")]
+    assert refused.returncode == 2 and "Traceback" not in refused.stderr, refused.stderr
+    assert len(errors) == 1 and "(16,) parameters" in errors[0] and "(8,)" in errors[0]
+    assert not (tmp_path / "third").exists()
 
 
 def test_verify_exit_statuses(tmp_path):

@@ -71,6 +71,23 @@ def test_warm_start_setting_decides_where_newton_starts(cache, warm_start):
         assert float((after_other - alone).abs().max()) <= 1e-12
 
 
+def test_neither_the_synthetic_target_nor_the_baseline_seeds_the_fit(cache):
+    """The truth's solution and the homogeneous baseline start from the animated pose and
+    never warm-start a fit's simulation: where a frame has several equilibria a warm start
+    from the truth's would hand the fit the truth's branch (and one from the baseline put a
+    run started elsewhere, ``init=``, on the baseline's)."""
+    problem = arm(cache, frames=[0, 11], target="synthetic")
+    equilibrium = problem.quasistatic.equilibrium
+    assert not equilibrium.last_warm_started
+    problem.homogeneous_surface_error()
+    assert not equilibrium.last_warm_started
+    E1 = problem.parameterization(problem.theta0) * 1.5
+    problem.simulate(E1)
+    assert not equilibrium.last_warm_started
+    problem.simulate(E1 * torch.linspace(0.8, 1.2, E1.numel(), dtype=E1.dtype))
+    assert equilibrium.last_warm_started          # the fit's own points still seed
+
+
 @pytest.mark.parametrize("model", ["linear", pytest.param("corotated", marks=pytest.mark.slow),
                                    pytest.param("stable_neo_hookean", marks=pytest.mark.slow)])
 def test_verify_passes_for_each_model(cache, tmp_path, model):

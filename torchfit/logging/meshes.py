@@ -143,8 +143,9 @@ class BodyOutputs:
             x = self.problem.simulate(self.problem.field(record.theta))   # the cached state
         curves = self.problem.frame_errors(x)
         self.history[int(record.iteration)] = curves["surface_err_mean"]
-        if int(record.iteration) == 0:
+        if int(record.iteration) == 0 and torch.equal(record.theta, self.problem.theta0):
             # the homogeneous material (the initial guess): the model comparison's baseline
+            # (a run started from init= begins elsewhere and simulates it at the end)
             self.initial = (curves, x.detach().clone())
 
     # -- end of the run ---------------------------------------------------------------
@@ -306,8 +307,9 @@ class BodyOutputs:
         homogeneous = problem.field(problem.theta0).detach()
         if self.initial is not None:
             x_homogeneous = self.initial[1]
-        else:      # a resumed run did not see iteration 0
-            x_homogeneous = problem.simulate_model(model, homogeneous)
+        else:      # a resumed run did not see iteration 0; an init= run started elsewhere
+            with problem.independent_simulation():     # cold, as the initial guess was
+                x_homogeneous = problem.simulate_model(model, homogeneous)
         progress.info("simulating the linear model for the comparison (%d frames)",
                       problem.n_frames)
         states = {"homogeneous": {model: x_homogeneous}, "fitted": {model: x}}

@@ -102,14 +102,18 @@ def history_rows(history: list[IterationRecord], step_offset: int = 0) -> list[d
 
 
 def save_params(run_dir: str | Path, theta: Tensor, field: Tensor,
-                field_name: str = "k") -> tuple[Path, Path]:
-    """Write ``params.pt`` (theta and field) and ``field.npy``; returns both paths."""
+                field_name: str = "k", transform: str | None = None) -> tuple[Path, Path]:
+    """Write ``params.pt`` (theta, field, the field's name and, if given, the
+    parameterisation's transform: what ``init=`` checks) and ``field.npy``; returns both
+    paths."""
     run_dir = Path(run_dir)
     theta_cpu = theta.detach().cpu().clone()
     field_cpu = field.detach().cpu().clone()
     params_path = run_dir / PARAMS_FILE
-    atomic_write(params_path, lambda f: _torch_bytes(
-        {"theta": theta_cpu, "field": field_cpu, "field_name": field_name}, f))
+    payload: dict[str, Any] = {"theta": theta_cpu, "field": field_cpu, "field_name": field_name}
+    if transform is not None:
+        payload["transform"] = transform
+    atomic_write(params_path, lambda f: _torch_bytes(payload, f))
     field_path = run_dir / FIELD_FILE
     atomic_write(field_path, lambda f: np.save(f, field_cpu.numpy()))
     return params_path, field_path

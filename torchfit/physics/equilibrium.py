@@ -45,18 +45,23 @@ Gauss-Newton evaluate nearby points one after the other): the one derivatives we
 taken at (a solver's linearisation point) while it is alive, else the most recently used
 one. A trial point after a rejected step thus starts from the point the solver's model
 linearises, not from the rejected trial, which near a fold may sit in another equilibrium.
+Simulations that are not part of a solver's sequence (a synthetic target, a baseline) run
+inside :meth:`Equilibrium.independent`: they start cold and never seed a later warm start
+(they are still found again at the same parameters), so that where a frame has several
+equilibria what a fit sees does not depend on them.
 Convergence is still judged against the reference residual of the cold start, so results
 agree with a cold start to the Newton tolerance where the equilibrium is unique; a warm
 start that fails falls back to the cold start.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import inspect
 import math
 import warnings
 import weakref
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Iterator, Protocol
 
 import torch
 from torch import Tensor
@@ -130,6 +135,7 @@ class _Solution:
     reference: Tensor | None = None        # (F,) residual norms of the cold start
     param_derivative: Any = None           # model.param_derivative at x*, built lazily
     warm_started: bool = False
+    seeds: bool = True         # may warm-start another point (False: an independent() solve)
 
 
 class Equilibrium:
@@ -186,6 +192,7 @@ class Equilibrium:
         self.last_newton_iterations: list[int] = []
         self.last_warm_started = False
         self.warm_start = bool(warm_start)
+        self._independent = False     # inside independent(): cold starts, no seeds
         # Linear models: steps of iterative refinement after the solve (one residual and
         # one solve with the same factor each; removes the round-off of a far start).
         self.linear_refinement = int(linear_refinement)
@@ -460,6 +467,24 @@ class Equilibrium:
         self._alive = weakref.WeakSet()
         self._anchor = None
 
+    @contextlib.contextmanager
+    def independent(self) -> Iterator[None]:
+        """Within: every new solve starts cold (from ``x_init``, not from an earlier
+        solution) and its solution never warm-starts a later one, unless derivatives are
+        taken at it. A solution at the same parameters and Dirichlet values is still
+        returned from the cache (the cold start gives the same answer).
+
+        For simulations beside a solver's sequence: a synthetic target, the homogeneous
+        baseline of a report. Where a frame has several equilibria (a fold), a warm start
+        from them would put the fit on their branch.
+        """
+        before = self._independent
+        self._independent = True
+        try:
+            yield
+        finally:
+            self._independent = before
+
     # -- internals --------------------------------------------------------------------
     def _lookup(self, params: Tensor, fixed_values: Tensor) -> _Solution | None:
         def same(sol: _Solution) -> bool:
@@ -561,12 +586,14 @@ class Equilibrium:
         return self._full(x_free, fixed_values)
 
     def _warm_source(self, fixed_values: Tensor) -> _Solution | None:
-        """The solution derivatives were last taken at, else the most recently used one,
-        if it has the same Dirichlet values."""
-        if not self.warm_start or self.model.linear:
+        """The solution derivatives were last taken at, else the most recently used one
+        (unless it came from :meth:`independent`), if it has the same Dirichlet values;
+        ``None`` inside :meth:`independent`."""
+        if not self.warm_start or self.model.linear or self._independent:
             return None
         anchor = self._anchor() if self._anchor is not None else None
-        for sol in ([anchor] if anchor is not None else []) + self._cache[-1:]:
+        recent = [sol for sol in self._cache[-1:] if sol.seeds]
+        for sol in ([anchor] if anchor is not None else []) + recent:
             if sol.fixed_values.shape == fixed_values.shape and sol.reference is not None \
                     and torch.equal(sol.fixed_values, fixed_values):
                 return sol
@@ -735,6 +762,8 @@ class Equilibrium:
         fixed_values = fixed_values.detach()
         cached = self._lookup(params, fixed_values)
         if cached is not None:
+            # a point a solver asks for again is the solver's: it may seed warm starts
+            cached.seeds = cached.seeds or not self._independent
             return cached
         try:
             sol = self._solve_forward(params, fixed_values, x_init)
@@ -745,6 +774,7 @@ class Equilibrium:
                 f"{self.free_dofs.numel():,} free dofs, {self.free_pattern.nnz:,} stored "
                 f"tangent entries, {self.backend.name} backend", err) from None
         sol.params, sol.fixed_values = params.clone(), fixed_values.clone()
+        sol.seeds = not self._independent
         self._remember(sol)
         self.last_newton_iterations = sol.newton_iterations
         self.last_warm_started = sol.warm_started

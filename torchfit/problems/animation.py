@@ -34,7 +34,7 @@ import math
 import os
 import warnings
 from pathlib import Path
-from typing import Any, List, Optional
+from typing import Any, ContextManager, List, Optional
 
 import numpy as np
 import torch
@@ -414,6 +414,11 @@ class AnimationProblem(InverseProblem):
         return self.quasistatic(E, self.dirichlet_positions.to(E),
                                 x_init=self.start_positions.to(E))
 
+    def independent_simulation(self) -> ContextManager[None]:
+        """Cold starts from the animated pose that seed no warm start (the synthetic
+        target, the homogeneous baseline): :meth:`Equilibrium.independent`."""
+        return self.quasistatic.equilibrium.independent()
+
     def simulation_accuracy(self) -> float | None:
         """Newton's relative tolerance: 48 nonlinear frames are solved to it, not to round-off."""
         return max(float(self.cfg.newton_rtol), torch.finfo(self.dtype).eps)
@@ -507,7 +512,7 @@ class AnimationProblem(InverseProblem):
     def homogeneous_surface_error(self) -> float:
         """Mean surface error of the homogeneous material (any constant: scale-free)."""
         if not hasattr(self, "_homogeneous_error"):
-            with torch.no_grad():
+            with torch.no_grad(), self.independent_simulation():
                 x = self.simulate(self.field(self.theta0))
                 self._homogeneous_error = float(self.surface_errors(x).mean())
         return self._homogeneous_error
@@ -545,7 +550,7 @@ class AnimationProblem(InverseProblem):
         frames = list(range(self.n_frames)) if frames is None else list(frames)
         if model == self.cfg.model.value:
             with torch.no_grad():
-                return self.simulate(E.detach())[frames]
+                return self.simulate(E.detach())[frames]   # the fit's own model: its state
         if model not in self._other_models:
             other = SimplicialElasticity(torch.from_numpy(self.mesh.points),
                                          torch.from_numpy(self.mesh.cells), model, nu=self.cfg.nu,

@@ -29,6 +29,7 @@ Nothing here relies on torch's default dtype: tensors are made in ``problem.dtyp
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import enum
 import math
@@ -36,7 +37,8 @@ import numbers
 import re
 import typing
 from collections.abc import Mapping
-from typing import Any, Callable, ClassVar, Protocol, Sequence, runtime_checkable
+from typing import (Any, Callable, ClassVar, ContextManager, Protocol, Sequence,
+                    runtime_checkable)
 
 import torch
 from torch import Tensor
@@ -483,6 +485,9 @@ class BodyProblem(Protocol):
     def surface_error_field(self, x: Tensor) -> Tensor:
         ...
 
+    def independent_simulation(self) -> ContextManager[None]:
+        ...
+
     def simulate_model(self, model: str, E: Tensor, frames: Any = None) -> Tensor:
         ...
 
@@ -546,7 +551,8 @@ class InverseProblem:
         truth = self.true_field(cfg)
         if truth is not None:
             self.field_true = truth.to(device=self.device, dtype=self.dtype)
-            self.x_true = self.simulate(self.true_simulation_input()).detach()
+            with self.independent_simulation():    # the truth never seeds the fit's starts
+                self.x_true = self.simulate(self.true_simulation_input()).detach()
             clean, what = self.observe(self.x_true), "simulated target"
         else:
             self.field_true = None
@@ -718,6 +724,14 @@ class InverseProblem:
                     out["k_err_rel_aligned"] = float(
                         torch.linalg.vector_norm(scale * field - truth)) / truth_norm
         return out
+
+    def independent_simulation(self) -> ContextManager[None]:
+        """A context whose simulations start cold and seed no later warm start: the
+        synthetic target, baselines of reports. A problem whose simulation warm-starts
+        from earlier solutions overrides it (where a frame has several equilibria, a
+        warm start from the truth's would put the fit on the truth's branch). Default:
+        nothing to isolate."""
+        return contextlib.nullcontext()
 
     def describe(self) -> dict[str, object]:
         """Sizes for logs and result files."""

@@ -24,7 +24,8 @@ The settings every dynamic problem has (checked by :func:`check_dynamic_settings
 """
 from __future__ import annotations
 
-from typing import Any
+import contextlib
+from typing import Any, ContextManager
 
 import numpy as np
 import torch
@@ -115,6 +116,11 @@ class DynamicMixin:
     scale_free = False
     cfg: Any
     system: DynamicSystem
+
+    def independent_simulation(self) -> ContextManager[None]:
+        """Nothing to isolate: every simulation integrates from the initial state (each
+        step's Newton starts from the step before, within that simulation)."""
+        return contextlib.nullcontext()
 
     # -- building ---------------------------------------------------------------------------
     def build_integrator(self, cfg: Any, backend: str, newton: NewtonOptions | None = None) -> None:

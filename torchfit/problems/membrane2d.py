@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, List, Optional
+from typing import Any, ContextManager, List, Optional
 
 import numpy as np
 import torch
@@ -236,6 +236,11 @@ class Membrane2D(InverseProblem):
             raise ProblemConfigError(f"Young's modulus must have shape ({self.model.n_cells},) "
                                      f"(one per triangle), got {tuple(E.shape)}")
         return self.quasistatic(E, self.dirichlet_positions.to(E))
+
+    def independent_simulation(self) -> ContextManager[None]:
+        """Cold starts that seed no warm start (the synthetic target):
+        :meth:`Equilibrium.independent`."""
+        return self.quasistatic.equilibrium.independent()
 
     def observe(self, x: Tensor) -> Tensor:
         """Both coordinates of every free vertex, frame-major ``(F * n_free * 2,)``."""
