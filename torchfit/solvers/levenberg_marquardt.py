@@ -19,7 +19,10 @@ and the damped system is solved again before any trial is simulated (see
 :meth:`LevenbergMarquardt._limit_step`).
 
 Stop rules: :func:`~.base.least_squares_stop` (discrepancy first), then ``stalled``
-when ``lam`` exceeds ``damping_max`` times its start.
+when ``lam`` exceeds ``damping_max`` times its start; ``resolution`` (converged) when a
+trial's misfit is bit-identical to the current one: the simulation cannot tell the step
+from the current point (a warm-started Newton converged there in 0 iterations), and
+more damping would only repeat that.
 
 Dense Jacobian (``dense_jacobian_max_params``, see :mod:`.least_squares`): when the
 residual provides ``jacobian`` and ``n`` is small, each accepted point materialises
@@ -226,6 +229,13 @@ class LevenbergMarquardt(LeastSquaresSolver):
         # not be positive, and a trial costs a simulation.
         candidate = try_linearize(residual, theta + direction) \
             if predicted > 0 and not acceleration_ratio > cfg.geodesic_alpha else None
+        if candidate is not None and candidate.norm == lin.norm:
+            # A trial misfit bit-identical to this one: the simulation cannot tell the step
+            # from this point (a Newton warm-started here is already converged at the trial,
+            # 0 iterations in every frame; or theta + d rounds to theta). More damping only
+            # shortens the step, so every later trial would be the same: the fit is at the
+            # simulation's resolution (no record: theta is unchanged).
+            return Stop(True, "resolution")
         actual = 0.5 * lin.norm ** 2 - 0.5 * candidate.norm ** 2 if candidate is not None \
             else -math.inf
         gain = actual / predicted if predicted > 0 else -math.inf
