@@ -471,8 +471,8 @@ class Equilibrium:
     def independent(self) -> Iterator[None]:
         """Within: every new solve starts cold (from ``x_init``, not from an earlier
         solution) and its solution never warm-starts a later one, unless derivatives are
-        taken at it. A solution at the same parameters and Dirichlet values is still
-        returned from the cache (the cold start gives the same answer).
+        taken at it or it is asked for again outside. A solution already cached at the same
+        parameters and Dirichlet values is returned as it is (no new solve).
 
         For simulations beside a solver's sequence: a synthetic target, the homogeneous
         baseline of a report. Where a frame has several equilibria (a fold), a warm start
