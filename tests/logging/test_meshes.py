@@ -92,6 +92,13 @@ def test_frames_with_inverted_tetrahedra_are_named_in_one_warning(caplog):
     with caplog.at_level("WARNING", logger="torchfit.progress"):
         _warn_inverted(np.array([0, 0, 3, 4, 0, 1, 0]))
         _warn_inverted(np.zeros(5, dtype=int))       # nothing inverted: nothing said
-    (record,) = caplog.records
-    assert "frames 2-3, 5 have tetrahedra turned inside out" in record.getMessage()
-    assert "(at most 4)" in record.getMessage()
+        # a subset of the animation (problem.frames): named by the animation's numbers
+        _warn_inverted(np.array([0, 2, 5, 0, 0]), [0, 6, 9, 30, 40])
+        _warn_inverted(np.array([1, 2]), [9, 11])   # no other frame: no continuation to suggest
+    first, subset, alone = (r.getMessage() for r in caplog.records)
+    assert "frames 2-3, 5 have tetrahedra turned inside out" in first
+    assert "(at most 4)" in first and "'problem.frames=[0,1,4,6]'" in first
+    assert "frames 6, 9 have" in subset and "'problem.frames=[0,30,40]'" in subset
+    assert "init=<its run directory>" in subset
+    assert "frames 9-11 have" not in alone and "frames 9, 11 have" in alone
+    assert "problem.frames" not in alone

@@ -126,13 +126,17 @@ def test_a_step_the_model_says_does_not_descend_costs_no_simulation(monkeypatch)
     assert all(r.extra["gain_ratio"] == -1.0 for r in result.history[1:])
 
 
-def test_a_trial_the_simulation_cannot_tell_apart_ends_the_fit_at_its_resolution():
+@pytest.mark.parametrize("solver", ["levenberg_marquardt", "gauss_newton"])
+def test_a_trial_the_simulation_cannot_tell_apart_ends_the_fit_at_its_resolution(solver):
     """A forward model of finite resolution (a Newton warm-started at the current point
     returns it unchanged for a small enough step): here outputs rounded to 2^-12, with
     exact derivatives. Once a trial's misfit is bit-identical to the current one, more
-    damping only repeats it: LM stops ('resolution', converged) at that first such trial
-    (after 3 iterations, none rejected) instead of doubling the damping until 'stalled'
-    (12 iterations, 9 rejected, before)."""
+    damping (or a shorter line-search step) only repeats it: the fit stops
+    ('resolution', converged) at that first such trial. Before, LM doubled its damping
+    until 'stalled' (12 iterations, 9 rejected) and Gauss-Newton ended 'line_search'
+    (not converged)."""
+    from torchfit.solvers import SOLVERS
+
     A = torch.tensor([[1.0, 0.3], [0.2, 1.0], [0.5, -0.4]], dtype=torch.float64)
     quantum = 2.0 ** -12
 
@@ -143,8 +147,10 @@ def test_a_trial_the_simulation_cannot_tell_apart_ends_the_fit_at_its_resolution
     data = A @ torch.tensor([0.7, -1.3], dtype=torch.float64) + torch.tensor(
         [1e-3, -2e-3, 1.5e-3], dtype=torch.float64)          # no exact fit: the misfit stays
     residual = ResidualFunction(forward, data)
-    config = LevenbergMarquardtConfig(max_iter=200, rtol=0.0, gtol=0.0)
-    result = levenberg_marquardt(residual, torch.zeros(2, dtype=torch.float64), config)
+    entry = SOLVERS[solver]
+    config = entry.config_class(max_iter=200, rtol=0.0, **(
+        {"gtol": 0.0} if solver == "levenberg_marquardt" else {}))
+    result = entry.solver_class(config).solve(residual, torch.zeros(2, dtype=torch.float64))
     assert result.stop_reason == "resolution" and result.converged
     best = torch.linalg.lstsq(A, data[:, None]).solution[:, 0]
     assert float((result.theta - best).abs().max()) < 10 * quantum

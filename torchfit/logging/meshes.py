@@ -156,7 +156,7 @@ class BodyOutputs:
         field = problem.field(theta).detach()
         with torch.no_grad():
             x = problem.simulate(field)
-        _warn_inverted(problem.frame_errors(x).get("inverted_tets"))
+        _warn_inverted(problem.frame_errors(x).get("inverted_tets"), problem.frame_numbers())
         files: list[Path] = []
         comparison: dict[str, Any] = {}
         steps = [
@@ -361,17 +361,26 @@ class BodyOutputs:
         return [target / source.joinpath("animation.yaml").name]
 
 
-def _warn_inverted(counts: np.ndarray | None) -> None:
+def _warn_inverted(counts: np.ndarray | None, numbers: Sequence[int] | None = None) -> None:
     """One log line naming the frames whose equilibrium has inverted tetrahedra (where
-    Newton can reach several equilibria, so the frame depends on where it started)."""
+    Newton can reach several equilibria, so the frame depends on where it started), and
+    the continuation that avoids it: the other frames first, then all from that run.
+
+    ``counts`` ``(F,)`` per fitted frame; ``numbers`` the animation's frame numbers of the
+    fitted frames (``problem.frames``; default ``0 .. F-1``)."""
     if counts is None or not np.any(counts > 0):
         return
-    frames = np.flatnonzero(counts > 0)
+    numbers = np.arange(len(counts)) if numbers is None else np.asarray(numbers)
+    frames = numbers[counts > 0]
     # consecutive frames as ranges: 8-15, 30
     breaks = np.flatnonzero(np.diff(frames) > 1)
     starts, ends = np.r_[frames[0], frames[breaks + 1]], np.r_[frames[breaks], frames[-1]]
     spans = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends))
+    others = numbers[counts == 0]
+    hint = ("; to keep the fit off other branches, fit the other frames first "
+            f"('problem.frames=[{','.join(str(int(f)) for f in others)}]') and then these "
+            "frames too, starting from that run (init=<its run directory>)") if len(others) else ""
     progress.warning("frames %s have tetrahedra turned inside out at equilibrium (at most %d): "
                      "a frame like that has several equilibria, and which one Newton reaches "
                      "depends on where it starts (docs/problems/arm3d.md, 'Several equilibria "
-                     "near full bend')", spans, int(counts.max()))
+                     "near full bend')%s", spans, int(counts.max()), hint)

@@ -544,6 +544,11 @@ class AnimationProblem(InverseProblem):
     def frame_names(self) -> list[str]:
         return list(self.animation.frame_files)
 
+    def frame_numbers(self) -> list[int]:
+        """The animation's frame number of every fitted frame (``problem.frames``)."""
+        frames = self.cfg.frames
+        return [int(f) for f in frames] if frames is not None else list(range(self.n_frames))
+
     def simulate_model(self, model: str, E: Tensor, frames: list[int] | None = None) -> Tensor:
         """Positions ``(len(frames), n_vertices, 3)`` of the same body, rig and field with
         another constitutive ``model`` (for the model comparison), no gradient."""

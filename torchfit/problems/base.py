@@ -488,6 +488,9 @@ class BodyProblem(Protocol):
     def independent_simulation(self) -> ContextManager[None]:
         ...
 
+    def frame_numbers(self) -> list[int]:
+        ...
+
     def simulate_model(self, model: str, E: Tensor, frames: Any = None) -> Tensor:
         ...
 

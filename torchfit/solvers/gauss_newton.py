@@ -8,7 +8,9 @@ linear residual below the noise level). A backtracking (Armijo) line search on
 ``0.5 ||r||^2`` safeguards the step. Outer stop: :func:`~.base.least_squares_stop`
 (discrepancy ``||r|| <= tau delta`` when the noise level is known, else relative
 decrease, gradient or residual negligible); ``tolerance`` also when CGLS finds no
-descent direction, ``line_search`` when no step length decreases the objective.
+descent direction, ``line_search`` when no step length decreases the objective,
+``resolution`` (converged) when a trial's misfit is bit-identical to the current one (the
+simulation cannot tell the step from the current point; shorter steps would repeat it).
 
 ``max_step`` (the largest change of one parameter per step) is a trust region for the
 inner CGLS (Steihaug's truncated CG with a box): it stops where its next update would
@@ -206,7 +208,9 @@ class GaussNewton(LeastSquaresSolver):
         slope = float(torch.dot(lin.r, model_change))  # d/da 0.5||r + a J d||^2 at a = 0
         if slope >= 0 or not math.isfinite(slope):
             return Stop(True, "tolerance")
-        trial, step = self._line_search(theta, direction, slope)
+        trial, step, at_resolution = self._line_search(theta, direction, slope)
+        if at_resolution:
+            return Stop(True, "resolution")
         if trial is None:
             return Stop(False, "line_search")
         self.previous_norm = lin.norm
@@ -223,18 +227,24 @@ class GaussNewton(LeastSquaresSolver):
                             linear_residual=inner.residual_norm)
 
     def _line_search(self, theta: Tensor, direction: Tensor,
-                     slope: float) -> tuple[Linearization | None, float]:
-        """Backtracking (Armijo); each trial point is one factorisation."""
+                     slope: float) -> tuple[Linearization | None, float, bool]:
+        """Backtracking (Armijo); each trial point is one factorisation. Returns the
+        accepted point (or ``None``), its step length, and whether a trial's misfit was
+        bit-identical to the current one: the simulation cannot tell the step from this
+        point (a warm-started Newton converged there in 0 iterations), and every shorter
+        step would be the same, so the fit is at the simulation's resolution."""
         cfg, lin = self.config, self.lin
         assert lin is not None
         step = 1.0
         for _ in range(cfg.max_backtracks + 1):
             candidate = try_linearize(self.residual, theta + step * direction)
+            if candidate is not None and candidate.norm == lin.norm:
+                return None, step, True
             if candidate is not None and math.isfinite(candidate.norm) and \
                     0.5 * candidate.norm ** 2 <= 0.5 * lin.norm ** 2 + cfg.armijo * step * slope:
-                return candidate, step
+                return candidate, step, False
             step *= 0.5
-        return None, step
+        return None, step, False
 
     # -- state -----------------------------------------------------------------------------
     def _get_state(self) -> dict[str, Any]:
