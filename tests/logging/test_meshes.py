@@ -95,7 +95,9 @@ def test_frames_with_inverted_tetrahedra_are_named_in_one_warning(caplog):
         # a subset of the animation (problem.frames): named by the animation's numbers
         _warn_inverted(np.array([0, 2, 5, 0, 0]), [0, 6, 9, 30, 40])
         _warn_inverted(np.array([1, 2]), [9, 11])   # no other frame: no continuation to suggest
-    first, subset, alone = (r.getMessage() for r in caplog.records)
+        _warn_inverted(np.array([0, 2]), [0, 9], suggest=False)   # an init= run: it is one
+    first, subset, alone, continued = (r.getMessage() for r in caplog.records)
+    assert "frame 9 has tetrahedra" in continued and "problem.frames" not in continued
     assert "frames 2-3, 5 have tetrahedra turned inside out" in first
     assert "(at most 4)" in first and "'problem.frames=[0,1,4,6]'" in first
     assert "frames 6, 9 have" in subset and "'problem.frames=[0,30,40]'" in subset

@@ -137,16 +137,19 @@ class BodyOutputs:
         self.guard = guard or PlotGuard()
         self.history: dict[int, np.ndarray] = {}
         self.initial: tuple[dict[str, np.ndarray], Tensor] | None = None
+        self.started_elsewhere = False     # iteration 0 was not the initial guess (init=)
 
     def __call__(self, record: "IterationRecord") -> None:
         with torch.no_grad():
             x = self.problem.simulate(self.problem.field(record.theta))   # the cached state
         curves = self.problem.frame_errors(x)
         self.history[int(record.iteration)] = curves["surface_err_mean"]
-        if int(record.iteration) == 0 and torch.equal(record.theta, self.problem.theta0):
-            # the homogeneous material (the initial guess): the model comparison's baseline
-            # (a run started from init= begins elsewhere and simulates it at the end)
-            self.initial = (curves, x.detach().clone())
+        if int(record.iteration) == 0:
+            self.started_elsewhere = not torch.equal(record.theta, self.problem.theta0)
+            if not self.started_elsewhere:
+                # the homogeneous material (the initial guess): the model comparison's
+                # baseline (a run started from init= simulates it at the end)
+                self.initial = (curves, x.detach().clone())
 
     # -- end of the run ---------------------------------------------------------------
     def finish(self, theta: Tensor) -> tuple[list[Path], dict[str, Any]]:
@@ -156,7 +159,9 @@ class BodyOutputs:
         field = problem.field(theta).detach()
         with torch.no_grad():
             x = problem.simulate(field)
-        _warn_inverted(problem.frame_errors(x).get("inverted_tets"), problem.frame_numbers())
+        # a run started from an earlier one (init=) is that continuation already
+        _warn_inverted(problem.frame_errors(x).get("inverted_tets"), problem.frame_numbers(),
+                       suggest=not self.started_elsewhere)
         files: list[Path] = []
         comparison: dict[str, Any] = {}
         steps = [
@@ -361,13 +366,15 @@ class BodyOutputs:
         return [target / source.joinpath("animation.yaml").name]
 
 
-def _warn_inverted(counts: np.ndarray | None, numbers: Sequence[int] | None = None) -> None:
+def _warn_inverted(counts: np.ndarray | None, numbers: Sequence[int] | None = None,
+                   suggest: bool = True) -> None:
     """One log line naming the frames whose equilibrium has inverted tetrahedra (where
     Newton can reach several equilibria, so the frame depends on where it started), and
     the continuation that avoids it: the other frames first, then all from that run.
 
     ``counts`` ``(F,)`` per fitted frame; ``numbers`` the animation's frame numbers of the
-    fitted frames (``problem.frames``; default ``0 .. F-1``)."""
+    fitted frames (``problem.frames``; default ``0 .. F-1``); ``suggest``: add the
+    continuation (not for a run that started from an earlier one)."""
     if counts is None or not np.any(counts > 0):
         return
     numbers = np.arange(len(counts)) if numbers is None else np.asarray(numbers)
@@ -379,8 +386,10 @@ def _warn_inverted(counts: np.ndarray | None, numbers: Sequence[int] | None = No
     others = numbers[counts == 0]
     hint = ("; to keep the fit off other branches, fit the other frames first "
             f"('problem.frames=[{','.join(str(int(f)) for f in others)}]') and then these "
-            "frames too, starting from that run (init=<its run directory>)") if len(others) else ""
-    progress.warning("frames %s have tetrahedra turned inside out at equilibrium (at most %d): "
-                     "a frame like that has several equilibria, and which one Newton reaches "
-                     "depends on where it starts (docs/problems/arm3d.md, 'Several equilibria "
-                     "near full bend')%s", spans, int(counts.max()), hint)
+            "too, starting from that run (init=<its run directory>)") \
+        if len(others) and suggest else ""
+    subject = f"frames {spans} have" if len(frames) > 1 else f"frame {spans} has"
+    progress.warning("%s tetrahedra turned inside out at equilibrium (at most %d): a frame "
+                     "like that has several equilibria, and which one Newton reaches depends "
+                     "on where it starts (docs/problems/arm3d.md, 'Several equilibria near "
+                     "full bend')%s", subject, int(counts.max()), hint)
