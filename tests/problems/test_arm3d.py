@@ -5,6 +5,9 @@ the issue at full size are in scripts/bench_arm3d.py and the README's figures.
 """
 from __future__ import annotations
 
+import shutil
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -16,6 +19,7 @@ from torchfit.mesh.animation import load_animation
 from torchfit.problems import ProblemConfigError
 
 COARSE = {"tet_edge_length": 0.1, "grid": [3, 3, 4]}
+DATA = Path(__file__).resolve().parents[1] / "data"
 
 
 @pytest.fixture(scope="module")
@@ -119,6 +123,26 @@ def test_linear_flattens_more_than_corotated_at_full_bend(cache):
         change[model] = float(signed_volumes(x[0].numpy(), cells).sum()) / rest - 1.0
         assert np.isfinite(problem.joint_volume_change(x)[0])
     assert change["linear"] < -0.3 and abs(change["corotated"]) < 0.05, change
+
+
+def test_newton_finishes_at_a_saddle_where_the_energy_descent_stalls(tmp_path):
+    """The 0.06 mesh pytetwild made for a CI run (kept in tests/data/arm_saddle): at full
+    bend, homogeneous, corotated, Newton reached 4.3e-9 quadratically, then the exact step
+    pointed uphill in energy (a saddle, the fold) and projected steps crept along the
+    negative curvature: 6.1e-10 after 10 more iterations against a tolerance of 1.3e-12,
+    and NewtonConvergenceError (with the stall rule off, a stable equilibrium after 357
+    iterations). Now such a frame finishes at the saddle with the exact tangent."""
+    shutil.copytree(DATA / "arm_saddle", tmp_path, dirs_exist_ok=True)
+    problem = arm(str(tmp_path), frames=[11], tet_edge_length=0.06)
+    assert problem.tet.from_cache, "the arm's surface or mesh options changed: the kept " \
+        "mesh is not this arm's any more (make a new one that stalls, or drop the test)"
+    equilibrium = problem.quasistatic.equilibrium
+    x = problem.simulate(problem.field(problem.theta0))
+    assert equilibrium.last_newton_iterations[0] < 40
+    E = problem.field(problem.theta0)
+    residual = equilibrium.model.residual(x.reshape(1, -1), E)[:, equilibrium.free_dofs]
+    assert float(torch.linalg.vector_norm(residual)) <= 1.3e-12
+    assert problem.inverted_tets(x)[0] > 0            # the fold, which makes the saddle
 
 
 def test_inverted_tetrahedra_are_counted_per_frame(cache):

@@ -121,7 +121,11 @@ class NewtonOptions:
     # iterations gives way to the cold start.
     warm_max_iter: int = 10
     # Give up early on a frame whose residual has not halved in this many iterations
-    # (a diverging or stalled Newton; 0 disables the check).
+    # (a diverging or stalled Newton; 0 disables the check). Once per frame, a model with
+    # an energy and a projected tangent that stalls below exact_below * reference with a
+    # flat energy (a saddle at a fold: the exact step points uphill, projected steps creep
+    # along the negative curvature) instead finishes at that equilibrium with the exact
+    # tangent and a line search on ||R|| alone.
     stall_iter: int = 10
 
 
@@ -656,17 +660,33 @@ class Equilibrium:
         # energy or ||R|| decreases enough.
         energies = [energy]
         stalled = False
+        # Frames finishing at a saddle of the energy (below): exact tangent, ||R|| line search.
+        saddle = torch.zeros(n_frames, dtype=torch.bool, device=x.device)
+        window = torch.zeros(n_frames, dtype=torch.long, device=x.device)  # stall window start
         for _ in range(max_iter):
             active = norms > targets
             if not bool(active.any()):
                 break
             if opts.stall_iter and len(history) > opts.stall_iter:
+                back = len(history) - 1 - opts.stall_iter
                 before = history[-1 - opts.stall_iter]
-                stuck = active & ~(norms <= 0.5 * before)
+                stuck = active & ~(norms <= 0.5 * before) & (window <= back)
                 if energy is not None:
                     # still descending the energy: not stalled (nonconvex stretches)
                     earlier = energies[-1 - opts.stall_iter]
                     stuck &= ~(energy < earlier - 1e-10 * earlier.abs())
+                    # Stuck close to equilibrium with the energy flat: x sits at a saddle (a
+                    # fold), where the exact step points uphill and the projected one only
+                    # creeps along the negative curvature (hundreds of iterations). Finish
+                    # at the saddle instead, once per frame: it is an equilibrium, found to
+                    # the tolerance with the exact tangent in a few steps.
+                    near_equilibrium = norms <= opts.exact_below * reference
+                    finish = stuck & ~saddle & near_equilibrium & can_project
+                    if bool(finish.any()):
+                        saddle = saddle | finish
+                        exact = exact | finish
+                        window = torch.where(finish, len(history), window)
+                        stuck = stuck & ~finish
                 if bool(stuck.any()):
                     stalled = True
                     break
@@ -692,7 +712,7 @@ class Equilibrium:
             if energy is not None and can_project:
                 # an exact tangent that is not positive definite can point uphill: take
                 # the projected one for those frames instead
-                uphill = active & (slope >= 0) & exact
+                uphill = active & (slope >= 0) & exact & ~saddle
                 if bool(uphill.any()):
                     again = torch.nonzero(uphill).reshape(-1)
                     projected = self._free_values(self._tangent(x[again], params, projected=True))
@@ -715,7 +735,8 @@ class Equilibrium:
                 norms_trial = torch.linalg.vector_norm(residual_trial, dim=1)
                 ok = (norms_trial <= (1 - 1e-4 * alpha) * norms_a) | (norms_trial <= targets_a)
                 if energy_a is not None:
-                    ok |= (slope_a < 0) & (energy_trial <= energy_a + 1e-4 * alpha * slope_a)
+                    ok |= (slope_a < 0) & (energy_trial <= energy_a + 1e-4 * alpha * slope_a) \
+                        & ~saddle[frames]
                     ok &= torch.isfinite(energy_trial)
                 ok &= torch.isfinite(norms_trial)
                 if bool(ok.all()):
@@ -729,6 +750,7 @@ class Equilibrium:
                 near = norms_trial <= opts.exact_below * reference[frames]
                 exact = exact.clone()
                 exact[frames] = torch.where(~ok, ~exact_a, exact_a | near | slow)
+                exact = exact | saddle
             for f in frames.tolist():
                 iterations[f] += 1
             finite = torch.isfinite(norms_trial)
