@@ -33,6 +33,7 @@ Every input is checked before the first file is written (:class:`FitConfigError`
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import logging
 import math
@@ -283,7 +284,6 @@ def initial_theta(problem: InverseProblem, init: Tensor | str | Path | None = No
 
 def _digest(theta: Tensor) -> str:
     """A short hash of ``theta``'s bytes (a checkpoint remembers where its run started)."""
-    import hashlib
     data = theta.detach().cpu().to(torch.float64).contiguous().numpy().tobytes()
     return hashlib.sha256(data).hexdigest()[:16]
 
