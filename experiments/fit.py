@@ -5,6 +5,7 @@
     python experiments/fit.py -m experiment=seed_table          # a sweep preset (conf/experiment/)
     python experiments/fit.py hydra.run.dir=<run> resume=true   # continue a killed run exactly
     python experiments/fit.py problem.frames=null init=<run>    # start from an earlier fit
+    python experiments/fit.py problem=arm3d continuation=true   # frames far from a fold first
 
 The run directory's files are those of :mod:`torchfit.fit` plus Hydra's ``.hydra/`` and
 ``fit.log`` (which has the progress table). Exit statuses: :mod:`app` (0 done, 1 the fit
@@ -36,6 +37,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 matplotlib.use("Agg")   # pictures are files and TensorBoard images; never a window
 from torchfit.config import register_configs  # noqa: E402
+from torchfit.continuation import FIRST_STAGE_DIR, fit_continued  # noqa: E402
 from torchfit.fit import FitOptions, fit, solver_config  # noqa: E402
 from torchfit.linalg import set_threads  # noqa: E402
 from torchfit.logging import write_json  # noqa: E402
@@ -72,8 +74,14 @@ def main(cfg: DictConfig) -> float:
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN
     try:
         problem, solver, options, config = prepare(cfg)
-        result = fit(problem, solver, run_dir=run_dir, resume=bool(config["resume"]),
-                     options=options, config=config, init=config["init"])
+        if config["continuation"]:
+            result = fit_continued(problem, solver, run_dir=run_dir,
+                                   resume=bool(config["resume"]), options=options,
+                                   config=config, init=config["init"],
+                                   min_volume=config["continuation_min_volume"])
+        else:
+            result = fit(problem, solver, run_dir=run_dir, resume=bool(config["resume"]),
+                         options=options, config=config, init=config["init"])
     except KeyboardInterrupt:
         print(f"interrupted; continue with: python experiments/fit.py hydra.run.dir={run_dir} "
               "resume=true (and the same overrides)", file=sys.stderr, flush=True)
@@ -103,7 +111,13 @@ def main(cfg: DictConfig) -> float:
         print(f"pictures: {run_dir / 'frame_comparison.png'} (animation | linear | fitted "
               f"model at full bend), fitted field per region: {run_dir / 'regions.json'}, "
               f"for ParaView: {run_dir / 'body.vtu'}")
-    print(f"tensorboard --logdir {run_dir / 'tb'}", flush=True)
+    if result.first_stage is not None:
+        print(f"first stage (the frames far from a fold): {result.first_stage.summary()}; "
+              f"its run: {run_dir / FIRST_STAGE_DIR}")
+        # both stages' curves side by side: the run directory holds tb/ and unique_frames/tb/
+        print(f"tensorboard --logdir {run_dir}", flush=True)
+    else:
+        print(f"tensorboard --logdir {run_dir / 'tb'}", flush=True)
     return result.value(str(config["objective_metric"]))
 
 

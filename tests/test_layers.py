@@ -19,6 +19,8 @@ ALLOWED = {
     "logging": NEUTRAL | {"linalg", "mesh", "physics", "params", "problems"},
     "config": NEUTRAL | {"problems", "solvers"},
     "fit": NEUTRAL | {"linalg", "problems", "solvers", "logging", "verification"},
+    # two runs of fit (the frames far from a fold first): on top of fit, beside it
+    "continuation": NEUTRAL | {"fit", "problems", "solvers"},
 }
 
 

@@ -29,6 +29,11 @@ class FitConfig:
     # the problem's initial guess: e.g. the frames whose equilibrium is unique first, then
     # all frames; or a coarser mesh first. The parameterisation must be the same.
     init: Optional[str] = None
+    # Fit the frames far from a fold first (no tetrahedron below continuation_min_volume of
+    # its rest volume at the start), then all frames from there: two runs in one, the first
+    # in <run>/unique_frames (torchfit.continuation). Bodies fitted to an animation only.
+    continuation: bool = False
+    continuation_min_volume: float = 0.25
     progress: bool = True       # one line per outer iteration on the terminal
     log_every: int = 1          # TensorBoard scalars every n iterations (the last always)
     threads: int = 0            # torch and BLAS CPU threads per job (0: default); 1 in joblib sweeps

@@ -145,6 +145,8 @@ class FitResult:
         run_dir: the run directory (``None`` without files); ``files`` what was written.
         resumed_from: the iteration a resumed run continued after (``None``: fresh).
         solve: the solver's own result for this process's part of the run.
+        first_stage: the first stage of a continuation
+            (:func:`torchfit.continuation.fit_continued`), else ``None``.
     """
 
     theta: Tensor
@@ -161,6 +163,7 @@ class FitResult:
     files: list[Path] = dataclasses.field(default_factory=list)
     resumed_from: int | None = None
     solve: SolveResult | None = None
+    first_stage: "FitResult | None" = None
 
     def value(self, key: str) -> float:
         """``metrics[key]`` or a count (``iterations``, ...); ``+inf`` where not finite, so
@@ -304,7 +307,7 @@ def check_writable(run_dir: Path) -> None:
                                 f"on {existing}")
 
 
-def _settings(config: Any) -> dict[str, Any]:
+def plain_settings(config: Any) -> dict[str, Any]:
     """Plain JSON values of a config dataclass or mapping (Enums as their values)."""
     if dataclasses.is_dataclass(config) and not isinstance(config, type):
         config = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
@@ -353,9 +356,9 @@ def read_checkpoint(run_dir: Path, problem: InverseProblem, solver: Solver,
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise ResumeError(f"cannot resume: {path} was written by an older torchfit (no solver "
                           "state); use another run directory or resume=false")
-    expected = {"problem": problem.name, "problem_config": json.dumps(_settings(problem.cfg)),
+    expected = {"problem": problem.name, "problem_config": json.dumps(plain_settings(problem.cfg)),
                 "solver": solver.config.name,
-                "solver_config": json.dumps(_resumable(_settings(solver.config)))}
+                "solver_config": json.dumps(_resumable(plain_settings(solver.config)))}
     for key, value in expected.items():
         if payload.get(key) != value:
             saved = payload.get(key)
@@ -410,9 +413,9 @@ class _Checkpointer:
         self.solver = solver
         self.rows = rows
         self.fixed = {"format": CHECKPOINT_FORMAT, "problem": problem.name,
-                      "problem_config": json.dumps(_settings(problem.cfg)),
+                      "problem_config": json.dumps(plain_settings(problem.cfg)),
                       "solver": solver.config.name,
-                      "solver_config": json.dumps(_resumable(_settings(solver.config))),
+                      "solver_config": json.dumps(_resumable(plain_settings(solver.config))),
                       "n_params": int(problem.theta0.numel()),
                       "init": None if start is None else _digest(start)}
         with open(run_dir / HISTORY_FILE, "w", encoding="utf-8") as f:
@@ -496,10 +499,10 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
                                  "continues it, or choose another run directory")
     restart = read_checkpoint(run_path, problem, solver, start) if resume and run_path else None
     if resume and run_path is not None and restart is None:
-        log.warning("resume: %s has no checkpoint; starting from the initial guess",
-                    run_path / CHECKPOINT_FILE)
+        log.warning("resume: %s has no checkpoint; starting from %s", run_path / CHECKPOINT_FILE,
+                    "the initial guess" if init is None else "init")
     config = dict(config) if config is not None else {
-        "problem": _settings(problem.cfg), "solver": _settings(solver.config)}
+        "problem": plain_settings(problem.cfg), "solver": plain_settings(solver.config)}
     if restart is not None and restart.finished and (run_path / RESULT_FILE).is_file() and not (
             restart.stop_reason == "max_iter" and solver.config.max_iter > restart.iteration):
         return _finished_result(problem, run_path, restart)   # a larger max_iter continues
@@ -712,7 +715,7 @@ def verify(problem: InverseProblem, *, run_dir: str | Path | None = None, at: st
         out["problem"] = problem.describe()
         out["point"] = {"at": at, "perturbation": float(perturbation),
                         "theta_norm": float(torch.linalg.vector_norm(theta))}
-        out["config"] = dict(config) if config is not None else {"problem": _settings(problem.cfg)}
+        out["config"] = dict(config) if config is not None else {"problem": plain_settings(problem.cfg)}
         run_path.mkdir(parents=True, exist_ok=True)
         write_json(run_path / VERIFY_FILE, out)
     return report

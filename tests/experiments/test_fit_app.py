@@ -88,6 +88,8 @@ BAD_INPUT = [
     (["problem=membrane2d", "problem.nx=4", "problem.ny=2", "sheet_frame=9"], ["sheet_frame"]),
     (["snapshot_every=-1"], ["snapshot_every"]),
     (["init=/nonexistent/run"], ["init=/nonexistent/run", "no such file"]),
+    (["continuation=true"], ["continuation=true", "body fitted to an animation", "spring1d"]),
+    (["continuation=true", "continuation_min_volume=2"], ["continuation_min_volume=2"]),
 ]
 
 
@@ -179,6 +181,25 @@ def test_resume_through_the_app_continues_with_a_larger_budget(tmp_path):
     assert second["resumed_from_iteration"] == 2 and second["stop_reason"] == "discrepancy"
     assert [row["iteration"] for row in second["history"]] == list(range(second["iterations"] + 1))
     assert second["history"][2]["misfit"] == first["misfit"]
+
+
+def test_continuation_through_the_app_runs_both_stages_and_says_where(tmp_path):
+    """A coarse arm with frames 0, 3 (mild) and 11 (full bend: the inner elbow folds)."""
+    run_dir = tmp_path / "run"
+    proc = ok(run_fit_app(run_dir, "problem=arm3d", "problem.tet_edge_length=0.1",
+                          "problem.grid=[3,3,4]", "problem.frames=[0,3,11]",
+                          "problem.target=synthetic", f"problem.cache_dir={tmp_path / 'cache'}",
+                          "solver.max_iter=1", "continuation=true",
+                          "continuation_min_volume=0.4"))
+    stage = json.loads((run_dir / "unique_frames" / "result.json").read_text())
+    final = json.loads((run_dir / "result.json").read_text())
+    assert stage["config"]["problem"]["frames"] == [0, 3]
+    assert final["config"]["problem"]["frames"] == [0, 3, 11]
+    assert final["config"]["continuation_first_stage"]["near_fold"] == [11]
+    lines = proc.stdout.splitlines()
+    assert any(line.startswith("first stage (the frames far from a fold)") and
+               str(run_dir / "unique_frames") in line for line in lines)
+    assert lines[-1] == f"tensorboard --logdir {run_dir}"     # both stages' curves
 
 
 def test_init_starts_from_an_earlier_run_of_the_same_parameterisation(tmp_path):

@@ -98,9 +98,10 @@ def test_frames_with_inverted_tetrahedra_are_named_in_one_warning(caplog):
         _warn_inverted(np.array([0, 2]), [0, 9], suggest=False)   # an init= run: it is one
     first, subset, alone, continued = (r.getMessage() for r in caplog.records)
     assert "frame 9 has tetrahedra" in continued and "problem.frames" not in continued
+    assert "continuation" not in continued and "continuation" not in alone
     assert "frames 2-3, 5 have tetrahedra turned inside out" in first
     assert "(at most 4)" in first and "'problem.frames=[0,1,4,6]'" in first
     assert "frames 6, 9 have" in subset and "'problem.frames=[0,30,40]'" in subset
-    assert "init=<its run directory>" in subset
+    assert "continuation=true" in subset and "init=<that run's directory>" in subset
     assert "frames 9-11 have" not in alone and "frames 9, 11 have" in alone
     assert "problem.frames" not in alone

@@ -384,10 +384,10 @@ def _warn_inverted(counts: np.ndarray | None, numbers: Sequence[int] | None = No
     starts, ends = np.r_[frames[0], frames[breaks + 1]], np.r_[frames[breaks], frames[-1]]
     spans = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends))
     others = numbers[counts == 0]
-    hint = ("; to keep the fit off other branches, fit the other frames first "
-            f"('problem.frames=[{','.join(str(int(f)) for f in others)}]') and then these "
-            "too, starting from that run (init=<its run directory>)") \
-        if len(others) and suggest else ""
+    hint = ("; to keep the fit off other branches, fit the frames far from the fold first "
+            "and then all from there: continuation=true, or by hand "
+            f"'problem.frames=[{','.join(str(int(f)) for f in others)}]' and then all frames "
+            "with init=<that run's directory>") if len(others) and suggest else ""
     subject = f"frames {spans} have" if len(frames) > 1 else f"frame {spans} has"
     progress.warning("%s tetrahedra turned inside out at equilibrium (at most %d): a frame "
                      "like that has several equilibria, and which one Newton reaches depends "

@@ -504,6 +504,13 @@ class AnimationProblem(InverseProblem):
         """
         return (_frame_volumes(x, self.mesh.cells) <= 0).sum(axis=1)
 
+    def min_volume_ratio(self, x: Tensor) -> np.ndarray:
+        """Per frame ``(F,)``, the smallest volume of a tetrahedron relative to its rest
+        volume (``<= 0``: inverted). A frame near a fold has one far below 1 before any
+        tetrahedron inverts, so a change of material can fold it (see :meth:`inverted_tets`)."""
+        rest = signed_volumes(self.mesh.points, self.mesh.cells)
+        return (_frame_volumes(x, self.mesh.cells) / rest[None]).min(axis=1)
+
     def metric_names(self) -> list[str]:
         return super().metric_names() + ["surface_err_mean", "surface_err_max",
                                          "surface_err_reduction", "joint_volume_change",
@@ -548,6 +555,37 @@ class AnimationProblem(InverseProblem):
         """The animation's frame number of every fitted frame (``problem.frames``)."""
         frames = self.cfg.frames
         return [int(f) for f in frames] if frames is not None else list(range(self.n_frames))
+
+    def with_frames(self, numbers: list[int]) -> "AnimationProblem":
+        """The same problem on some of its fitted frames (animation frame numbers, in the
+        order given), with **this** problem's targets on them, noise included.
+
+        Built again from the settings with ``frames=numbers``: the tet mesh and the
+        animation come from their caches (the same mesh, so the same parameterisation);
+        a synthetic truth is simulated again on those frames (cold, as here). The targets
+        are then replaced by this problem's rows of those frames, so the noise is the same
+        draw, not a new one, and the noise level ``delta`` is this one's for the subset's
+        data count. Raises ``ValueError`` for a frame this problem does not fit.
+        """
+        mine = self.frame_numbers()
+        unknown = [n for n in numbers if n not in mine]
+        if not numbers or unknown:
+            raise ValueError(f"frames {unknown or numbers} are not fitted frames of this "
+                             f"problem ({mine})")
+        sub = type(self)(self.settings_for_frames([int(n) for n in numbers]))
+        if sub.tet.key != self.tet.key or sub.parameterization.n_params != \
+                self.parameterization.n_params:
+            raise RuntimeError("the problem on a subset of its frames got another tet mesh "
+                               f"({sub.tet.key} against {self.tet.key}); check the mesh cache")
+        rows = torch.as_tensor([mine.index(n) for n in numbers], device=self.data.device)
+        sub.data = self.data.reshape(self.n_frames, -1)[rows].reshape(-1).clone()
+        if self.noise_level is not None:
+            sub.noise_level = self.noise_level * math.sqrt(sub.data.numel() / self.data.numel())
+        return sub
+
+    def settings_for_frames(self, numbers: list[int]) -> AnimationConfig:
+        """This problem's config with ``frames=numbers`` (for :meth:`with_frames`)."""
+        return dataclasses.replace(self.cfg, frames=list(numbers))
 
     def simulate_model(self, model: str, E: Tensor, frames: list[int] | None = None) -> Tensor:
         """Positions ``(len(frames), n_vertices, 3)`` of the same body, rig and field with

@@ -115,6 +115,14 @@ class Arm3D(AnimationProblem):
         frames = self.cfg.frames if self.cfg.frames is not None else range(self.arm.n_frames)
         return [f"frame {int(f)}: elbow {a:+.0f} deg" for f, a in zip(frames, self.frame_angles())]
 
+    def settings_for_frames(self, numbers: list[int]) -> Arm3DConfig:
+        # with noise_of_bulge, check() derived cfg.noise from it: give it back at 0, or the
+        # rebuilt config would hold both (its data are replaced by this problem's anyway)
+        changes: dict = {"frames": list(numbers)}
+        if self.cfg.noise_of_bulge > 0:
+            changes["noise"] = 0.0
+        return dataclasses.replace(self.cfg, **changes)
+
     def describe(self) -> dict:
         out = super().describe()
         out.update({"elbow_angle_full_bend": float(self.frame_angles()[self.full_bend_frame]),

@@ -470,7 +470,9 @@ class BodyProblem(Protocol):
     noise-free target surface ``(F, V, 3)`` and ``surface_error_field(x)`` the distance of
     every surface vertex to it ``(F, V)``; ``simulate_model(model, E)`` simulates the same
     body with another constitutive model; ``region_summary(field)`` summarises a field per
-    region.
+    region; ``with_frames(numbers)`` is the same problem on some of its frames with the same
+    targets there, and ``min_volume_ratio(x)`` ``(F,)`` how close each frame is to a fold
+    (:func:`torchfit.continuation.fit_continued` fits the frames far from one first).
     """
 
     animation: Any
@@ -489,6 +491,12 @@ class BodyProblem(Protocol):
         ...
 
     def frame_numbers(self) -> list[int]:
+        ...
+
+    def with_frames(self, numbers: list[int]) -> Any:
+        ...
+
+    def min_volume_ratio(self, x: Tensor) -> Any:
         ...
 
     def simulate_model(self, model: str, E: Tensor, frames: Any = None) -> Tensor:
