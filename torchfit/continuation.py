@@ -27,6 +27,7 @@ first stage is read back, not repeated: the start's simulation is, about 20 s on
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
@@ -105,7 +106,9 @@ def fit_continued(problem: InverseProblem,
         if not resume and (run_path / CHECKPOINT_FILE).exists():
             raise FitConfigError(f"{run_path} already holds a run (its checkpoint.pt); "
                                  "resume=true continues it, or choose another run directory")
-    (options or FitOptions()).check(problem)
+    # the stages report folds themselves: no end-of-run hint to use continuation=true
+    options = dataclasses.replace(options or FitOptions(), fold_hint=False)
+    options.check(problem)
     near_fold = frames_near_fold(problem, start, float(min_volume))
     numbers = problem.frame_numbers()
     unique = [n for n in numbers if n not in near_fold]

@@ -96,6 +96,8 @@ class FitOptions:
         threads: torch and BLAS threads of this process (0: leave as they are).
         objective_metric: the key of ``result.json`` that :attr:`FitResult.objective`
             returns (what a sweeper minimises).
+        fold_hint: a 3-D body's warning about folded frames at the end suggests
+            ``continuation=true`` (off in the stages of one, which report themselves).
     """
 
     progress: bool = True
@@ -105,6 +107,7 @@ class FitOptions:
     sheet_frame: int | None = None
     threads: int = 0
     objective_metric: str = "misfit"
+    fold_hint: bool = True
 
     def check(self, problem: InverseProblem) -> None:
         """Raise :class:`FitConfigError` naming the first invalid option."""
@@ -535,7 +538,8 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
                                        options.snapshot_every, options.sheet_frame, guard=guard)
             chain.append(snapshots)
         if isinstance(problem, BodyProblem):
-            body = BodyOutputs(problem, tb, run_path, guard=guard)
+            body = BodyOutputs(problem, tb, run_path, guard=guard,
+                               suggest_continuation=options.fold_hint)
             chain.append(body)
         if isinstance(problem, MotionProblem):
             motion = MotionOutputs(problem, tb, run_path, list(options.snapshot_iterations),

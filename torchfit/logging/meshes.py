@@ -123,10 +123,13 @@ class BodyOutputs:
         frames: frames to show as TensorBoard meshes (default: the full-bend frame and
             frame 0).
         guard: the run's plot guard (a drawing failure is warned about, never fatal).
+        suggest_continuation: the end-of-run warning about folded frames suggests fitting
+            the others first (not in a run that is a stage of one: it reports itself).
     """
 
     def __init__(self, problem: BodyProblem, tb: "TensorBoardLogger", run_dir: str | Path,
-                 frames: Sequence[int] | None = None, guard: "PlotGuard | None" = None) -> None:
+                 frames: Sequence[int] | None = None, guard: "PlotGuard | None" = None,
+                 suggest_continuation: bool = True) -> None:
         from .pictures import PlotGuard
 
         self.problem = problem
@@ -138,6 +141,7 @@ class BodyOutputs:
         self.history: dict[int, np.ndarray] = {}
         self.initial: tuple[dict[str, np.ndarray], Tensor] | None = None
         self.started_elsewhere = False     # iteration 0 was not the initial guess (init=)
+        self.suggest_continuation = suggest_continuation
 
     def __call__(self, record: "IterationRecord") -> None:
         with torch.no_grad():
@@ -161,7 +165,7 @@ class BodyOutputs:
             x = problem.simulate(field)
         # a run started from an earlier one (init=) is that continuation already
         _warn_inverted(problem.frame_errors(x).get("inverted_tets"), problem.frame_numbers(),
-                       suggest=not self.started_elsewhere)
+                       suggest=self.suggest_continuation and not self.started_elsewhere)
         files: list[Path] = []
         comparison: dict[str, Any] = {}
         steps = [
