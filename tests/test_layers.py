@@ -20,7 +20,7 @@ ALLOWED = {
     "config": NEUTRAL | {"problems", "solvers"},
     "fit": NEUTRAL | {"linalg", "problems", "solvers", "logging", "verification"},
     # two runs of fit (the frames far from a fold first): on top of fit, beside it
-    "continuation": NEUTRAL | {"fit", "problems", "solvers"},
+    "continuation": NEUTRAL | {"fit", "problems", "solvers", "logging"},
 }
 
 

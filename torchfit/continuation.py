@@ -28,7 +28,8 @@ truth; the first stage's result stays in its run directory (and ``first_stage``)
 Where no frame is near a fold at the start, or every frame is, it is one plain
 :func:`~torchfit.fit.fit`. Both stages use the same solver settings (``max_iter`` is per
 stage) and options; a ``resume`` continues whichever stage was interrupted (a finished
-first stage is read back, not repeated: the start's simulation is, about 20 s on the arm).
+first stage is read back, not refitted; the start's simulation and the first stage's last
+state, for its fold check, are simulated again: about 20 s each on the arm).
 """
 from __future__ import annotations
 
@@ -44,6 +45,7 @@ from torch import Tensor
 
 from .fit import (CHECKPOINT_FILE, PARAMS_FILE, FitConfigError, FitOptions, FitResult,
                   check_writable, fit, initial_theta, plain_settings, solver_config)
+from .logging.meshes import frame_spans
 from .problems import InverseProblem
 from .problems.base import BodyProblem
 from .records import IterationRecord
@@ -65,10 +67,15 @@ def frames_near_fold(problem: InverseProblem, theta: Tensor, min_volume: float) 
         raise FitConfigError(f"continuation=true needs a body fitted to an animation (arm3d, "
                              f"animation): {problem.name} has no frames that can fold; drop "
                              "continuation")
+    return [n for n, r in _min_volume_ratios(problem, theta) if r < min_volume]
+
+
+def _min_volume_ratios(problem: Any, theta: Tensor) -> list[tuple[int, float]]:
+    """``(frame number, smallest volume ratio)`` of every fitted frame at ``theta``: an
+    independent simulation (a state the problem holds already is found again)."""
     with torch.no_grad(), problem.independent_simulation():
         x = problem.simulate(problem.field(theta))
-    ratios = np.asarray(problem.min_volume_ratio(x))
-    return [n for n, r in zip(problem.frame_numbers(), ratios) if r < min_volume]
+    return list(zip(problem.frame_numbers(), np.asarray(problem.min_volume_ratio(x)).tolist()))
 
 
 def fit_continued(problem: InverseProblem,
@@ -126,7 +133,7 @@ def fit_continued(problem: InverseProblem,
         result.first_stage = None
         return result
     log.info("continuation: frames %s have a tetrahedron below %g of its rest volume at the "
-             "start (near a fold); fitting the other %d frames first%s", _spans(near_fold),
+             "start (near a fold); fitting the other %d frames first%s", frame_spans(near_fold),
              min_volume, len(unique),
              f" ({run_path / FIRST_STAGE_DIR})" if run_path is not None else "")
     sub = problem.with_frames(unique)
@@ -134,12 +141,12 @@ def fit_continued(problem: InverseProblem,
     first = fit(sub, solver, run_dir=stage_dir, callbacks=callbacks, resume=resume,
                 options=options, init=init,
                 config=_stage_config(config, sub, solver, unique, near_fold))
-    folded = _folded_at(sub, first.theta)
+    folded = [n for n, r in _min_volume_ratios(sub, first.theta) if r <= 0]   # inverted
     if folded:
         log.warning("continuation: frames %s of the first stage have tetrahedra turned inside "
                     "out at its end, so they may sit on another equilibrium than the "
                     "target's; if the second stage stalls, raise continuation_min_volume "
-                    "(now %g) to leave them to the second stage too", _spans(folded),
+                    "(now %g) to leave them to the second stage too", frame_spans(folded),
                     min_volume)
     del sub      # its simulations (one factorisation per frame) are not needed again
     log.info("continuation: all %d frames from the first stage's parameters (%s after %d "
@@ -152,14 +159,6 @@ def fit_continued(problem: InverseProblem,
                  options=options, config=second_config, init=second_init)
     result.first_stage = first
     return result
-
-
-def _folded_at(problem: Any, theta: Tensor) -> list[int]:
-    """Frame numbers with inverted tetrahedra at ``theta`` (the run's last state: cached)."""
-    with torch.no_grad():
-        x = problem.simulate(problem.field(theta))
-    counts = np.asarray(problem.inverted_tets(x))
-    return [n for n, c in zip(problem.frame_numbers(), counts) if c > 0]
 
 
 def _run_config(config: Mapping[str, Any] | None, problem: InverseProblem,
@@ -180,14 +179,3 @@ def _stage_config(config: Mapping[str, Any] | None, sub: InverseProblem, solver:
     staged["continuation_stage"] = {"stage": 1, "frames": list(unique),
                                     "near_fold_left_for_stage_2": list(near_fold)}
     return staged
-
-
-def _spans(frames: list[int]) -> str:
-    """``[8, 9, 10, 12]`` -> ``'8-10, 12'``."""
-    spans: list[str] = []
-    for n in frames:
-        if spans and int(spans[-1].split("-")[-1]) == n - 1:
-            spans[-1] = f"{spans[-1].split('-')[0]}-{n}"
-        else:
-            spans.append(str(n))
-    return ", ".join(spans)

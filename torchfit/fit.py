@@ -359,7 +359,8 @@ def read_checkpoint(run_dir: Path, problem: InverseProblem, solver: Solver,
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise ResumeError(f"cannot resume: {path} was written by an older torchfit (no solver "
                           "state); use another run directory or resume=false")
-    expected = {"problem": problem.name, "problem_config": json.dumps(plain_settings(problem.cfg)),
+    expected = {"problem": problem.name,
+                "problem_config": json.dumps(plain_settings(problem.cfg)),
                 "solver": solver.config.name,
                 "solver_config": json.dumps(_resumable(plain_settings(solver.config)))}
     for key, value in expected.items():
@@ -719,7 +720,8 @@ def verify(problem: InverseProblem, *, run_dir: str | Path | None = None, at: st
         out["problem"] = problem.describe()
         out["point"] = {"at": at, "perturbation": float(perturbation),
                         "theta_norm": float(torch.linalg.vector_norm(theta))}
-        out["config"] = dict(config) if config is not None else {"problem": plain_settings(problem.cfg)}
+        out["config"] = dict(config) if config is not None else {
+            "problem": plain_settings(problem.cfg)}
         run_path.mkdir(parents=True, exist_ok=True)
         write_json(run_path / VERIFY_FILE, out)
     return report

@@ -370,6 +370,16 @@ class BodyOutputs:
         return [target / source.joinpath("animation.yaml").name]
 
 
+def frame_spans(frames: Sequence[int]) -> str:
+    """Frame numbers with consecutive runs as ranges: ``[8, 9, 10, 12]`` -> ``'8-10, 12'``."""
+    frames = np.asarray(frames, dtype=int)
+    if frames.size == 0:
+        return ""
+    breaks = np.flatnonzero(np.diff(frames) != 1)
+    starts, ends = np.r_[frames[0], frames[breaks + 1]], np.r_[frames[breaks], frames[-1]]
+    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends))
+
+
 def _warn_inverted(counts: np.ndarray | None, numbers: Sequence[int] | None = None,
                    suggest: bool = True) -> None:
     """One log line naming the frames whose equilibrium has inverted tetrahedra (where
@@ -383,10 +393,7 @@ def _warn_inverted(counts: np.ndarray | None, numbers: Sequence[int] | None = No
         return
     numbers = np.arange(len(counts)) if numbers is None else np.asarray(numbers)
     frames = numbers[counts > 0]
-    # consecutive frames as ranges: 8-15, 30
-    breaks = np.flatnonzero(np.diff(frames) > 1)
-    starts, ends = np.r_[frames[0], frames[breaks + 1]], np.r_[frames[breaks], frames[-1]]
-    spans = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends))
+    spans = frame_spans(frames)
     others = numbers[counts == 0]
     hint = ("; to keep the fit off other branches, fit the frames far from the fold first "
             "and then all from there: continuation=true, or by hand "
