@@ -25,7 +25,8 @@ from torchfit.problems import (PROBLEMS, Backend, DataMode, DType,
                                Membrane2DConfig, MeshProblem, Model, ProblemConfig,
                                ProblemConfigError, ProblemEntry, Spring1D, Spring1DConfig,
                                build_problem)
-from torchfit.problems.base import BodyProblem, choice_fields
+from torchfit.problems.base import BodyProblem
+from torchfit.settings import choice_fields
 
 #: Where the 3-D problems keep their meshes and animations during this test module.
 CACHE = Path(tempfile.mkdtemp(prefix="torchfit-test-cache-"))

@@ -54,10 +54,10 @@ def test_the_infinite_settings_that_used_to_pass_are_rejected():
     (GaussNewtonConfig(max_iter=2.5), r"solver\.max_iter=2\.5.*integer"),
     (LevenbergMarquardtConfig(cg_max_iter=True), r"solver\.cg_max_iter=True.*integer"),
     (LevenbergMarquardtConfig(geodesic_acceleration=1), r"solver\.geodesic_acceleration=1.*true"),
-    (SplitBregmanConfig(isotropic="yes"), r"solver\.isotropic='yes'"),
+    (SplitBregmanConfig(isotropic="yes"), r"solver\.isotropic=yes.*true or false"),
     (SplitBregmanConfig(mu=True), r"solver\.mu=True.*number"),
     (SplitBregmanConfig(inner_solver=3), r"solver\.inner_solver=3.*string"),
-    (GaussNewtonConfig(tau="1.5"), r"solver\.tau='1\.5'.*number"),
+    (GaussNewtonConfig(tau="1.5"), r"solver\.tau=1\.5: must be a number"),
 ])
 def test_types_are_checked(config, match):
     with pytest.raises(SolverConfigError, match=match):

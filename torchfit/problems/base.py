@@ -31,11 +31,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import enum
 import math
-import numbers
 import re
-import typing
 from collections.abc import Mapping
 from typing import (Any, Callable, ClassVar, ContextManager, Protocol, Sequence,
                     runtime_checkable)
@@ -43,12 +40,14 @@ from typing import (Any, Callable, ClassVar, ContextManager, Protocol, Sequence,
 import torch
 from torch import Tensor
 
+from .. import settings
 from ..errors import ConfigurationError
 from ..linalg import cudss_available, pardiso_available
 from ..linalg.cudss import CUDA_EXTRA
 from ..linalg.pardiso import PARDISO_EXTRA
 from ..params import Parameterization
 from ..residual import ForwardProducts, ResidualFunction
+from ..settings import Choice, check_values, convert_choices, make_settings, show
 
 
 class ProblemConfigError(ConfigurationError):
@@ -64,18 +63,6 @@ def require(condition: bool, message: str) -> None:
 
 
 # -- choices ---------------------------------------------------------------------------
-class Choice(str, enum.Enum):
-    """A setting with a fixed set of values. Member names equal their values (OmegaConf
-    converts a string by name), ``str()`` and f-strings give the value."""
-
-    def __str__(self) -> str:
-        return self.value
-
-    @classmethod
-    def choices(cls) -> list[str]:
-        return [member.value for member in cls]
-
-
 class DataMode(Choice):
     """Which part of the state is observed."""
 
@@ -141,54 +128,12 @@ class ProblemConfig:
     dtype: DType = DType.float64        # float64 | float32
 
     def __post_init__(self) -> None:
-        for key, kind in choice_fields(type(self)).items():
-            setattr(self, key, to_choice(kind, key, getattr(self, key)))
-
-
-def choice_fields(config_class: type) -> dict[str, type[Choice]]:
-    """``{field: Choice subclass}`` of the choice settings of a config dataclass."""
-    cached = _CHOICE_FIELDS.get(config_class)
-    if cached is None:
-        hints = typing.get_type_hints(config_class)
-        cached = {f.name: hints[f.name] for f in dataclasses.fields(config_class)
-                  if isinstance(hints.get(f.name), type) and issubclass(hints[f.name], Choice)}
-        _CHOICE_FIELDS[config_class] = cached
-    return cached
-
-
-_CHOICE_FIELDS: dict[type, dict[str, type[Choice]]] = {}
-
-
-def to_choice(kind: type[Choice], key: str, value: Any) -> Choice:
-    """``value`` (a member, its value or its name) as a member of ``kind``, else a
-    :class:`ProblemConfigError` listing the choices."""
-    if isinstance(value, kind):
-        return value
-    if isinstance(value, enum.Enum):
-        value = value.value
-    if isinstance(value, str):
-        try:
-            return kind(value)
-        except ValueError:
-            pass
-    raise ProblemConfigError(f"problem.{key}={show(value)} is not a {key} choice; "
-                             f"choose one of {', '.join(kind.choices())}")
-
-
-def show(value: Any) -> str:
-    """A setting's value as written on a command line (``inf``, ``dense``, ``[0.0, 1.0]``)."""
-    if isinstance(value, enum.Enum):
-        return str(value.value)
-    if isinstance(value, str):
-        return value if value and not any(c.isspace() for c in value) else repr(value)
-    if isinstance(value, (list, tuple)) or (isinstance(value, Sequence) and not isinstance(value, str)):
-        return "[" + ", ".join(show(v) for v in value) + "]"
-    return repr(value) if not isinstance(value, float) else str(value)
+        convert_choices(self, "problem", ProblemConfigError)
 
 
 def setting_error(key: str, value: Any, allowed: str) -> ProblemConfigError:
     """``problem.<key>=<value>: <allowed>`` as a :class:`ProblemConfigError`."""
-    return ProblemConfigError(f"problem.{key}={show(value)}: {allowed}")
+    return settings.setting_error(ProblemConfigError, f"problem.{key}", value, allowed)
 
 
 def require_setting(condition: bool, cfg: Any, key: str, allowed: str) -> None:
@@ -203,50 +148,6 @@ def check_newton_settings(cfg: Any) -> None:
     require_setting(cfg.newton_rtol >= 0, cfg, "newton_rtol", "must be >= 0")
     require_setting(cfg.newton_atol > 0, cfg, "newton_atol", "must be > 0")
     require_setting(cfg.newton_max_iter >= 1, cfg, "newton_max_iter", "must be >= 1")
-
-
-def _is_number(value: Any) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
-
-
-def _non_finite(value: Any) -> bool:
-    """Some number in ``value`` (recursively in lists) is NaN or infinite."""
-    if _is_number(value):
-        return not math.isfinite(float(value))
-    if isinstance(value, Sequence) and not isinstance(value, str):
-        return any(_non_finite(v) for v in value)
-    return False
-
-
-def _number_kind(hint: Any) -> tuple[type | None, bool]:
-    """(``int``, ``float`` or ``None``, is it a list of them) of a type hint."""
-    origin = typing.get_origin(hint)
-    if origin is typing.Union:
-        args = [a for a in typing.get_args(hint) if a is not type(None)]
-        return _number_kind(args[0]) if len(args) == 1 else (None, False)
-    if origin in (list, tuple, Sequence, typing.List, typing.Tuple):
-        args = typing.get_args(hint)
-        inner = args[0] if args else None
-        return (inner if inner in (int, float) else None), True
-    return (hint if hint in (int, float) else None), False
-
-
-def _check_number_type(key: str, value: Any, kind: type, is_list: bool) -> None:
-    what = "an integer" if kind is int else "a number"
-    if is_list:
-        if value is None:
-            return
-        if isinstance(value, str) or not isinstance(value, Sequence):
-            raise setting_error(key, value, f"must be a list of {what.split(' ', 1)[1]}s")
-        ok = all(_is_number(v) and (kind is float or isinstance(v, numbers.Integral))
-                 for v in value)
-        if not ok:
-            raise setting_error(key, value, f"must be a list of {what.split(' ', 1)[1]}s")
-        return
-    if value is None:
-        return
-    if not _is_number(value) or (kind is int and not isinstance(value, numbers.Integral)):
-        raise setting_error(key, value, f"must be {what}")
 
 
 def check_device(key: str, value: Any) -> torch.device:
@@ -299,19 +200,7 @@ def validate_config(cfg: ProblemConfig) -> None:
     ``noise >= 0``; the device exists here; the direct backends run on the CPU only;
     ``pardiso`` is installed.
     """
-    hints = typing.get_type_hints(type(cfg))
-    choices = choice_fields(type(cfg))
-    for f in dataclasses.fields(cfg):
-        value = getattr(cfg, f.name)
-        if f.name in choices:
-            setattr(cfg, f.name, to_choice(choices[f.name], f.name, value))
-            continue
-        if _non_finite(value):
-            raise setting_error(f.name, value, "every numeric setting must be finite "
-                                "(no inf, -inf or nan)")
-        kind, is_list = _number_kind(hints.get(f.name))
-        if kind is not None:
-            _check_number_type(f.name, value, kind, is_list)
+    check_values(cfg, "problem", ProblemConfigError)
     require_setting(cfg.noise >= 0, cfg, "noise", "must be >= 0 (the standard deviation "
                     "of the noise; 0 for none)")
     device = check_device("device", cfg.device)
@@ -333,31 +222,7 @@ def make_config(config_class: type[ProblemConfig], cfg: Any = None,
                 overrides: Mapping[str, Any] | None = None) -> ProblemConfig:
     """A ``config_class`` instance from ``None`` (defaults), an instance, or a mapping
     (dict, OmegaConf node), with ``overrides`` applied; unknown settings are errors."""
-    overrides = dict(overrides or {})
-    names = {f.name for f in dataclasses.fields(config_class)}
-    if cfg is None:
-        values: dict[str, Any] = {}
-    elif isinstance(cfg, config_class):
-        values = {}
-    elif isinstance(cfg, ProblemConfig):
-        raise ProblemConfigError(f"a {type(cfg).__name__} was given where a "
-                                 f"{config_class.__name__} is needed")
-    else:
-        try:
-            values = dict(cfg)
-        except (TypeError, ValueError):
-            raise ProblemConfigError(f"a problem config must be a {config_class.__name__} "
-                                     f"or a mapping, got {type(cfg).__name__}") from None
-    values.update(overrides)
-    unknown = sorted(set(values) - names)
-    if unknown:
-        raise ProblemConfigError(f"unknown setting(s) {', '.join('problem.' + k for k in unknown)}"
-                                 f" for {config_class.__name__}; known: {', '.join(sorted(names))}")
-    values = {k: (list(v) if isinstance(v, Sequence) and not isinstance(v, str) else v)
-              for k, v in values.items()}
-    if isinstance(cfg, config_class):
-        return dataclasses.replace(cfg, **values) if values else dataclasses.replace(cfg)
-    return config_class(**values)
+    return make_settings(config_class, cfg, overrides, "problem", ProblemConfigError)
 
 
 # -- data helpers -----------------------------------------------------------------------

@@ -26,7 +26,6 @@ import abc
 import dataclasses
 import math
 import time
-import typing
 from typing import Any, ClassVar, Iterable, NamedTuple, Optional
 
 from torch import Tensor
@@ -34,6 +33,7 @@ from torch import Tensor
 from ..errors import ConfigurationError
 from ..linalg import COUNTERS
 from ..records import Callback, IterationRecord, SolveResult
+from ..settings import check_values
 
 
 class SolverConfigError(ConfigurationError):
@@ -47,42 +47,6 @@ def require(condition: bool, message: str) -> None:
 
 
 # -- configuration -------------------------------------------------------------------------
-def _check_value(path: str, value: Any, kind: Any) -> None:
-    """Generic type and finiteness check of one config value against its annotation."""
-    origin = typing.get_origin(kind)
-    args = typing.get_args(kind)
-    if origin is typing.Union:                       # Optional[X]
-        if value is None and type(None) in args:
-            return
-        inner = [a for a in args if a is not type(None)]
-        if len(inner) == 1:
-            _check_value(path, value, inner[0])
-        return
-    if origin in (list, typing.List, tuple):
-        require(isinstance(value, (list, tuple)) or _is_listconfig(value),
-                f"{path}={value!r}: must be a list")
-        element = args[0] if args else Any
-        for i, item in enumerate(value):
-            _check_value(f"{path}[{i}]", item, element)
-        return
-    if kind is bool:
-        require(isinstance(value, bool), f"{path}={value!r}: must be true or false")
-    elif kind is int:
-        require(isinstance(value, int) and not isinstance(value, bool),
-                f"{path}={value!r}: must be an integer")
-    elif kind is float:
-        require(isinstance(value, (int, float)) and not isinstance(value, bool),
-                f"{path}={value!r}: must be a number")
-        require(math.isfinite(value), f"{path}={value!r}: must be a finite number "
-                                      f"(inf and nan are not allowed)")
-    elif kind is str:
-        require(isinstance(value, str), f"{path}={value!r}: must be a string")
-
-
-def _is_listconfig(value: Any) -> bool:
-    return type(value).__name__ == "ListConfig"
-
-
 @dataclasses.dataclass
 class SolverConfig:
     """Settings every solver has. Subclasses add plain dataclass fields (Hydra schemas).
@@ -96,10 +60,7 @@ class SolverConfig:
     max_iter: int = 50
 
     def validate(self) -> None:
-        hints = typing.get_type_hints(type(self))
-        for field in dataclasses.fields(self):
-            _check_value(f"solver.{field.name}", getattr(self, field.name),
-                         hints.get(field.name, Any))
+        check_values(self, "solver", SolverConfigError)
         require(self.max_iter >= 0, f"solver.max_iter={self.max_iter}: must be >= 0")
         self.check()
 
