@@ -242,7 +242,7 @@ def test_equilibrium_out_of_gpu_memory_is_one_line_with_the_size(monkeypatch):
     def exhausted(*args, **kwargs):
         raise torch.cuda.OutOfMemoryError("CUDA out of memory. Tried to allocate 30.00 GiB")
 
-    monkeypatch.setattr(eq, "_solve_forward", exhausted)
+    monkeypatch.setattr(eq.solver, "solve", exhausted)
     values = torch.zeros(3, eq.n_fixed, dtype=torch.float64)
     with pytest.raises(GpuMemoryError) as info:
         eq(torch.ones(qs.model.n_cells, dtype=torch.float64), values)

@@ -294,9 +294,9 @@ def test_spring_products_through_the_sparse_derivative_matrix():
     grad_full[:, 1:] = w.T
     (reference_vjp,) = torch.autograd.grad(x, leaf, grad_full)
     assert _relative(jtw, reference_vjp) < 1e-12
-    layouts = eq._layouts
+    layouts = eq.matrix_layouts.entries
     eq.linearization(1.5 * k, fixed).free_jvp(v)
-    assert eq._layouts is layouts and len(layouts) == 1      # one layout per pattern
+    assert eq.matrix_layouts.entries is layouts and len(layouts) == 1   # one per pattern
     with pytest.raises(ValueError, match="Dirichlet"):
         eq.free_position(torch.tensor([0, 3]))
 
