@@ -344,8 +344,8 @@ class PardisoPlan:
         return handle, handle.acquire()  # type: ignore[return-value]
 
 
-#: pattern -> {matrix type: plan}, shared by every PardisoBackend (sparse_solve makes a
-#: backend per call; the analysis must outlive it)
+#: pattern -> {matrix type: plan}, shared by every PardisoBackend (every equilibrium makes
+#: a backend of its own; the analysis must outlive it)
 _PARDISO_PLANS: "weakref.WeakKeyDictionary[SparsePattern, dict[int, PardisoPlan]]" = \
     weakref.WeakKeyDictionary()
 

@@ -124,8 +124,8 @@ class LdlFactor:
         return torch.from_numpy(x).to(self._dtype)
 
 
-#: pattern -> plan, shared by every LdlBackend (sparse_solve makes a backend per call;
-#: the ordering and the solver pool must outlive it)
+#: pattern -> plan, shared by every LdlBackend (every equilibrium makes a backend of its
+#: own; the ordering and the solver pool must outlive it)
 _LDL_PLANS: "weakref.WeakKeyDictionary[SparsePattern, _LdlPlan]" = weakref.WeakKeyDictionary()
 
 
