@@ -6,9 +6,8 @@ lists into a CSR structure once and keeps the scatter index that sums the
 contributions into CSR slots, so that assembling new values is one ``index_add``
 (vectorised, differentiable, batched over frames, device-agnostic).
 
-Building a pattern is vectorised torch on the device of its inputs (a GPU builds a
-pattern of 10^8 contributions in well under a second): ``torch.unique`` of the (row, col)
-keys for arbitrary contributions, and, for sums of dense local matrices on blocks (every
+Building a pattern is vectorised torch on the device of its inputs: ``torch.unique`` of
+the (row, col) keys for arbitrary contributions, and, for sums of dense local matrices on blocks (every
 vertex of a finite element carrying ``d`` dofs), :meth:`SparsePattern.from_dense_blocks`,
 which sorts only the block pairs (``(d+1)^2`` per tetrahedron instead of ``(4 d)^2``)
 and computes every slot by arithmetic. The Dirichlet sub-pattern

@@ -18,7 +18,8 @@ iterations (with the energy not decreasing) stops Newton with
 :class:`NewtonConvergenceError`, except once per frame close to equilibrium (a saddle at a
 fold): that frame then finishes with the exact tangent and a line search on ``||R||`` alone.
 Residual norms are per frame, in force units. Counted work: one factorisation per active
-frame and iteration (one for all when the tangent is shared), one per frame at ``x*``.
+frame and iteration (one for all when the tangent is shared), one more per frame whose
+exact step is redone with the projected tangent, and one per frame at ``x*``.
 """
 from __future__ import annotations
 
