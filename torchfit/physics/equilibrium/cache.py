@@ -1,11 +1,11 @@
-"""The solution cache of an equilibrium: solutions with their factors, found again by
-parameters and Dirichlet values, and the choice of a warm start.
+"""The solution cache: solutions with their factors, found again, and the warm-start choice.
 
 A :class:`Solution` keeps ``x*`` ``(F, n_dofs)``, the factors of the exact tangent there,
 Newton's iteration counts, the cold start's residual norms and (built lazily) the model's
-parameter derivative. :meth:`SolutionCache.lookup` finds a solution again while it is among
-the ``size`` most recently used ones *or* while an autograd graph (or a linearisation) that
-used it is alive, so evaluating other points in between never forces a refactorisation.
+parameter derivative. :meth:`SolutionCache.lookup` finds a solution again by its parameters
+and Dirichlet values while it is among the ``size`` most recently used ones *or* while an
+autograd graph (or a linearisation) that used it is alive, so evaluating other points in
+between never forces a refactorisation.
 
 Warm start (:meth:`SolutionCache.warm_source`): a new point with the same Dirichlet values
 starts from the solution derivatives were last taken at (the *anchor*, a solver's

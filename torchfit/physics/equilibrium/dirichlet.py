@@ -1,11 +1,11 @@
-"""The Dirichlet reduction: a model's dofs split into fixed and free, its residual and
-tangent restricted to the free ones, and that reduced system factorised and solved.
+"""The Dirichlet reduction: the free/fixed split of the dofs and the reduced system to solve.
 
-Dirichlet dofs are prescribed per frame (``fixed_values`` ``(F, n_fixed)``, ordered as the
-sorted ``fixed_dofs``). Full states are ``(F, n_dofs)``; free vectors ``(F, n_free)`` in the
-order of ``free_dofs``. The free-free tangent pattern and the CSR slots it takes in the
-model's pattern are built once. A factor list holds one shared factor (a tangent that is
-the same for every frame) or one factor per frame.
+A model's residual and tangent are restricted to the free dofs, and that reduced system is
+factorised and solved. Dirichlet dofs are prescribed per frame (``fixed_values``
+``(F, n_fixed)``, ordered as the sorted ``fixed_dofs``). Full states are ``(F, n_dofs)``; free
+vectors ``(F, n_free)`` in the order of ``free_dofs``. The free-free tangent pattern and the
+CSR slots it takes in the model's pattern are built once. A factor list holds one shared
+factor (a tangent that is the same for every frame) or one factor per frame.
 """
 from __future__ import annotations
 

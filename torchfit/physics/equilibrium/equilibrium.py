@@ -1,5 +1,6 @@
-"""The differentiable equilibrium ``x*(params)`` with ``R(x*, params) = 0``: the entry point
-that ties the Dirichlet reduction, Newton, the solution cache and the adjoint together.
+"""The entry point of the differentiable equilibrium ``x*(params)``: :class:`Equilibrium`.
+
+It ties the Dirichlet reduction, Newton, the solution cache and the adjoint together.
 
 :class:`Equilibrium` takes a model (:class:`~.model.EquilibriumModel`) and its Dirichlet
 dofs. Called with ``params`` and the Dirichlet values ``(F, n_fixed)`` of ``F`` frames it

@@ -1,13 +1,14 @@
-"""Derivative products at one solution without an autograd graph: the explicit
-:class:`EquilibriumLinearization` and the Jacobian of many parameter directions at once.
+"""Derivative products without an autograd graph: explicit products and whole Jacobians.
 
-Both reuse the factors stored with the solution (no factorisation). The Jacobian
-(:func:`solution_jacobian`) solves ``K dX = -(dR/dparams) V`` for ``V`` ``(n_params, k)``:
-one solve with ``k`` right-hand sides per stored factor (``F`` solves, ``F k`` columns;
-blocks of frames of about 1024 columns for a shared factor), optionally observed frame by
-frame (``observe`` ``(n_rows, n_dofs)``) so that ``(F, n_dofs, k)`` is never formed.
-``(dR/dparams) V`` comes from the model's ``param_derivative(...).matmul`` when it has one,
-else one ``jvp`` of it per column, else autograd of the residual, column by column.
+:class:`EquilibriumLinearization` gives ``J v`` / ``J^T w`` at one solution, and
+:func:`solution_jacobian` the Jacobian of many parameter directions at once. Both reuse the
+factors stored with the solution (no factorisation). The Jacobian solves
+``K dX = -(dR/dparams) V`` for ``V`` ``(n_params, k)``: one solve with ``k`` right-hand sides per
+stored factor (``F`` solves, ``F k`` columns; blocks of frames of about 1024 columns for a
+shared factor), optionally observed frame by frame (``observe`` ``(n_rows, n_dofs)``) so
+that ``(F, n_dofs, k)`` is never formed. ``(dR/dparams) V`` comes from the model's
+``param_derivative(...).matmul`` when it has one, else one ``jvp`` of it per column, else
+autograd of the residual, column by column.
 """
 from __future__ import annotations
 
@@ -180,7 +181,8 @@ def solve_directions(eq: SolvedEquilibrium, sol: Solution,
     """Yield ``(start, stop, K^{-1} rhs)`` for frames ``start:stop`` on the free dofs,
     ``(stop - start, n_free, k)``, for ``rhs`` ``(F, n_dofs, k)``. One shared factor:
     frames in blocks of about 1024 right-hand sides (docs/physics/equilibrium.md); else
-    one solve per frame. A block is read before it is yielded, so the caller may overwrite it in ``rhs``."""
+    one solve per frame. A block is read before it is yielded, so the caller may overwrite
+    it in ``rhs``."""
     free = eq.reduction.free_dofs.to(rhs.device)
     n_frames, k = rhs.shape[0], rhs.shape[2]
     if len(sol.factors) == 1:
