@@ -4,9 +4,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchfit.linalg import BandedBackend, ScipyBackend, counting, get_backend, sparse_solve
+from torchfit.linalg import BandedBackend, ScipyBackend, counting, get_backend
 
 from grid_matrices import grid_laplacian
+from helpers.linear_system import gradients, linear_equilibrium
 
 
 def test_banded_solve_matches_superlu_and_counts():
@@ -36,18 +37,19 @@ def test_banded_falls_back_for_indefinite_and_wide_band_matrices():
         square, square_values, True)).__name__ == "ScipyFactor"
 
 
-def test_banded_sparse_solve_gradients():
+def test_banded_equilibrium_gradients():
+    """The differentiable linear solve (a linear equilibrium on the grid matrix) with the
+    banded factor: gradients match finite differences and SuperLU's."""
     pattern, values = grid_laplacian(12, 3)
-    rhs = torch.randn(pattern.shape[0], dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(
-        lambda b: sparse_solve(pattern, values, b, backend="banded"), (rhs,))
-    # the values gradient (on the symmetric pattern) is the one of the direct solver
-    grads = []
-    for backend in ("banded", "scipy"):
-        v = values.clone().requires_grad_(True)
-        x = sparse_solve(pattern, v, rhs.detach(), backend=backend)
-        grads.append(torch.autograd.grad(x.square().sum(), v)[0])
-    assert torch.allclose(grads[0], grads[1], atol=1e-10)
+    eq, shift, fixed = linear_equilibrium(pattern, values, "banded")
+    assert type(eq.solution(shift, fixed, None).factors[0]).__name__ == "BandedFactor"
+    assert torch.autograd.gradcheck(lambda s, f: eq(s, f),
+                                    (shift.requires_grad_(), fixed.requires_grad_()))
+    # the parameter and Dirichlet-value gradients are those of the direct solver
+    grads = [gradients(linear_equilibrium(pattern, values, backend)[0], shift, fixed)
+             for backend in ("banded", "scipy")]
+    for banded, superlu in zip(*grads):
+        assert torch.allclose(banded, superlu, atol=1e-10)
 
 
 def test_get_backend_names():

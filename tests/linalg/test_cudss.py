@@ -8,11 +8,13 @@ import torch
 import torchfit.linalg.cudss as cudss_module
 from torchfit.linalg import (BackendDeviceError, CudssBackend, CudssUnavailableError,
                              SingularMatrixError,
-                             SparsePattern, counting, default_backend, get_backend, sparse_solve)
+                             SparsePattern, counting, default_backend, get_backend)
 from torchfit.linalg.cudss import gpu_memory_error
 from torchfit.mesh import box_tetrahedra
 from torchfit.problems import build_problem
 from torchfit.problems.base import ProblemConfigError
+
+from helpers.linear_system import gradients, linear_equilibrium
 
 HAVE_CUDSS = cudss_module.cudss_available()
 needs_cudss = pytest.mark.skipif(not HAVE_CUDSS, reason="needs CUDA and nvmath-python (cuDSS)")
@@ -159,16 +161,15 @@ def test_cudss_solves_match_scipy_and_reuse_the_plan():
 
 @needs_cudss
 def test_cudss_differentiable_solve_matches_cpu_and_refuses_non_spd():
+    """The differentiable linear solve (a linear equilibrium on the stiffness matrix): the
+    solution and its gradients on the GPU are those of SuperLU on the CPU."""
     pattern, values = elastic_system("cuda", cells=(3, 3, 2))
     n = pattern.shape[0]
-    rhs = torch.randn(n, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
     out = {}
     for device, backend in (("cpu", "scipy"), ("cuda", "cudss")):
-        v = values.to(device).clone().requires_grad_(True)
-        b = rhs.to(device).clone().requires_grad_(True)
-        x = sparse_solve(pattern, v, b, backend=backend)
-        (gv, gb) = torch.autograd.grad((x * x).sum(), (v, b))
-        out[device] = (x.detach().cpu(), gv.cpu(), gb.cpu())
+        eq, shift, fixed = linear_equilibrium(pattern, values.to(device), backend)
+        x = eq(shift, fixed)
+        out[device] = (x.detach().cpu(), *(g.cpu() for g in gradients(eq, shift, fixed)))
     for a, b in zip(out["cpu"], out["cuda"]):
         assert torch.allclose(a, b, rtol=1e-9, atol=1e-12)
     indefinite = values.clone()
@@ -242,7 +243,7 @@ def test_equilibrium_out_of_gpu_memory_is_one_line_with_the_size(monkeypatch):
     def exhausted(*args, **kwargs):
         raise torch.cuda.OutOfMemoryError("CUDA out of memory. Tried to allocate 30.00 GiB")
 
-    monkeypatch.setattr(eq, "_solve_forward", exhausted)
+    monkeypatch.setattr(eq.solver, "solve", exhausted)
     values = torch.zeros(3, eq.n_fixed, dtype=torch.float64)
     with pytest.raises(GpuMemoryError) as info:
         eq(torch.ones(qs.model.n_cells, dtype=torch.float64), values)

@@ -8,10 +8,11 @@ import pytest
 import torch
 
 from torchfit.linalg import (BackendDeviceError, ScipyBackend, SingularMatrixError,
-                             SparsePattern, counting, get_backend, sparse_solve)
+                             SparsePattern, counting, get_backend)
 from torchfit.linalg.ldl import LdlBackend
 
 from grid_matrices import grid_laplacian
+from helpers.linear_system import gradients, linear_equilibrium
 
 
 def test_ldl_solve_matches_superlu_and_counts():
@@ -54,7 +55,7 @@ def test_one_analysis_per_pattern_and_live_factors_stay_valid():
                               atol=1e-10)
         del factor
     assert plan.analyses == 2
-    # another backend object shares the plan (sparse_solve makes one per call)
+    # another backend object shares the plan (an equilibrium makes one of its own)
     assert get_backend("ldl").plan(pattern) is plan
 
 
@@ -80,17 +81,18 @@ def test_ldl_hands_indefinite_nonsymmetric_and_singular_matrices_to_superlu():
         backend.factorize(pattern, torch.full_like(values, float("nan")), True)
 
 
-def test_ldl_sparse_solve_gradients_match_superlu():
+def test_ldl_equilibrium_gradients_match_superlu():
+    """The differentiable linear solve (a linear equilibrium on the grid matrix) with the
+    ldl factor: gradients match finite differences and SuperLU's."""
     pattern, values = grid_laplacian(8, 5)
-    rhs = torch.randn(pattern.shape[0], dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda b: sparse_solve(pattern, values, b, backend="ldl"),
-                                    (rhs,))
-    grads = []
-    for backend in ("ldl", "scipy"):
-        v = values.clone().requires_grad_(True)
-        x = sparse_solve(pattern, v, rhs.detach(), backend=backend)
-        grads.append(torch.autograd.grad(x.square().sum(), v)[0])
-    assert torch.allclose(grads[0], grads[1], rtol=0, atol=1e-10)
+    eq, shift, fixed = linear_equilibrium(pattern, values, "ldl")
+    assert type(eq.solution(shift, fixed, None).factors[0]).__name__ == "LdlFactor"
+    assert torch.autograd.gradcheck(lambda s, f: eq(s, f),
+                                    (shift.requires_grad_(), fixed.requires_grad_()))
+    grads = [gradients(linear_equilibrium(pattern, values, backend)[0], shift, fixed)
+             for backend in ("ldl", "scipy")]
+    for ldl, superlu in zip(*grads):
+        assert torch.allclose(ldl, superlu, rtol=0, atol=1e-10)
 
 
 def test_ldl_refuses_tensors_off_the_cpu_by_name():

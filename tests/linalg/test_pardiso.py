@@ -9,9 +9,11 @@ import pytest
 import scipy.sparse as sp
 import torch
 
-from torchfit.linalg import (FactorCache, PardisoUnavailableError, SingularMatrixError,
-                             SparsePattern, counting, default_backend, get_backend,
-                             pardiso_available, sparse_solve)
+from torchfit.linalg import (PardisoUnavailableError, SingularMatrixError, SparsePattern,
+                             counting, default_backend, get_backend, pardiso_available)
+from torchfit.physics import Equilibrium
+
+from helpers.linear_system import MatrixModel
 
 
 def _requires_pardiso() -> None:
@@ -114,9 +116,14 @@ def test_analysis_is_made_once_per_pattern_and_shared_by_live_factors(backend):
     again = get_backend("pardiso").factorize(pattern, values, True)
     assert plan.analyses == 1
     assert relative_residual(dense, again.solve(rhs).numpy(), rhs.numpy()) < 1e-12
-    # sparse_solve makes a backend per call: still no new analysis
-    x = sparse_solve(pattern, 2 * values, rhs, backend="pardiso", cache=FactorCache())
-    assert plan.analyses == 1 and relative_residual(2 * dense, x.numpy(), rhs.numpy()) < 1e-12
+    # an equilibrium without Dirichlet dofs (the same free pattern) makes a backend of its
+    # own: still no new analysis
+    model = MatrixModel(pattern, values, rhs.T)
+    eq = Equilibrium(model, torch.tensor([], dtype=torch.long), backend="pardiso",
+                     allow_no_dirichlet=True)
+    assert eq.free_pattern.nnz == pattern.nnz
+    x = eq(torch.zeros(pattern.shape[0], dtype=torch.float64), torch.zeros(3, 0)).T
+    assert plan.analyses == 1 and relative_residual(dense, x.numpy(), rhs.numpy()) < 1e-12
 
 
 def test_a_full_handle_opens_a_second_analysis(backend):
@@ -148,9 +155,11 @@ def test_singular_matrices_raise(backend, symmetric):
     values = pattern.assemble(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))
     with pytest.raises(SingularMatrixError, match="singular"):
         backend.factorize(pattern, values, symmetric)
+    eq = Equilibrium(MatrixModel(pattern, values, torch.ones(1, 2), symmetric=symmetric),
+                     torch.tensor([], dtype=torch.long), backend="pardiso",
+                     allow_no_dirichlet=True)
     with pytest.raises(SingularMatrixError, match="singular"):
-        sparse_solve(pattern, values, torch.ones(2, dtype=torch.float64), backend="pardiso",
-                     symmetric=symmetric, cache=FactorCache())
+        eq(torch.zeros(2, dtype=torch.float64), torch.zeros(1, 0))
     # an empty row (no entry at all) is a zero pivot, not a crash
     empty = SparsePattern([0, 2], [0, 2], (3, 3))
     with pytest.raises(SingularMatrixError):

@@ -7,8 +7,10 @@ import pytest
 import scipy.sparse as sp
 import torch
 
-from torchfit.linalg import SparsePattern
+from torchfit.linalg import FreeMatrixLayout, SparsePattern
 from torchfit.mesh import box_tetrahedra
+
+from helpers.linear_system import chain_pattern
 
 
 def expanded(groups: torch.Tensor, bs: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -95,3 +97,64 @@ def test_pattern_on_cuda_equals_the_cpu_pattern():
     sub_gpu, slots_gpu = gpu.submatrix(keep.cuda(), keep.cuda())
     assert torch.equal(slots_cpu, slots_gpu.cpu())
     assert torch.equal(sub_cpu.crow_indices, sub_gpu.crow_indices.cpu())
+
+
+def test_pattern_assembles_like_scipy():
+    rng = np.random.default_rng(0)
+    rows = rng.integers(0, 7, 40)
+    cols = rng.integers(0, 5, 40)
+    contrib = rng.standard_normal(40)
+    pattern = SparsePattern(rows, cols, (7, 5))
+    dense = sp.coo_matrix((contrib, (rows, cols)), shape=(7, 5)).toarray()
+    values = pattern.assemble(torch.from_numpy(contrib))
+    assert np.allclose(pattern.to_scipy(values).toarray(), dense)
+    assert np.allclose(pattern.to_torch(values).to_dense().numpy(), dense)
+    x = torch.randn(3, 5)
+    assert torch.allclose(pattern.matvec(values, x), x @ torch.from_numpy(dense).T)
+    y = torch.randn(7)
+    assert torch.allclose(pattern.rmatvec(values, y), torch.from_numpy(dense).T @ y)
+
+
+def test_submatrix_drops_rows_and_columns():
+    pattern, values_of = chain_pattern(6)
+    values = values_of(torch.rand(5) + 1)
+    keep = torch.tensor([1, 2, 4, 5])
+    sub, slots = pattern.submatrix(keep, keep)
+    full = pattern.to_scipy(values).toarray()
+    assert np.allclose(sub.to_scipy(values[slots]).toarray(), full[np.ix_(keep, keep)])
+
+
+def test_pattern_rejects_out_of_range():
+    with pytest.raises(ValueError, match="out of range"):
+        SparsePattern([0, 3], [0, 1], (3, 3))
+
+
+def test_free_matrix_layout_is_the_frame_stacked_matrix_without_the_dropped_rows():
+    """Rows ``f * n_dofs + dof`` of a ``(F * n_dofs, n_cols)`` matrix become rows
+    ``position * F + f`` of the kept dofs; the values are gathered, the transpose too;
+    repeated entries are flagged (the layout does not sum them)."""
+    g = torch.Generator().manual_seed(3)
+    n_frames, n_dofs, n_cols = 3, 5, 4
+    dense = torch.randn(n_frames * n_dofs, n_cols, generator=g)
+    dense[torch.rand(dense.shape, generator=g) < 0.4] = 0.0
+    rows, cols = torch.nonzero(dense, as_tuple=True)
+    values = dense[rows, cols]
+    shuffle = torch.randperm(rows.numel(), generator=g)          # any entry order
+    rows, cols, values = rows[shuffle], cols[shuffle], values[shuffle]
+    free_positions = torch.tensor([-1, 0, 1, -1, 2])               # dofs 0 and 3 dropped
+    layout = FreeMatrixLayout(rows, cols, (n_frames * n_dofs, n_cols), n_frames,
+                              free_positions, 3)
+    assert layout.unique and layout.matches(rows, cols, (n_frames * n_dofs, n_cols))
+    assert not layout.matches(rows, cols, (n_frames * n_dofs, n_cols + 1))
+    expected = torch.zeros(3 * n_frames, n_cols)
+    for f in range(n_frames):
+        for dof, position in enumerate(free_positions.tolist()):
+            if position >= 0:
+                expected[position * n_frames + f] = dense[f * n_dofs + dof]
+    matrix, transpose = layout.matrices(values)
+    assert torch.equal(matrix.to_dense(), expected)
+    assert torch.equal(transpose.to_dense(), expected.T)
+    twice = FreeMatrixLayout(torch.cat([rows, rows[:1]]), torch.cat([cols, cols[:1]]),
+                             (n_frames * n_dofs, n_cols), n_frames, free_positions, 3)
+    kept = free_positions[rows[0] % n_dofs] >= 0
+    assert twice.unique == (not bool(kept))

@@ -1,3 +1,6 @@
+"""The linear spring chain: its residual is the gradient of its energy, its tangent the
+Hessian, its parameter derivative that of autograd."""
+import numpy as np
 import torch
 import torch.autograd.forward_ad as fwAD
 
@@ -43,3 +46,18 @@ def test_equilibrium_gradients_with_param_derivative_match_finite_differences():
     with fwAD.dual_level():   # forward mode, as the solvers' J v
         tangent = fwAD.unpack_dual(eq(fwAD.make_dual(k.detach(), v), fixed)).tangent
     assert torch.allclose(tangent, fd, atol=1e-7)
+
+
+def test_spring_residual_is_gradient_of_energy():
+    n = 5
+    nodes = torch.arange(n + 1)
+    model = SpringChain1D(torch.stack([nodes[:-1], nodes[1:]], 1), torch.full((n,), 0.2),
+                          torch.rand(2, n + 1))
+    x = torch.rand(2, n + 1, requires_grad=True)
+    k = torch.rand(n) + 1
+    (grad,) = torch.autograd.grad(model.energy(x, k).sum(), x)
+    assert torch.allclose(grad, model.residual(x, k))
+    dense = model.tangent_pattern.to_scipy(
+        model.tangent_pattern.assemble(model.tangent_values(x, k))[0]).toarray()
+    hessian = torch.autograd.functional.hessian(lambda y: model.energy(y[None], k)[0], x[0].detach())
+    assert np.allclose(dense, hessian.numpy())

@@ -2,41 +2,34 @@
 
 ``scipy`` (CPU): SuperLU from scipy in *symmetric mode* for SPD systems (minimum
 degree ordering on ``A^T + A`` and diagonal pivoting), the general COLAMD/partial
-pivoting LU otherwise. `torch.sparse.spsolve` has no CPU kernel and CHOLMOD
-(scikit-sparse) has no wheel, so this is the fastest direct solver a plain pip install
-gives; `scripts/bench_factorization.py` measures it against the alternatives.
+pivoting LU otherwise; always there.
 
 ``cg`` (any device, CUDA included): Jacobi-preconditioned conjugate gradients in
 torch, batched over right-hand sides. It has no factorisation to reuse; its "factor"
 keeps the matrix and preconditioner so that the calling code is the same.
 
 ``banded`` (CPU): LAPACK banded Cholesky (``cholesky_banded``) after a reverse
-Cuthill-McKee ordering computed once per pattern. For long, thin meshes (the
-membrane2d sheet: bandwidth 53 for 4,750 unknowns) it factorises about 3x and solves
-about 2x faster than SuperLU. Matrices that are not symmetric positive definite (an
-indefinite tangent during Newton) and patterns whose band is too wide fall back to the
-``scipy`` backend.
+Cuthill-McKee ordering computed once per pattern, for long, thin meshes. Matrices that
+are not symmetric positive definite (an indefinite tangent during Newton) and patterns
+whose band is too wide fall back to the ``scipy`` backend.
 
 ``ldl`` (CPU): qdldl's sparse ``L D L^T`` (:mod:`.ldl`) with the ordering and symbolic
-analysis made once per pattern and numeric-only refactorisations, about 4x faster than
-SuperLU on poisson2d's 3,968 unknowns; matrices that are not symmetric positive definite
-fall back to ``scipy``. The default of poisson2d, whose split Bregman and Gauss-Newton
-loops refactorise one pattern hundreds of times: ``docs/linalg/ldl.md``.
+analysis made once per pattern and numeric-only refactorisations; matrices that are not
+symmetric positive definite fall back to ``scipy``.
 
 ``pardiso`` (CPU, optional extra ``torchfit[pardiso]``): MKL PARDISO (:mod:`.pardiso`).
 The symbolic analysis (ordering and symbolic factorisation, phase 11) is made once per
 sparsity pattern and kept with it; every factorisation of that pattern is a numeric
-factorisation (phase 22) into a slot of the same PARDISO handle, so 48 frames of one
-mesh are 48 live factors sharing one analysis. Symmetric matrices are factorised as
+factorisation (phase 22) into a slot of the same PARDISO handle, so the frames of one
+mesh are live factors sharing one analysis. Symmetric matrices are factorised as
 symmetric indefinite (Bunch-Kaufman ``LDL^T``: Newton tangents may be indefinite);
 nonsymmetric ones by LU with scaling and weighted matching, which read the values in
 the analysis, so there every factor gets its own analysis (the host structure is still
-built once per pattern). On a tetrahedral box of 6,561 free dofs it factorises about 7x
-and on 29,700 about 9x faster than SuperLU, and the shared analysis saves half (6.6k)
-and a quarter (29.7k) of each factorisation's time: ``docs/linalg/pardiso.md``.
-:func:`default_backend` picks it for 3-D problems on the CPU where it is installed.
+built once per pattern). :func:`default_backend` picks it for 3-D problems on the CPU
+where it is installed.
 
 Every factorisation and every solve is counted in :mod:`torchfit.linalg.counters`.
+Measured speeds and the alternatives rejected: ``docs/linalg/backends.md``.
 """
 from __future__ import annotations
 
@@ -344,8 +337,8 @@ class PardisoPlan:
         return handle, handle.acquire()  # type: ignore[return-value]
 
 
-#: pattern -> {matrix type: plan}, shared by every PardisoBackend (sparse_solve makes a
-#: backend per call; the analysis must outlive it)
+#: pattern -> {matrix type: plan}, shared by every PardisoBackend (every equilibrium makes
+#: a backend of its own; the analysis must outlive it)
 _PARDISO_PLANS: "weakref.WeakKeyDictionary[SparsePattern, dict[int, PardisoPlan]]" = \
     weakref.WeakKeyDictionary()
 

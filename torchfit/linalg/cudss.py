@@ -6,8 +6,8 @@
 
 * the CSR structure as int32 tensors on the device (cuDSS takes int32 indices);
 * *slots*: a ``DirectSolver`` each, with its own value buffer and right-hand-side buffer,
-  planned once (``plan()``: reordering and symbolic factorisation, the expensive step:
-  6.9 s at 1.03M dofs on an H100). A numeric factorisation copies the new CSR values
+  planned once (``plan()``: reordering and symbolic factorisation, the expensive step).
+  A numeric factorisation copies the new CSR values
   into a free slot's buffer **in place** and calls ``factorize()`` again: the slot's plan
   is reused (passing a new tensor through ``reset_operands`` would force a new plan).
   A factor holds its slot until it is garbage collected, when the slot (and its plan)
@@ -20,8 +20,7 @@ Solves (:meth:`CudssFactor.solve`) take ``(n,)`` or ``(n, k)`` right-hand sides 
 device. The RHS buffer of a slot has ``rhs_block`` columns (column-major, as cuDSS
 wants; nvmath checks that the RHS shape never changes, so it is fixed per slot): ``k``
 columns are solved ``rhs_block`` at a time, the last block zero-padded. One call is one
-counted solve (``rhs_columns += k``), as for the CPU backends. The triangular solves
-read the whole factor per block, so a block of 8 columns costs about what one costs.
+counted solve (``rhs_columns += k``), as for the CPU backends.
 
 Matrix types: a symmetric matrix is factorised as SPD (Cholesky, cuDSS's fastest). A
 non-positive pivot (cuDSS's ``info > 0``) means it is not positive definite: a Newton
@@ -36,9 +35,8 @@ largest allocation) is a :class:`GpuMemoryError` naming the matrix size and what
 cuDSS plans much faster with its multithreading layer: nvmath-python loads it from
 ``CUDSS_THREADING_LIB`` (``.../nvidia/cu13/lib/libcudss_mtlayer_gomp.so.0``) when set.
 
-Untested on a GPU at the time of writing (no GPU was lent to the session that wrote it):
 ``tests/linalg/test_cudss.py`` runs it where CUDA and nvmath are present; its error
-paths are tested everywhere.
+paths are tested everywhere. Its history and costs: ``docs/linalg/gpu.md``.
 """
 from __future__ import annotations
 

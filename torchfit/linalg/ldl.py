@@ -15,9 +15,7 @@ per pattern here, and every further factorisation of that pattern is numeric onl
   and numeric) when every solver of the pattern holds a live factor; a factor returns
   its solver to the pool when it is garbage collected.
 
-On poisson2d's free stiffness (3,968 unknowns) the numeric factorisation takes 1.0 ms
-against SuperLU's 4.5 ms and a solve 0.10 ms against 0.14 ms; at 65,024 unknowns
-100 ms against 158 ms, but solves are 30 % slower (5.4 against 4.1 ms):
+Measured against SuperLU (faster factorisations, slower solves at large sizes):
 ``docs/linalg/ldl.md``, ``scripts/bench_factorization.py``.
 
 Without pivoting, ``L D L^T`` is only trustworthy for positive definite matrices: a
@@ -124,8 +122,8 @@ class LdlFactor:
         return torch.from_numpy(x).to(self._dtype)
 
 
-#: pattern -> plan, shared by every LdlBackend (sparse_solve makes a backend per call;
-#: the ordering and the solver pool must outlive it)
+#: pattern -> plan, shared by every LdlBackend (every equilibrium makes a backend of its
+#: own; the ordering and the solver pool must outlive it)
 _LDL_PLANS: "weakref.WeakKeyDictionary[SparsePattern, _LdlPlan]" = weakref.WeakKeyDictionary()
 
 

@@ -5,9 +5,8 @@ This module is the binding only (numpy in, numpy out, no torch, no counters); th
 PARDISO comes with the optional extra ``torchfit[pardiso]`` (``pypardiso`` and the
 ``mkl`` wheels: x86-64 only, about 700 MB). The shared library is found the way
 pypardiso finds it (``PYPARDISO_MKL_RT``, ``ctypes.util.find_library``, the
-environment's ``lib``); the calls are made here, with settings of our own, because
-pypardiso's ``PyPardisoSolver`` keeps one factorisation per solver object, uses MKL's
-default ``iparm`` (nonsymmetric only) and has no transposed or multi-factor solves.
+environment's ``lib``); the calls are made here, with settings of our own (why not
+pypardiso's own solver: ``docs/linalg/pardiso.md``).
 
 PARDISO's phases: 11 symbolic analysis (fill-reducing METIS ordering, symbolic
 factorisation), 22 numeric factorisation, 33 solve (forward/backward substitution),

@@ -6,9 +6,8 @@ lists into a CSR structure once and keeps the scatter index that sums the
 contributions into CSR slots, so that assembling new values is one ``index_add``
 (vectorised, differentiable, batched over frames, device-agnostic).
 
-Building a pattern is vectorised torch on the device of its inputs (a GPU builds a
-pattern of 10^8 contributions in well under a second): ``torch.unique`` of the (row, col)
-keys for arbitrary contributions, and, for sums of dense local matrices on blocks (every
+Building a pattern is vectorised torch on the device of its inputs: ``torch.unique`` of
+the (row, col) keys for arbitrary contributions, and, for sums of dense local matrices on blocks (every
 vertex of a finite element carrying ``d`` dofs), :meth:`SparsePattern.from_dense_blocks`,
 which sorts only the block pairs (``(d+1)^2`` per tetrahedron instead of ``(4 d)^2``)
 and computes every slot by arithmetic. The Dirichlet sub-pattern
@@ -34,14 +33,18 @@ def csr_matrix(crow: Tensor, col: Tensor, values: Tensor, size: tuple[int, int])
         return torch.sparse_csr_tensor(crow, col, values, size, check_invariants=False)
 
 
+def _crow(sorted_rows: Tensor, n_rows: int) -> Tensor:
+    """CSR row pointers of row indices sorted ascending."""
+    counts = torch.bincount(sorted_rows, minlength=n_rows)
+    return torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)])
+
+
 def coo_to_csr(rows: Tensor, cols: Tensor, values: Tensor, size: tuple[int, int]) -> Tensor:
     """CSR ``(size)`` of COO entries (duplicates summed), built once per operator."""
     coo = torch.sparse_coo_tensor(torch.stack([rows, cols]), values, size,
                                   check_invariants=False).coalesce()
     r, c = coo.indices()
-    counts = torch.bincount(r, minlength=size[0])
-    crow = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)])
-    return csr_matrix(crow, c.contiguous(), coo.values(), size)
+    return csr_matrix(_crow(r, size[0]), c.contiguous(), coo.values(), size)
 
 
 def _as_index(values: Tensor | np.ndarray | list, device: torch.device | None = None) -> Tensor:
@@ -285,3 +288,52 @@ class SparsePattern:
 
     def __repr__(self) -> str:
         return f"SparsePattern(shape={self.shape}, nnz={self.nnz})"
+
+
+class FreeMatrixLayout:
+    """The CSR structure of a frame-stacked matrix with some rows dropped and the kept rows
+    renumbered, and of its transpose, built once per entry pattern.
+
+    The matrix is given as COO entries ``(rows, cols)`` of shape ``(F * n_dofs, n_cols)``
+    (row ``f * n_dofs + dof``, e.g. a model's ``dR/dparams``); ``free_positions``
+    ``(n_dofs,)`` maps a dof to its row among the ``n_free`` kept ones (``-1``: dropped,
+    e.g. a Dirichlet dof). The result has ``n_free * F`` rows, row ``position * F + f``.
+    :meth:`matrices` then only gathers the values (two ``index_select``), where building
+    CSR from COO entries each time costs more than a factorisation. ``unique`` is False
+    when two entries share a position (the layout then does not sum them: do not use it).
+    """
+
+    def __init__(self, rows: Tensor, cols: Tensor, shape: tuple[int, int], n_frames: int,
+                 free_positions: Tensor, n_free: int) -> None:
+        self.rows, self.cols, self.shape = rows.clone(), cols.clone(), tuple(shape)
+        n_dofs = shape[0] // n_frames
+        frame = torch.div(rows, n_dofs, rounding_mode="floor")
+        position = free_positions.to(rows.device)[rows % n_dofs]
+        kept = torch.nonzero(position >= 0).reshape(-1)
+        free_rows = position[kept] * n_frames + frame[kept]
+        kept_cols = cols[kept]
+        n_rows, n_cols = n_free * n_frames, shape[1]
+        key = free_rows * n_cols + kept_cols
+        self.unique = bool(torch.unique(key).numel() == key.numel())
+        self.size = (n_rows, n_cols)
+        order = torch.argsort(key)
+        self.perm = kept[order]
+        self.crow = _crow(free_rows[order], n_rows)
+        self.col = kept_cols[order].contiguous()
+        order_t = torch.argsort(kept_cols * n_rows + free_rows)
+        self.perm_t = kept[order_t]
+        self.crow_t = _crow(kept_cols[order_t], n_cols)
+        self.col_t = free_rows[order_t].contiguous()
+
+    def matches(self, rows: Tensor, cols: Tensor, shape: tuple[int, int]) -> bool:
+        """Whether the entries ``(rows, cols)`` of ``shape`` are this layout's pattern."""
+        return tuple(shape) == self.shape and rows.shape == self.rows.shape and \
+            torch.equal(rows, self.rows) and torch.equal(cols, self.cols)
+
+    def matrices(self, values: Tensor) -> tuple[Tensor, Tensor]:
+        """The CSR matrix ``(n_free * F, n_cols)`` of the entries' ``values`` and its
+        transpose."""
+        matrix = csr_matrix(self.crow, self.col, values.index_select(0, self.perm), self.size)
+        transpose = csr_matrix(self.crow_t, self.col_t, values.index_select(0, self.perm_t),
+                               (self.size[1], self.size[0]))
+        return matrix, transpose

@@ -4,8 +4,7 @@ process, through ``threadpoolctl``.
 ``torch.set_num_threads`` governs torch's own kernels only; scipy's LAPACK (the banded
 Cholesky backend) runs on the OpenBLAS that numpy/scipy bundle, which starts one thread
 per core. On a machine whose cores are shared with other jobs those threads spin and
-wait: a banded Cholesky of the membrane2d tangent was measured 4-13x slower with two
-OpenBLAS threads than with one while another process kept a core busy.
+wait (``docs/linalg/threads.md``).
 :func:`set_threads` sets both for the whole process (a sweep job with ``threads=1``).
 A library loaded later (MKL, when the ``pardiso`` backend is first used) gets the same
 limit through :func:`apply_requested_threads`.

@@ -19,9 +19,9 @@ from typing import Any
 
 from .errors import (DynamicsInputError, InvalidFieldError, NegativeDampingError,
                      NonFiniteStateError, UnstableStepError)
-from .explicit import ADAPTIVE_METHODS, FIXED_METHODS, METHODS, TorchdiffeqIntegrator
-from .implicit import SCHEMES, ImplicitIntegrator, StepModel
-from .system import DynamicSystem, KeyedMotion, check_output_times, smootherstep
+from .explicit import ADAPTIVE_METHODS, FIXED_METHODS, TorchdiffeqIntegrator
+from .implicit import ImplicitIntegrator
+from .system import DynamicSystem, KeyedMotion, check_output_times
 
 INTEGRATORS = ("torchdiffeq", "implicit")
 
@@ -46,7 +46,5 @@ def make_integrator(kind: str, system: DynamicSystem, output_times: Any, *, dt: 
 
 
 __all__ = ["ADAPTIVE_METHODS", "DynamicSystem", "DynamicsInputError", "FIXED_METHODS",
-           "INTEGRATORS", "ImplicitIntegrator", "InvalidFieldError", "KeyedMotion", "METHODS",
-           "NegativeDampingError", "NonFiniteStateError", "SCHEMES", "StepModel",
-           "TorchdiffeqIntegrator", "UnstableStepError", "check_output_times", "make_integrator",
-           "smootherstep"]
+           "INTEGRATORS", "InvalidFieldError", "KeyedMotion", "NegativeDampingError",
+           "NonFiniteStateError", "UnstableStepError", "check_output_times", "make_integrator"]

@@ -1,5 +1,5 @@
-"""The closed-form / fixed-iteration 2x2 and 3x3 decompositions of the materials against
-torch.linalg (LAPACK): random, repeated, inverted, near-degenerate and collapsed batches."""
+"""The materials: the PSD projection, Poisson ratios and names, the rotation-variant SVD
+and the neo-Hookean eigensystem against LAPACK, the SVD memo shared by Newton."""
 from __future__ import annotations
 
 import math
@@ -7,36 +7,41 @@ import math
 import pytest
 import torch
 
-from torchfit.physics.elasticity.kinematics import (PolarRotation3, det2, det3, polar_rotation,
-                                                    solve_sym3, svd2, svd3, sym_eig2, sym_eig3)
+from torchfit.mesh import rectangle_triangles
+from torchfit.physics.elasticity import MaterialError, SimplicialElasticity, get_material
+from torchfit.physics.elasticity.kinematics import polar_rotation, svd2, svd3
 from torchfit.physics.elasticity.materials import (StableNeoHookean, lame_parameters,
                                                    project_psd, rotation_variant_svd)
 
-DT = torch.float64
+from helpers.decompositions import DT, hard_batch
 
 
-def rotation(d: int, seed: int, n: int = 1) -> torch.Tensor:
-    """``n`` random ``d x d`` rotations (``det = +1``)."""
-    g = torch.Generator().manual_seed(seed)
-    Q, _ = torch.linalg.qr(torch.randn(n, d, d, dtype=DT, generator=g))
-    Q[..., :, 0] *= torch.sign(torch.linalg.det(Q))[:, None]
-    return Q
+def test_project_psd_clamps_only_negative_eigenvalues():
+    g = torch.Generator().manual_seed(0)
+    M = torch.randn(5, 4, 4, generator=g)
+    M = M + M.transpose(-1, -2)
+    P = project_psd(M.reshape(5, 2, 2, 2, 2)).reshape(5, 4, 4)
+    w, V = torch.linalg.eigh(M)
+    expected = (V * w.clamp(min=0)[:, None, :]) @ V.transpose(-1, -2)
+    assert torch.allclose(P, expected, atol=1e-12)
 
 
-def hard_batch(d: int, seed: int = 0) -> torch.Tensor:
-    """Random, inverted, repeated, nearly repeated, opposite, rank-deficient and zero
-    matrices, each also rotated on both sides."""
-    g = torch.Generator().manual_seed(seed)
-    random = torch.eye(d, dtype=DT) + 0.5 * torch.randn(400, d, d, dtype=DT, generator=g)
-    inverted = random[:100].clone()
-    inverted[:, :, 0] *= -1
-    diagonals = [[1.0] * d, [2.0] * d, [1.0] * (d - 1) + [-1.0], [1.0 + 1e-9] + [1.0] * (d - 1),
-                 [3.0] + [1e-12] * (d - 1), [1.0] * (d - 1) + [0.0], [0.0] * d,
-                 [-1.0] * d, [1.0, 1.0 - 1e-13] + [0.5] * (d - 2), [1e-8] * d]
-    special = torch.diag_embed(torch.tensor(diagonals, dtype=DT))
-    n = special.shape[0]
-    rotated = rotation(d, seed + 1, n) @ special @ rotation(d, seed + 2, n).transpose(-1, -2)
-    return torch.cat([random, inverted, special, rotated])
+@pytest.mark.parametrize("nu", [0.5, -1.0, 0.7, float("nan")])
+def test_poisson_ratio_outside_range_is_rejected(nu):
+    mesh = rectangle_triangles(2, 1)
+    with pytest.raises(MaterialError, match=r"\(-1, 0.5\)"):
+        SimplicialElasticity(torch.from_numpy(mesh.points), torch.from_numpy(mesh.cells),
+                             "corotated", nu=nu)
+
+
+def test_unknown_model_and_defaults():
+    with pytest.raises(MaterialError, match="stable_neo_hookean"):
+        get_material("mooney")
+    assert get_material("neo_hookean").name == "stable_neo_hookean"
+    mesh = rectangle_triangles(2, 1)
+    model = SimplicialElasticity(torch.from_numpy(mesh.points), torch.from_numpy(mesh.cells),
+                                 "corotated")
+    assert model.nu == 0.475                            # PhysBAM's default
 
 
 @pytest.mark.parametrize("d", [2, 3])
@@ -64,61 +69,6 @@ def test_rotation_variant_svd_matches_lapack(d):
         R = U @ Vh
         R_ref = polar_rotation(F[:500])
         assert torch.allclose(R[:500][distinct], R_ref[distinct], atol=1e-13)
-
-
-@pytest.mark.parametrize("d", [2, 3])
-def test_symmetric_eigen_matches_lapack(d):
-    F = hard_batch(d, seed=3)
-    S = F.transpose(-1, -2) @ F                     # PSD with repeated/zero eigenvalues
-    g = torch.Generator().manual_seed(4)
-    B = torch.randn(300, d, d, dtype=DT, generator=g)
-    S = torch.cat([S, B + B.transpose(-1, -2)])      # indefinite
-    values, V = (sym_eig2 if d == 2 else sym_eig3)(S)
-    reference = torch.linalg.eigvalsh(S).flip(-1)
-    scale = S.abs().amax(dim=(-2, -1)).clamp(min=1e-300)
-    assert bool(((values - reference).abs().amax(-1) <= 1e-14 * scale + 1e-300).all())
-    assert torch.allclose(V @ torch.diag_embed(values) @ V.transpose(-1, -2), S,
-                          atol=1e-13, rtol=1e-14)
-    assert torch.allclose(V.transpose(-1, -2) @ V, torch.eye(d, dtype=DT).expand_as(V),
-                          atol=1e-14)
-    assert torch.allclose(torch.linalg.det(V), torch.ones(len(S), dtype=DT), atol=1e-14)
-    # a diagonal matrix is left exactly as it is
-    D = torch.diag_embed(torch.tensor([[3.0] + [2.0] * (d - 1)], dtype=DT))
-    values, V = (sym_eig2 if d == 2 else sym_eig3)(D)
-    assert torch.equal(V[0], torch.eye(d, dtype=DT))
-
-
-def test_determinants_and_symmetric_solve_match_lapack():
-    g = torch.Generator().manual_seed(5)
-    M3 = torch.randn(500, 3, 3, dtype=DT, generator=g)
-    M2 = torch.randn(500, 2, 2, dtype=DT, generator=g)
-    assert torch.allclose(det3(M3), torch.linalg.det(M3), atol=1e-14)
-    assert torch.allclose(det2(M2), torch.linalg.det(M2), atol=1e-15)
-    K = M3 @ M3.transpose(-1, -2) + 0.1 * torch.eye(3, dtype=DT)
-    rhs = torch.randn(500, 3, dtype=DT, generator=g)
-    x = solve_sym3(K, rhs)
-    assert torch.allclose(x, torch.linalg.solve(K, rhs), rtol=1e-10, atol=1e-12)
-    assert torch.allclose((K @ x[..., None])[..., 0], rhs, atol=1e-11)
-
-
-def test_polar_backward_is_finite_at_repeated_singular_values_and_matches_autograd_of_svd():
-    g = torch.Generator().manual_seed(6)
-    F = (torch.eye(3, dtype=DT) + 0.3 * torch.randn(20, 3, 3, dtype=DT, generator=g))
-    # away from repeated singular values the SVD's own autograd is a valid reference
-    F_ref = F.clone().requires_grad_(True)
-    U, _, Vh = torch.linalg.svd(F_ref)
-    sign = torch.sign(torch.linalg.det(U @ Vh))
-    R_ref = U @ torch.diag_embed(torch.stack([torch.ones_like(sign), torch.ones_like(sign), sign], -1)) @ Vh
-    W = torch.randn(20, 3, 3, dtype=DT, generator=g)
-    (grad_ref,) = torch.autograd.grad((R_ref * W).sum(), F_ref)
-    F_new = F.clone().requires_grad_(True)
-    (grad,) = torch.autograd.grad((PolarRotation3.apply(F_new) * W).sum(), F_new)
-    assert torch.allclose(grad, grad_ref, atol=1e-11)
-    for F0 in (torch.eye(3, dtype=DT), torch.diag(torch.tensor([2.0, 2.0, 0.5], dtype=DT)),
-               torch.diag(torch.tensor([1.0, 1.0, -0.5], dtype=DT))):   # inverted, repeated
-        F0 = F0.clone().requires_grad_(True)
-        (grad,) = torch.autograd.grad((polar_rotation(F0) * W[0]).sum(), F0)
-        assert torch.isfinite(grad).all()
 
 
 @pytest.mark.parametrize("d", [2, 3])

@@ -1,0 +1,58 @@
+"""The semi-discrete system: keyed motions, and its bad input as one-line errors (negative
+damping, output times, density)."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchfit.errors import ConfigurationError, SimulationError
+from torchfit.physics import SpringChain1D
+from torchfit.physics.dynamics import (DynamicsInputError, DynamicSystem, KeyedMotion,
+                                       NegativeDampingError, check_output_times, make_integrator)
+from torchfit.physics.dynamics.system import smootherstep
+
+from helpers.dynamics_systems import chain_system, one_line, one_thread  # noqa: F401 (autouse)
+
+
+def test_keyed_motion_is_c2_and_stops():
+    w, dw = smootherstep(torch.tensor([0.0, 0.5, 1.0, 2.0]))
+    assert torch.allclose(w, torch.tensor([0.0, 0.5, 1.0, 1.0]))
+    assert torch.allclose(dw, torch.tensor([0.0, 1.875, 0.0, 0.0]))
+    motion = KeyedMotion(torch.tensor([0.0, 1.0]), torch.tensor([[0.0], [2.0]]))
+    t = torch.tensor([0.25, 0.5, 3.0])
+    h = 1e-6
+    fd = (motion(t + h) - motion(t - h)) / (2 * h)
+    assert torch.allclose(motion.velocity(t), fd, atol=1e-8)
+    assert float(motion(t)[-1]) == 2.0 and float(motion.velocity(t)[-1]) == 0.0
+
+
+def test_negative_damping_is_a_one_line_simulation_error():
+    system, params = chain_system()
+    integrator = make_integrator("implicit", system, [0.1], dt=0.01)
+    bad = params.clone()
+    bad[-2] = -0.1
+    with pytest.raises(NegativeDampingError) as info:
+        integrator(bad)
+    assert isinstance(info.value, SimulationError)
+    assert "alpha = -0.1" in one_line(info.value) and "transform=exp" in str(info.value)
+
+
+def test_output_times_must_increase():
+    with pytest.raises(DynamicsInputError) as info:
+        check_output_times([0.1, 0.3, 0.3])
+    assert isinstance(info.value, ConfigurationError)
+    assert "t[2] = 0.3 is not after t[1] = 0.3" in one_line(info.value)
+    system, _ = chain_system()
+    with pytest.raises(DynamicsInputError):
+        make_integrator("torchdiffeq", system, [0.2, 0.1], dt=0.01)
+
+
+def test_density_must_be_positive():
+    nodes = torch.arange(3)
+    springs = SpringChain1D(torch.stack([nodes[:-1], nodes[1:]], 1), torch.full((2,), 0.5),
+                            torch.zeros(1, 3))
+    with pytest.raises(DynamicsInputError) as info:
+        DynamicSystem(springs, 2, torch.tensor([0.5, 0.0, 0.5]), torch.tensor([0]),
+                      KeyedMotion(torch.zeros(1), torch.zeros(1, 1)), None, torch.zeros(3),
+                      torch.arange(3.0) / 2)
+    assert "density must be > 0" in one_line(info.value)
