@@ -171,13 +171,13 @@ class Bench(ProblemBench):
             with torch.no_grad():
                 k = stage("parameterization_exp", lambda: problem.parameterization(theta))
                 x0 = stage("full_state_index_copy",
-                           lambda: eq._full(k.new_zeros(fixed.shape[0], eq.free_dofs.numel()),
+                           lambda: eq.reduction.full(k.new_zeros(fixed.shape[0], eq.free_dofs.numel()),
                                             fixed))
-                r = stage("residual_eval", lambda: eq._free_residual(x0, k))
+                r = stage("residual_eval", lambda: eq.reduction.free_residual(x0, k))
                 c = stage("tangent_values_stack", lambda: model.tangent_values(x0, k))
                 vals = stage("pattern_assemble_index_add",
                              lambda: model.tangent_pattern.assemble(c))
-                free_vals = stage("free_slots_gather", lambda: vals[..., eq._free_slots][0])
+                free_vals = stage("free_slots_gather", lambda: vals[..., eq.reduction.free_slots][0])
                 stage("isfinite_check", lambda: bool(torch.isfinite(free_vals).all()))
                 csr = stage("pattern_to_scipy", lambda: eq.free_pattern.to_scipy(free_vals))
                 csc = stage("csr_tocsc", lambda: csr.tocsc())
