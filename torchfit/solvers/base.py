@@ -32,7 +32,7 @@ from torch import Tensor
 
 from ..errors import ConfigurationError
 from ..linalg import COUNTERS
-from ..records import Callback, IterationRecord, SolveResult
+from ..records import Callback, IterationRecord, SolveResult, StopReason
 from ..settings import check_values
 
 
@@ -98,10 +98,10 @@ def emit(callbacks: Iterable[Callback], record: IterationRecord) -> bool:
 
 
 class Stop(NamedTuple):
-    """Why a run ends: ``converged`` and a :class:`SolveResult` stop reason."""
+    """Why a run ends: ``converged`` and the :class:`~torchfit.records.StopReason`."""
 
     converged: bool
-    reason: str
+    reason: StopReason
 
 
 def least_squares_stop(norm: float, previous_norm: Optional[float], gradient_norm: float,
@@ -112,12 +112,12 @@ def least_squares_stop(norm: float, previous_norm: Optional[float], gradient_nor
     ``||J^T r|| <= gtol ||J^T r_0||`` or a zero gradient; without a noise level, a
     relative decrease ``||r_{k-1}|| - ||r_k|| <= rtol ||r_{k-1}||``."""
     if noise_level is not None and norm <= tau * noise_level:
-        return Stop(True, "discrepancy")
+        return Stop(True, StopReason.discrepancy)
     if norm <= atol or gradient_norm <= gtol * gradient_norm0 or gradient_norm == 0.0:
-        return Stop(True, "tolerance")
+        return Stop(True, StopReason.tolerance)
     if previous_norm is not None and noise_level is None \
             and previous_norm - norm <= rtol * previous_norm:
-        return Stop(True, "tolerance")
+        return Stop(True, StopReason.tolerance)
     return None
 
 
@@ -205,7 +205,7 @@ class Solver(abc.ABC):
             record = self.start(theta0)
             history.append(record)
             if emit(callbacks, record):
-                return self._finish(Stop(False, "interrupted"), history)
+                return self._finish(Stop(False, StopReason.interrupted), history)
         else:
             self.load_state_dict(state)
             self.resume()
@@ -214,7 +214,7 @@ class Solver(abc.ABC):
         while True:
             stop = self.stop_rule()
             if stop is None and self.budget_exhausted():
-                stop = Stop(False, "max_iter")
+                stop = Stop(False, StopReason.max_iter)
             if stop is None:
                 self.iteration += 1
                 outcome = self.step()
@@ -224,7 +224,7 @@ class Solver(abc.ABC):
                 else:
                     history.append(outcome)
                     if emit(callbacks, outcome):
-                        stop = Stop(False, "interrupted")
+                        stop = Stop(False, StopReason.interrupted)
             if stop is not None:
                 return self._finish(stop, history)
 

@@ -53,7 +53,7 @@ import torch
 from torch import Tensor
 
 from ..linalg import cgls
-from ..records import Callback, IterationRecord, SolveResult
+from ..records import Callback, IterationRecord, SolveResult, StopReason
 from ..residual import Linearization, ResidualFunction, try_linearize
 from .base import Stop, clone, least_squares_stop, require
 from .least_squares import LeastSquaresConfig, LeastSquaresSolver
@@ -207,12 +207,12 @@ class GaussNewton(LeastSquaresSolver):
         direction, model_change = inner.x, inner.Ax
         slope = float(torch.dot(lin.r, model_change))  # d/da 0.5||r + a J d||^2 at a = 0
         if slope >= 0 or not math.isfinite(slope):
-            return Stop(True, "tolerance")
+            return Stop(True, StopReason.tolerance)
         trial, step, at_resolution = self._line_search(theta, direction, slope)
         if at_resolution:
-            return Stop(True, "resolution")
+            return Stop(True, StopReason.resolution)
         if trial is None:
-            return Stop(False, "line_search")
+            return Stop(False, StopReason.line_search)
         self.previous_norm = lin.norm
         # Eisenstat-Walker (choice 2) forcing term for the next inner solve.
         eta_next = 0.9 * (trial.norm / lin.norm) ** 2

@@ -59,7 +59,7 @@ from torch import Tensor
 
 from ..errors import SimulationError
 from ..linalg import CGLSResult, cgls
-from ..records import Callback, IterationRecord, SolveResult
+from ..records import Callback, IterationRecord, SolveResult, StopReason
 from ..residual import Linearization, ResidualFunction, try_linearize
 from .base import Stop, clone, least_squares_stop, require
 from .least_squares import (DenseNormalEquations, LeastSquaresConfig, LeastSquaresSolver,
@@ -184,7 +184,7 @@ class LevenbergMarquardt(LeastSquaresSolver):
                                   self.gradient_norm0, self.residual.noise_level,
                                   cfg.tau, cfg.atol, cfg.gtol, cfg.rtol)
         if stop is None and self.damping > cfg.damping_max * self.damping0:
-            stop = Stop(False, "stalled")
+            stop = Stop(False, StopReason.stalled)
         return stop
 
     def step(self) -> IterationRecord | Stop:
@@ -235,7 +235,7 @@ class LevenbergMarquardt(LeastSquaresSolver):
             # 0 iterations in every frame; or theta + d rounds to theta). More damping only
             # shortens the step, so every later trial would be the same: the fit is at the
             # simulation's resolution (no record: theta is unchanged).
-            return Stop(True, "resolution")
+            return Stop(True, StopReason.resolution)
         actual = 0.5 * lin.norm ** 2 - 0.5 * candidate.norm ** 2 if candidate is not None \
             else -math.inf
         gain = actual / predicted if predicted > 0 else -math.inf

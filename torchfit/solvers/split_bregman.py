@@ -82,7 +82,7 @@ import torch
 from torch import Tensor
 
 from ..linalg import cgls
-from ..records import Callback, IterationRecord, SolveResult
+from ..records import Callback, IterationRecord, SolveResult, StopReason
 from ..residual import ResidualFunction
 from .base import Solver, SolverConfig, Stop, clone, require
 from .gauss_newton import GaussNewton, GaussNewtonConfig
@@ -296,7 +296,7 @@ class SplitBregman(Solver):
         # the one before the current stage (direction 'weaker': a plateau returns to it)
         self.accepted: dict[str, Any] | None = None
         self.restore_pending = False
-        self.restore_reason = "discrepancy"      # why a restored stage is the answer
+        self.restore_reason = StopReason.discrepancy   # why a restored stage is the answer
         self._begin_stage()
         return self._record(0.0, 0, math.nan, True, dual_residual=math.nan, inner_iterations=0)
 
@@ -451,21 +451,21 @@ class SplitBregman(Solver):
         cfg = self.config
         if not self.staged:
             if status == "converged":
-                return Stop(True, "tolerance")
-            return Stop(False, {"budget": "max_iter"}.get(status, status))
+                return Stop(True, StopReason.tolerance)
+            return Stop(False, StopReason.stalled if status == "stalled" else StopReason.max_iter)
         if status == "stalled":
-            return Stop(False, "stalled")
+            return Stop(False, StopReason.stalled)
         ok = self.norm <= self.level
         if self.direction is None:
             self.direction = "weaker" if not ok else "stronger"
         went_too_far = False
         if self.direction == "weaker":
             if ok:
-                return Stop(True, "discrepancy")
+                return Stop(True, StopReason.discrepancy)
             if self.accepted is not None and self.accepted["norm"] - self.norm < self.spread:
                 # weaker TV fitted the data no closer than the noise's spread: the stage
                 # before is the answer
-                self.restore_pending, self.restore_reason = True, "plateau"
+                self.restore_pending, self.restore_reason = True, StopReason.plateau
                 return None
             # the stage to return to on a plateau (its linearisation is not kept: memory)
             self.accepted = {**self._snapshot(), "lin": None}
@@ -484,8 +484,8 @@ class SplitBregman(Solver):
                 # The last stage fitted the data worse than the noise: back to the one before.
                 self.restore_pending = True
                 return None
-            return Stop(True, "discrepancy")
-        return Stop(False, "max_iter")
+            return Stop(True, StopReason.discrepancy)
+        return Stop(False, StopReason.max_iter)
 
     def _snapshot(self) -> dict[str, Any]:
         snap = {key: getattr(self, key if key != "theta" else "_theta") for key in _SNAPSHOT}
@@ -561,7 +561,7 @@ class SplitBregman(Solver):
         """An inner solve whose line search found no descent although its gradient is not
         negligible against the TV force ``||D^T beta b||`` (the Gauss-Newton model is bad
         there). At the fixed point the gradient is ~0 and this is no failure."""
-        return inner.iterations == 0 and inner.stop_reason == "line_search" and \
+        return inner.iterations == 0 and inner.stop_reason == StopReason.line_search and \
             inner.history[0].extra.get("gradient_norm", math.inf) > self.config.stage_tol * max(
                 self.beta * float(torch.linalg.vector_norm(self.diff.rmatvec(self.b))), 1e-300)
 
@@ -624,7 +624,7 @@ class SplitBregman(Solver):
                 "objectives": list(self.objectives), "misfits": list(self.misfits),
                 "rejections": self.rejections, "direction": self.direction,
                 "accepted": accepted, "pending": self.pending, "last": last,
-                "restore_pending": self.restore_pending, "restore_reason": self.restore_reason,
+                "restore_pending": self.restore_pending, "restore_reason": self.restore_reason.value,
                 "admm_residual": self.admm_residual,
                 "admm_window": list(self.admm_window),
                 "e": clone(self.e), "norm0": self.norm0, "inner_rtol": self.inner_rtol}
@@ -649,7 +649,7 @@ class SplitBregman(Solver):
         last = state["last"]
         self.last = None if last is None else {k: clone(v) for k, v in last.items()}
         self.restore_pending = bool(state["restore_pending"])
-        self.restore_reason = str(state.get("restore_reason", "discrepancy"))
+        self.restore_reason = StopReason(state.get("restore_reason", "discrepancy"))
         self.admm_residual = float(state.get("admm_residual", math.inf))
         self.admm_window = [float(x) for x in state.get("admm_window", [])]
         self.e = clone(state["e"])
