@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import enum
 import math
 import time
 from typing import Any, ClassVar, Iterable, NamedTuple, Optional
@@ -47,6 +48,29 @@ def require(condition: bool, message: str) -> None:
 
 
 # -- configuration -------------------------------------------------------------------------
+class Need(enum.Enum):
+    """How a solver with given settings uses an operator of the parameterisation."""
+
+    unused = "unused"            # not passed
+    if_offered = "if_offered"    # passed where the parameterisation has one
+    required = "required"        # a parameterisation without one cannot run the solver
+
+
+@dataclasses.dataclass(frozen=True)
+class Needs:
+    """What a solver with given settings needs of the parameterisation
+    (:meth:`SolverConfig.needs`; :func:`torchfit.solvers.build` acts on it).
+
+    Attributes:
+        difference_operator: the sparse difference operator ``D``.
+        difference_groups: the row groups of ``D`` (isotropic TV), fetched where ``D``
+            is required.
+    """
+
+    difference_operator: Need = Need.unused
+    difference_groups: bool = False
+
+
 @dataclasses.dataclass
 class SolverConfig:
     """Settings every solver has. Subclasses add plain dataclass fields (Hydra schemas).
@@ -66,6 +90,11 @@ class SolverConfig:
 
     def check(self) -> None:
         """Solver-specific rules (called by :meth:`validate` after the generic checks)."""
+
+    def needs(self) -> Needs:
+        """What a solver with these settings needs of the parameterisation (default:
+        nothing)."""
+        return Needs()
 
 
 # -- run clock and records -----------------------------------------------------------------
@@ -269,5 +298,5 @@ def clone(value: Any) -> Any:
     return value.detach().clone() if isinstance(value, Tensor) else value
 
 
-__all__ = ["RunClock", "Solver", "SolverConfig", "SolverConfigError", "Stop", "emit",
-           "least_squares_stop", "require"]
+__all__ = ["Need", "Needs", "RunClock", "Solver", "SolverConfig", "SolverConfigError", "Stop",
+           "emit", "least_squares_stop", "require"]

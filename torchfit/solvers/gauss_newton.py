@@ -55,11 +55,18 @@ from torch import Tensor
 from ..linalg import cgls
 from ..records import Callback, IterationRecord, SolveResult, StopReason
 from ..residual import Linearization, ResidualFunction, try_linearize
-from .base import Stop, clone, least_squares_stop, require
+from ..settings import Choice
+from .base import Need, Needs, Stop, clone, least_squares_stop, require
 from .least_squares import LeastSquaresConfig, LeastSquaresSolver
 from .preconditioners import DifferencePreconditioner
 
-PRECONDITIONERS = ("auto", "none", "difference")
+class GaussNewtonPreconditioner(Choice):
+    """CGLS in parameter space: ``none``, ``difference`` (``D^T D + s I``; needs ``D``) or
+    ``auto`` (decided at ``theta0``: :func:`wants_difference_preconditioner`)."""
+
+    auto = "auto"
+    none = "none"
+    difference = "difference"
 
 
 @dataclasses.dataclass
@@ -79,7 +86,8 @@ class GaussNewtonConfig(LeastSquaresConfig):
     atol: float = 0.0               # stop when ||r|| <= atol
     armijo: float = 1e-4            # sufficient-decrease constant of the line search
     max_backtracks: int = 12        # step halvings before giving up
-    preconditioner: str = "auto"    # CGLS in parameter space: auto | none | difference
+    preconditioner: GaussNewtonPreconditioner = GaussNewtonPreconditioner.auto
+                                    # CGLS in parameter space: auto | none | difference
                                     # (D^T D + s I); auto: see wants_difference_preconditioner
     auto_noise_ratio: float = 1e-3  # auto: data with noise level <= this * ||r_0|| are clean
     preconditioner_shift: float = 4.0  # s at theta0, in units of the largest diagonal of
@@ -101,9 +109,14 @@ class GaussNewtonConfig(LeastSquaresConfig):
                 f"solver.auto_noise_ratio must be >= 0, got {self.auto_noise_ratio}")
         require(self.preconditioner_shift >= 0,
                 f"solver.preconditioner_shift must be >= 0, got {self.preconditioner_shift}")
-        require(self.preconditioner in PRECONDITIONERS,
-                f"solver.preconditioner={self.preconditioner!r}; choose one of "
-                f"{PRECONDITIONERS}")
+
+    def needs(self) -> Needs:
+        """``D`` with ``preconditioner=difference``; where offered with ``auto``."""
+        if self.preconditioner == GaussNewtonPreconditioner.difference:
+            return Needs(Need.required)
+        if self.preconditioner == GaussNewtonPreconditioner.auto:
+            return Needs(Need.if_offered)
+        return Needs()
 
 
 def wants_difference_preconditioner(has_D: bool, m: int, n: int, noise_level: float | None,
@@ -150,8 +163,8 @@ class GaussNewton(LeastSquaresSolver):
     def _choose_preconditioner(self, lin: Linearization) -> bool:
         """Whether this run preconditions CGLS (``auto`` decides from the start point)."""
         cfg = self.config
-        if cfg.preconditioner != "auto":
-            return cfg.preconditioner == "difference"
+        if cfg.preconditioner != GaussNewtonPreconditioner.auto:
+            return cfg.preconditioner == GaussNewtonPreconditioner.difference
         return wants_difference_preconditioner(
             self.D is not None, lin.r.numel(), lin.theta.numel(), self.residual.noise_level,
             lin.norm, cfg.auto_noise_ratio)
@@ -260,8 +273,8 @@ class GaussNewton(LeastSquaresSolver):
             else float(state["previous_norm"])
         self.gradient_norm0 = float(state["gradient_norm0"])
         self.norm0 = float(state["norm0"])
-        self.preconditioned = bool(state.get("preconditioned",
-                                             self.config.preconditioner == "difference"))
+        self.preconditioned = bool(state.get(
+            "preconditioned", self.config.preconditioner == GaussNewtonPreconditioner.difference))
 
     def resume(self) -> None:
         self._setup(self._saved_theta)
@@ -282,5 +295,5 @@ def gauss_newton(residual: ResidualFunction, theta0: Tensor,
     return GaussNewton(config, D=D, groups=groups).solve(residual, theta0, callbacks)
 
 
-__all__ = ["GaussNewton", "GaussNewtonConfig", "PRECONDITIONERS", "gauss_newton",
+__all__ = ["GaussNewton", "GaussNewtonConfig", "GaussNewtonPreconditioner", "gauss_newton",
            "wants_difference_preconditioner"]
