@@ -14,11 +14,8 @@ simulation cannot tell the step from the current point; shorter steps would repe
 
 ``max_step`` (the largest change of one parameter per step) is a trust region for the
 inner CGLS (Steihaug's truncated CG with a box): it stops where its next update would
-leave ``||d||_inf <= max_step``, on the boundary. Far from the solution the linear model
-may be unable to reach ``eta ||r||`` at all (on the noisy short arm it can lower
-``||r||`` from 0.224 to 0.081 at best): an unbounded CGLS then runs to its cap on small
-singular values, and clipping that step afterwards leaves a useless direction
-(``docs/solvers/gauss_newton.md``).
+leave ``||d||_inf <= max_step``, on the boundary, so steps are never clipped afterwards
+(why: ``docs/solvers/gauss_newton.md``).
 
 ``preconditioner=difference`` (needs the parameterisation's ``D``) runs CGLS on
 ``J S`` with ``S S^T = D^T D + s I`` (:class:`~.preconditioners.DifferencePreconditioner`);
@@ -125,12 +122,10 @@ def wants_difference_preconditioner(has_D: bool, m: int, n: int, noise_level: fl
 
     Yes when ``D`` is there, the data determine the parameters (``m >= n``) and are clean
     (noise level unknown, zero, or ``<= noise_ratio * ||r_0||``): nothing is left for early
-    stopping to regularise, and the preconditioner takes CGLS from its iteration cap to
-    tens of iterations (poisson2d N = 64: 1.2e-5 after the 50-iteration cap without it,
-    1e-8 in 19 iterations with it). No on noisy or sparse data, where the discrepancy
-    principle stops a Krylov method early on purpose and the preconditioned one keeps a
-    rougher field (poisson2d N = 64, ``k_err_rel_aligned``: 0.48 -> 0.55 dense with noise
-    1e-3, 0.34 -> 0.47 sparse noise-free). ``docs/solvers/gauss_newton.md`` has the table.
+    stopping to regularise, and the preconditioner cuts CGLS's iterations. No on noisy or
+    sparse data, where the discrepancy principle stops a Krylov method early on purpose
+    and the preconditioned one keeps a rougher field. Figures:
+    ``docs/solvers/gauss_newton.md``.
     """
     if not has_D or m < n:
         return False

@@ -12,10 +12,11 @@ Start (:func:`initial_weights`, Jacobian products at ``theta0``, no factorisatio
 ``||J||_2^2`` and ``||D||_2^2`` by power iteration, ``||J||_F^2`` by Hutchinson's
 estimate (:mod:`torchfit.linalg.estimators`, ``power_iterations`` products each).
 
-Adaptation (after accepted outer iterations; the solver rescales ``b`` to keep ``beta b``):
-:func:`adapted_beta` (spectral estimate, else residual balancing) and
-:func:`admm_stalled` (data Bregman: double ``beta`` when the ADMM residual has not
-decreased over ``stall_window`` iterations). Reasons and figures:
+Adaptation (``adapt_beta``; after accepted outer iterations; the solver rescales ``b`` to
+keep ``beta b``): :func:`adapted_beta` every second iteration of a stage (spectral
+estimate, else residual balancing), and in a data-Bregman run :func:`admm_stalled`
+(double ``beta`` when the ADMM residual has not decreased over ``stall_window``
+iterations). A rejected iteration doubles ``beta`` too. Reasons and figures:
 ``docs/solvers/split_bregman.md``.
 """
 from __future__ import annotations
