@@ -8,6 +8,7 @@ add entries to ``record.extra`` (problem metrics), which later callbacks see.
 from __future__ import annotations
 
 import dataclasses
+import enum
 from typing import Any, Protocol
 
 from torch import Tensor
@@ -57,20 +58,58 @@ class IterationRecord:
         return {"iteration": self.iteration + step_offset, **self.scalars()}
 
 
+class StopReason(str, enum.Enum):
+    """Why a solver run ended (``SolveResult.stop_reason``). A ``str`` enum: it equals,
+    prints and JSON-dumps as its value (``result.json`` holds the value); ``torch.save``
+    needs the value (``str(reason)``), as ``torch.load(weights_only=True)`` reads no enum.
+
+    Converged (``SolveResult.converged`` true):
+
+    * ``discrepancy``: ``||r|| <= tau delta`` (noise level ``delta`` known); split
+      Bregman: the selected stage of the search in ``mu`` fits the data so.
+    * ``tolerance``: the relative decrease of ``||r||``, ``||J^T r||`` or ``||r||`` itself
+      fell below its tolerance, or Gauss-Newton's CGLS found no descent direction; split
+      Bregman with a fixed weight: the fixed point.
+    * ``resolution``: a trial point's misfit was bit-identical to the current one (the
+      simulation cannot tell the step from the current point; Gauss-Newton and
+      Levenberg-Marquardt).
+    * ``plateau``: split Bregman's search in ``mu``: a weaker-TV stage fitted the data no
+      closer than the spread of the noise's norm; the stage before it is the answer.
+
+    Not converged:
+
+    * ``max_iter``: the outer-iteration budget (split Bregman: also a stage's budget in a
+      fixed-weight run, or the stages) is spent.
+    * ``line_search``: Gauss-Newton's backtracking found no decrease along the step.
+    * ``stalled``: Levenberg-Marquardt's damping exceeded ``damping_max`` times its start,
+      or split Bregman rejected more than ``max_rejections`` outer steps in a row.
+    * ``interrupted``: a callback returned ``True``.
+    """
+
+    discrepancy = "discrepancy"
+    tolerance = "tolerance"
+    resolution = "resolution"
+    plateau = "plateau"
+    max_iter = "max_iter"
+    line_search = "line_search"
+    stalled = "stalled"
+    interrupted = "interrupted"
+
+    def __str__(self) -> str:
+        return self.value
+
+    __format__ = str.__format__
+
+
 @dataclasses.dataclass
 class SolveResult:
-    """Outcome of a solver run.
-
-    ``stop_reason`` is one of ``discrepancy`` (``||r|| <= tau delta``), ``tolerance``
-    (relative decrease or gradient below tolerance, or a split Bregman fixed point),
-    ``max_iter``, ``line_search`` (no decrease possible along the step), ``stalled``
-    (damping exhausted, or split Bregman rejected too many outer steps in a row), or
-    ``interrupted`` (a callback asked to stop).
+    """Outcome of a solver run: the parameters, whether and why it stopped
+    (:class:`StopReason`), the records of this call and the whole run's totals.
     """
 
     theta: Tensor
     converged: bool
-    stop_reason: str
+    stop_reason: StopReason
     iterations: int
     history: list[IterationRecord]
     wall_time: float
@@ -79,7 +118,7 @@ class SolveResult:
 
     def summary(self) -> dict[str, Any]:
         last = self.history[-1]
-        return {"converged": self.converged, "stop_reason": self.stop_reason,
+        return {"converged": self.converged, "stop_reason": str(self.stop_reason),
                 "iterations": self.iterations, "wall_s": self.wall_time,
                 "factorizations": self.factorizations, "solves": self.solves,
                 "misfit": last.misfit, "objective": last.objective}
@@ -88,3 +127,6 @@ class SolveResult:
 class Callback(Protocol):
     def __call__(self, record: IterationRecord) -> bool | None:
         """Called once per outer iteration; return ``True`` to stop the solver."""
+
+
+__all__ = ["Callback", "IterationRecord", "SolveResult", "StopReason"]

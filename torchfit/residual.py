@@ -11,9 +11,8 @@ Explicit products: a problem whose forward is a chain of explicit derivatives (a
 parameterisation, an equilibrium with the model's ``param_derivative``, a gather) may hand
 over ``products(theta) -> ForwardProducts``: the forward value and ``J v`` / ``J^T w`` as
 plain functions. :class:`Linearization` then builds no autograd graph and runs no
-autograd engine: on poisson2d N = 64 that halves a CGLS iteration, whose two triangular
-solves cost as much as the engine's bookkeeping around them. The autograd route stays the
-definition (tests compare the two).
+autograd engine (what that saves: ``docs/solvers/time_to_accuracy.md``). The autograd
+route stays the definition (tests compare the two).
 
 Few parameters: a problem may also hand over ``jacobian(theta) -> (m, n)``, the whole
 ``d forward / d theta`` in one pass (the simulator solves with ``n`` right-hand sides per
@@ -43,9 +42,9 @@ def warm_up_autograd() -> None:
 
     The first forward-mode product of a process loads torch's jvp decompositions
     (compiled by TorchScript) and the first ``autograd.grad`` imports sympy through
-    ``symbolic_shapes``: 0.7-0.8 s together on the 2-core machine, once per process.
-    :func:`torchfit.fit` calls this during set-up, so solver clocks and iteration
-    records measure solving (``docs/solvers/time_to_accuracy.md``). Idempotent.
+    ``symbolic_shapes``, once per process. :func:`torchfit.fit` calls this during set-up,
+    so solver clocks and iteration records measure solving (the cost:
+    ``docs/solvers/time_to_accuracy.md``). Idempotent.
     """
     global _WARM
     if _WARM:

@@ -1,22 +1,24 @@
-"""The shared solver base: config validation, the loop, the stop rules, the registry,
-exact resume, the import graph of the package."""
+"""The shared solver base: config validation and choices, the loop, the stop rules, exact
+resume."""
 import dataclasses
+import json
 import math
 import typing
-from pathlib import Path
 
 import pytest
 import torch
 
 from torchfit.problems import Spring1D, Spring1DConfig
 from torchfit.solvers import (SOLVERS, GaussNewton, GaussNewtonConfig, LevenbergMarquardt,
-                              LevenbergMarquardtConfig, ResidualFunction, Solver, SolverConfig,
-                              SolverConfigError, SolverEntry, SplitBregman, SplitBregmanConfig,
-                              gauss_newton, levenberg_marquardt, split_bregman)
+                              LevenbergMarquardtConfig, ResidualFunction, SolverConfig,
+                              SolverConfigError, SplitBregman, SplitBregmanConfig, StopReason,
+                              gauss_newton, levenberg_marquardt)
+from torchfit.solvers.gauss_newton import GaussNewtonPreconditioner
+from torchfit.solvers.levenberg_marquardt import DampingUpdate, LevenbergMarquardtPreconditioner
+from torchfit.solvers.split_bregman_settings import DataBregman, InnerSolver
 
-from resume import check_resume, fresh, roundtrip, run_with_snapshots
+from helpers.solver_resume import check_resume, fresh, roundtrip, run_with_snapshots
 
-REPO = Path(__file__).resolve().parents[2]
 CONFIGS = (GaussNewtonConfig, LevenbergMarquardtConfig, SplitBregmanConfig)
 LEAST_SQUARES = {"gauss_newton": gauss_newton, "levenberg_marquardt": levenberg_marquardt}
 
@@ -56,7 +58,8 @@ def test_the_infinite_settings_that_used_to_pass_are_rejected():
     (LevenbergMarquardtConfig(geodesic_acceleration=1), r"solver\.geodesic_acceleration=1.*true"),
     (SplitBregmanConfig(isotropic="yes"), r"solver\.isotropic=yes.*true or false"),
     (SplitBregmanConfig(mu=True), r"solver\.mu=True.*number"),
-    (SplitBregmanConfig(inner_solver=3), r"solver\.inner_solver=3.*string"),
+    (SplitBregmanConfig(inner_solver=3), r"solver\.inner_solver=3 is not a inner_solver choice; "
+                                         r"choose one of gauss_newton, levenberg_marquardt"),
     (GaussNewtonConfig(tau="1.5"), r"solver\.tau=1\.5: must be a number"),
 ])
 def test_types_are_checked(config, match):
@@ -82,41 +85,49 @@ def test_a_solver_validates_its_config_and_rejects_another_solvers():
         GaussNewton(LevenbergMarquardtConfig())
 
 
-# -- registry --------------------------------------------------------------------------------
-def test_registry_entries():
-    assert set(SOLVERS) == {"gauss_newton", "levenberg_marquardt", "split_bregman"}
-    for name, entry in SOLVERS.items():
-        assert isinstance(entry, SolverEntry)
-        assert issubclass(entry.solver_class, Solver)
-        assert entry.solver_class.config_class is entry.config_class
-        assert (REPO / "conf" / "solver" / f"{name}.yaml").is_file()
-    for name in LEAST_SQUARES:
-        entry = SOLVERS[name]
-        assert not entry.needs_difference_operator(entry.config_class())
-        assert entry.needs_difference_operator(entry.config_class(preconditioner="difference"))
-        assert not entry.uses_groups(entry.config_class(preconditioner="difference"))
-    sb = SOLVERS["split_bregman"]
-    assert sb.needs_difference_operator(SplitBregmanConfig())
-    assert not sb.uses_groups(SplitBregmanConfig())
-    assert sb.uses_groups(SplitBregmanConfig(isotropic=True))
-    for function in (gauss_newton, levenberg_marquardt, split_bregman):
-        assert not hasattr(function, "needs_difference_operator")
+# -- choices -------------------------------------------------------------------------------
+CHOICES = [(GaussNewtonConfig, "preconditioner", GaussNewtonPreconditioner),
+           (LevenbergMarquardtConfig, "preconditioner", LevenbergMarquardtPreconditioner),
+           (LevenbergMarquardtConfig, "damping_update", DampingUpdate),
+           (SplitBregmanConfig, "inner_solver", InnerSolver),
+           (SplitBregmanConfig, "data_bregman", DataBregman)]
 
 
-def test_registry_use_as_the_run_orchestration_does():
-    problem = Spring1D(n=6)
-    for name, section in (("levenberg_marquardt", {"preconditioner": "difference"}),
-                          ("gauss_newton", {}), ("split_bregman", {"max_iter": 3})):
-        entry = SOLVERS[name]
-        config = entry.config_class(**section)
+@pytest.mark.parametrize("config_class, field, choice", CHOICES)
+def test_choice_settings_are_enums_named_with_their_choices(config_class, field, choice):
+    assert typing.get_type_hints(config_class)[field] is choice
+    for member in choice:
+        config = config_class(**{field: member.value})      # YAML and CLI give the text
         config.validate()
-        D = problem.parameterization.difference_operator() \
-            if entry.needs_difference_operator(config) else None
-        groups = problem.parameterization.difference_groups() if entry.uses_groups(config) \
-            else None
-        result = entry.solver_class(config, D=D, groups=groups).solve(fresh(problem)(),
-                                                                      problem.theta0)
-        assert torch.isfinite(result.theta).all()
+        assert getattr(config, field) is member and getattr(config, field) == member.value
+    listed = ", ".join(member.value for member in choice)
+    with pytest.raises(SolverConfigError, match=rf"solver\.{field}=bogus is not a {field} "
+                                                rf"choice; choose one of {listed}$"):
+        config_class(**{field: "bogus"}).validate()
+
+
+@pytest.mark.parametrize("config_class, field, choice", CHOICES)
+def test_hydra_rejects_a_bad_choice_at_composition(config_class, field, choice):
+    omegaconf = pytest.importorskip("omegaconf")
+    schema = omegaconf.OmegaConf.structured(config_class)
+    with pytest.raises(omegaconf.errors.ValidationError) as error:
+        omegaconf.OmegaConf.merge(schema, {field: "bogus"})
+    for member in choice:
+        assert member.value in str(error.value)
+    merged = omegaconf.OmegaConf.merge(schema, {field: list(choice)[-1].value})
+    assert getattr(merged, field) == list(choice)[-1].value
+
+
+def test_saved_settings_and_states_keep_plain_text():
+    """The checkpoint compares the settings as JSON and stores the solver state with
+    torch.save: choices dump as their text, and the state holds plain strings."""
+    config = LevenbergMarquardtConfig(preconditioner="difference", damping_update="nielsen")
+    config.validate()
+    settings = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
+    assert json.loads(json.dumps(settings))["preconditioner"] == "difference"
+    assert json.dumps(settings) == json.dumps({**settings, "preconditioner": "difference",
+                                               "damping_update": "nielsen"})
+    assert str(config.damping_update) == "nielsen" and f"{config.preconditioner}" == "difference"
 
 
 # -- the loop and the shared stop rules ----------------------------------------------------
@@ -180,6 +191,7 @@ def test_callback_can_stop_and_sees_every_iteration(make):
 
     result = make().solve(fresh(problem)(), problem.theta0, [callback])
     assert result.stop_reason == "interrupted" and seen == [0, 1, 2]
+    assert result.stop_reason is StopReason.interrupted
     assert result.iterations == 2 and not result.converged
 
 
@@ -200,6 +212,8 @@ def test_state_dict_is_plain_and_weights_only_loadable():
         solver.solve(fresh(problem)(), problem.theta0,
                      [lambda record, s=solver: states.append(s.state_dict())])
         for state in states:
+            plain = [v for v in state.values() if isinstance(v, str)]
+            assert all(type(v) is str for v in plain), plain      # no enum in a state
             loaded = roundtrip(state)
             assert loaded.keys() == state.keys()
             for key in ("iteration", "theta", "wall_time", "factorizations", "solves"):

@@ -11,12 +11,12 @@ from torchfit.linalg import counting
 from torchfit.problems import Spring1D, Spring1DConfig
 from torchfit.solvers import (GaussNewton, GaussNewtonConfig, LevenbergMarquardt,
                               LevenbergMarquardtConfig, ResidualFunction, SolverConfigError,
-                              SplitBregman, SplitBregmanConfig, StackedResidual, gauss_newton,
-                              levenberg_marquardt, split_bregman)
+                              SplitBregman, SplitBregmanConfig, gauss_newton, levenberg_marquardt,
+                              split_bregman)
 from torchfit.solvers.least_squares import DenseNormalEquations
-from torchfit.solvers.stacked import CachedResidual, LinearResidual
+from torchfit.solvers.stacked import CachedResidual, LinearResidual, StackedResidual
 
-from resume import check_resume, roundtrip, run_with_snapshots
+from helpers.solver_resume import check_resume, roundtrip, run_with_snapshots
 
 
 class DenseSpring1D(Spring1D):

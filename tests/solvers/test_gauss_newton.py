@@ -7,8 +7,8 @@ from torchfit.problems import Spring1D, Spring1DConfig
 from torchfit.solvers import (GaussNewton, GaussNewtonConfig, LevenbergMarquardtConfig,
                               SolverConfigError, gauss_newton, levenberg_marquardt)
 
-from conftest import CountingResidual, distinct
-from resume import check_resume, fresh, roundtrip, run_with_snapshots
+from helpers.solver_resume import check_resume, fresh, roundtrip, run_with_snapshots
+from helpers.solver_runs import CountingResidual, distinct
 
 
 

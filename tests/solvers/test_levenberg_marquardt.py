@@ -9,8 +9,8 @@ from torchfit.problems import Spring1D, Spring1DConfig
 from torchfit.solvers import (LevenbergMarquardt, LevenbergMarquardtConfig, ResidualFunction,
                               levenberg_marquardt)
 
-from conftest import CountingResidual, distinct
-from resume import check_resume, fresh, roundtrip, run_with_snapshots
+from helpers.solver_resume import check_resume, fresh, roundtrip, run_with_snapshots
+from helpers.solver_runs import CountingResidual, distinct
 
 
 def test_levenberg_marquardt_rejected_step_keeps_theta_and_factorization():

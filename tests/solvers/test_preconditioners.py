@@ -12,9 +12,11 @@ import pytest
 import torch
 
 from torchfit.problems import Poisson2D
-from torchfit.solvers import SOLVERS, GaussNewtonConfig, SolverConfigError, gauss_newton
+from torchfit.solvers import (SOLVERS, GaussNewtonConfig, Need, SolverConfigError, build,
+                              gauss_newton)
 from torchfit.solvers.preconditioners import DifferencePreconditioner
-from conftest import timed_fit
+
+from helpers.solver_runs import timed_fit
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -48,10 +50,12 @@ def test_registry_hands_D_to_gauss_newton_only_when_preconditioned():
     """(Was: the fit app's solver_inputs; the run orchestration now asks the registry.)"""
     problem = Poisson2D(N=6)
     entry = SOLVERS["gauss_newton"]
-    assert not entry.needs_difference_operator(GaussNewtonConfig())
-    assert entry.takes_difference_operator(GaussNewtonConfig())          # auto: where there is one
-    assert not entry.takes_difference_operator(GaussNewtonConfig(preconditioner="none"))
-    assert entry.needs_difference_operator(GaussNewtonConfig(preconditioner="difference"))
+    assert GaussNewtonConfig().needs().difference_operator is not Need.required
+    # auto: D where there is one
+    assert GaussNewtonConfig().needs().difference_operator is Need.if_offered
+    assert GaussNewtonConfig(preconditioner="none").needs().difference_operator is Need.unused
+    assert GaussNewtonConfig(preconditioner="difference").needs().difference_operator \
+        is Need.required
     D = problem.parameterization.difference_operator()
     assert D.shape == (2 * 5 * 4, 25)
     entry.solver_class(GaussNewtonConfig(preconditioner="difference"), D=D)
@@ -114,11 +118,12 @@ def test_auto_preconditioner_rule_thresholds():
     assert not wants(False, 100, 50, 0.0, 1.0, 1e-3)       # no D
 
 
-def test_fit_hands_D_to_the_auto_rule():
-    """Through torchfit.fit (what experiments/fit.py runs) the default GN preconditions
-    clean dense data: the rule needs D, which only the registry can hand over."""
-    from torchfit import fit
-
+def test_build_hands_D_to_the_auto_rule():
+    """Through the registry's build (what the run orchestration calls) the default GN
+    preconditions clean dense data: the rule needs D, which only the registry hands over."""
     problem = Poisson2D(N=12)
-    result = fit(problem, "gauss_newton")
-    assert result.history[0]["preconditioned"] == 1.0
+    param = problem.parameterization
+    solver = build(GaussNewtonConfig(), difference_operator=param.difference_operator,
+                   difference_groups=param.difference_groups)
+    result = solver.solve(problem.residual(), problem.theta0)
+    assert result.history[0].extra["preconditioned"] == 1.0

@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from torchfit.params import grid_edges, per_element
-from torchfit.solvers import CachedResidual, LinearResidual, ResidualFunction, StackedResidual
+from torchfit.solvers import ResidualFunction
+from torchfit.solvers.stacked import CachedResidual, LinearResidual, StackedResidual
 
 
 def test_stacked_residual_products_are_adjoint_and_cached():

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import enum
 import math
 import time
 from typing import Any, ClassVar, Iterable, NamedTuple, Optional
@@ -32,7 +33,7 @@ from torch import Tensor
 
 from ..errors import ConfigurationError
 from ..linalg import COUNTERS
-from ..records import Callback, IterationRecord, SolveResult
+from ..records import Callback, IterationRecord, SolveResult, StopReason
 from ..settings import check_values
 
 
@@ -47,6 +48,29 @@ def require(condition: bool, message: str) -> None:
 
 
 # -- configuration -------------------------------------------------------------------------
+class Need(enum.Enum):
+    """How a solver with given settings uses an operator of the parameterisation."""
+
+    unused = "unused"            # not passed
+    if_offered = "if_offered"    # passed where the parameterisation has one
+    required = "required"        # a parameterisation without one cannot run the solver
+
+
+@dataclasses.dataclass(frozen=True)
+class Needs:
+    """What a solver with given settings needs of the parameterisation
+    (:meth:`SolverConfig.needs`; :func:`torchfit.solvers.build` acts on it).
+
+    Attributes:
+        difference_operator: the sparse difference operator ``D``.
+        difference_groups: the row groups of ``D`` (isotropic TV), fetched where ``D``
+            is required.
+    """
+
+    difference_operator: Need = Need.unused
+    difference_groups: bool = False
+
+
 @dataclasses.dataclass
 class SolverConfig:
     """Settings every solver has. Subclasses add plain dataclass fields (Hydra schemas).
@@ -66,6 +90,11 @@ class SolverConfig:
 
     def check(self) -> None:
         """Solver-specific rules (called by :meth:`validate` after the generic checks)."""
+
+    def needs(self) -> Needs:
+        """What a solver with these settings needs of the parameterisation (default:
+        nothing)."""
+        return Needs()
 
 
 # -- run clock and records -----------------------------------------------------------------
@@ -98,10 +127,10 @@ def emit(callbacks: Iterable[Callback], record: IterationRecord) -> bool:
 
 
 class Stop(NamedTuple):
-    """Why a run ends: ``converged`` and a :class:`SolveResult` stop reason."""
+    """Why a run ends: ``converged`` and the :class:`~torchfit.records.StopReason`."""
 
     converged: bool
-    reason: str
+    reason: StopReason
 
 
 def least_squares_stop(norm: float, previous_norm: Optional[float], gradient_norm: float,
@@ -112,12 +141,12 @@ def least_squares_stop(norm: float, previous_norm: Optional[float], gradient_nor
     ``||J^T r|| <= gtol ||J^T r_0||`` or a zero gradient; without a noise level, a
     relative decrease ``||r_{k-1}|| - ||r_k|| <= rtol ||r_{k-1}||``."""
     if noise_level is not None and norm <= tau * noise_level:
-        return Stop(True, "discrepancy")
+        return Stop(True, StopReason.discrepancy)
     if norm <= atol or gradient_norm <= gtol * gradient_norm0 or gradient_norm == 0.0:
-        return Stop(True, "tolerance")
+        return Stop(True, StopReason.tolerance)
     if previous_norm is not None and noise_level is None \
             and previous_norm - norm <= rtol * previous_norm:
-        return Stop(True, "tolerance")
+        return Stop(True, StopReason.tolerance)
     return None
 
 
@@ -205,7 +234,7 @@ class Solver(abc.ABC):
             record = self.start(theta0)
             history.append(record)
             if emit(callbacks, record):
-                return self._finish(Stop(False, "interrupted"), history)
+                return self._finish(Stop(False, StopReason.interrupted), history)
         else:
             self.load_state_dict(state)
             self.resume()
@@ -214,7 +243,7 @@ class Solver(abc.ABC):
         while True:
             stop = self.stop_rule()
             if stop is None and self.budget_exhausted():
-                stop = Stop(False, "max_iter")
+                stop = Stop(False, StopReason.max_iter)
             if stop is None:
                 self.iteration += 1
                 outcome = self.step()
@@ -224,7 +253,7 @@ class Solver(abc.ABC):
                 else:
                     history.append(outcome)
                     if emit(callbacks, outcome):
-                        stop = Stop(False, "interrupted")
+                        stop = Stop(False, StopReason.interrupted)
             if stop is not None:
                 return self._finish(stop, history)
 
@@ -269,5 +298,5 @@ def clone(value: Any) -> Any:
     return value.detach().clone() if isinstance(value, Tensor) else value
 
 
-__all__ = ["RunClock", "Solver", "SolverConfig", "SolverConfigError", "Stop", "emit",
-           "least_squares_stop", "require"]
+__all__ = ["Need", "Needs", "RunClock", "Solver", "SolverConfig", "SolverConfigError", "Stop",
+           "emit", "least_squares_stop", "require"]

@@ -14,11 +14,8 @@ simulation cannot tell the step from the current point; shorter steps would repe
 
 ``max_step`` (the largest change of one parameter per step) is a trust region for the
 inner CGLS (Steihaug's truncated CG with a box): it stops where its next update would
-leave ``||d||_inf <= max_step``, on the boundary. Far from the solution the linear model
-may be unable to reach ``eta ||r||`` at all (on the noisy short arm it can lower
-``||r||`` from 0.224 to 0.081 at best): an unbounded CGLS then runs to its cap on small
-singular values, and clipping that step afterwards leaves a useless direction
-(``docs/solvers/gauss_newton.md``).
+leave ``||d||_inf <= max_step``, on the boundary, so steps are never clipped afterwards
+(why: ``docs/solvers/gauss_newton.md``).
 
 ``preconditioner=difference`` (needs the parameterisation's ``D``) runs CGLS on
 ``J S`` with ``S S^T = D^T D + s I`` (:class:`~.preconditioners.DifferencePreconditioner`);
@@ -53,13 +50,20 @@ import torch
 from torch import Tensor
 
 from ..linalg import cgls
-from ..records import Callback, IterationRecord, SolveResult
+from ..records import Callback, IterationRecord, SolveResult, StopReason
 from ..residual import Linearization, ResidualFunction, try_linearize
-from .base import Stop, clone, least_squares_stop, require
+from ..settings import Choice
+from .base import Need, Needs, Stop, clone, least_squares_stop, require
 from .least_squares import LeastSquaresConfig, LeastSquaresSolver
 from .preconditioners import DifferencePreconditioner
 
-PRECONDITIONERS = ("auto", "none", "difference")
+class GaussNewtonPreconditioner(Choice):
+    """CGLS in parameter space: ``none``, ``difference`` (``D^T D + s I``; needs ``D``) or
+    ``auto`` (decided at ``theta0``: :func:`wants_difference_preconditioner`)."""
+
+    auto = "auto"
+    none = "none"
+    difference = "difference"
 
 
 @dataclasses.dataclass
@@ -79,7 +83,8 @@ class GaussNewtonConfig(LeastSquaresConfig):
     atol: float = 0.0               # stop when ||r|| <= atol
     armijo: float = 1e-4            # sufficient-decrease constant of the line search
     max_backtracks: int = 12        # step halvings before giving up
-    preconditioner: str = "auto"    # CGLS in parameter space: auto | none | difference
+    preconditioner: GaussNewtonPreconditioner = GaussNewtonPreconditioner.auto
+                                    # CGLS in parameter space: auto | none | difference
                                     # (D^T D + s I); auto: see wants_difference_preconditioner
     auto_noise_ratio: float = 1e-3  # auto: data with noise level <= this * ||r_0|| are clean
     preconditioner_shift: float = 4.0  # s at theta0, in units of the largest diagonal of
@@ -101,9 +106,14 @@ class GaussNewtonConfig(LeastSquaresConfig):
                 f"solver.auto_noise_ratio must be >= 0, got {self.auto_noise_ratio}")
         require(self.preconditioner_shift >= 0,
                 f"solver.preconditioner_shift must be >= 0, got {self.preconditioner_shift}")
-        require(self.preconditioner in PRECONDITIONERS,
-                f"solver.preconditioner={self.preconditioner!r}; choose one of "
-                f"{PRECONDITIONERS}")
+
+    def needs(self) -> Needs:
+        """``D`` with ``preconditioner=difference``; where offered with ``auto``."""
+        if self.preconditioner == GaussNewtonPreconditioner.difference:
+            return Needs(Need.required)
+        if self.preconditioner == GaussNewtonPreconditioner.auto:
+            return Needs(Need.if_offered)
+        return Needs()
 
 
 def wants_difference_preconditioner(has_D: bool, m: int, n: int, noise_level: float | None,
@@ -112,12 +122,10 @@ def wants_difference_preconditioner(has_D: bool, m: int, n: int, noise_level: fl
 
     Yes when ``D`` is there, the data determine the parameters (``m >= n``) and are clean
     (noise level unknown, zero, or ``<= noise_ratio * ||r_0||``): nothing is left for early
-    stopping to regularise, and the preconditioner takes CGLS from its iteration cap to
-    tens of iterations (poisson2d N = 64: 1.2e-5 after the 50-iteration cap without it,
-    1e-8 in 19 iterations with it). No on noisy or sparse data, where the discrepancy
-    principle stops a Krylov method early on purpose and the preconditioned one keeps a
-    rougher field (poisson2d N = 64, ``k_err_rel_aligned``: 0.48 -> 0.55 dense with noise
-    1e-3, 0.34 -> 0.47 sparse noise-free). ``docs/solvers/gauss_newton.md`` has the table.
+    stopping to regularise, and the preconditioner cuts CGLS's iterations. No on noisy or
+    sparse data, where the discrepancy principle stops a Krylov method early on purpose
+    and the preconditioned one keeps a rougher field. Figures:
+    ``docs/solvers/gauss_newton.md``.
     """
     if not has_D or m < n:
         return False
@@ -150,8 +158,8 @@ class GaussNewton(LeastSquaresSolver):
     def _choose_preconditioner(self, lin: Linearization) -> bool:
         """Whether this run preconditions CGLS (``auto`` decides from the start point)."""
         cfg = self.config
-        if cfg.preconditioner != "auto":
-            return cfg.preconditioner == "difference"
+        if cfg.preconditioner != GaussNewtonPreconditioner.auto:
+            return cfg.preconditioner == GaussNewtonPreconditioner.difference
         return wants_difference_preconditioner(
             self.D is not None, lin.r.numel(), lin.theta.numel(), self.residual.noise_level,
             lin.norm, cfg.auto_noise_ratio)
@@ -207,12 +215,12 @@ class GaussNewton(LeastSquaresSolver):
         direction, model_change = inner.x, inner.Ax
         slope = float(torch.dot(lin.r, model_change))  # d/da 0.5||r + a J d||^2 at a = 0
         if slope >= 0 or not math.isfinite(slope):
-            return Stop(True, "tolerance")
+            return Stop(True, StopReason.tolerance)
         trial, step, at_resolution = self._line_search(theta, direction, slope)
         if at_resolution:
-            return Stop(True, "resolution")
+            return Stop(True, StopReason.resolution)
         if trial is None:
-            return Stop(False, "line_search")
+            return Stop(False, StopReason.line_search)
         self.previous_norm = lin.norm
         # Eisenstat-Walker (choice 2) forcing term for the next inner solve.
         eta_next = 0.9 * (trial.norm / lin.norm) ** 2
@@ -260,8 +268,8 @@ class GaussNewton(LeastSquaresSolver):
             else float(state["previous_norm"])
         self.gradient_norm0 = float(state["gradient_norm0"])
         self.norm0 = float(state["norm0"])
-        self.preconditioned = bool(state.get("preconditioned",
-                                             self.config.preconditioner == "difference"))
+        self.preconditioned = bool(state.get(
+            "preconditioned", self.config.preconditioner == GaussNewtonPreconditioner.difference))
 
     def resume(self) -> None:
         self._setup(self._saved_theta)
@@ -282,5 +290,5 @@ def gauss_newton(residual: ResidualFunction, theta0: Tensor,
     return GaussNewton(config, D=D, groups=groups).solve(residual, theta0, callbacks)
 
 
-__all__ = ["GaussNewton", "GaussNewtonConfig", "PRECONDITIONERS", "gauss_newton",
+__all__ = ["GaussNewton", "GaussNewtonConfig", "GaussNewtonPreconditioner", "gauss_newton",
            "wants_difference_preconditioner"]

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from ..linalg import CGLSResult
 from ..residual import Linearization
-from .base import Solver, SolverConfig, SolverConfigError, require
+from .base import Need, Solver, SolverConfig, SolverConfigError, require
 from .total_variation import check_difference_operator
 
 
@@ -149,22 +149,24 @@ class DenseNormalEquations:
 class LeastSquaresSolver(Solver):
     """A solver of ``min 0.5 ||r(theta)||^2`` that carries its current linearisation.
 
-    Its config has a ``preconditioner`` setting (``difference`` requires ``D``) and
-    ``dense_jacobian_max_params`` (see the module docstring).
+    Its config is a :class:`LeastSquaresConfig`; ``D`` is checked where its settings
+    require one (:meth:`SolverConfig.needs`).
     """
+
+    config: LeastSquaresConfig
 
     def __init__(self, config: SolverConfig | None = None, *, D: Tensor | None = None,
                  groups: Tensor | None = None) -> None:
         super().__init__(config, D=D, groups=groups)
-        if getattr(self.config, "preconditioner", "none") == "difference":
+        if self.config.needs().difference_operator is Need.required:
             require_difference_operator(D)
         self.lin: Linearization | None = None
         self.dense = False
 
     def choose_path(self, theta: Tensor) -> None:
         """Dense-Jacobian or matrix-free products for this run (from the residual and ``n``)."""
-        self.dense = wants_dense_jacobian(
-            self.residual, theta.numel(), int(getattr(self.config, "dense_jacobian_max_params", 0)))
+        self.dense = wants_dense_jacobian(self.residual, theta.numel(),
+                                          int(self.config.dense_jacobian_max_params))
 
     def adopt(self, lin: Any) -> Any:
         """``lin`` becomes a current point: on the dense path its ``J`` is made now."""

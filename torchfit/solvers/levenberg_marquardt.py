@@ -59,16 +59,30 @@ from torch import Tensor
 
 from ..errors import SimulationError
 from ..linalg import CGLSResult, cgls
-from ..records import Callback, IterationRecord, SolveResult
+from ..linalg.estimators import column_norms
+from ..records import Callback, IterationRecord, SolveResult, StopReason
 from ..residual import Linearization, ResidualFunction, try_linearize
-from .base import Stop, clone, least_squares_stop, require
+from ..settings import Choice
+from .base import Need, Needs, Stop, clone, least_squares_stop, require
 from .least_squares import (DenseNormalEquations, LeastSquaresConfig, LeastSquaresSolver,
                             box_step, clip_step)
 from .preconditioners import ColumnScaledLaplacian, GraphLaplacian
 
 
-PRECONDITIONERS = ("none", "difference")
-DAMPING_UPDATES = ("marquardt", "nielsen")
+class LevenbergMarquardtPreconditioner(Choice):
+    """CGLS metric of the damped solve: ``none`` or ``difference``
+    (``C^{-1} (D^T D + eps I) C^{-1}``; needs ``D``)."""
+
+    none = "none"
+    difference = "difference"
+
+
+class DampingUpdate(Choice):
+    """Damping after an accepted step: ``marquardt`` (gain-ratio thresholds) or
+    ``nielsen`` (``max(decrease, 1 - (2 rho - 1)^3)``)."""
+
+    marquardt = "marquardt"
+    nielsen = "nielsen"
 
 
 @dataclasses.dataclass
@@ -79,7 +93,8 @@ class LevenbergMarquardtConfig(LeastSquaresConfig):
     max_iter: int = 100             # outer iterations (accepted and rejected)
     tau: float = 1.5                # discrepancy principle ||r|| <= tau * delta
     damping_init: float = 0.1       # lam_0 relative to ||J^T r||^2 / ||r||^2 (a J^T J scale)
-    damping_update: str = "marquardt"   # after an accepted step: marquardt (thresholds) | nielsen
+    damping_update: DampingUpdate = DampingUpdate.marquardt   # after an accepted step:
+                                                              # marquardt (thresholds) | nielsen
     decrease: float = 1.0 / 3.0     # lam factor after a good step (gain ratio > 0.75); nielsen:
                                     # the smallest factor, max(decrease, 1 - (2 rho - 1)^3)
     increase: float = 2.0           # lam factor after a poor accepted step (gain ratio < 0.25)
@@ -93,7 +108,8 @@ class LevenbergMarquardtConfig(LeastSquaresConfig):
     geodesic_step: float = 0.1      # h of the finite difference giving r_vv
     geodesic_alpha: float = 0.75    # reject when 2 ||a|| / ||v|| exceeds this
     geodesic_cg_max_iter: int = 50  # CGLS iterations for a
-    preconditioner: str = "none"    # none | difference (CGLS in the D^T D + eps I metric; needs D)
+    preconditioner: LevenbergMarquardtPreconditioner = LevenbergMarquardtPreconditioner.none
+                                    # none | difference (CGLS in the D^T D + eps I metric; needs D)
     preconditioner_shift: float = 1e-2   # eps, relative to D^T D (eigenvalues in [0, 2 max degree])
     preconditioner_probes: int = 16      # products J^T w per linearisation estimating C
     seed: int = 0                   # of those random probes
@@ -112,20 +128,22 @@ class LevenbergMarquardtConfig(LeastSquaresConfig):
         require(0 < self.cg_rtol < 1, f"solver.cg_rtol must be in (0, 1), got {self.cg_rtol}")
         require(self.rtol >= 0 and self.gtol >= 0 and self.atol >= 0,
                 "solver.rtol, solver.gtol and solver.atol must be >= 0")
-        require(self.damping_update in DAMPING_UPDATES,
-                f"solver.damping_update={self.damping_update!r}; choose one of {DAMPING_UPDATES}")
         require(self.geodesic_step > 0 and self.geodesic_alpha > 0
                 and self.geodesic_cg_max_iter >= 1,
                 "solver.geodesic_step and solver.geodesic_alpha must be > 0 and "
                 "solver.geodesic_cg_max_iter >= 1")
-        require(self.preconditioner in PRECONDITIONERS,
-                f"solver.preconditioner={self.preconditioner!r}; choose one of {PRECONDITIONERS}")
         require(self.preconditioner_shift > 0,
                 f"solver.preconditioner_shift must be > 0, got {self.preconditioner_shift}")
         require(self.max_box_resolves >= 0,
                 f"solver.max_box_resolves must be >= 0, got {self.max_box_resolves}")
         require(self.preconditioner_probes >= 1,
                 f"solver.preconditioner_probes must be >= 1, got {self.preconditioner_probes}")
+
+    def needs(self) -> Needs:
+        """``D`` with ``preconditioner=difference``."""
+        if self.preconditioner == LevenbergMarquardtPreconditioner.difference:
+            return Needs(Need.required)
+        return Needs()
 
 
 class LevenbergMarquardt(LeastSquaresSolver):
@@ -149,8 +167,8 @@ class LevenbergMarquardt(LeastSquaresSolver):
 
     def _setup(self, like: Tensor) -> None:
         cfg = self.config
-        self.laplacian = GraphLaplacian(self.D, like) if cfg.preconditioner == "difference" \
-            else None
+        self.laplacian = GraphLaplacian(self.D, like) \
+            if cfg.preconditioner == LevenbergMarquardtPreconditioner.difference else None
         self.generator = torch.Generator().manual_seed(cfg.seed)
 
     def start(self, theta0: Tensor) -> IterationRecord:
@@ -184,7 +202,7 @@ class LevenbergMarquardt(LeastSquaresSolver):
                                   self.gradient_norm0, self.residual.noise_level,
                                   cfg.tau, cfg.atol, cfg.gtol, cfg.rtol)
         if stop is None and self.damping > cfg.damping_max * self.damping0:
-            stop = Stop(False, "stalled")
+            stop = Stop(False, StopReason.stalled)
         return stop
 
     def step(self) -> IterationRecord | Stop:
@@ -235,7 +253,7 @@ class LevenbergMarquardt(LeastSquaresSolver):
             # 0 iterations in every frame; or theta + d rounds to theta). More damping only
             # shortens the step, so every later trial would be the same: the fit is at the
             # simulation's resolution (no record: theta is unchanged).
-            return Stop(True, "resolution")
+            return Stop(True, StopReason.resolution)
         actual = 0.5 * lin.norm ** 2 - 0.5 * candidate.norm ** 2 if candidate is not None \
             else -math.inf
         gain = actual / predicted if predicted > 0 else -math.inf
@@ -313,7 +331,7 @@ class LevenbergMarquardt(LeastSquaresSolver):
         self.lin = self.adopt(candidate)
         self.gradient = candidate.vjp(candidate.r)
         self.precondition = None            # belongs to the old linearisation
-        if cfg.damping_update == "nielsen":
+        if cfg.damping_update == DampingUpdate.nielsen:
             self.damping *= max(cfg.decrease, 1.0 - (2.0 * min(gain, 1.0) - 1.0) ** 3)
         elif gain > 0.75:
             self.damping *= cfg.decrease
@@ -414,16 +432,12 @@ def _preconditioner(lin: Linearization, laplacian: GraphLaplacian | None,
     """
     if laplacian is None:
         return None
-    squares = torch.zeros_like(lin.theta)
-    for _ in range(cfg.preconditioner_probes):
-        signs = torch.randint(0, 2, lin.r.shape, generator=generator) * 2 - 1
-        squares += lin.vjp(signs.to(lin.r)) ** 2
-    norms = (squares / cfg.preconditioner_probes).sqrt()
+    norms = column_norms(lin.vjp, lin.r, lin.theta, cfg.preconditioner_probes, generator)
     mean = float(norms.mean())
     inverse_norms = (1.0 / (norms / mean).clamp(min=1e-3)) if mean > 0 and math.isfinite(mean) \
         else torch.ones_like(norms)
     return ColumnScaledLaplacian(laplacian, inverse_norms, cfg.preconditioner_shift)
 
 
-__all__ = ["DAMPING_UPDATES", "LevenbergMarquardt", "LevenbergMarquardtConfig",
-           "PRECONDITIONERS", "levenberg_marquardt"]
+__all__ = ["DampingUpdate", "LevenbergMarquardt", "LevenbergMarquardtConfig",
+           "LevenbergMarquardtPreconditioner", "levenberg_marquardt"]

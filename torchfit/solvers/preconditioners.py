@@ -21,9 +21,8 @@ from .total_variation import check_difference_operator
 
 
 def compressed_rows(matrix: Tensor) -> Tensor:
-    """``matrix`` (sparse COO or CSR) as CSR: ``torch.mv`` on CSR is ~7x faster than on
-    COO on the CPU (0.3 vs 2 ms for ``D^T D v`` at 4k parameters), which matters at one
-    product per CGLS iteration."""
+    """``matrix`` (sparse COO or CSR) as CSR, for ``torch.mv`` at one product per CGLS
+    iteration (CSR is the faster layout on the CPU: ``docs/solvers/gauss_newton.md``)."""
     with warnings.catch_warnings():   # "sparse CSR support is in beta": mv is all we use
         warnings.simplefilter("ignore", UserWarning)
         return matrix.coalesce().to_sparse_csr() if matrix.layout == torch.sparse_coo \
