@@ -59,7 +59,7 @@ from .problems.base import (BodyProblem, FieldImageProblem, FramedProblem, MeshP
                             MotionProblem)
 from .records import IterationRecord, SolveResult
 from .residual import warm_up_autograd
-from .solvers import SOLVERS, Solver, SolverConfig
+from .solvers import SOLVERS, Solver, SolverConfig, build
 
 log = logging.getLogger("torchfit.fit")
 
@@ -215,24 +215,10 @@ def build_solver(problem: InverseProblem, solver: Solver | SolverConfig | Mappin
     if isinstance(solver, Solver):
         return solver
     config = solver_config(solver)
-    entry = SOLVERS[config.name]
-    inputs: dict[str, Any] = {}
-    if entry.takes_difference_operator(config) and not entry.needs_difference_operator(config):
-        operator = getattr(problem.parameterization, "difference_operator", None)
-        if operator is not None:
-            inputs["D"] = operator()
-    elif entry.needs_difference_operator(config):
-        param = problem.parameterization
-        operator = getattr(param, "difference_operator", None)
-        if operator is None:
-            raise FitConfigError(f"solver={config.name} needs the difference operator D of the "
-                                 f"parameterisation, but {problem.name}'s "
-                                 f"({type(param).__name__}) has none")
-        inputs["D"] = operator()
-        if entry.uses_groups(config):
-            groups_of = getattr(param, "difference_groups", None)
-            inputs["groups"] = groups_of() if groups_of is not None else None
-    return entry.solver_class(config, **inputs)
+    param = problem.parameterization
+    return build(config, difference_operator=getattr(param, "difference_operator", None),
+                 difference_groups=getattr(param, "difference_groups", None),
+                 offered_by=f"{problem.name}'s ({type(param).__name__})")
 
 
 # -- the starting point -----------------------------------------------------------------------
@@ -570,7 +556,7 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
         result.files = _write_outputs(problem, result, run_path, tb, snapshots, guard, config,
                                       body, motion)
         checkpointer.commit(solved.iterations, solved.theta, solver.state_dict(),
-                            stop_reason=solved.stop_reason)
+                            stop_reason=str(solved.stop_reason))
     return result
 
 
