@@ -40,7 +40,7 @@ from torchfit.config import register_configs  # noqa: E402
 from torchfit.continuation import FIRST_STAGE_DIR, fit_continued  # noqa: E402
 from torchfit.fit import FitOptions, fit, solver_config  # noqa: E402
 from torchfit.linalg import set_threads  # noqa: E402
-from torchfit.logging import write_json  # noqa: E402
+from torchfit.reporting.results import write_json  # noqa: E402
 from torchfit.problems import build_problem  # noqa: E402
 
 register_configs()

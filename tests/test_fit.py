@@ -16,7 +16,7 @@ from tensorboard.backend.event_processing.event_file_loader import EventFileLoad
 
 from torchfit.fit import (FitConfigError, FitOptions, ResumeError, RunDirectoryError,
                           build_solver, fit, initial_theta, verify)
-from torchfit.logging import save_params
+from torchfit.reporting.results import save_params
 from torchfit.problems import build_problem
 from torchfit.solvers import SolverConfigError
 

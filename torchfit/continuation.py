@@ -45,7 +45,7 @@ from torch import Tensor
 
 from .fit import (CHECKPOINT_FILE, PARAMS_FILE, FitConfigError, FitOptions, FitResult,
                   check_writable, fit, initial_theta, plain_settings, solver_config)
-from .logging.meshes import frame_spans
+from .reporting.body import frame_spans
 from .problems import InverseProblem
 from .problems.base import BodyProblem
 from .records import IterationRecord

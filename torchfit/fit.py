@@ -20,7 +20,7 @@ Run directory (``run_dir``; ``None``: no files at all, the fit still runs):
     (wall times included). ``resume=True`` continues from them exactly: the same
     ``theta`` bit for bit, the same metrics, ``max_iter`` the budget of the whole run.
 ``tb/``
-    TensorBoard events (:mod:`torchfit.logging.tensorboard`); a resumed run adds the
+    TensorBoard events (:mod:`torchfit.reporting.tensorboard`); a resumed run adds the
     steps that were lost with the killed process and never repeats one.
 PNGs
     ``field.png``, ``error_curves.png`` and, for 2-D fields, ``snapshots.png`` (and for
@@ -47,13 +47,16 @@ from torch import Tensor
 
 from .errors import ConfigurationError
 from .linalg import set_threads
-from .logging import (FieldSnapshots, MetricsCallback, PlotGuard, ProgressPrinter,
-                      TensorBoardLogger, field_is_chain, save_params, write_json,
-                      write_run_pngs)
-from .logging.meshes import BodyOutputs
-from .logging.motion import MotionOutputs
-from .logging.results import (CHECKPOINT_FILE, PARAMS_FILE, RESULT_FILE, atomic_write,
-                              jsonable, save_torch)
+from .reporting.body import BodyOutputs
+from .reporting.field_snapshots import FieldSnapshots
+from .reporting.figures import field_is_chain, write_run_pngs
+from .reporting.guard import PlotGuard
+from .reporting.metrics import MetricsCallback
+from .reporting.motion import MotionOutputs
+from .reporting.progress import ProgressPrinter
+from .reporting.results import (CHECKPOINT_FILE, PARAMS_FILE, RESULT_FILE, atomic_write,
+                                jsonable, save_params, save_torch, write_json)
+from .reporting.tensorboard import TensorBoardLogger
 from .problems import InverseProblem
 from .problems.base import (BodyProblem, FieldImageProblem, FramedProblem, MeshProblem,
                             MotionProblem)

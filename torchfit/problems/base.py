@@ -463,7 +463,7 @@ class MeshProblem(Protocol):
 @runtime_checkable
 class BodyProblem(Protocol):
     """A 3-D body fitted to an animation (``arm3d``, ``animation``): what
-    :class:`torchfit.logging.meshes.BodyOutputs` draws and exports.
+    :class:`torchfit.reporting.body.BodyOutputs` draws and exports.
 
     ``animation`` has ``faces`` ``(T, 3)`` and ``path``; ``surface(x)`` maps tet positions
     ``(F, n, 3)`` to the user's surface vertices ``(F, V, 3)``; ``clean_surface()`` is the

@@ -16,10 +16,6 @@ from ..records import IterationRecord
 if TYPE_CHECKING:  # pragma: no cover
     from ..problems import InverseProblem
 
-#: Keys of PROBLEMS.md's metric table (``misfit`` is also the solver's own value).
-METRIC_KEYS = ("u_err_inf", "u_err_2", "k_err_inf", "k_err_2", "k_err_rel",
-               "k_err_rel_aligned", "misfit")
-
 
 class MetricsCallback:
     """Add ``problem.metrics(record.theta)`` to ``record.extra``.

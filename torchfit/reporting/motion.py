@@ -16,7 +16,7 @@ run directory
 
 Damping coefficients and their errors (``alpha_damping``, ``beta_damping``,
 ``alpha_damping_err_rel``, ``beta_damping_err_rel``) are metrics of the problem: per-iteration scalars like every metric.
-Drawing failures go through the run's :class:`~.pictures.PlotGuard`.
+Drawing failures go through the run's :class:`~.guard.PlotGuard`.
 """
 from __future__ import annotations
 
@@ -28,8 +28,8 @@ import torch
 from torch import Tensor
 
 from ..records import IterationRecord
-from .pictures import PlotGuard
-from .plots import save_png
+from .figures import save_png
+from .guard import PlotGuard
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problems import InverseProblem

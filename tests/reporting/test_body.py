@@ -1,4 +1,4 @@
-"""Outputs of a 3-D body (torchfit.logging.meshes): OBJ frames, VTU, regions, the model
+"""Outputs of a 3-D body (torchfit.reporting.body): OBJ frames, VTU, regions, the model
 comparison, and TensorBoard meshes and per-frame curves read from a real ``tensorboard``
 server through its HTTP data API."""
 from __future__ import annotations
@@ -87,15 +87,15 @@ def test_tensorboard_shows_meshes_and_per_frame_curves(capsule_run, tensorboard_
 
 
 def test_frames_with_inverted_tetrahedra_are_named_in_one_warning(caplog):
-    from torchfit.logging.meshes import _warn_inverted
+    from torchfit.reporting.body import warn_inverted
 
     with caplog.at_level("WARNING", logger="torchfit.progress"):
-        _warn_inverted(np.array([0, 0, 3, 4, 0, 1, 0]))
-        _warn_inverted(np.zeros(5, dtype=int))       # nothing inverted: nothing said
+        warn_inverted(np.array([0, 0, 3, 4, 0, 1, 0]))
+        warn_inverted(np.zeros(5, dtype=int))       # nothing inverted: nothing said
         # a subset of the animation (problem.frames): named by the animation's numbers
-        _warn_inverted(np.array([0, 2, 5, 0, 0]), [0, 6, 9, 30, 40])
-        _warn_inverted(np.array([1, 2]), [9, 11])   # no other frame: no continuation to suggest
-        _warn_inverted(np.array([0, 2]), [0, 9], suggest=False)   # an init= run: it is one
+        warn_inverted(np.array([0, 2, 5, 0, 0]), [0, 6, 9, 30, 40])
+        warn_inverted(np.array([1, 2]), [9, 11])   # no other frame: no continuation to suggest
+        warn_inverted(np.array([0, 2]), [0, 9], suggest=False)   # an init= run: it is one
     first, subset, alone, continued = (r.getMessage() for r in caplog.records)
     assert "frame 9 has tetrahedra" in continued and "problem.frames" not in continued
     assert "continuation" not in continued and "continuation" not in alone

@@ -1,13 +1,39 @@
-"""Matplotlib figures of 2-D fields and meshes for TensorBoard and run directories.
+"""Figures of a run (matplotlib ``Figure`` objects, no pyplot state) and its two pictures.
 
-Nothing here computes anything a solver needs; the functions take arrays and return
-figures (``matplotlib.figure.Figure``, no pyplot state) or RGB arrays.
+Functions here take arrays (or a problem and a field) and return figures or RGB arrays;
+nothing computes anything a solver needs. :func:`write_run_pngs` writes into a run
+directory
+
+``field.png``
+    a 2-D field (a :class:`~torchfit.problems.base.FieldImageProblem`): truth, fit and
+    error side by side, each with its colour bar; for a scale-free problem the fit is first
+    multiplied by the best global scale onto the truth (``a = <k, k_true> / <k, k>``, the
+    ``k_err_rel_aligned`` of PROBLEMS.md) and the error panel is ``a k - k_true``. A 1-D
+    chain (:func:`field_is_chain`): ``k`` per cell, truth and fit, as a step plot.
+``error_curves.png``
+    ``misfit``, the field error (``k_err_rel_aligned`` or ``k_err_rel``), the damping
+    errors of a dynamic problem and ``tv`` when recorded, against the iteration (log axes).
+
+Every drawing of a run goes through a :class:`~torchfit.reporting.guard.PlotGuard`.
 """
 from __future__ import annotations
 
-from typing import Mapping, Sequence
+import dataclasses
+from pathlib import Path
+from typing import TYPE_CHECKING, Mapping, Sequence
 
 import numpy as np
+import torch
+from torch import Tensor
+
+from ..problems.base import FieldImageProblem, MeshProblem
+from .guard import PlotGuard
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..problems import InverseProblem
+
+FIELD_PNG = "field.png"
+ERROR_CURVES_PNG = "error_curves.png"
 
 
 def aligned(field: np.ndarray, truth: np.ndarray | None) -> tuple[np.ndarray, float]:
@@ -163,7 +189,7 @@ def frame_errors_figure(history: Mapping[int, np.ndarray], labels: Sequence[str]
     return fig
 
 
-# -- images and run-directory figures (field.png, error_curves.png) ----------------------
+# -- images ------------------------------------------------------------------------------
 
 #: Colour map of signed error images: blue negative, white zero, red positive.
 ERROR_CMAP = "RdBu_r"
@@ -283,3 +309,164 @@ def save_png(fig, path) -> None:
 
     FigureCanvasAgg(fig)
     fig.savefig(path)
+
+
+def field_is_chain(problem: "InverseProblem") -> bool:
+    """Whether the problem's field is one value per cell of a 1-D chain (plot as a line)."""
+    param = problem.parameterization
+    param = getattr(param, "field_parameterization", param)   # [field, scalars]: the field
+    if param.basis is not None or param.n_field != param.n_params:
+        return False
+    edges = torch.as_tensor(param.edges).reshape(-1, 2)
+    n = param.n_params
+    if n == 1:
+        return True
+    expected = torch.stack([torch.arange(n - 1), torch.arange(1, n)], dim=1)
+    return edges.shape == expected.shape and bool(torch.equal(edges.cpu(), expected))
+
+
+def supports_field_images(problem: "InverseProblem") -> bool:
+    """Whether the problem can draw its field as an image (``field_image(field)``)."""
+    return isinstance(problem, FieldImageProblem)
+
+
+@dataclasses.dataclass
+class FieldImages:
+    """A 2-D field drawn for comparison with its truth.
+
+    Attributes:
+        fitted: ``(H, W)`` image of the fit, multiplied by ``scale``.
+        truth: ``(H, W)`` image of the truth or ``None``.
+        error: ``(H, W)`` image of ``scale * field - truth`` or ``None``.
+        scale: the global factor applied to the fit (1 unless ``aligned``).
+        aligned: whether ``scale`` is the best scale onto the truth (scale-free problem).
+    """
+
+    fitted: np.ndarray
+    truth: np.ndarray | None
+    error: np.ndarray | None
+    scale: float
+    aligned: bool
+
+
+def field_images(problem: "InverseProblem", field: Tensor | np.ndarray) -> FieldImages:
+    """Images of ``field`` (``(n_field,)``), of the truth and of the (aligned) error."""
+    values = np.asarray(field.detach().cpu().numpy() if isinstance(field, Tensor) else field,
+                        dtype=np.float64).reshape(-1)
+    truth_t = problem.field_true
+    truth = None if truth_t is None else truth_t.detach().cpu().numpy().reshape(-1)
+    is_aligned = bool(problem.scale_free and truth is not None)
+    scaled, scale = aligned(values, truth if is_aligned else None)
+
+    def image(v: np.ndarray) -> np.ndarray:
+        return np.asarray(problem.field_image(torch.as_tensor(v)), dtype=np.float64)
+
+    return FieldImages(image(scaled), None if truth is None else image(truth),
+                       None if truth is None else image(scaled - truth), scale, is_aligned)
+
+
+def field_colour_range(problem: "InverseProblem", image: np.ndarray) -> tuple[float, float]:
+    """Colour range of field images: ``[min(0, k_true), 1.15 max k_true]``, fixed for a run
+    so that images of different iterations compare; the image's own range without a truth."""
+    truth = problem.field_true
+    if truth is None:
+        return float(np.min(image)), float(np.max(image))
+    values = truth.detach().cpu().numpy()
+    return float(min(0.0, values.min())), float(values.max()) * 1.15
+
+
+def image_extent(problem: "InverseProblem", image: np.ndarray) -> tuple[float, float, float, float]:
+    """``(x0, x1, y0, y1)`` of a field image: the mesh's box when there is one, else cells."""
+    box = problem.mesh.extent if isinstance(problem, MeshProblem) and problem.mesh is not None \
+        else None
+    if box is not None:
+        return float(box[0][0]), float(box[0][1]), float(box[1][0]), float(box[1][1])
+    return 0.0, float(image.shape[1]), 0.0, float(image.shape[0])
+
+
+def error_label(problem: "InverseProblem", images: FieldImages) -> str:
+    """Title of an error image: says whether the fit was aligned (scaled) first."""
+    name = problem.field_name
+    if images.aligned:
+        return f"aligned error a {name} - {name}_true (a = {images.scale:.4g})"
+    return f"error {name} - {name}_true"
+
+
+def field_panels(problem: "InverseProblem", field: Tensor, title: str | None = None):
+    """The truth / fit / error figure of a 2-D field (:func:`field_panels_figure`)."""
+    images = field_images(problem, field)
+    vmin, vmax = field_colour_range(problem, images.fitted)
+    name = problem.field_name
+    fitted_label = f"fitted {name} x {images.scale:.4g} (aligned)" if images.aligned \
+        else f"fitted {name}"
+    return field_panels_figure(images.fitted, images.truth, images.error,
+                               image_extent(problem, images.fitted), vmin, vmax, name,
+                               fitted_label, error_label(problem, images), title)
+
+
+def chain_figure(problem: "InverseProblem", field: Tensor, title: str | None = None):
+    """A 1-D field per cell (spring1d: ``k`` per spring), truth and fit."""
+    return field_figure(field.detach().cpu(), None if problem.field_true is None
+                        else problem.field_true.detach().cpu(), problem.field_name, title=title)
+
+
+def error_curve_keys(history: Sequence[Mapping[str, float]]) -> list[str]:
+    """What ``error_curves.png`` draws: ``misfit``, the field error, the damping errors
+    (dynamic problems), ``tv`` if recorded."""
+    present = set().union(*(row.keys() for row in history)) if history else set()
+    keys = ["misfit"]
+    # k_err_rel_aligned exists only for a scale-free problem, whose k_err_rel mostly
+    # measures the arbitrary global scale of the fit.
+    for key in ("k_err_rel_aligned", "k_err_rel"):
+        if key in present:
+            keys.append(key)
+            break
+    keys.extend(key for key in ("alpha_damping_err_rel", "beta_damping_err_rel") if key in present)
+    if "tv" in present:
+        keys.append("tv")
+    return keys
+
+
+def write_run_pngs(run_dir: str | Path, problem: "InverseProblem", theta: Tensor,
+                   history: Sequence[Mapping[str, float]], guard: PlotGuard | None = None,
+                   chain: bool = False) -> list[Path]:
+    """Write ``field.png`` and ``error_curves.png`` into ``run_dir`` (see the module docstring).
+
+    Args:
+        theta: ``(n_params,)`` final parameters.
+        history: one row per recorded iteration (``iteration``, ``misfit``, metrics, ...),
+            as in ``result.json``.
+        chain: the field is one value per cell of a 1-D chain (a line plot, not an image).
+
+    Returns:
+        The files written (a drawing that failed is reported by ``guard`` and left out).
+    """
+    guard = guard or PlotGuard()
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    field = problem.field(theta)
+    steps = [int(row["iteration"]) for row in history if "iteration" in row]
+    last = f" after {steps[-1]} iterations" if steps else ""
+
+    def save(fig, path: Path) -> Path:
+        save_png(fig, path)
+        return path
+
+    figure = None
+    if supports_field_images(problem):
+        figure = guard.run(FIELD_PNG, field_panels, problem, field,
+                           f"{problem.name}: {problem.field_name}{last}")
+    elif chain:
+        figure = guard.run(FIELD_PNG, chain_figure, problem, field,
+                           f"{problem.name}: {problem.field_name} per cell{last}")
+    if figure is not None and guard.run(FIELD_PNG, save, figure, run_dir / FIELD_PNG):
+        written.append(run_dir / FIELD_PNG)
+    if history:
+        keys = error_curve_keys(history)
+        figure = guard.run(ERROR_CURVES_PNG, error_curves_figure, history, keys,
+                           f"{problem.name}: convergence")
+        if figure is not None and guard.run(ERROR_CURVES_PNG, save, figure,
+                                            run_dir / ERROR_CURVES_PNG):
+            written.append(run_dir / ERROR_CURVES_PNG)
+    return written

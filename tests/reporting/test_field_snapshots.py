@@ -10,10 +10,11 @@ import pytest
 from PIL import Image
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from torchfit.logging import (FieldSnapshots, MetricsCallback, PlotGuard, TensorBoardLogger,
-                              supports_field_images)
-from torchfit.logging.pictures import field_images
-from torchfit.logging.plots import colorize, upscale
+from torchfit.reporting.field_snapshots import FieldSnapshots
+from torchfit.reporting.figures import colorize, field_images, supports_field_images, upscale
+from torchfit.reporting.guard import PlotGuard
+from torchfit.reporting.metrics import MetricsCallback
+from torchfit.reporting.tensorboard import TensorBoardLogger
 from torchfit.problems import build_problem
 from torchfit.solvers import (GaussNewtonConfig, LevenbergMarquardtConfig, gauss_newton,
                               levenberg_marquardt)
@@ -132,7 +133,7 @@ def test_a_failing_drawing_warns_once_and_the_fit_goes_on(tmp_path, caplog, monk
     tb = TensorBoardLogger(tmp_path / "tb")
     guard = PlotGuard()
     snaps = FieldSnapshots(problem, tb, tmp_path, snapshot_iterations=[1], every=1, guard=guard)
-    with caplog.at_level(logging.WARNING, logger="torchfit.logging.pictures"):
+    with caplog.at_level(logging.WARNING, logger="torchfit.reporting.guard"):
         result = gauss_newton(problem.residual(), problem.theta0, GaussNewtonConfig(max_iter=3),
                               [MetricsCallback(problem), tb, snaps])
         written = snaps.finish()

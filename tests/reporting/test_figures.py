@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from torchfit.logging import MetricsCallback, PlotGuard, field_is_chain, write_run_pngs
-from torchfit.logging.pictures import error_curve_keys
-from torchfit.logging.results import history_rows
+from torchfit.reporting.figures import error_curve_keys, field_is_chain, write_run_pngs
+from torchfit.reporting.guard import PlotGuard
+from torchfit.reporting.metrics import MetricsCallback
+from torchfit.reporting.results import history_rows
 from torchfit.problems import build_problem
 from torchfit.solvers import GaussNewtonConfig, gauss_newton
 
@@ -70,7 +71,7 @@ def test_plot_guard_warns_once_and_returns_none(caplog):
     def fail(what):
         raise OSError(f"disk full ({what})")
 
-    with caplog.at_level(logging.WARNING, logger="torchfit.logging.pictures"):
+    with caplog.at_level(logging.WARNING, logger="torchfit.reporting.guard"):
         assert guard.run("a.png", fail, "a") is None
         assert guard.run("b.png", fail, "b") is None
         assert guard.run("c.png", lambda: 7) == 7
@@ -86,7 +87,7 @@ def test_a_failing_field_png_leaves_the_other_png(tmp_path, caplog, monkeypatch)
     problem = build_problem("poisson2d", {"N": 5})
     result = fitted(problem, max_iter=2)
     monkeypatch.setattr(problem, "field_image", lambda field: 1 / 0)
-    with caplog.at_level(logging.WARNING, logger="torchfit.logging.pictures"):
+    with caplog.at_level(logging.WARNING, logger="torchfit.reporting.guard"):
         written = write_run_pngs(tmp_path, problem, result.theta, history_rows(result.history))
     assert [p.name for p in written] == ["error_curves.png"]
     assert not (tmp_path / "field.png").exists()

@@ -11,7 +11,7 @@ import textwrap
 
 import torch
 
-from torchfit.logging import PROGRESS_LOGGER, ProgressPrinter
+from torchfit.reporting.progress import PROGRESS_LOGGER, ProgressPrinter
 from torchfit.solvers import IterationRecord
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -49,7 +49,7 @@ def test_every_and_step_offset(caplog):
 STDOUT_THEN_CONFIGURED = textwrap.dedent("""
     import logging, sys
     import torch
-    from torchfit.logging import ProgressPrinter
+    from torchfit.reporting.progress import ProgressPrinter
     from torchfit.solvers import IterationRecord
 
     # a notebook: logging not configured -> the table on stdout

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from torchfit.linalg import counting
-from torchfit.logging import MetricsCallback
+from torchfit.reporting.metrics import MetricsCallback
 from torchfit.problems import build_problem
 from torchfit.solvers import LevenbergMarquardtConfig, gauss_newton, levenberg_marquardt
 

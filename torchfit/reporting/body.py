@@ -42,13 +42,13 @@ from torch import Tensor
 
 from ..mesh.animation import write_obj
 from ..problems.base import BodyProblem
-from .plots import colorize, frame_errors_figure, save_png
+from .figures import colorize, frame_errors_figure, save_png
+from .guard import PlotGuard
 from .progress import PROGRESS_LOGGER
 from .results import write_json
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..records import IterationRecord
-    from .pictures import PlotGuard
     from .tensorboard import TensorBoardLogger
 
 log = logging.getLogger(__name__)
@@ -128,10 +128,8 @@ class BodyOutputs:
     """
 
     def __init__(self, problem: BodyProblem, tb: "TensorBoardLogger", run_dir: str | Path,
-                 frames: Sequence[int] | None = None, guard: "PlotGuard | None" = None,
+                 frames: Sequence[int] | None = None, guard: PlotGuard | None = None,
                  suggest_continuation: bool = True) -> None:
-        from .pictures import PlotGuard
-
         self.problem = problem
         self.tb = tb
         self.run_dir = Path(run_dir)
@@ -164,7 +162,7 @@ class BodyOutputs:
         with torch.no_grad():
             x = problem.simulate(field)
         # a run started from an earlier one (init=) is that continuation already
-        _warn_inverted(problem.frame_errors(x).get("inverted_tets"), problem.frame_numbers(),
+        warn_inverted(problem.frame_errors(x).get("inverted_tets"), problem.frame_numbers(),
                        suggest=self.suggest_continuation and not self.started_elsewhere)
         files: list[Path] = []
         comparison: dict[str, Any] = {}
@@ -380,7 +378,7 @@ def frame_spans(frames: Sequence[int]) -> str:
     return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends))
 
 
-def _warn_inverted(counts: np.ndarray | None, numbers: Sequence[int] | None = None,
+def warn_inverted(counts: np.ndarray | None, numbers: Sequence[int] | None = None,
                    suggest: bool = True) -> None:
     """One log line naming the frames whose equilibrium has inverted tetrahedra (where
     Newton can reach several equilibria, so the frame depends on where it started), and

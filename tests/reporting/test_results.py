@@ -7,7 +7,7 @@ import os
 import numpy as np
 import torch
 
-from torchfit.logging import save_params, save_torch, write_json
+from torchfit.reporting.results import save_params, save_torch, write_json
 
 def test_write_json_is_strict_and_atomic(tmp_path):
     path = write_json(tmp_path / "result.json", {"misfit": 0.5, "odd": float("nan"),
@@ -31,7 +31,7 @@ def test_save_params(tmp_path):
 SAVE_OUTPUTS = """
 import sys
 import torch
-from torchfit.logging import save_params, save_torch
+from torchfit.reporting.results import save_params, save_torch
 run_dir = sys.argv[1]
 theta = torch.linspace(-1.0, 2.0, 7, dtype=torch.float64)
 save_params(run_dir, theta, torch.exp(theta), "k")

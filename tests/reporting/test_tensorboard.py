@@ -14,9 +14,12 @@ import numpy as np
 import pytest
 import torch
 
-from torchfit.logging import FieldSnapshots, MetricsCallback, TensorBoardLogger, field_is_chain, tag_for
-from torchfit.logging.results import history_rows
-from torchfit.logging.tensorboard import event_files, hparam_values, metric_tag, scalar_steps
+from torchfit.reporting.field_snapshots import FieldSnapshots
+from torchfit.reporting.figures import field_is_chain
+from torchfit.reporting.metrics import MetricsCallback
+from torchfit.reporting.results import history_rows
+from torchfit.reporting.tags import hparam_values, metric_tag, tag_for
+from torchfit.reporting.tensorboard import TensorBoardLogger, event_files, scalar_steps
 from torchfit.problems import build_problem
 from torchfit.solvers import GaussNewtonConfig, IterationRecord, gauss_newton
 
@@ -213,7 +216,7 @@ def test_server_hparams_of_a_sweep(tmp_path, tensorboard_server):
 CRASHING_RUN = textwrap.dedent("""
     import os, signal, sys
     import torch
-    from torchfit.logging import TensorBoardLogger
+    from torchfit.reporting.tensorboard import TensorBoardLogger
     from torchfit.solvers import IterationRecord
 
     logdir, lost = sys.argv[1], int(sys.argv[2])
@@ -285,7 +288,7 @@ def test_resume_from_an_older_checkpoint_warns_and_replaces_later_steps(
         for i in range(4):
             tb(record(i))
     tb = TensorBoardLogger(logdir, step_offset=2)
-    with caplog.at_level(logging.WARNING, logger="torchfit.logging.tensorboard"):
+    with caplog.at_level(logging.WARNING, logger="torchfit.reporting.tensorboard"):
         written = tb.resume([{"iteration": i, **record(i).scalars()} for i in range(3)], 2)
     assert written == 0
     (warning,) = [r for r in caplog.records if r.levelno == logging.WARNING]
