@@ -17,10 +17,9 @@ ALLOWED = {
     "problems": NEUTRAL | {"linalg", "mesh", "physics", "params"},
     "solvers": NEUTRAL | {"linalg"},
     "reporting": NEUTRAL | {"linalg", "mesh", "physics", "params", "problems"},
-    "config": NEUTRAL | {"problems", "solvers"},
-    "fit": NEUTRAL | {"linalg", "problems", "solvers", "reporting", "verification"},
-    # two runs of fit (the frames far from a fold first): on top of fit, beside it
-    "continuation": NEUTRAL | {"fit", "problems", "solvers", "reporting"},
+    # one run (fit, the continuation, verify): on top of everything but the Hydra schemas
+    "run": NEUTRAL | {"linalg", "problems", "solvers", "reporting", "verification"},
+    "config": NEUTRAL | {"problems", "solvers", "run"},
 }
 
 
@@ -117,4 +116,5 @@ def test_the_checks_can_fail():
                       "torchfit.problems.x": {"torchfit.solvers"}}) == [
         "torchfit.problems.x -> torchfit.solvers", "torchfit.reporting.x -> torchfit.solvers.base",
         "torchfit.solvers.x -> torchfit.physics.equilibrium"]
-    assert "torchfit.solvers" in imports_of("torchfit.x", PACKAGE / "fit.py", set(modules()))
+    assert "torchfit.solvers" in imports_of("torchfit.run.x", PACKAGE / "run" / "solver.py",
+                                            set(modules()))

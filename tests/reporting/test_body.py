@@ -11,6 +11,7 @@ import pytest
 import trimesh
 
 from capsule_animation import write_capsule
+from helpers.simulations import SimulationCounter
 from torchfit import build_problem, fit
 
 
@@ -21,13 +22,23 @@ def capsule_run(tmp_path_factory):
     problem = build_problem("animation", {"path": str(folder), "cache_dir": str(root / "cache"),
                                           "tet_edge_length": 0.12, "grid": [2, 2, 3]})
     run = root / "run"
+    counted = SimulationCounter(problem)
     result = fit(problem, {"name": "levenberg_marquardt", "max_iter": 2, "max_step": 1.0},
                  run_dir=run)
-    return problem, result, run
+    # what the fit made (the tests below simulate too)
+    return problem, result, run, (dict(counted.per_record), counted.observers, counted.end)
+
+
+def test_the_body_outputs_read_the_runs_evaluations(capsule_run):
+    # one simulation per record, by the run's evaluator; none by the outputs (the OBJ
+    # frames, VTU, meshes and the comparison's baseline are the run's evaluations)
+    problem, result, run, (per_record, observers, end) = capsule_run
+    assert per_record == {i: 1 for i in range(len(result.history))}
+    assert observers == 0 and end == 0
 
 
 def test_simulated_frames_are_obj_files_on_the_users_vertices(capsule_run):
-    problem, result, run = capsule_run
+    problem, result, run, _ = capsule_run
     files = sorted((run / "frames").glob("frame_*.obj"))
     assert [f.name for f in files] == ["frame_000.obj", "frame_001.obj", "frame_002.obj"]
     surface = problem.surface(problem.simulate(result.field)).numpy()
@@ -38,7 +49,7 @@ def test_simulated_frames_are_obj_files_on_the_users_vertices(capsule_run):
 
 
 def test_vtu_holds_the_field_and_every_frames_displacement(capsule_run):
-    problem, result, run = capsule_run
+    problem, result, run, _ = capsule_run
     mesh = meshio.read(run / "body.vtu")
     assert np.allclose(mesh.points, problem.mesh.points)
     assert np.array_equal(mesh.cells_dict["tetra"], problem.mesh.cells)
@@ -49,7 +60,7 @@ def test_vtu_holds_the_field_and_every_frames_displacement(capsule_run):
 
 
 def test_regions_and_model_comparison(capsule_run):
-    problem, result, run = capsule_run
+    problem, result, run, _ = capsule_run
     regions = json.loads((run / "regions.json").read_text())
     body = regions["fitted"]["body"]
     assert body["tets"] == problem.model.n_cells
@@ -65,7 +76,7 @@ def test_regions_and_model_comparison(capsule_run):
 
 
 def test_tensorboard_shows_meshes_and_per_frame_curves(capsule_run, tensorboard_server):
-    problem, result, run = capsule_run
+    problem, result, run, _ = capsule_run
     server = tensorboard_server(run / "tb")
     tags = server.wait_until(lambda: server.get("/data/plugin/mesh/tags"), what="mesh tags")
     (run_name, mesh_tags), = tags.items()

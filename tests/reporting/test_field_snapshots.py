@@ -13,9 +13,9 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from torchfit.reporting.field_snapshots import FieldSnapshots
 from torchfit.reporting.figures import colorize, field_images, supports_field_images, upscale
 from torchfit.reporting.guard import PlotGuard
-from torchfit.reporting.metrics import MetricsCallback
 from torchfit.reporting.tensorboard import TensorBoardLogger
 from torchfit.problems import build_problem
+from torchfit.run.evaluator import Evaluator
 from torchfit.solvers import (GaussNewtonConfig, LevenbergMarquardtConfig, gauss_newton,
                               levenberg_marquardt)
 
@@ -27,9 +27,10 @@ def test_snapshots_images_scalars_and_files(tmp_path):
     snaps = FieldSnapshots(problem, tb, tmp_path, snapshot_iterations=[1, 3], every=0,
                            sheet_frame=-1)
     assert snaps.sheet_frame == 7
-    levenberg_marquardt(problem.residual(), problem.theta0, LevenbergMarquardtConfig(max_iter=4),
-                        [MetricsCallback(problem), tb, snaps])
-    written = {p.name for p in snaps.finish()}
+    run = Evaluator(problem)
+    result = levenberg_marquardt(problem.residual(), problem.theta0,
+                                 LevenbergMarquardtConfig(max_iter=4), [run, tb, run.feed(snaps)])
+    written = {p.name for p in snaps.finish(run.final(result.theta))}
     tb.close()
     assert written == {"snapshots.png", "frame_errors.png", "sheet_frame7.png"}
     assert sorted(snaps.snapshots) == [1, 3]
@@ -79,9 +80,10 @@ def test_poisson2d_field_and_aligned_error_images(tmp_path):
     problem = build_problem("poisson2d", {"N": 9})        # 8 x 8 cells
     tb = TensorBoardLogger(tmp_path / "tb")
     snaps = FieldSnapshots(problem, tb, None, snapshot_iterations=[1], every=2)
+    run = Evaluator(problem)
     result = gauss_newton(problem.residual(), problem.theta0, GaussNewtonConfig(max_iter=5),
-                          [MetricsCallback(problem), tb, snaps])
-    assert snaps.finish() == []                           # no run directory, no files
+                          [run, tb, run.feed(snaps)])
+    assert snaps.finish(run.final(result.theta)) == []    # no run directory, no files
     tb.close()
     last = result.iterations
     assert last >= 3
@@ -134,9 +136,10 @@ def test_a_failing_drawing_warns_once_and_the_fit_goes_on(tmp_path, caplog, monk
     guard = PlotGuard()
     snaps = FieldSnapshots(problem, tb, tmp_path, snapshot_iterations=[1], every=1, guard=guard)
     with caplog.at_level(logging.WARNING, logger="torchfit.reporting.guard"):
+        run = Evaluator(problem)
         result = gauss_newton(problem.residual(), problem.theta0, GaussNewtonConfig(max_iter=3),
-                              [MetricsCallback(problem), tb, snaps])
-        written = snaps.finish()
+                              [run, tb, run.feed(snaps)])
+        written = snaps.finish(run.final(result.theta))
     tb.close()
     assert result.iterations == 3 and written == []
     warnings = [r for r in caplog.records if r.levelno == logging.WARNING]

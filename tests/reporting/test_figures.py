@@ -1,24 +1,22 @@
-"""Run-directory PNGs (field.png, error_curves.png) and the guard that keeps a drawing
-failure from failing a fit."""
+"""Run-directory PNGs (field.png, error_curves.png), and a failing drawing that leaves the
+others."""
 from __future__ import annotations
 
 import logging
 
 import numpy as np
-import pytest
 from PIL import Image
 
-from torchfit.reporting.figures import error_curve_keys, field_is_chain, write_run_pngs
-from torchfit.reporting.guard import PlotGuard
-from torchfit.reporting.metrics import MetricsCallback
-from torchfit.reporting.results import history_rows
 from torchfit.problems import build_problem
+from torchfit.reporting.figures import error_curve_keys, field_is_chain, write_run_pngs
+from torchfit.reporting.results import history_rows
+from torchfit.run.evaluator import Evaluator
 from torchfit.solvers import GaussNewtonConfig, gauss_newton
 
 
 def fitted(problem, max_iter: int = 4):
     return gauss_newton(problem.residual(), problem.theta0, GaussNewtonConfig(max_iter=max_iter),
-                        [MetricsCallback(problem)])
+                        [Evaluator(problem)])
 
 
 def check_png(path, min_width: int, min_height: int) -> tuple[int, int]:
@@ -39,7 +37,8 @@ def check_png(path, min_width: int, min_height: int) -> tuple[int, int]:
 def test_poisson2d_field_and_error_curves(tmp_path):
     problem = build_problem("poisson2d", {"N": 7})
     result = fitted(problem)
-    written = write_run_pngs(tmp_path, problem, result.theta, history_rows(result.history))
+    written = write_run_pngs(tmp_path, problem, problem.field(result.theta),
+                             history_rows(result.history))
     assert [p.name for p in written] == ["field.png", "error_curves.png"]
     width, height = check_png(tmp_path / "field.png", 800, 250)
     assert width > 2 * height            # three panels side by side
@@ -49,8 +48,8 @@ def test_poisson2d_field_and_error_curves(tmp_path):
 def test_spring1d_chain_field_and_error_curves(tmp_path):
     problem = build_problem("spring1d", {"n": 16, "noise": 1e-4})
     result = fitted(problem)
-    written = write_run_pngs(tmp_path, problem, result.theta, history_rows(result.history),
-                             chain=field_is_chain(problem))
+    written = write_run_pngs(tmp_path, problem, problem.field(result.theta),
+                             history_rows(result.history), chain=field_is_chain(problem))
     assert [p.name for p in written] == ["field.png", "error_curves.png"]
     check_png(tmp_path / "field.png", 500, 250)
     check_png(tmp_path / "error_curves.png", 500, 300)
@@ -65,30 +64,13 @@ def test_error_curve_keys():
     assert error_curve_keys([{"iteration": 0, "misfit": 1.0}]) == ["misfit"]
 
 
-def test_plot_guard_warns_once_and_returns_none(caplog):
-    guard = PlotGuard()
-
-    def fail(what):
-        raise OSError(f"disk full ({what})")
-
-    with caplog.at_level(logging.WARNING, logger="torchfit.reporting.guard"):
-        assert guard.run("a.png", fail, "a") is None
-        assert guard.run("b.png", fail, "b") is None
-        assert guard.run("c.png", lambda: 7) == 7
-    assert guard.failures == ["a.png", "b.png"]
-    messages = [r.getMessage() for r in caplog.records]
-    assert len(messages) == 1
-    assert "could not draw a.png" in messages[0] and "disk full (a)" in messages[0]
-    with pytest.raises(KeyboardInterrupt):         # only Exception is swallowed
-        guard.run("d.png", lambda: (_ for _ in ()).throw(KeyboardInterrupt()))
-
-
 def test_a_failing_field_png_leaves_the_other_png(tmp_path, caplog, monkeypatch):
     problem = build_problem("poisson2d", {"N": 5})
     result = fitted(problem, max_iter=2)
     monkeypatch.setattr(problem, "field_image", lambda field: 1 / 0)
     with caplog.at_level(logging.WARNING, logger="torchfit.reporting.guard"):
-        written = write_run_pngs(tmp_path, problem, result.theta, history_rows(result.history))
+        written = write_run_pngs(tmp_path, problem, problem.field(result.theta),
+                                 history_rows(result.history))
     assert [p.name for p in written] == ["error_curves.png"]
     assert not (tmp_path / "field.png").exists()
     assert len(caplog.records) == 1 and "field.png" in caplog.records[0].getMessage()

@@ -16,11 +16,11 @@ import torch
 
 from torchfit.reporting.field_snapshots import FieldSnapshots
 from torchfit.reporting.figures import field_is_chain
-from torchfit.reporting.metrics import MetricsCallback
 from torchfit.reporting.results import history_rows
-from torchfit.reporting.tags import hparam_values, metric_tag, tag_for
+from torchfit.reporting.tags import tag_for
 from torchfit.reporting.tensorboard import TensorBoardLogger, event_files, scalar_steps
 from torchfit.problems import build_problem
+from torchfit.run.evaluator import Evaluator
 from torchfit.solvers import GaussNewtonConfig, IterationRecord, gauss_newton
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -48,27 +48,6 @@ def expected_series(rows: list[dict]) -> dict[str, list[tuple[int, float]]]:
     return out
 
 
-def test_tag_scheme():
-    assert tag_for("misfit") == "fit/misfit"
-    assert tag_for("objective") == "fit/objective"
-    for key in ("u_err_inf", "u_err_2", "k_err_inf", "k_err_2", "k_err_rel", "k_err_rel_aligned"):
-        assert tag_for(key) == f"metrics/{key}"
-    for key in ("cg_iterations", "damping", "step_norm", "solves", "factorizations",
-                "wall_time", "eta", "gain_ratio"):
-        assert tag_for(key) == f"solver/{key}"
-    assert tag_for("custom/thing") == "custom/thing"
-
-
-def test_metric_tags_and_hparam_values():
-    assert metric_tag("misfit") == "fit/misfit"
-    assert metric_tag("k_err_rel_aligned") == "metrics/k_err_rel_aligned"
-    assert metric_tag("iterations") == "final/iterations"
-    assert metric_tag("wall_s") == "final/wall_s"
-    assert hparam_values({"solver": {"mu": None, "isotropic": True, "weights": [1, 2]},
-                          "problem": {"N": 32}}) == {
-        "solver.isotropic": True, "solver.weights": "[1, 2]", "problem.N": 32}
-
-
 def test_server_shows_every_scalar_and_image_of_a_fit(tmp_path, tensorboard_server):
     """A Gauss-Newton fit of spring1d (field profile image) and a Gauss-Newton fit of
     poisson2d with FieldSnapshots (field images), one run each; the Scalars dashboard has
@@ -77,10 +56,10 @@ def test_server_shows_every_scalar_and_image_of_a_fit(tmp_path, tensorboard_serv
     spring = build_problem("spring1d", {"n": 16, "noise": 1e-4})
     assert field_is_chain(spring)
     tb = TensorBoardLogger(tmp_path / "spring" / "tb")
-    result = gauss_newton(spring.residual(), spring.theta0,
-                          callbacks=[MetricsCallback(spring), tb])
-    metrics = spring.metrics(result.theta)
-    tb.finish(spring, result.theta, {**metrics, "iterations": result.iterations,
+    run = Evaluator(spring)
+    result = gauss_newton(spring.residual(), spring.theta0, callbacks=[run, tb])
+    metrics = run.final(result.theta).metrics
+    tb.finish(spring, spring.field(result.theta), {**metrics, "iterations": result.iterations,
                                      "wall_s": result.wall_time},
               {"problem": {"name": "spring1d", "n": 16}, "solver": {"name": "gauss_newton"}})
     runs["spring/tb"] = (result, metrics)
@@ -88,11 +67,13 @@ def test_server_shows_every_scalar_and_image_of_a_fit(tmp_path, tensorboard_serv
     poisson = build_problem("poisson2d", {"N": 9})
     tb = TensorBoardLogger(tmp_path / "poisson" / "tb")
     snaps = FieldSnapshots(poisson, tb, None, snapshot_iterations=[1], every=2)
+    run = Evaluator(poisson)
     result = gauss_newton(poisson.residual(), poisson.theta0, GaussNewtonConfig(max_iter=4),
-                          [MetricsCallback(poisson), tb, snaps])
-    snaps.finish()
+                          [run, tb, run.feed(snaps)])
+    final = run.final(result.theta)
+    snaps.finish(final)
     tb.close()
-    runs["poisson/tb"] = (result, poisson.metrics(result.theta))
+    runs["poisson/tb"] = (result, final.metrics)
 
     server = tensorboard_server(tmp_path)
     for run, (result, metrics) in runs.items():

@@ -414,7 +414,7 @@ def node_frame_index(n_frames: int, nodes: Sequence[int] | Tensor, dim: int) -> 
     return frame, node
 
 
-# -- hooks the logging layer looks for ----------------------------------------------------
+# -- hooks the reporting layer looks for --------------------------------------------------
 @runtime_checkable
 class FieldImageProblem(Protocol):
     """A problem whose field can be drawn as a 2-D image (poisson2d, membrane2d)."""
@@ -472,11 +472,19 @@ class BodyProblem(Protocol):
     body with another constitutive model; ``region_summary(field)`` summarises a field per
     region; ``with_frames(numbers)`` is the same problem on some of its frames with the same
     targets there, and ``min_volume_ratio(x)`` ``(F,)`` how close each frame is to a fold
-    (:func:`torchfit.continuation.fit_continued` fits the frames far from one first).
+    (:func:`torchfit.run.fit_continued` fits the frames far from one first).
+
+    What the outputs need besides: ``full_bend_frame``, the reference frame (the most
+    deformed one) that pictures and the model comparison show; ``tet_regions``, a region
+    label per tetrahedron ``(n_tets,)`` or ``None``; ``writes_animation``, whether the
+    problem wrote its animation folder itself (the run directory gets a copy).
     """
 
     animation: Any
     mesh: Any
+    full_bend_frame: int
+    tet_regions: Any
+    writes_animation: bool
 
     def surface(self, x: Tensor) -> Tensor:
         ...

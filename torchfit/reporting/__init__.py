@@ -1,16 +1,14 @@
 """Reporting layer: TensorBoard, progress display, pictures and run-directory files.
 
-Everything here observes a run through the callback protocol of :mod:`torchfit.records`
-(an :class:`~torchfit.records.IterationRecord` in, ``None`` out) or writes files after it;
-nothing here computes anything a solver needs, and nothing imports :mod:`torchfit.solvers`.
+Everything here observes a run: record callbacks (an
+:class:`~torchfit.records.IterationRecord` in, ``None`` out), observers that read the run's
+one evaluation per recorded iteration (:mod:`.evaluation`), or writers of files after it.
+Nothing here simulates or computes anything a solver needs, and nothing imports
+:mod:`torchfit.solvers`. What a user calls beside a solver: :class:`TensorBoardLogger` and
+:class:`ProgressPrinter` (lines on the :data:`PROGRESS_LOGGER` logger); the run
+(:mod:`torchfit.run`) uses the modules themselves.
 """
-from .body import BodyOutputs
-from .field_snapshots import FieldSnapshots
-from .guard import PlotGuard
-from .metrics import MetricsCallback
-from .motion import MotionOutputs
 from .progress import PROGRESS_LOGGER, ProgressPrinter
 from .tensorboard import TensorBoardLogger
 
-__all__ = ["BodyOutputs", "FieldSnapshots", "MetricsCallback", "MotionOutputs", "PROGRESS_LOGGER",
-           "PlotGuard", "ProgressPrinter", "TensorBoardLogger"]
+__all__ = ["PROGRESS_LOGGER", "ProgressPrinter", "TensorBoardLogger"]

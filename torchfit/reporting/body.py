@@ -1,7 +1,8 @@
 """Outputs of a 3-D body fitted to an animation (``arm3d``, ``animation``).
 
-:class:`BodyOutputs` is a run callback (per iteration: the per-frame surface error, kept
-for ``frame_errors.png``) and, at the end of a run, writes into the run directory
+:class:`BodyOutputs` is a run observer (per recorded iteration: the per-frame surface error
+of the run's evaluation, kept for ``frame_errors.png``) and, at the end of a run, writes
+into the run directory
 
 ``frames/frame_NNN.obj``
     the simulated surface of every frame on the user's own vertices and faces (vertex order
@@ -14,9 +15,10 @@ for ``frame_errors.png``) and, at the end of a run, writes into the run director
     the fitted field summarised per region (tets, volume, mean, min, max, volume-weighted
     mean), and the truth's for synthetic targets;
 ``model_comparison.json`` and ``frame_comparison.png``
-    the same field, rig and frames simulated with the ``linear`` model beside the fitted
-    model: per-frame mean surface error and joint-region volume change, and a picture of
-    the full-bend frame (animation | linear | fitted model), the seed's frame-24 figure;
+    the same field, rig and frames with the ``linear`` model beside the fitted model (the
+    states the run simulated for it, :meth:`BodyOutputs.comparison_models`): per-frame mean
+    surface error and joint-region volume change, and a picture of the reference frame
+    (animation | linear | fitted model), the seed's frame-24 figure;
 ``frame_errors.png``
     mean surface error per frame: the homogeneous material (iteration 0) against the fit;
 ``animation/``
@@ -27,7 +29,8 @@ TensorBoard (``tb/``): meshes (``add_mesh``) of the chosen frames coloured by su
 (``mesh/surface_error_frame<f>``) and of the tetrahedral boundary coloured by Young's
 modulus (``mesh/E_frame<f>``), and the per-frame curves as scalars whose step is the frame
 (``frames/surface_err_mean``, ``frames/surface_err_mean_homogeneous``,
-``frames/joint_volume_change_<model>``). Nothing here computes anything a solver needs.
+``frames/joint_volume_change_<model>``). Nothing here simulates: every state is one the
+run evaluated.
 """
 from __future__ import annotations
 
@@ -42,13 +45,13 @@ from torch import Tensor
 
 from ..mesh.animation import write_obj
 from ..problems.base import BodyProblem
+from .evaluation import Evaluation
 from .figures import colorize, frame_errors_figure, save_png
 from .guard import PlotGuard
 from .progress import PROGRESS_LOGGER
 from .results import write_json
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..records import IterationRecord
     from .tensorboard import TensorBoardLogger
 
 log = logging.getLogger(__name__)
@@ -116,12 +119,17 @@ def surface_figure(panels: Sequence[tuple[str, np.ndarray, np.ndarray | None]],
 class BodyOutputs:
     """Per-iteration per-frame errors and the end-of-run files of a 3-D body (module doc).
 
+    Called with the run's :class:`~torchfit.reporting.evaluation.Evaluation` of every
+    record; :meth:`finish` with the one at the end, then :meth:`compare` with it, the
+    homogeneous material's (:attr:`baseline`, or one the run made when it did not start
+    there) and the states of :meth:`comparison_models`, then :meth:`copy_animation`.
+
     Args:
         problem: a :class:`~torchfit.problems.base.BodyProblem`.
         tb: the run's TensorBoard logger.
         run_dir: the run directory.
-        frames: frames to show as TensorBoard meshes (default: the full-bend frame and
-            frame 0).
+        frames: frames to show as TensorBoard meshes (default: the reference frame, the
+            problem's ``full_bend_frame``, and frame 0).
         guard: the run's plot guard (a drawing failure is warned about, never fatal).
         suggest_continuation: the end-of-run warning about folded frames suggests fitting
             the others first (not in a run that is a stage of one: it reports itself).
@@ -133,39 +141,44 @@ class BodyOutputs:
         self.problem = problem
         self.tb = tb
         self.run_dir = Path(run_dir)
-        reference = int(getattr(problem, "full_bend_frame", 0))
-        self.frames = sorted({reference, 0} if frames is None else {int(f) for f in frames})
+        self.frames = sorted({int(problem.full_bend_frame), 0} if frames is None
+                             else {int(f) for f in frames})
         self.guard = guard or PlotGuard()
         self.history: dict[int, np.ndarray] = {}
-        self.initial: tuple[dict[str, np.ndarray], Tensor] | None = None
+        #: the evaluation of the homogeneous material (the initial guess) at iteration 0:
+        #: the model comparison's baseline (``None``: the run did not start there)
+        self.baseline: Evaluation | None = None
         self.started_elsewhere = False     # iteration 0 was not the initial guess (init=)
         self.suggest_continuation = suggest_continuation
+        #: one line per file worth pointing a user at, once :meth:`compare` wrote it
+        self.highlights: list[str] = []
 
-    def __call__(self, record: "IterationRecord") -> None:
-        with torch.no_grad():
-            x = self.problem.simulate(self.problem.field(record.theta))   # the cached state
-        curves = self.problem.frame_errors(x)
-        self.history[int(record.iteration)] = curves["surface_err_mean"]
-        if int(record.iteration) == 0:
-            self.started_elsewhere = not torch.equal(record.theta, self.problem.theta0)
+    def __call__(self, evaluation: Evaluation) -> None:
+        assert evaluation.record is not None, "an observer reads the evaluation of a record"
+        iteration = int(evaluation.record.iteration)
+        curves = self.problem.frame_errors(evaluation.state)
+        self.history[iteration] = curves["surface_err_mean"]
+        if iteration == 0:
+            self.started_elsewhere = not torch.equal(evaluation.theta, self.problem.theta0)
             if not self.started_elsewhere:
-                # the homogeneous material (the initial guess): the model comparison's
-                # baseline (a run started from init= simulates it at the end)
-                self.initial = (curves, x.detach().clone())
+                self.baseline = evaluation
+
+    def comparison_models(self) -> list[str]:
+        """The constitutive models the comparison shows beside the fitted one (``linear``),
+        whose states :meth:`compare` needs for the homogeneous and the fitted field."""
+        return [] if self.problem.cfg.model.value == "linear" else ["linear"]
 
     # -- end of the run ---------------------------------------------------------------
-    def finish(self, theta: Tensor) -> tuple[list[Path], dict[str, Any]]:
-        """Write every file; returns ``(files, model comparison)`` (the latter goes into
-        ``result.json``)."""
+    def finish(self, final: Evaluation) -> list[Path]:
+        """The fold warning and the files of the fitted state (``final``: the run's
+        evaluation at its end): OBJ frames, VTU, regions, TensorBoard meshes,
+        ``frame_errors.png``; returns the files written."""
         problem = self.problem
-        field = problem.field(theta).detach()
-        with torch.no_grad():
-            x = problem.simulate(field)
+        field, x = final.field, final.state
         # a run started from an earlier one (init=) is that continuation already
         warn_inverted(problem.frame_errors(x).get("inverted_tets"), problem.frame_numbers(),
-                       suggest=self.suggest_continuation and not self.started_elsewhere)
+                      suggest=self.suggest_continuation and not self.started_elsewhere)
         files: list[Path] = []
-        comparison: dict[str, Any] = {}
         steps = [
             ("simulated frames (OBJ)", self._write_frames, (x,)),
             ("body.vtu", self._write_vtu, (x, field)),
@@ -176,13 +189,33 @@ class BodyOutputs:
         for what, step, args in steps:
             written = self.guard.run(what, step, *args)
             files.extend(written or [])
-        compared = self.guard.run("model comparison", self._compare_models, x, field)
-        if compared is not None:
-            written, comparison = compared
-            files.extend(written)
-        copied = self.guard.run("animation copy", self._copy_animation)
-        files.extend(copied or [])
-        return files, comparison
+        return files
+
+    def compare(self, final: Evaluation, baseline: Evaluation,
+                others: dict[str, dict[str, Tensor]]) -> tuple[list[Path], dict[str, Any]]:
+        """The model comparison: ``model_comparison.json`` and ``frame_comparison.png``;
+        returns ``(files, comparison)`` (the latter goes into ``result.json``; both empty
+        where drawing failed).
+
+        Args:
+            final: the run's evaluation at its end.
+            baseline: the homogeneous material's (the initial guess), simulated cold.
+            others: ``{'homogeneous': {model: state}, 'fitted': {model: state}}`` for
+                every model of :meth:`comparison_models`.
+        """
+        compared = self.guard.run("model comparison", self._compare_models, final.state,
+                                  baseline, others)
+        if compared is None:
+            return [], {}
+        self.highlights.append(
+            f"pictures: {self.run_dir / COMPARISON_PNG} (animation | linear | fitted model "
+            f"at full bend), fitted field per region: {self.run_dir / REGIONS_JSON}, for "
+            f"ParaView: {self.run_dir / VTU_FILE}")
+        return compared
+
+    def copy_animation(self) -> list[Path]:
+        """A copy of the animation folder the problem wrote itself (``animation/``)."""
+        return self.guard.run("animation copy", self._copy_animation) or []
 
     def _write_frames(self, x: Tensor) -> list[Path]:
         folder = self.run_dir / FRAMES_DIR
@@ -205,7 +238,7 @@ class BodyOutputs:
         cell_data = {"E": [_numpy(field)]}
         if problem.field_true is not None:
             cell_data["E_true"] = [_numpy(problem.field_true)]
-        if getattr(problem, "tet_regions", None) is not None:
+        if problem.tet_regions is not None:
             cell_data["region"] = [np.asarray(problem.tet_regions, dtype=np.int32)]
         positions = _numpy(x)
         point_data = {f"displacement_{f:03d}": positions[f] - points
@@ -304,25 +337,16 @@ class BodyOutputs:
             paths.append(history_path)
         return paths
 
-    def _compare_models(self, x: Tensor, field: Tensor) -> tuple[list[Path], dict[str, Any]]:
+    def _compare_models(self, x: Tensor, baseline: Evaluation,
+                        others: dict[str, dict[str, Tensor]]) -> tuple[list[Path], dict[str, Any]]:
         """``linear`` against the fitted model, with the homogeneous material (the seed's
         comparison: same animation, same rig, no fitting) and with the fitted field."""
         problem = self.problem
         model = problem.cfg.model.value
-        frame = int(getattr(problem, "full_bend_frame", 0))
+        frame = int(problem.full_bend_frame)
         names = problem.frame_names()
-        homogeneous = problem.field(problem.theta0).detach()
-        if self.initial is not None:
-            x_homogeneous = self.initial[1]
-        else:      # a resumed run did not see iteration 0; an init= run started elsewhere
-            with problem.independent_simulation():     # cold, as the initial guess was
-                x_homogeneous = problem.simulate_model(model, homogeneous)
-        progress.info("simulating the linear model for the comparison (%d frames)",
-                      problem.n_frames)
-        states = {"homogeneous": {model: x_homogeneous}, "fitted": {model: x}}
-        if model != "linear":
-            states["homogeneous"]["linear"] = problem.simulate_model("linear", homogeneous)
-            states["fitted"]["linear"] = problem.simulate_model("linear", field)
+        states = {"homogeneous": {model: baseline.state, **others.get("homogeneous", {})},
+                  "fitted": {model: x, **others.get("fitted", {})}}
         summary: dict[str, Any] = {"frame": frame, "frame_name": names[frame],
                                    "homogeneous": {}, "fitted": {}}
         for material, by_model in states.items():
@@ -359,7 +383,7 @@ class BodyOutputs:
 
     def _copy_animation(self) -> list[Path]:
         source = Path(self.problem.animation.path).parent
-        if not getattr(self.problem, "writes_animation", False):
+        if not self.problem.writes_animation:
             return []
         target = self.run_dir / "animation"
         if target.exists():

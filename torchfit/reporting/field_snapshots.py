@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from ..problems.base import FramedProblem, MeshProblem
-from ..records import IterationRecord
+from .evaluation import Evaluation
 from .figures import (ERROR_CMAP, aligned, colorize, field_panels, frame_errors_figure,
                       image_extent, save_png, sheet_figure, snapshots_figure,
                       supports_field_images, symmetric_range, upscale)
@@ -38,12 +38,14 @@ def error_image_tag(problem: "InverseProblem") -> str:
 
 
 class FieldSnapshots:
-    """Callback drawing a 2-D field during a fit (TensorBoard images and run-dir PNGs).
+    """Observer drawing a 2-D field during a fit (TensorBoard images and run-dir PNGs).
 
-    Needs a problem with ``field_image(field) -> (H, W)`` (row 0 at the top); uses, when
-    present, ``frame_errors(x) -> {'u_err_inf': (F,), 'u_err_2': (F,)}``,
-    ``frame_names()``, ``mesh`` (``points``, ``cells``, ``extent``), ``x_true`` and
-    ``default_sheet_frame``.
+    Called with the run's :class:`~torchfit.reporting.evaluation.Evaluation` of every
+    record, and :meth:`finish` with the one at the end. Needs a problem with
+    ``field_image(field) -> (H, W)`` (row 0 at the top); uses, for a
+    :class:`~torchfit.problems.base.FramedProblem`, ``frame_errors(x)`` and
+    ``frame_names()``, for a :class:`~torchfit.problems.base.MeshProblem` its ``mesh``
+    (``points``, ``cells``, ``extent``), and ``x_true``.
 
     TensorBoard images (nearest-neighbour upscaled by an integer factor so that the longer
     side has at least ``image_min_size`` pixels):
@@ -114,12 +116,12 @@ class FieldSnapshots:
         self.snapshots: dict[int, tuple[np.ndarray, np.ndarray | None]] = {}
         self.error_history: dict[int, np.ndarray] = {}
         self.imaged_steps: list[int] = []
-        self._last: tuple[int, Tensor] | None = None
+        self._last_step: int | None = None
         self._wrote_truth = False
 
     # -- helpers ------------------------------------------------------------------------
-    def _field(self, theta: Tensor) -> np.ndarray:
-        field = self.problem.field(theta).detach().cpu().numpy()
+    def _field(self, evaluation: Evaluation) -> np.ndarray:
+        field = evaluation.field.detach().cpu().numpy()
         scaled, _ = aligned(field, self.truth if self.problem.scale_free else None)
         return scaled
 
@@ -134,14 +136,11 @@ class FieldSnapshots:
     def _rgb(self, image: np.ndarray, vmin: float, vmax: float, cmap: str = "viridis") -> np.ndarray:
         return upscale(colorize(image, vmin, vmax, cmap), self.image_min_size)
 
-    def _state(self, theta: Tensor) -> Tensor | None:
-        if not self._needs_state:
-            return None
-        with torch.no_grad():   # a cache hit: the solver has just evaluated this point
-            return self.problem.simulate(self.problem.simulation_input(theta)).detach()
+    def _state(self, evaluation: Evaluation) -> Tensor | None:
+        return evaluation.state if self._needs_state else None
 
     def _errors(self, x: Tensor | None) -> dict[str, np.ndarray] | None:
-        if x is None or not self.framed or getattr(self.problem, "x_true", None) is None:
+        if x is None or not self.framed or self.problem.x_true is None:
             return None
         return self.problem.frame_errors(x)
 
@@ -151,7 +150,7 @@ class FieldSnapshots:
             return None
         f = self.sheet_frame
         target = None
-        if getattr(self.problem, "x_true", None) is not None:
+        if self.problem.x_true is not None:
             target = self.problem.x_true[f].detach().cpu().numpy()
         return sheet_figure(x[f].cpu().numpy(), mesh.cells, field, target=target,
                             rest=mesh.points, vmin=self.vmin, vmax=self.vmax, name=self.name,
@@ -167,9 +166,9 @@ class FieldSnapshots:
                                  self._rgb(image, *self._range(image)), self.tb.step_offset,
                                  dataformats="HWC")
 
-    def _write_images(self, step: int, theta: Tensor) -> tuple[np.ndarray, np.ndarray]:
-        """Field and error images of ``theta`` at ``step``; returns ``(field, image)``."""
-        field = self._field(theta)
+    def _write_images(self, step: int, evaluation: Evaluation) -> tuple[np.ndarray, np.ndarray]:
+        """Field and error images of ``evaluation`` at ``step``; returns ``(field, image)``."""
+        field = self._field(evaluation)
         image = self._image(field)
         writer = self.tb.writer
         writer.add_image(f"field/{self.name}_image", self._rgb(image, *self._range(image)),
@@ -181,34 +180,35 @@ class FieldSnapshots:
         self.imaged_steps.append(step)
         return field, image
 
-    # -- the callback -------------------------------------------------------------------
-    def __call__(self, record: IterationRecord) -> None:
-        step = self.tb.step_of(record)
+    # -- the observer -------------------------------------------------------------------
+    def __call__(self, evaluation: Evaluation) -> None:
+        assert evaluation.record is not None, "an observer reads the evaluation of a record"
+        step = self.tb.step_of(evaluation.record)
         if self.tb.already_logged(step):
             # restored by TensorBoardLogger.resume: the interrupted run drew this step
             self._wrote_truth = True
-            self._last = (step, record.theta)
+            self._last_step = step
             self.imaged_steps.append(step)
             return None
         if not self._wrote_truth and self.truth is not None:
             self._wrote_truth = True
             self.guard.run(f"TensorBoard image field/{self.name}_true_image", self._write_truth)
-        x = self._state(record.theta)
+        x = self._state(evaluation)
         errors = self._errors(x)
         if errors is not None:
             for key, values in errors.items():
                 for f, value in enumerate(values):
                     self.tb.scalar(f"frames/{key}/frame_{f}", value, step)
             self.error_history[step] = np.asarray(errors["u_err_inf"])
-        self._last = (step, record.theta)
+        self._last_step = step
         if self.wants_image(step):
             self.guard.run(f"TensorBoard images of iteration {step}", self._snapshot, step,
-                           record.theta, x, errors)
+                           evaluation, x, errors)
         return None
 
-    def _snapshot(self, step: int, theta: Tensor, x: Tensor | None,
+    def _snapshot(self, step: int, evaluation: Evaluation, x: Tensor | None,
                   errors: dict[str, np.ndarray] | None) -> None:
-        field, image = self._write_images(step, theta)
+        field, image = self._write_images(step, evaluation)
         if step in self.snapshot_iterations or step == 0:
             # the mesh figure (a matplotlib render, ~0.3 s) only at the snapshots
             figure = self._sheet(field, x, f"frame {self.sheet_frame}, iteration {step}")
@@ -220,20 +220,21 @@ class FieldSnapshots:
                                     np.asarray(errors["u_err_inf"]))
 
     # -- end of the run -----------------------------------------------------------------
-    def finish(self) -> list[Path]:
-        """Last iteration's images and the ``field/<name>_panels`` figure in TensorBoard;
-        ``snapshots.png``, ``frame_errors.png`` and ``sheet_frame<f>.png`` in ``run_dir``.
+    def finish(self, final: Evaluation) -> list[Path]:
+        """Last iteration's images (``final``: the run's evaluation at its end) and the
+        ``field/<name>_panels`` figure in TensorBoard; ``snapshots.png``,
+        ``frame_errors.png`` and ``sheet_frame<f>.png`` in ``run_dir``.
 
         Returns the files written (a drawing that failed is reported once and left out).
         """
-        if self._last is None:
+        if self._last_step is None:
             return []
-        last_step, last_theta = self._last
+        last_step = self._last_step
         if last_step not in self.imaged_steps:
             self.guard.run(f"TensorBoard images of iteration {last_step}", self._write_images,
-                           last_step, last_theta)
+                           last_step, final)
         panels = self.guard.run(f"TensorBoard figure field/{self.name}_panels", field_panels,
-                                self.problem, self.problem.field(last_theta),
+                                self.problem, final.field,
                                 f"{self.problem.name}: {self.name} after {last_step} iterations")
         if panels is not None:
             self.guard.run(f"TensorBoard figure field/{self.name}_panels",
@@ -243,14 +244,14 @@ class FieldSnapshots:
             return []
         self.run_dir.mkdir(parents=True, exist_ok=True)
         written = self.guard.run("snapshots.png / frame_errors.png / sheet figure",
-                                 self._write_files, last_step, last_theta)
+                                 self._write_files, last_step, final)
         return written or []
 
-    def _write_files(self, last_step: int, last_theta: Tensor) -> list[Path]:
+    def _write_files(self, last_step: int, final: Evaluation) -> list[Path]:
         written: list[Path] = []
-        field = self._field(last_theta)
+        field = self._field(final)
         image = self._image(field)
-        x = self._state(last_theta)
+        x = self._state(final)
         errors = self._errors(x)
         panels: list[tuple[str, np.ndarray]] = []
         panel_errors: list[np.ndarray | None] = []

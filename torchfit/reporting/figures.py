@@ -427,13 +427,13 @@ def error_curve_keys(history: Sequence[Mapping[str, float]]) -> list[str]:
     return keys
 
 
-def write_run_pngs(run_dir: str | Path, problem: "InverseProblem", theta: Tensor,
+def write_run_pngs(run_dir: str | Path, problem: "InverseProblem", field: Tensor,
                    history: Sequence[Mapping[str, float]], guard: PlotGuard | None = None,
                    chain: bool = False) -> list[Path]:
     """Write ``field.png`` and ``error_curves.png`` into ``run_dir`` (see the module docstring).
 
     Args:
-        theta: ``(n_params,)`` final parameters.
+        field: ``(n_field,)`` the fitted field.
         history: one row per recorded iteration (``iteration``, ``misfit``, metrics, ...),
             as in ``result.json``.
         chain: the field is one value per cell of a 1-D chain (a line plot, not an image).
@@ -445,7 +445,6 @@ def write_run_pngs(run_dir: str | Path, problem: "InverseProblem", theta: Tensor
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
-    field = problem.field(theta)
     steps = [int(row["iteration"]) for row in history if "iteration" in row]
     last = f" after {steps[-1]} iterations" if steps else ""
 

@@ -1,9 +1,9 @@
 """Outputs of a dynamic fit (``problem.dynamic=true``): errors over time and frame strips.
 
-:class:`MotionOutputs` is a callback of :func:`torchfit.fit.fit` for a
-:class:`~torchfit.problems.base.MotionProblem`. It records the position error at every
-output time (``u_err_inf`` per time, against the noise-free truth) at iteration 0, the
-snapshot iterations and the last iteration, and writes
+:class:`MotionOutputs` is an observer of :func:`torchfit.run.fit` for a
+:class:`~torchfit.problems.base.MotionProblem`: from the run's evaluations it records the
+position error at every output time (``u_err_inf`` per time, against the noise-free truth)
+at iteration 0, the snapshot iterations and the last iteration, and writes
 
 TensorBoard
     ``motion/time_errors`` (figure: max position error against time, one curve per
@@ -24,10 +24,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
-import torch
 from torch import Tensor
 
-from ..records import IterationRecord
+from ..problems.base import MeshProblem
+from .evaluation import Evaluation
 from .figures import save_png
 from .guard import PlotGuard
 
@@ -115,8 +115,9 @@ def frames_strip_figure(times: Sequence[float], simulated: np.ndarray, target: n
 
 
 class MotionOutputs:
-    """Callback recording per-time errors of a dynamic fit and drawing its frame strips
-    (module docstring).
+    """Observer recording per-time errors of a dynamic fit and drawing its frame strips
+    (module docstring): called with the run's evaluation of every record, :meth:`finish`
+    with the one at the end.
 
     Args:
         problem: a :class:`~torchfit.problems.base.MotionProblem` with a truth.
@@ -137,36 +138,32 @@ class MotionOutputs:
         self.guard = guard or PlotGuard()
         self.times = problem.output_times.detach().cpu().numpy()
         self.history: dict[int, np.ndarray] = {}
-        self._last: tuple[int, Tensor] | None = None
-
-    def _state(self, theta: Tensor) -> Tensor:
-        with torch.no_grad():   # a cache hit: the solver has just simulated this point
-            return self.problem.simulate(self.problem.simulation_input(theta)).detach()
+        self._last_step: int | None = None
 
     def _errors(self, x: Tensor) -> np.ndarray:
         return np.asarray(self.problem.frame_errors(x)["u_err_inf"], dtype=np.float64)
 
-    def __call__(self, record: IterationRecord) -> None:
-        step = self.tb.step_of(record)
-        self._last = (step, record.theta)
+    def __call__(self, evaluation: Evaluation) -> None:
+        assert evaluation.record is not None, "an observer reads the evaluation of a record"
+        step = self.tb.step_of(evaluation.record)
+        self._last_step = step
         if self.tb.already_logged(step) or self.problem.x_true is None:
             return None
         if step == 0 or step in self.snapshot_iterations:
-            x = self._state(record.theta)
-            self.history[step] = self._errors(x)
+            self.history[step] = self._errors(evaluation.state)
             if step == 0:
                 self.guard.run("TensorBoard motion figures of iteration 0", self._figures, 0,
-                               record.theta, x)
+                               evaluation)
         return None
 
-    def _strip(self, theta: Tensor, x: Tensor, step: int):
+    def _strip(self, evaluation: Evaluation, step: int):
         problem = self.problem
         frames = strip_frames(len(self.times))
-        simulated = x[frames].cpu().numpy()
+        simulated = evaluation.state[frames].cpu().numpy()
         target = problem.x_true[frames].detach().cpu().numpy()
-        mesh = getattr(problem, "mesh", None)
+        mesh = problem.mesh if isinstance(problem, MeshProblem) else None
         cells = None if mesh is None else np.asarray(mesh.cells)
-        values = problem.field(theta).detach().cpu().numpy() if cells is not None else None
+        values = evaluation.field.detach().cpu().numpy() if cells is not None else None
         return frames_strip_figure(self.times[frames], simulated, target, cells, values,
                                    problem.field_name,
                                    f"{problem.name}: simulated (colour/line) against target "
@@ -176,34 +173,31 @@ class MotionOutputs:
         return time_errors_figure(self.times, self.history,
                                   f"{self.problem.name}: position error over time")
 
-    def _figures(self, step: int, theta: Tensor, x: Tensor) -> None:
+    def _figures(self, step: int, evaluation: Evaluation) -> None:
         writer = self.tb.writer
         writer.add_figure("motion/time_errors", self._time_figure(step), step, close=False)
-        writer.add_figure("motion/frames_strip", self._strip(theta, x, step), step, close=False)
+        writer.add_figure("motion/frames_strip", self._strip(evaluation, step), step,
+                          close=False)
 
-    def finish(self, theta: Tensor | None = None) -> list[Path]:
-        """Last iteration: its per-time errors, the TensorBoard figures and scalars, the PNGs."""
+    def finish(self, final: Evaluation) -> list[Path]:
+        """Last iteration (``final``: the run's evaluation at its end): its per-time errors,
+        the TensorBoard figures and scalars, the PNGs."""
         if self.problem.x_true is None:
             return []
-        if theta is None:
-            if self._last is None:
-                return []
-            theta = self._last[1]
-        step = self._last[0] if self._last is not None else 0
-        x = self._state(theta)
-        self.history[step] = self._errors(x)
+        step = self._last_step if self._last_step is not None else 0
+        self.history[step] = self._errors(final.state)
         for i, value in enumerate(self.history[step]):
             self.tb.scalar("time/u_err_inf", float(value), i)
         if 0 in self.history:
             for i, value in enumerate(self.history[0]):
                 self.tb.scalar("time/u_err_inf_initial", float(value), i)
-        self.guard.run("TensorBoard motion figures", self._figures, step, theta, x)
+        self.guard.run("TensorBoard motion figures", self._figures, step, final)
         if self.run_dir is None:
             return []
         self.run_dir.mkdir(parents=True, exist_ok=True)
         written: list[Path] = []
         for name, draw in ((TIME_ERRORS_PNG, lambda: self._time_figure(step)),
-                           (FRAMES_STRIP_PNG, lambda: self._strip(theta, x, step))):
+                           (FRAMES_STRIP_PNG, lambda: self._strip(final, step))):
             figure = self.guard.run(name, draw)
             if figure is not None and self.guard.run(name, save_png, figure,
                                                      self.run_dir / name) is not False:

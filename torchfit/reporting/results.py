@@ -3,10 +3,10 @@
 :func:`write_json` (strict JSON: NaN and infinities become ``null``), :func:`save_params`
 (``params.pt``: ``{'theta', 'field', 'field_name'}`` as CPU tensors; ``field.npy``) and
 :func:`save_torch` (any ``torch.save``-able object, e.g. the checkpoint of
-:mod:`torchfit.fit`). Every file goes to a temporary file in the same directory that is
-then renamed over the target, so none is ever half-written; ``torch.save`` writes into the
-open file (never to a path, whose name would end up inside its zip archive). What
-``result.json`` and ``checkpoint.pt`` hold is :mod:`torchfit.fit`'s contract.
+:mod:`torchfit.run.checkpoint`). Every file goes to a temporary file in the same directory
+that is then renamed over the target, so none is ever half-written; ``torch.save`` writes
+into the open file (never to a path, whose name would end up inside its zip archive). What
+``result.json`` and ``checkpoint.pt`` hold is :mod:`torchfit.run`'s contract.
 """
 from __future__ import annotations
 

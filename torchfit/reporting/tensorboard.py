@@ -310,15 +310,15 @@ class TensorBoardLogger:
                                                     plugin_data_pb2.HParamsPluginData(
                                                         session_end_info=end)), step)
 
-    def finish(self, problem: "InverseProblem", theta: Tensor, metrics: Mapping[str, float],
+    def finish(self, problem: "InverseProblem", field: Tensor, metrics: Mapping[str, float],
                hparams: Mapping[str, Any] | None = None, guard: PlotGuard | None = None) -> None:
-        """End of a run: pending iteration, field histogram/plot, hparams, then close.
+        """End of a run: pending iteration, histogram/plot of the fitted ``field``, hparams,
+        then close.
 
         ``metrics``: the final metrics of the HParams session (:meth:`log_hparams`);
         ``guard`` reports a failure to draw the field once instead of raising.
         """
         self.flush_pending()
-        field = problem.field(theta)
         (guard or PlotGuard()).run(f"TensorBoard field/{problem.field_name}", self.log_field,
                                    field, problem.field_true, problem.field_name,
                                    field_is_chain(problem))

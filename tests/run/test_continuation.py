@@ -1,4 +1,4 @@
-"""torchfit.continuation: the frames far from a fold first, then all (``continuation=true``).
+"""torchfit.run.continuation: the frames far from a fold first, then all (``continuation=true``).
 
 A coarse arm (pytetwild, a fresh mesh per session) with the frames 0 and 3 (elbow up to
 30 degrees, no tetrahedron far from its rest volume) and 11 (full bend, where the inner
@@ -16,12 +16,13 @@ import pytest
 import torch
 
 from torchfit import build_problem, fit
-from torchfit.continuation import FIRST_STAGE_DIR, fit_continued, frames_near_fold
-from torchfit.fit import FitConfigError, _digest
+from torchfit.run import FitConfigError, fit_continued
+from torchfit.run.continuation import FIRST_STAGE_DIR, frames_near_fold
+from torchfit.run.start import digest
 
 COARSE = {"tet_edge_length": 0.1, "grid": [3, 3, 4]}
 LM = {"name": "levenberg_marquardt", "max_iter": 3, "max_step": 1.0}
-DATA = Path(__file__).resolve().parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +78,7 @@ def test_frames_near_a_fold_and_the_two_stages(cache, tmp_path):
     saved = torch.load(run / FIRST_STAGE_DIR / "params.pt", weights_only=True)["theta"]
     assert torch.equal(saved, first.theta)
     checkpoint = torch.load(run / "checkpoint.pt", weights_only=True)
-    assert checkpoint["init"] == _digest(first.theta)
+    assert checkpoint["init"] == digest(first.theta)
     assert (run / "tb").is_dir() and (run / FIRST_STAGE_DIR / "tb").is_dir()
     # killed in the second stage before its first checkpoint: a resume reads the first
     # stage back (no new iteration there) and repeats the second exactly

@@ -10,26 +10,19 @@ continuation in one call (``continuation=true`` in the app):
 
 1. simulate the start (the problem's initial guess or ``init``) cold from the animated
    pose, seeding no warm start, and find the frames **near a fold**: some tetrahedron
-   compressed below ``min_volume`` of its rest volume (an inverted one included). Inverted
-   tetrahedra at the start alone are not enough: on the arm the truth folds frames 8-15,
-   the homogeneous start only 9-14 (frames 8 and 15 have a tetrahedron at 0.16 of its
-   rest volume), and a first stage with frames 8 and 15 in it stalls (misfit 0.013, the
-   field 0.11 off) with those two on another branch than the target's;
+   compressed below ``min_volume`` of its rest volume (an inverted one included);
 2. fit the other frames (``problem.with_frames``: the same targets on them, noise
    included) into ``<run_dir>/unique_frames/``, a complete run directory of its own;
 3. fit every frame starting from that run's parameters (``init=``) into ``run_dir``.
 
-The second stage only helps where the folded frames reach the target's equilibrium from
-the first stage's field: on the arm, noise-free, from a first stage at 3.1e-6
-(``k_err_rel_aligned``) but not from one at 2.2e-2, nor with 1 % noise from 1.4e-3. Where
-they do not, it fits them on another equilibrium and can move the field away from the
-truth; the first stage's result stays in its run directory (and ``first_stage``).
-
-Where no frame is near a fold at the start, or every frame is, it is one plain
-:func:`~torchfit.fit.fit`. Both stages use the same solver settings (``max_iter`` is per
-stage) and options; a ``resume`` continues whichever stage was interrupted (a finished
-first stage is read back, not refitted; the start's simulation and the first stage's last
-state, for its fold check, are simulated again: about 20 s each on the arm).
+The second stage helps only where the folded frames reach the target's equilibrium from
+the first stage's field; where they do not, it can move the field away from the truth, and
+the first stage's result stays in its run directory (and ``first_stage``). Where no frame
+is near a fold at the start, or every frame is, it is one plain :func:`~.fitting.fit`.
+Both stages use the same solver settings (``max_iter`` is per stage) and options; a
+``resume`` continues whichever stage was interrupted (a finished first stage is read back,
+not refitted; the start and the first stage's last state are simulated again for their
+fold checks). Figures: ``docs/run/continuation.md``.
 """
 from __future__ import annotations
 
@@ -43,15 +36,20 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .fit import (CHECKPOINT_FILE, PARAMS_FILE, FitConfigError, FitOptions, FitResult,
-                  check_writable, fit, initial_theta, plain_settings, solver_config)
-from .reporting.body import frame_spans
-from .problems import InverseProblem
-from .problems.base import BodyProblem
-from .records import IterationRecord
-from .solvers import Solver, SolverConfig
+from ..problems import InverseProblem
+from ..problems.base import BodyProblem
+from ..records import IterationRecord
+from ..reporting.body import frame_spans
+from ..reporting.results import CHECKPOINT_FILE, PARAMS_FILE
+from ..solvers import Solver, SolverConfig
+from .directory import check_writable
+from .fitting import fit
+from .options import FitConfigError, FitOptions, plain_settings
+from .result import FitResult
+from .solver import solver_config
+from .start import initial_theta
 
-log = logging.getLogger("torchfit.fit")
+log = logging.getLogger("torchfit.run")
 
 #: The first stage's run directory, inside the run's.
 FIRST_STAGE_DIR = "unique_frames"
@@ -86,8 +84,8 @@ def fit_continued(problem: InverseProblem,
                   config: Mapping[str, Any] | None = None,
                   init: Tensor | str | Path | None = None,
                   min_volume: float = DEFAULT_MIN_VOLUME) -> FitResult:
-    """:func:`~torchfit.fit.fit` with the frames near a fold at the start fitted last
-    (module docstring); the other arguments are :func:`~torchfit.fit.fit`'s.
+    """:func:`~.fitting.fit` with the frames near a fold at the start fitted last
+    (module docstring); the other arguments are :func:`~.fitting.fit`'s.
 
     Args:
         min_volume: a frame whose equilibrium at the start has a tetrahedron below this
@@ -96,13 +94,13 @@ def fit_continued(problem: InverseProblem,
             run's log reports).
 
     Returns:
-        the second stage's :class:`~torchfit.fit.FitResult` (every frame), with
+        the second stage's :class:`~.result.FitResult` (every frame), with
         ``first_stage`` set to the first one's (``None`` where there was one stage).
         ``iterations``, ``wall_s`` and the counts are the second stage's; the first
         stage's are in its own ``result.json``.
     Raises:
         FitConfigError: the problem is not a body fitted to an animation, or a setting of
-        :func:`~torchfit.fit.fit` is bad (before any file is written).
+        :func:`~.fitting.fit` is bad (before any file is written).
     """
     callbacks = list(callbacks)
     if isinstance(min_volume, bool) or not isinstance(min_volume, (int, float)) \
@@ -164,7 +162,7 @@ def fit_continued(problem: InverseProblem,
 def _run_config(config: Mapping[str, Any] | None, problem: InverseProblem,
                 solver: SolverConfig) -> dict[str, Any]:
     """What a stage stores: the run's config (the app's), else the problem's and solver's
-    settings (:func:`~torchfit.fit.fit`'s default)."""
+    settings (:func:`~.fitting.fit`'s default)."""
     if config is not None:
         return copy.deepcopy(dict(config))
     return {"problem": plain_settings(problem.cfg), "solver": plain_settings(solver)}
