@@ -90,7 +90,7 @@ def run_hydra_app(main: Callable[[], Any], started: Callable[[], bool],
     ``error:`` line (Hydra would report it as a traceback); a config Hydra cannot compose
     (unknown option, misspelt or mistyped override: Hydra exits 1 before the task) exits 2
     like every other bad input."""
-    from torchfit.fit import RunDirectoryError, check_writable
+    from torchfit.run.directory import RunDirectoryError, check_writable
 
     argv = sys.argv[1:]
     try:

@@ -1,4 +1,4 @@
-"""Fit a problem's material field with a solver: the Hydra adapter over :func:`torchfit.fit.fit`.
+"""Fit a problem's material field with a solver: the Hydra adapter over :func:`torchfit.run.fit`.
 
     python experiments/fit.py                                   # spring1d, Gauss-Newton
     python experiments/fit.py problem.noise=1e-4 solver=levenberg_marquardt
@@ -7,7 +7,7 @@
     python experiments/fit.py problem.frames=null init=<run>    # start from an earlier fit
     python experiments/fit.py problem=arm3d continuation=true   # frames far from a fold first
 
-The run directory's files are those of :mod:`torchfit.fit` plus Hydra's ``.hydra/`` and
+The run directory's files are those of :mod:`torchfit.run` plus Hydra's ``.hydra/`` and
 ``fit.log`` (which has the progress table). Exit statuses: :mod:`app` (0 done, 1 the fit
 failed, 2 bad input and nothing written, 130 interrupted). In a multirun (``-m``) a job
 that fails writes ``result.json`` with ``"status": "failed"`` and its ``error`` line, and
@@ -16,6 +16,7 @@ on NaN), so that the other jobs run.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import sys
@@ -37,11 +38,12 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 matplotlib.use("Agg")   # pictures are files and TensorBoard images; never a window
 from torchfit.config import register_configs  # noqa: E402
-from torchfit.continuation import FIRST_STAGE_DIR, fit_continued  # noqa: E402
-from torchfit.fit import FitOptions, fit, solver_config  # noqa: E402
 from torchfit.linalg import set_threads  # noqa: E402
-from torchfit.logging import write_json  # noqa: E402
 from torchfit.problems import build_problem  # noqa: E402
+from torchfit.reporting.results import write_json  # noqa: E402
+from torchfit.run import FitOptions, fit, fit_continued  # noqa: E402
+from torchfit.run.continuation import FIRST_STAGE_DIR  # noqa: E402
+from torchfit.run.solver import solver_config  # noqa: E402
 
 register_configs()
 log = logging.getLogger("fit")
@@ -58,11 +60,8 @@ def prepare(cfg: DictConfig) -> tuple[Any, Any, FitOptions, dict[str, Any]]:
     if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0:
         set_threads(threads)     # before the build: a synthetic target is simulated there
     problem = build_problem(str(config["problem"].get("name")), dict(config["problem"]))
-    options = FitOptions(progress=config["progress"], log_every=config["log_every"],
-                         snapshot_iterations=list(config["snapshot_iterations"]),
-                         snapshot_every=config["snapshot_every"],
-                         sheet_frame=config["sheet_frame"], threads=config["threads"],
-                         objective_metric=config["objective_metric"])
+    options = FitOptions(**{f.name: config[f.name] for f in dataclasses.fields(FitOptions)
+                            if f.name in config})
     return problem, solver, options, config
 
 
@@ -107,10 +106,8 @@ def main(cfg: DictConfig) -> float:
         for p in result.files if p.is_relative_to(run_dir)))
     print(f"results: {run_dir / 'result.json'} (beside it: " + ", ".join(names)
           + ", checkpoint.pt)")
-    if (run_dir / "frame_comparison.png").is_file():
-        print(f"pictures: {run_dir / 'frame_comparison.png'} (animation | linear | fitted "
-              f"model at full bend), fitted field per region: {run_dir / 'regions.json'}, "
-              f"for ParaView: {run_dir / 'body.vtu'}")
+    for line in result.highlights:      # what the problem's own outputs point at
+        print(line)
     if result.first_stage is not None:
         print(f"first stage (the frames far from a fold): {result.first_stage.summary()}; "
               f"its run: {run_dir / FIRST_STAGE_DIR}")

@@ -1,4 +1,4 @@
-"""Verify the derivatives of a problem's residual: the Hydra adapter over :func:`torchfit.fit.verify`.
+"""Verify the derivatives of a problem's residual: the Hydra adapter over :func:`torchfit.verify`.
 
     python experiments/verify.py problem=spring1d
     python experiments/verify.py problem=spring1d at=truth perturbation=0.05 seed=3
@@ -11,6 +11,7 @@ seeded Gaussian vector so that the point is generic. Prints the report and write
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -25,9 +26,9 @@ from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 from torchfit.config import register_configs  # noqa: E402
-from torchfit.fit import FitConfigError, verify  # noqa: E402
 from torchfit.linalg import set_threads  # noqa: E402
 from torchfit.problems import build_problem  # noqa: E402
+from torchfit.run import VerifyOptions, verify  # noqa: E402
 
 register_configs()
 GUARD = RunDirGuard(sys.argv[1:])
@@ -43,16 +44,13 @@ def main(cfg: DictConfig) -> None:
         config = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True,
                                         enum_to_str=True)
         assert isinstance(config, dict)
-        threads = config.get("threads", 0)
-        if not (isinstance(threads, int) and threads >= 0):
-            raise FitConfigError(f"threads={threads!r} must be an integer >= 0 (0: default)")
-        if threads > 0:
-            set_threads(threads)     # before the build: a synthetic target is simulated there
+        options = VerifyOptions(**{f.name: config[f.name]
+                                   for f in dataclasses.fields(VerifyOptions) if f.name in config})
+        options.check()
+        if options.threads > 0:
+            set_threads(options.threads)  # before the build: a synthetic target is simulated there
         problem = build_problem(str(config["problem"].get("name")), dict(config["problem"]))
-        report = verify(problem, run_dir=run_dir, at=config["at"],
-                        perturbation=config["perturbation"], seed=config["seed"],
-                        taylor_tol=config["taylor_tol"], dot_tol=config["dot_tol"],
-                        fd_tol=config["fd_tol"], config=config)
+        report = verify(problem, run_dir=run_dir, options=options, config=config)
     except BAD_INPUT as error:
         refuse(error, run_dir, GUARD)
     print(f"problem {problem.name} at {config['at']} + {config['perturbation']:g} * random "

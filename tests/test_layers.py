@@ -9,18 +9,17 @@ PACKAGE = Path(__file__).resolve().parents[1] / "torchfit"
 
 NEUTRAL = {"errors", "records", "residual", "settings"}   # the contract every layer may use
 #: layer -> the layers it may import (DESIGN.md's table): solvers know nothing of meshes or
-#: physics, problems nothing of solvers, logging meets solvers only through the records.
+#: physics, problems nothing of solvers, reporting meets solvers only through the records.
 ALLOWED = {
     "errors": set(), "records": set(), "residual": {"errors"}, "settings": {"errors"},
     "linalg": NEUTRAL, "mesh": NEUTRAL | {"linalg"}, "params": NEUTRAL | {"linalg"},
     "physics": NEUTRAL | {"linalg", "mesh"}, "verification": NEUTRAL,
     "problems": NEUTRAL | {"linalg", "mesh", "physics", "params"},
     "solvers": NEUTRAL | {"linalg"},
-    "logging": NEUTRAL | {"linalg", "mesh", "physics", "params", "problems"},
-    "config": NEUTRAL | {"problems", "solvers"},
-    "fit": NEUTRAL | {"linalg", "problems", "solvers", "logging", "verification"},
-    # two runs of fit (the frames far from a fold first): on top of fit, beside it
-    "continuation": NEUTRAL | {"fit", "problems", "solvers", "logging"},
+    "reporting": NEUTRAL | {"linalg", "mesh", "physics", "params", "problems"},
+    # one run (fit, the continuation, verify): on top of everything but the Hydra schemas
+    "run": NEUTRAL | {"linalg", "problems", "solvers", "reporting", "verification"},
+    "config": NEUTRAL | {"problems", "solvers", "run"},
 }
 
 
@@ -111,10 +110,11 @@ def test_no_private_name_crosses_a_module():
 
 
 def test_the_checks_can_fail():
-    # what a solver importing the physics, or logging importing a solver, would look like
+    # what a solver importing the physics, or reporting importing a solver, would look like
     assert forbidden({"torchfit.solvers.x": {"torchfit.physics.equilibrium"},
-                      "torchfit.logging.x": {"torchfit.solvers.base"},
+                      "torchfit.reporting.x": {"torchfit.solvers.base"},
                       "torchfit.problems.x": {"torchfit.solvers"}}) == [
-        "torchfit.logging.x -> torchfit.solvers.base", "torchfit.problems.x -> torchfit.solvers",
+        "torchfit.problems.x -> torchfit.solvers", "torchfit.reporting.x -> torchfit.solvers.base",
         "torchfit.solvers.x -> torchfit.physics.equilibrium"]
-    assert "torchfit.solvers" in imports_of("torchfit.x", PACKAGE / "fit.py", set(modules()))
+    assert "torchfit.solvers" in imports_of("torchfit.run.x", PACKAGE / "run" / "solver.py",
+                                            set(modules()))

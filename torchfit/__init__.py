@@ -10,14 +10,14 @@ The verbs and the registries::
 
 ``torchfit.PROBLEMS`` and ``torchfit.SOLVERS`` map config names to their entries (config
 dataclass and class). Layers (DESIGN.md): ``linalg``, ``mesh``, ``physics``, ``params``,
-``problems``, ``solvers``, ``logging``, and :mod:`torchfit.fit` (one run) on top; the
+``problems``, ``solvers``, ``reporting``, and :mod:`torchfit.run` (one run) on top; the
 contract between problems and solvers is :mod:`torchfit.residual` and :mod:`torchfit.records`.
 
 Importing torchfit changes nothing process-wide (torch's default dtype included): problems
-make their tensors in ``problem.dtype``, float64 unless asked otherwise. ``torchfit.fit``
-is the function; its module's other names are imported as ``from torchfit.fit import ...``.
+make their tensors in ``problem.dtype``, float64 unless asked otherwise. The run's other
+names (``fit_continued``, ``VerifyOptions``, its errors) are in :mod:`torchfit.run`.
 """
-from .fit import FitOptions, FitResult, build_solver, fit, verify
+from .run import FitOptions, FitResult, build_solver, fit, verify
 from .problems import PROBLEMS, InverseProblem, build_problem
 from .solvers import SOLVERS, Solver
 

@@ -1,74 +1,86 @@
 """Structured (validated) configs of the Hydra apps, registered with Hydra's ConfigStore.
 
+The top levels reuse the run's options as fields, so that every default is written once:
+:data:`FitConfig` is ``problem``, ``solver``, the settings of a run that are arguments of
+:func:`~torchfit.run.fit` / :func:`~torchfit.run.fit_continued` (with their defaults),
+then the fields of :class:`~torchfit.run.FitOptions`; :data:`VerifyConfig` is
+``problem``, the fields of :class:`~torchfit.run.VerifyOptions` and ``solver``.
+``tests/test_config.py`` fails where a setting gets a default of its own twice.
+
 Schemas live in the ``schema/`` group so that the user-facing groups ``problem/`` and
-``solver/`` list only real choices. The YAML files under ``conf/`` extend them; a
-misspelt or mistyped override fails at composition time, before any run directory
-exists.
+``solver/`` list only real choices. The YAML files under ``conf/`` extend them; a misspelt
+or mistyped override fails at composition time, before any run directory exists.
 """
 from __future__ import annotations
 
 import dataclasses
-import enum
-from typing import Any, List, Optional
+import inspect
+import typing
+from typing import Any, Callable, Optional
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
 from .problems import PROBLEMS
+from .run import fit, fit_continued
+from .run.options import FitOptions, VerifyOptions
 from .solvers import SOLVERS
 
 
-@dataclasses.dataclass
-class FitConfig:
-    """Top level of ``experiments/fit.py``."""
-
-    problem: Any = MISSING
-    solver: Any = MISSING
-    resume: bool = False        # continue from the last checkpoint in the run directory
-    # Start from an earlier run's fitted parameters (its directory or params.pt) instead of
-    # the problem's initial guess: e.g. the frames whose equilibrium is unique first, then
-    # all frames; or a coarser mesh first. The parameterisation must be the same.
-    init: Optional[str] = None
-    # Fit the frames far from a fold first (no tetrahedron below continuation_min_volume of
-    # its rest volume at the start), then all frames from there: two runs in one, the first
-    # in <run>/unique_frames (torchfit.continuation). Bodies fitted to an animation only.
-    continuation: bool = False
-    continuation_min_volume: float = 0.25
-    progress: bool = True       # one line per outer iteration on the terminal
-    log_every: int = 1          # TensorBoard scalars every n iterations (the last always)
-    threads: int = 0            # torch and BLAS CPU threads per job (0: default); 1 in joblib sweeps
-    # 2-D fields (poisson2d, membrane2d): the field and error images after these iterations
-    # (snapshots.png, the seed's figure), every snapshot_every iterations and at the last
-    # one in TensorBoard (snapshot_every=0: only those).
-    snapshot_iterations: List[int] = dataclasses.field(default_factory=lambda: [1, 5, 10, 40])
-    snapshot_every: int = 10
-    sheet_frame: Optional[int] = None   # frame whose deformed mesh is drawn (None: the problem's)
-    # What the task function returns, i.e. what a sweeper such as Optuna minimises: a key of
-    # result.json (a metric of PROBLEMS.md, or iterations, wall_s, factorizations, solves).
-    objective_metric: str = "misfit"
+def _field(name: str, kind: Any, **default: Any) -> tuple[str, Any, dataclasses.Field]:
+    return name, kind, dataclasses.field(**default)
 
 
-class VerifyPoint(str, enum.Enum):
-    """Where ``experiments/verify.py`` checks the derivatives."""
+def _argument(name: str, kind: Any, function: Callable[..., Any],
+              parameter: str | None = None) -> tuple[str, Any, dataclasses.Field]:
+    """A schema field whose default is that of ``function``'s keyword ``parameter``."""
+    default = inspect.signature(function).parameters[parameter or name].default
+    return _field(name, kind, default=default)
 
-    initial = "initial"
-    truth = "truth"
+
+def _fields_of(options: type, names: list[str]) -> list[tuple[str, Any, dataclasses.Field]]:
+    """``names`` of the dataclass ``options`` as fields of a schema: its types and defaults
+    (its own, not restated)."""
+    hints = typing.get_type_hints(options)
+    fields = {f.name: f for f in dataclasses.fields(options)}
+    out = []
+    for name in names:
+        f = fields[name]
+        if f.default_factory is not dataclasses.MISSING:
+            out.append(_field(name, hints[name], default_factory=f.default_factory))
+        else:
+            out.append(_field(name, hints[name], default=f.default))
+    return out
 
 
-@dataclasses.dataclass
-class VerifyConfig:
-    """Top level of ``experiments/verify.py``."""
+#: Top level of ``experiments/fit.py``. ``resume``: continue from the last checkpoint in the
+#: run directory. ``init``: start from an earlier run's fitted parameters (its directory or
+#: ``params.pt``) instead of the problem's initial guess (the same parameterisation).
+#: ``continuation``: fit the frames far from a fold first (no tetrahedron below
+#: ``continuation_min_volume`` of its rest volume at the start), then all frames from there:
+#: two runs in one, the first in ``<run>/unique_frames`` (bodies fitted to an animation).
+FitConfig = dataclasses.make_dataclass("FitConfig", [
+    _field("problem", Any, default=MISSING),
+    _field("solver", Any, default=MISSING),
+    _argument("resume", bool, fit),
+    _argument("init", Optional[str], fit),
+    _field("continuation", bool, default=False),
+    _argument("continuation_min_volume", float, fit_continued, "min_volume"),
+    *_fields_of(FitOptions, ["progress", "log_every", "threads", "snapshot_iterations",
+                             "snapshot_every", "sheet_frame", "objective_metric"]),
+])
+FitConfig.__module__ = __name__
 
-    problem: Any = MISSING
-    seed: int = 0               # of the random point offset and directions
-    at: VerifyPoint = VerifyPoint.initial   # where to verify: initial | truth
-    perturbation: float = 0.1   # random offset of theta from that point (relative)
-    taylor_tol: float = 0.05    # |rate - 2| allowed
-    dot_tol: float = 1e-10      # relative |<Jv, w> - <v, J^T w>|
-    fd_tol: Optional[float] = None   # relative |Jv - central FD|; null: max(1e-6, 100 a^(2/3))
-                                     # with a the simulation's accuracy (Newton's rtol)
-    solver: Any = None          # unused; a problem's default solver (membrane2d) may fill it
-    threads: int = 0            # torch and BLAS CPU threads (0: default), as in fit
+#: Top level of ``experiments/verify.py``; ``solver`` is unused (a problem's default solver,
+#: membrane2d's, may fill it).
+VerifyConfig = dataclasses.make_dataclass("VerifyConfig", [
+    _field("problem", Any, default=MISSING),
+    *_fields_of(VerifyOptions, ["seed", "at", "perturbation", "taylor_tol", "dot_tol",
+                                "fd_tol"]),
+    _field("solver", Any, default=None),
+    *_fields_of(VerifyOptions, ["threads"]),
+])
+VerifyConfig.__module__ = __name__
 
 
 def register_configs() -> None:

@@ -188,11 +188,9 @@ def taylor_test(residual: _Residual, theta: Tensor, direction: Tensor, *,
         remainders.append(e if math.isfinite(e) else math.nan)
         # round-off of forming r = y - data (relative to everything, the data included),
         # or the simulation's own tolerance (residual.accuracy, e.g. Newton's rtol:
-        # remainders below ~10x that are its noise, not Taylor's h^2). The latter is
-        # relative to the residuals, not to the data: a Newton-solved position is exact to
-        # rtol of what it moved, not of where it is (the arm: ||data|| = 160 m against
-        # ||r|| = 0.64 m put the floor 100x above the measured plateau and cut the window
-        # off before its rate had settled).
+        # remainders below ~10x that are its noise, not Taylor's h^2), relative to the
+        # residuals: a Newton-solved position is exact to rtol of what it moved, not of
+        # where it is (docs/run/verification.md).
         size = _norm(r_h) + r0_norm + h * jv_norm
         floors.append(max(eps * (size + data_norm), 10.0 * accuracy * size / safety))
 
@@ -204,13 +202,10 @@ def taylor_test(residual: _Residual, theta: Tensor, direction: Tensor, *,
     # Empirical floor: where the remainders, already far below their largest value,
     # stop decreasing they sit on round-off (solver error amplified by conditioning).
     # "Stop" is a halving of h that removes less than 10 % of the remainder (a rate
-    # below 0.15) once it has fallen two decades: on a 2-frame stable neo-Hookean arm the
-    # remainders fell 5.8e-7 -> 6.8e-10 at rate 2 and then sat at 2.9e-10 for 14 halvings,
-    # each a little lower than the last, which the former test (no decrease at all, and 1e-6
-    # of the largest) missed, so the flat tail was taken for the asymptotic window.
-    # The slow decrease must last (the next three halvings stay above half of it): where a
-    # wrong J v's first-order error cancels the second-order term, the remainders dip once
-    # and then fall at rate 1 again, which is a finding, not a floor.
+    # below 0.15) once it has fallen two decades (docs/run/verification.md). The slow
+    # decrease must last (the next three halvings stay above half of it): where a wrong
+    # J v's first-order error cancels the second-order term, the remainders dip once and
+    # then fall at rate 1 again, which is a finding, not a floor.
     e_max = max(finite)
 
     def lasts(i: int) -> bool:
@@ -419,15 +414,9 @@ FD_TOL_FLOOR, FD_TOL_FACTOR = 1e-6, 100.0
 
 def default_fd_tol(residual: _Residual, dtype: torch.dtype = torch.float64) -> float:
     """What a central difference can resolve for ``residual``: ``max(1e-6, 100 a^(2/3))``
-    with ``a`` its ``accuracy`` (machine epsilon when exact).
-
-    The step of :func:`finite_difference_test` balances the ``h^2`` truncation against the
-    ``a / h`` error of ``r`` itself, which leaves a relative error of order ``a^(2/3)``
-    times the conditioning of the simulation (a Newton tolerance on forces becomes a
-    larger one on positions). For exact simulations this is the fixed 1e-6; for the arm
-    (48 Newton-solved frames, ``a`` = 1e-10) 2.2e-5, where the measured error was 3.4e-6
-    and a fixed 1e-6 failed a Jacobian whose Taylor rate was 2.00.
-    """
+    with ``a`` its ``accuracy`` (machine epsilon when exact): the step of
+    :func:`finite_difference_test` leaves a relative error of order ``a^(2/3)`` times the
+    simulation's conditioning (figures: ``docs/run/verification.md``)."""
     accuracy = max(getattr(residual, "accuracy", None) or 0.0, torch.finfo(dtype).eps)
     return max(FD_TOL_FLOOR, FD_TOL_FACTOR * accuracy ** (2.0 / 3.0))
 

@@ -1,7 +1,7 @@
 """The Hydra apps ``experiments/fit.py`` and ``experiments/verify.py`` as a user runs them
 (subprocesses from the repo root): outputs, exit statuses, bad input, resume, sweeps.
 
-What the run itself computes and writes is tested in-process in tests/test_fit.py."""
+What the run itself computes and writes is tested in-process in tests/run/."""
 from __future__ import annotations
 
 import hashlib
@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from conftest import with_problem, run_fit_app
+from helpers.fit_app import run_fit_app, with_problem
 
 REPO = Path(__file__).resolve().parents[2]
 HAS_CUDA = torch.cuda.is_available()
@@ -170,7 +170,7 @@ def test_a_refused_resume_restores_hydra_files(tmp_path):
     assert digest(run_dir) == before, "a refused resume touches nothing, .hydra/ included"
 
 
-@pytest.mark.slow      # the continuation itself is tested in-process: tests/test_fit.py
+@pytest.mark.slow      # the continuation itself is tested in-process: tests/run/test_continuation.py
 def test_resume_through_the_app_continues_with_a_larger_budget(tmp_path):
     run_dir = tmp_path / "run"
     ok(run_fit_app(run_dir, "problem.n=16", "problem.noise=1e-4", "solver.max_iter=2"))
@@ -220,7 +220,7 @@ def test_init_starts_from_an_earlier_run_of_the_same_parameterisation(tmp_path):
 def test_verify_exit_statuses(tmp_path):
     passed = ok(app("verify.py", f"hydra.run.dir={tmp_path / 'ok'}", "problem.n=16"))
     assert "wrote" in passed.stdout and (tmp_path / "ok" / "verify.json").is_file()
-    for i, override in enumerate(["at=nowhere"]):   # the others: tests/test_fit.py
+    for i, override in enumerate(["at=nowhere"]):   # the others: tests/run/test_verifying.py
         run_dir = tmp_path / f"bad{i}"
         proc = app("verify.py", f"hydra.run.dir={run_dir}", override)
         assert proc.returncode == 2, (override, proc.stderr)

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from conftest import with_problem
+from helpers.fit_app import with_problem
 
 REPO = Path(__file__).resolve().parents[2]
 

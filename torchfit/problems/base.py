@@ -279,7 +279,7 @@ def node_frame_index(n_frames: int, nodes: Sequence[int] | Tensor, dim: int) -> 
     return frame, node
 
 
-# -- hooks the logging layer looks for ----------------------------------------------------
+# -- hooks the reporting layer looks for --------------------------------------------------
 @runtime_checkable
 class FieldImageProblem(Protocol):
     """A problem whose field can be drawn as a 2-D image (poisson2d, membrane2d)."""
@@ -328,7 +328,7 @@ class MeshProblem(Protocol):
 @runtime_checkable
 class BodyProblem(Protocol):
     """A 3-D body fitted to an animation (``arm3d``, ``animation``): what
-    :class:`torchfit.logging.meshes.BodyOutputs` draws and exports.
+    :class:`torchfit.reporting.body.BodyOutputs` draws and exports.
 
     ``animation`` has ``faces`` ``(T, 3)`` and ``path``; ``surface(x)`` maps tet positions
     ``(F, n, 3)`` to the user's surface vertices ``(F, V, 3)``; ``clean_surface()`` is the
@@ -337,11 +337,19 @@ class BodyProblem(Protocol):
     body with another constitutive model; ``region_summary(field)`` summarises a field per
     region; ``with_frames(numbers)`` is the same problem on some of its frames with the same
     targets there, and ``min_volume_ratio(x)`` ``(F,)`` how close each frame is to a fold
-    (:func:`torchfit.continuation.fit_continued` fits the frames far from one first).
+    (:func:`torchfit.run.fit_continued` fits the frames far from one first).
+
+    What the outputs need besides: ``full_bend_frame``, the reference frame (the most
+    deformed one) that pictures and the model comparison show; ``tet_regions``, a region
+    label per tetrahedron ``(n_tets,)`` or ``None``; ``writes_animation``, whether the
+    problem wrote its animation folder itself (the run directory gets a copy).
     """
 
     animation: Any
     mesh: Any
+    full_bend_frame: int
+    tet_regions: Any
+    writes_animation: bool
 
     def surface(self, x: Tensor) -> Tensor:
         ...

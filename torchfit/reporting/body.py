@@ -1,0 +1,428 @@
+"""Outputs of a 3-D body fitted to an animation (``arm3d``, ``animation``).
+
+:class:`BodyOutputs` is a run observer (per recorded iteration: the per-frame surface error
+of the run's evaluation, kept for ``frame_errors.png``) and, at the end of a run, writes
+into the run directory
+
+``frames/frame_NNN.obj``
+    the simulated surface of every frame on the user's own vertices and faces (vertex order
+    as in the rest surface), an OBJ sequence for any DCC tool;
+``body.vtu``
+    the tetrahedral mesh (rest positions) for ParaView (meshio): cell data ``E`` (fitted),
+    ``E_true`` (synthetic targets), ``region``; point data ``displacement_NNN`` per frame
+    (``Warp By Vector`` shows a frame);
+``regions.json``
+    the fitted field summarised per region (tets, volume, mean, min, max, volume-weighted
+    mean), and the truth's for synthetic targets;
+``model_comparison.json`` and ``frame_comparison.png``
+    the same field, rig and frames with the ``linear`` model beside the fitted model (the
+    states the run simulated for it, :meth:`BodyOutputs.comparison_models`): per-frame mean
+    surface error and joint-region volume change, and a picture of the reference frame
+    (animation | linear | fitted model), the seed's frame-24 figure;
+``frame_errors.png``
+    mean surface error per frame: the homogeneous material (iteration 0) against the fit;
+``animation/``
+    a copy of the animation folder when the problem wrote it itself (``arm3d``): a worked
+    example of the format.
+
+TensorBoard (``tb/``): meshes (``add_mesh``) of the chosen frames coloured by surface error
+(``mesh/surface_error_frame<f>``) and of the tetrahedral boundary coloured by Young's
+modulus (``mesh/E_frame<f>``), and the per-frame curves as scalars whose step is the frame
+(``frames/surface_err_mean``, ``frames/surface_err_mean_homogeneous``,
+``frames/joint_volume_change_<model>``). Nothing here simulates: every state is one the
+run evaluated.
+"""
+from __future__ import annotations
+
+import logging
+import shutil
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..mesh.animation import write_obj
+from ..problems.base import BodyProblem
+from .evaluation import Evaluation
+from .figures import colorize, frame_errors_figure, save_png
+from .guard import PlotGuard
+from .progress import PROGRESS_LOGGER
+from .results import write_json
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .tensorboard import TensorBoardLogger
+
+log = logging.getLogger(__name__)
+progress = logging.getLogger(PROGRESS_LOGGER)
+
+COMPARISON_PNG = "frame_comparison.png"
+COMPARISON_JSON = "model_comparison.json"
+REGIONS_JSON = "regions.json"
+VTU_FILE = "body.vtu"
+FRAMES_DIR = "frames"
+
+
+def _numpy(x: Tensor) -> np.ndarray:
+    return x.detach().cpu().numpy().astype(np.float64)
+
+
+def vertex_field(cells: np.ndarray, values: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Per-vertex mean of a per-cell field ``(n_vertices,)`` (for colouring a surface)."""
+    total = np.zeros(n_vertices)
+    count = np.zeros(n_vertices)
+    np.add.at(total, cells.reshape(-1), np.repeat(values, cells.shape[1]))
+    np.add.at(count, cells.reshape(-1), 1.0)
+    return total / np.maximum(count, 1.0)
+
+
+def surface_figure(panels: Sequence[tuple[str, np.ndarray, np.ndarray | None]],
+                   faces: np.ndarray, vmax: float, title: str | None = None):
+    """Surfaces side by side (matplotlib 3-D), each ``(label, vertices (V, 3), error (V,))``
+    coloured by its per-vertex error on a common scale ``[0, vmax]`` (grey without one)."""
+    from matplotlib import colormaps
+    from matplotlib.figure import Figure
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    fig = Figure(figsize=(4.2 * len(panels), 5.2), dpi=100, layout="constrained")
+    all_points = np.concatenate([p[1] for p in panels])
+    lo, hi = all_points.min(0), all_points.max(0)
+    centre, half = (lo + hi) / 2, (hi - lo).max() / 2
+    cmap = colormaps["magma"]
+    for i, (label, vertices, error) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), i + 1, projection="3d")
+        triangles = vertices[faces]
+        if error is None:
+            colours = np.tile([0.75, 0.75, 0.78, 1.0], (len(faces), 1))
+        else:
+            colours = cmap(np.clip(error[faces].mean(axis=1) / max(vmax, 1e-300), 0, 1))
+        # simple Lambert shading so the shape reads without a colour scale
+        normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+        light = 0.55 + 0.45 * np.abs(normals @ np.array([0.3, -0.8, 0.5]) / np.linalg.norm(
+            [0.3, -0.8, 0.5]))
+        colours = colours.copy()
+        colours[:, :3] *= light[:, None]
+        ax.add_collection3d(Poly3DCollection(triangles, facecolors=colours, linewidths=0))
+        for axis, c in zip("xyz", centre):
+            getattr(ax, f"set_{axis}lim")(c - half, c + half)
+        ax.set_box_aspect((1, 1, 1))
+        ax.view_init(elev=10, azim=-90)
+        ax.set_axis_off()
+        ax.set_title(label, fontsize=9)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return fig
+
+
+class BodyOutputs:
+    """Per-iteration per-frame errors and the end-of-run files of a 3-D body (module doc).
+
+    Called with the run's :class:`~torchfit.reporting.evaluation.Evaluation` of every
+    record; :meth:`finish` with the one at the end, then :meth:`compare` with it, the
+    homogeneous material's (:attr:`baseline`, or one the run made when it did not start
+    there) and the states of :meth:`comparison_models`, then :meth:`copy_animation`.
+
+    Args:
+        problem: a :class:`~torchfit.problems.base.BodyProblem`.
+        tb: the run's TensorBoard logger.
+        run_dir: the run directory.
+        frames: frames to show as TensorBoard meshes (default: the reference frame, the
+            problem's ``full_bend_frame``, and frame 0).
+        guard: the run's plot guard (a drawing failure is warned about, never fatal).
+        suggest_continuation: the end-of-run warning about folded frames suggests fitting
+            the others first (not in a run that is a stage of one: it reports itself).
+    """
+
+    def __init__(self, problem: BodyProblem, tb: "TensorBoardLogger", run_dir: str | Path,
+                 frames: Sequence[int] | None = None, guard: PlotGuard | None = None,
+                 suggest_continuation: bool = True) -> None:
+        self.problem = problem
+        self.tb = tb
+        self.run_dir = Path(run_dir)
+        self.frames = sorted({int(problem.full_bend_frame), 0} if frames is None
+                             else {int(f) for f in frames})
+        self.guard = guard or PlotGuard()
+        self.history: dict[int, np.ndarray] = {}
+        #: the evaluation of the homogeneous material (the initial guess) at iteration 0:
+        #: the model comparison's baseline (``None``: the run did not start there)
+        self.baseline: Evaluation | None = None
+        self.started_elsewhere = False     # iteration 0 was not the initial guess (init=)
+        self.suggest_continuation = suggest_continuation
+        #: one line per file worth pointing a user at, once :meth:`compare` wrote it
+        self.highlights: list[str] = []
+
+    def __call__(self, evaluation: Evaluation) -> None:
+        assert evaluation.record is not None, "an observer reads the evaluation of a record"
+        iteration = int(evaluation.record.iteration)
+        curves = self.problem.frame_errors(evaluation.state)
+        self.history[iteration] = curves["surface_err_mean"]
+        if iteration == 0:
+            self.started_elsewhere = not torch.equal(evaluation.theta, self.problem.theta0)
+            if not self.started_elsewhere:
+                self.baseline = evaluation
+
+    def comparison_models(self) -> list[str]:
+        """The constitutive models the comparison shows beside the fitted one (``linear``),
+        whose states :meth:`compare` needs for the homogeneous and the fitted field."""
+        return [] if self.problem.cfg.model.value == "linear" else ["linear"]
+
+    # -- end of the run ---------------------------------------------------------------
+    def finish(self, final: Evaluation) -> list[Path]:
+        """The fold warning and the files of the fitted state (``final``: the run's
+        evaluation at its end): OBJ frames, VTU, regions, TensorBoard meshes,
+        ``frame_errors.png``; returns the files written."""
+        problem = self.problem
+        field, x = final.field, final.state
+        # a run started from an earlier one (init=) is that continuation already
+        warn_inverted(problem.frame_errors(x).get("inverted_tets"), problem.frame_numbers(),
+                      suggest=self.suggest_continuation and not self.started_elsewhere)
+        files: list[Path] = []
+        steps = [
+            ("simulated frames (OBJ)", self._write_frames, (x,)),
+            ("body.vtu", self._write_vtu, (x, field)),
+            ("regions.json", self._write_regions, (field,)),
+            ("TensorBoard meshes", self._write_meshes, (x, field)),
+            ("frame_errors.png", self._write_frame_errors, (x,)),
+        ]
+        for what, step, args in steps:
+            written = self.guard.run(what, step, *args)
+            files.extend(written or [])
+        return files
+
+    def compare(self, final: Evaluation, baseline: Evaluation,
+                others: dict[str, dict[str, Tensor]]) -> tuple[list[Path], dict[str, Any]]:
+        """The model comparison: ``model_comparison.json`` and ``frame_comparison.png``;
+        returns ``(files, comparison)`` (the latter goes into ``result.json``; both empty
+        where drawing failed).
+
+        Args:
+            final: the run's evaluation at its end.
+            baseline: the homogeneous material's (the initial guess), simulated cold.
+            others: ``{'homogeneous': {model: state}, 'fitted': {model: state}}`` for
+                every model of :meth:`comparison_models`.
+        """
+        compared = self.guard.run("model comparison", self._compare_models, final.state,
+                                  baseline, others)
+        if compared is None:
+            return [], {}
+        self.highlights.append(
+            f"pictures: {self.run_dir / COMPARISON_PNG} (animation | linear | fitted model "
+            f"at full bend), fitted field per region: {self.run_dir / REGIONS_JSON}, for "
+            f"ParaView: {self.run_dir / VTU_FILE}")
+        return compared
+
+    def copy_animation(self) -> list[Path]:
+        """A copy of the animation folder the problem wrote itself (``animation/``)."""
+        return self.guard.run("animation copy", self._copy_animation) or []
+
+    def _write_frames(self, x: Tensor) -> list[Path]:
+        folder = self.run_dir / FRAMES_DIR
+        folder.mkdir(exist_ok=True)
+        surface = _numpy(self.problem.surface(x))
+        faces = np.asarray(self.problem.animation.faces)
+        paths = []
+        for f in range(surface.shape[0]):
+            path = folder / f"frame_{f:03d}.obj"
+            write_obj(path, surface[f], faces)
+            paths.append(path)
+        progress.info("wrote %d simulated frames to %s", len(paths), folder)
+        return paths
+
+    def _write_vtu(self, x: Tensor, field: Tensor) -> list[Path]:
+        import meshio
+
+        problem = self.problem
+        points = np.asarray(problem.mesh.points)
+        cell_data = {"E": [_numpy(field)]}
+        if problem.field_true is not None:
+            cell_data["E_true"] = [_numpy(problem.field_true)]
+        if problem.tet_regions is not None:
+            cell_data["region"] = [np.asarray(problem.tet_regions, dtype=np.int32)]
+        positions = _numpy(x)
+        point_data = {f"displacement_{f:03d}": positions[f] - points
+                      for f in range(positions.shape[0])}
+        mesh = meshio.Mesh(points, [("tetra", np.asarray(problem.mesh.cells))],
+                           point_data=point_data, cell_data=cell_data)
+        path = self.run_dir / VTU_FILE
+        tmp = path.with_name(path.name + ".tmp.vtu")
+        meshio.write(str(tmp), mesh)
+        tmp.replace(path)
+        return [path]
+
+    def _write_regions(self, field: Tensor) -> list[Path]:
+        problem = self.problem
+        out: dict[str, Any] = {"fitted": problem.region_summary(field)}
+        if problem.field_true is not None:
+            out["true"] = problem.region_summary(problem.field_true)
+            # scale-free: the fit is known up to a global factor; report it aligned too
+            f, t = _numpy(field), _numpy(problem.field_true)
+            a = float(f @ t / (f @ f)) if float(f @ f) > 0 else 1.0
+            out["alignment_scale"] = a
+            out["fitted_aligned"] = problem.region_summary(field * a)
+        path = self.run_dir / REGIONS_JSON
+        write_json(path, out)
+        return [path]
+
+    def _mesh_colours(self, values: np.ndarray, vmin: float, vmax: float,
+                      cmap: str) -> np.ndarray:
+        return colorize(values[None, :], vmin, vmax, cmap)[0]
+
+    def _write_meshes(self, x: Tensor, field: Tensor) -> list[Path]:
+        problem = self.problem
+        writer = self.tb.writer
+        faces = np.asarray(problem.animation.faces)
+        surface = _numpy(problem.surface(x))
+        errors = _numpy(problem.surface_error_field(x))                 # (F, V)
+        vmax = float(errors.max()) if errors.size else 1.0
+        from ..mesh.embedding import boundary_faces
+
+        tet_faces, _ = boundary_faces(np.asarray(problem.mesh.cells))
+        E_vertex = vertex_field(np.asarray(problem.mesh.cells), _numpy(field),
+                                problem.mesh.points.shape[0])
+        positions = _numpy(x)
+        step = self.tb.last_step or 0
+        for f in self.frames:
+            if f >= surface.shape[0]:
+                continue
+            colours = self._mesh_colours(errors[f], 0.0, vmax, "magma")
+            writer.add_mesh(f"mesh/surface_error_frame{f}", torch.as_tensor(surface[f][None]),
+                            colors=torch.as_tensor(colours[None]),
+                            faces=torch.as_tensor(faces[None].astype(np.int32)), global_step=step)
+            colours = self._mesh_colours(E_vertex, float(E_vertex.min()), float(E_vertex.max()),
+                                         "viridis")
+            writer.add_mesh(f"mesh/E_frame{f}", torch.as_tensor(positions[f][None]),
+                            colors=torch.as_tensor(colours[None]),
+                            faces=torch.as_tensor(tet_faces[None].astype(np.int32)),
+                            global_step=step)
+        curves = problem.frame_errors(x)
+        for f, value in enumerate(curves["surface_err_mean"]):
+            writer.add_scalar("frames/surface_err_mean", float(value), f)
+        if 0 in self.history:
+            for f, value in enumerate(self.history[0]):
+                writer.add_scalar("frames/surface_err_mean_homogeneous", float(value), f)
+        model = problem.cfg.model.value
+        for f, value in enumerate(curves["joint_volume_change"]):
+            writer.add_scalar(f"frames/joint_volume_change_{model}", float(value), f)
+        for f, value in enumerate(curves["inverted_tets"]):
+            writer.add_scalar(f"frames/inverted_tets_{model}", float(value), f)
+        writer.flush()
+        return []
+
+    def _write_frame_errors(self, x: Tensor) -> list[Path]:
+        from matplotlib.figure import Figure
+
+        problem = self.problem
+        final = problem.frame_errors(x)["surface_err_mean"]
+        fig = Figure(figsize=(7.0, 3.6), dpi=100, layout="constrained")
+        ax = fig.add_subplot()
+        frames = np.arange(len(final))
+        if 0 in self.history:
+            ax.plot(frames, self.history[0] * 1e3, "o-", color="0.5", ms=3,
+                    label="homogeneous (initial)")
+        ax.plot(frames, final * 1e3, "o-", color="C0", ms=3, label="fitted")
+        ax.set_xlabel("frame")
+        ax.set_ylabel("mean surface error (mm)")
+        ax.grid(alpha=0.3)
+        ax.legend()
+        path = self.run_dir / "frame_errors.png"
+        save_png(fig, path)
+        paths = [path]
+        if len(self.history) > 1:
+            fig = frame_errors_figure(self.history, problem.frame_names())
+            fig.axes[0].set_ylabel("mean surface error (m)")
+            history_path = self.run_dir / "frame_errors_history.png"
+            save_png(fig, history_path)
+            paths.append(history_path)
+        return paths
+
+    def _compare_models(self, x: Tensor, baseline: Evaluation,
+                        others: dict[str, dict[str, Tensor]]) -> tuple[list[Path], dict[str, Any]]:
+        """``linear`` against the fitted model, with the homogeneous material (the seed's
+        comparison: same animation, same rig, no fitting) and with the fitted field."""
+        problem = self.problem
+        model = problem.cfg.model.value
+        frame = int(problem.full_bend_frame)
+        names = problem.frame_names()
+        states = {"homogeneous": {model: baseline.state, **others.get("homogeneous", {})},
+                  "fitted": {model: x, **others.get("fitted", {})}}
+        summary: dict[str, Any] = {"frame": frame, "frame_name": names[frame],
+                                   "homogeneous": {}, "fitted": {}}
+        for material, by_model in states.items():
+            for name in sorted(by_model, key=lambda n: n != "linear"):
+                curves = problem.frame_errors(by_model[name])
+                summary[material][name] = {
+                    "surface_err_mean": float(np.mean(curves["surface_err_mean"])),
+                    "joint_volume_change_at_frame": float(curves["joint_volume_change"][frame]),
+                    "surface_err_mean_per_frame": curves["surface_err_mean"].tolist(),
+                    "joint_volume_change_per_frame": curves["joint_volume_change"].tolist(),
+                    "inverted_tets_per_frame": curves["inverted_tets"].tolist(),
+                }
+        json_path = self.run_dir / COMPARISON_JSON
+        write_json(json_path, summary)
+        panels = [("animation (target)", _numpy(problem.clean_surface())[frame], None)]
+        shown = [("homogeneous", n) for n in sorted(states["homogeneous"], key=lambda n: n != "linear")]
+        shown.append(("fitted", model))
+        errors = {key: _numpy(problem.surface_error_field(states[key[0]][key[1]]))[frame]
+                  for key in shown}
+        vmax = max(float(e.max()) for e in errors.values()) or 1.0
+        for material, name in shown:
+            info = summary[material][name]
+            label = f"{name}, {'fitted E' if material == 'fitted' else 'homogeneous E'}"
+            panels.append((f"{label}\nelbow volume {100 * info['joint_volume_change_at_frame']:+.1f} %, "
+                           f"mean error {1e3 * float(errors[(material, name)].mean()):.2f} mm",
+                           _numpy(problem.surface(states[material][name]))[frame],
+                           errors[(material, name)]))
+        fig = surface_figure(panels, np.asarray(problem.animation.faces), vmax,
+                             title=f"{names[frame]} (colour: surface error, 0 to "
+                                   f"{1e3 * vmax:.1f} mm)")
+        png = self.run_dir / COMPARISON_PNG
+        save_png(fig, png)
+        return [png, json_path], summary
+
+    def _copy_animation(self) -> list[Path]:
+        source = Path(self.problem.animation.path).parent
+        if not self.problem.writes_animation:
+            return []
+        target = self.run_dir / "animation"
+        if target.exists():
+            shutil.rmtree(target)
+        shutil.copytree(source, target)
+        return [target / source.joinpath("animation.yaml").name]
+
+
+def frame_spans(frames: Sequence[int]) -> str:
+    """Frame numbers with consecutive runs as ranges: ``[8, 9, 10, 12]`` -> ``'8-10, 12'``."""
+    frames = np.asarray(frames, dtype=int)
+    if frames.size == 0:
+        return ""
+    breaks = np.flatnonzero(np.diff(frames) != 1)
+    starts, ends = np.r_[frames[0], frames[breaks + 1]], np.r_[frames[breaks], frames[-1]]
+    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in zip(starts, ends))
+
+
+def warn_inverted(counts: np.ndarray | None, numbers: Sequence[int] | None = None,
+                   suggest: bool = True) -> None:
+    """One log line naming the frames whose equilibrium has inverted tetrahedra (where
+    Newton can reach several equilibria, so the frame depends on where it started), and
+    the continuation that avoids it: the other frames first, then all from that run.
+
+    ``counts`` ``(F,)`` per fitted frame; ``numbers`` the animation's frame numbers of the
+    fitted frames (``problem.frames``; default ``0 .. F-1``); ``suggest``: add the
+    continuation (not for a run that started from an earlier one)."""
+    if counts is None or not np.any(counts > 0):
+        return
+    numbers = np.arange(len(counts)) if numbers is None else np.asarray(numbers)
+    frames = numbers[counts > 0]
+    spans = frame_spans(frames)
+    others = numbers[counts == 0]
+    hint = ("; to keep the fit off other branches, fit the frames far from the fold first "
+            "and then all from there: continuation=true, or by hand "
+            f"'problem.frames=[{','.join(str(int(f)) for f in others)}]' and then all frames "
+            "with init=<that run's directory>") if len(others) and suggest else ""
+    subject = f"frames {spans} have" if len(frames) > 1 else f"frame {spans} has"
+    progress.warning("%s tetrahedra turned inside out at equilibrium (at most %d): a frame "
+                     "like that has several equilibria, and which one Newton reaches depends "
+                     "on where it starts (docs/problems/arm3d.md, 'Several equilibria near "
+                     "full bend')%s", subject, int(counts.max()), hint)

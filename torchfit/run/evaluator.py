@@ -1,0 +1,79 @@
+"""The one simulation of a run per recorded iteration (and at its end) that observers read.
+
+:class:`Evaluator` is the first callback of a run: for every record it simulates the
+problem once at ``record.theta`` (:class:`~torchfit.reporting.evaluation.Evaluation`:
+field, state, metrics), adds the metrics to ``record.extra`` for the callbacks after it,
+and hands the evaluation to every observer it feeds (:meth:`Evaluator.feed`). The record's
+``theta`` is the point the solver has just linearised, and the equilibrium keeps its
+solution (and factorisation) in its cache, so that simulation is a cache hit that costs no
+factorisation and no solve; it also marks that solution as the most recently used, exactly
+once per record, which the solver's next warm start and the cache's eviction then see (the
+order of the run's simulations is part of what makes two runs bit-identical).
+:attr:`Evaluator.simulations` counts the simulations made here; nothing else in a run but
+the solver (and a 3-D body's model comparison, :meth:`Evaluator.other_model`) simulates.
+"""
+from __future__ import annotations
+
+import contextlib
+from typing import Any, Callable
+
+import torch
+from torch import Tensor
+
+from ..problems import InverseProblem
+from ..records import IterationRecord
+from ..reporting.evaluation import Evaluation
+
+
+class Evaluator:
+    """One :class:`~torchfit.reporting.evaluation.Evaluation` per record, for every observer.
+
+    Attributes:
+        last: the evaluation of the last record (``None`` before the first).
+        simulations: how many times :meth:`evaluate` simulated the problem.
+    """
+
+    def __init__(self, problem: InverseProblem) -> None:
+        self.problem = problem
+        self.last: Evaluation | None = None
+        self.simulations = 0
+
+    def evaluate(self, theta: Tensor, record: IterationRecord | None = None, *,
+                 independent: bool = False) -> Evaluation:
+        """The problem at ``theta`` (one simulation); ``independent``: a cold start that
+        seeds no later warm start (a report's baseline)."""
+        problem = self.problem
+        theta = theta.detach()
+        isolated = problem.independent_simulation() if independent else contextlib.nullcontext()
+        with torch.no_grad(), isolated:
+            field = problem.field(theta)
+            state = problem.simulate(problem.simulation_input(theta)).detach()
+        self.simulations += 1
+        return Evaluation(theta, field.detach(), state, problem.metrics(theta, state), record)
+
+    def __call__(self, record: IterationRecord) -> None:
+        self.last = self.evaluate(record.theta, record)
+        record.extra.update(self.last.metrics)
+        return None
+
+    def feed(self, observer: Callable[[Evaluation], Any]) -> Callable[[IterationRecord], Any]:
+        """A record callback handing ``observer`` this evaluator's evaluation of the record
+        (the evaluator must come before it in the callbacks)."""
+        def callback(record: IterationRecord) -> Any:
+            if self.last is None or self.last.record is not record:
+                raise RuntimeError("an observer was called before the run evaluated its record")
+            return observer(self.last)
+
+        return callback
+
+    def final(self, theta: Tensor) -> Evaluation:
+        """The evaluation at the end of the run: the last record's when the run ended at its
+        ``theta`` (no simulation), else a new one (a resumed run that recorded nothing)."""
+        if self.last is not None and torch.equal(self.last.theta, theta.detach()):
+            return self.last
+        return self.evaluate(theta)
+
+    def other_model(self, model: str, field: Tensor) -> Tensor:
+        """A 3-D body's state ``(F, n, 3)`` with another constitutive ``model`` and ``field``
+        (:meth:`~torchfit.problems.base.BodyProblem.simulate_model`, no gradient)."""
+        return self.problem.simulate_model(model, field.detach())

@@ -1,0 +1,139 @@
+"""One fit: a problem, a solver and callbacks in; a run directory and a :class:`FitResult` out.
+
+The same call serves a notebook, a test and the Hydra app (``experiments/fit.py`` is a thin
+adapter over :func:`fit`); nothing here knows a Hydra type. The run directory's files are
+listed in :mod:`.outputs` and :mod:`.checkpoint`. Every input is checked before the first
+file is written (:class:`~.options.FitConfigError`,
+:class:`~.directory.RunDirectoryError`); a refused resume touches nothing of the earlier
+run.
+
+The callbacks of a run, in order: the evaluator (:mod:`.evaluator`: the one simulation per
+record, whose metrics it adds to ``record.extra``), the progress line, the checkpoint
+commit, TensorBoard, the problem's own outputs (fed the evaluation), then the caller's; an
+iteration is thus in the checkpoint before TensorBoard shows it. The end of the run reads
+the last evaluation (:meth:`~.evaluator.Evaluator.final`).
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping
+
+from torch import Tensor
+
+from ..linalg import set_threads
+from ..problems import InverseProblem
+from ..records import IterationRecord
+from ..reporting.progress import ProgressPrinter
+from ..reporting.results import CHECKPOINT_FILE, RESULT_FILE
+from ..residual import warm_up_autograd
+from ..solvers import Solver, SolverConfig
+from .checkpoint import Checkpointer, finished_result, read_checkpoint
+from .directory import check_writable
+from .evaluator import Evaluator
+from .options import FitConfigError, FitOptions, plain_settings
+from .outputs import RunOutputs
+from .result import FitResult
+from .solver import build_solver
+from .start import initial_theta
+
+log = logging.getLogger("torchfit.run")
+
+
+def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, Any] | str, *,
+        run_dir: str | Path | None = None, callbacks: Iterable[Callable[[IterationRecord], Any]] = (),
+        resume: bool = False, options: FitOptions | None = None,
+        config: Mapping[str, Any] | None = None,
+        init: Tensor | str | Path | None = None) -> FitResult:
+    """Fit ``problem`` with ``solver`` and write the run directory (module docstring).
+
+    Args:
+        problem: an inverse problem (``torchfit.problems``), built and checked.
+        solver: a :class:`~torchfit.solvers.Solver`, or a solver name / config / mapping
+            (:func:`~.solver.build_solver` hands it the parameterisation's ``D`` where
+            needed).
+        run_dir: where the outputs go (created); ``None``: no files.
+        callbacks: called with every :class:`~torchfit.records.IterationRecord` after the
+            run's own (metrics are in ``record.extra``); returning ``True`` stops the fit.
+        resume: continue from ``run_dir``'s checkpoint (a fresh start where there is none).
+        options: :class:`~.options.FitOptions`.
+        config: the settings to store in ``result.json`` and TensorBoard (the Hydra app's
+            resolved config); default: the problem's and solver's settings.
+        init: where to start instead of ``problem.theta0``: a ``theta`` or an earlier run
+            (:func:`~.start.initial_theta`), e.g. the fit of the frames whose equilibrium
+            is unique before all frames, or of a coarser mesh. A resume must repeat it.
+    Returns:
+        :class:`~.result.FitResult`.
+    Raises:
+        FitConfigError, ResumeError, :class:`~torchfit.problems.ProblemConfigError`,
+        :class:`~torchfit.solvers.SolverConfigError`: a bad setting, before any file is
+        written. RunDirectoryError: ``run_dir`` cannot be written (nothing written).
+    """
+    options = options or FitOptions()
+    if not isinstance(problem, InverseProblem):
+        raise FitConfigError(f"problem must be a torchfit InverseProblem, got "
+                             f"{type(problem).__name__}")
+    options.check(problem)
+    solver = build_solver(problem, solver)
+    start = None if init is None else initial_theta(problem, init)
+    run_path = None if run_dir is None else Path(run_dir).resolve()
+    if resume and run_path is None:
+        raise FitConfigError("resume=True needs the run_dir of the run to continue")
+    if run_path is not None:
+        check_writable(run_path)
+        if not resume and (run_path / CHECKPOINT_FILE).exists():
+            raise FitConfigError(f"{run_path} already holds a run (its checkpoint.pt); resume=true "
+                                 "continues it, or choose another run directory")
+    restart = read_checkpoint(run_path, problem, solver, start) if resume and run_path else None
+    if resume and run_path is not None and restart is None:
+        log.warning("resume: %s has no checkpoint; starting from %s", run_path / CHECKPOINT_FILE,
+                    "the initial guess" if init is None else "init")
+    config = dict(config) if config is not None else {
+        "problem": plain_settings(problem.cfg), "solver": plain_settings(solver.config)}
+    if restart is not None and restart.finished and (run_path / RESULT_FILE).is_file() and not (
+            restart.stop_reason == "max_iter" and solver.config.max_iter > restart.iteration):
+        return finished_result(problem, run_path, restart)   # a larger max_iter continues
+    if options.threads > 0:
+        set_threads(options.threads)
+    # -- from here on files are written ---------------------------------------------------
+    described = problem.describe()
+    log.info("problem %s: %s parameters, %s data, noise level %s%s%s", described["name"],
+             described["n_params"], described["n_data"], described["noise_level"],
+             f"; starting from {init}" if start is not None and not isinstance(init, Tensor)
+             else "", f"; resuming after iteration {restart.iteration}" if restart else "")
+    rows: list[dict[str, Any]] = list(restart.rows) if restart else []
+    evaluator = Evaluator(problem)
+    chain: list[Callable[[IterationRecord], Any]] = [evaluator]
+    if options.progress:
+        chain.append(ProgressPrinter())
+    checkpointer = outputs = None
+    if run_path is not None:
+        run_path.mkdir(parents=True, exist_ok=True)
+        checkpointer = Checkpointer(run_path, problem, solver, rows, start)
+        chain.append(checkpointer)
+        outputs = RunOutputs(run_path, problem, evaluator, options, config, restart)
+        chain.extend(outputs.callbacks())
+    else:
+        chain.append(lambda record: rows.append(record.row()))
+    chain.extend(callbacks)
+    warm_up_autograd()     # torch's lazy one-time set-up, outside the solver's clock
+    try:
+        solved = solver.solve(problem.residual(),
+                              problem.theta0 if start is None else start, chain,
+                              state=restart.state if restart else None)
+    finally:
+        if checkpointer is not None:
+            checkpointer.close()
+        if outputs is not None:
+            outputs.flush()
+    final = evaluator.final(solved.theta)
+    result = FitResult(solved.theta.detach(), final.field, final.metrics, solved.iterations,
+                       solved.wall_time, solved.factorizations, solved.solves, solved.converged,
+                       str(solved.stop_reason), rows, run_path, [],
+                       restart.iteration if restart else None, solved)
+    if run_path is not None:
+        assert outputs is not None and checkpointer is not None
+        result.files = outputs.finish(result, final)
+        checkpointer.commit(solved.iterations, solved.theta, solver.state_dict(),
+                            stop_reason=str(solved.stop_reason))
+    return result

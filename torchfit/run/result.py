@@ -1,0 +1,90 @@
+"""What a run returns (:class:`FitResult`) and what its ``result.json`` holds.
+
+``result.json``: the final metrics (PROBLEMS.md), ``iterations``, ``wall_s``,
+``factorizations``, ``solves`` (whole-run totals, a resumed run included), ``converged``,
+``stop_reason``, ``status`` (``completed``), ``resumed_from_iteration`` (a resumed run),
+``problem`` (sizes), ``config`` and ``history`` (one row per outer iteration); a 3-D body
+adds ``model_comparison``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Any, Mapping
+
+from torch import Tensor
+
+from ..problems import InverseProblem
+from ..records import SolveResult
+
+
+@dataclasses.dataclass
+class FitResult:
+    """Outcome of :func:`~torchfit.run.fit`.
+
+    Attributes:
+        theta: ``(n_params,)`` fitted parameters; ``field`` the physical field.
+        metrics: the final metrics of PROBLEMS.md.
+        iterations, wall_s, factorizations, solves: whole-run totals (a resumed run
+            included).
+        converged, stop_reason: as the solver reports them.
+        history: one row per outer iteration of the whole run (``iteration`` and every
+            record scalar, metrics included).
+        run_dir: the run directory (``None`` without files); ``files`` what was written.
+        resumed_from: the iteration a resumed run continued after (``None``: fresh).
+        solve: the solver's own result for this process's part of the run.
+        first_stage: the first stage of a continuation
+            (:func:`~torchfit.run.fit_continued`), else ``None``.
+        highlights: one line per output worth pointing a user at (written by the outputs
+            themselves, e.g. a 3-D body's comparison picture and ParaView file).
+    """
+
+    theta: Tensor
+    field: Tensor
+    metrics: dict[str, float]
+    iterations: int
+    wall_s: float
+    factorizations: int
+    solves: int
+    converged: bool
+    stop_reason: str
+    history: list[dict[str, float]]
+    run_dir: Path | None = None
+    files: list[Path] = dataclasses.field(default_factory=list)
+    resumed_from: int | None = None
+    solve: SolveResult | None = None
+    first_stage: "FitResult | None" = None
+    highlights: list[str] = dataclasses.field(default_factory=list)
+
+    def value(self, key: str) -> float:
+        """``metrics[key]`` or a count (``iterations``, ...); ``+inf`` where not finite, so
+        that a sweeper ranks such a run last."""
+        counts = {"iterations": self.iterations, "wall_s": self.wall_s,
+                  "factorizations": self.factorizations, "solves": self.solves}
+        value = float(self.metrics[key] if key in self.metrics else counts[key])
+        return value if math.isfinite(value) else math.inf
+
+    def summary(self) -> str:
+        """One line: stop reason, iterations, time, counts and the headline metrics."""
+        shown = ", ".join(f"{k} {self.metrics[k]:.3e}" for k in
+                          ("misfit", "k_err_rel", "k_err_rel_aligned") if k in self.metrics)
+        return (f"{self.stop_reason} after {self.iterations} iterations "
+                f"({'converged' if self.converged else 'not converged'}) in {self.wall_s:.2f} s, "
+                f"{self.factorizations} factorizations, {self.solves} solves: {shown}")
+
+
+def result_dict(problem: InverseProblem, result: FitResult,
+                config: Mapping[str, Any]) -> dict[str, Any]:
+    """The content of ``result.json`` (module docstring), without ``model_comparison``."""
+    out: dict[str, Any] = {k: float(v) for k, v in result.metrics.items()}
+    out.update({"iterations": result.iterations, "wall_s": result.wall_s,
+                "factorizations": result.factorizations, "solves": result.solves,
+                "converged": result.converged, "stop_reason": result.stop_reason,
+                "status": "completed"})
+    if result.resumed_from is not None:
+        out["resumed_from_iteration"] = result.resumed_from
+    out["problem"] = problem.describe()
+    out["config"] = dict(config)
+    out["history"] = result.history
+    return out
