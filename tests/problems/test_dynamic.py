@@ -10,7 +10,7 @@ import torch
 import torchfit
 from torchfit.params import FieldAndScalars, per_element, chain_edges
 from torchfit.problems import ProblemConfigError, build_problem
-from torchfit.problems.membrane2d import DynamicMembrane2D
+from torchfit.problems.membrane2d import DynamicMembrane2D, Membrane2D
 from torchfit.problems.spring1d import DynamicSpring1D, Spring1D
 
 #: a short chain: every dynamic feature, seconds to fit
@@ -49,6 +49,14 @@ def test_dynamic_flag_selects_the_dynamic_problem_and_its_contract():
     assert problem.metrics(truth)["misfit"] == pytest.approx(0.0, abs=1e-10)
     described = problem.describe()
     assert described["integrator"] == "implicit" and described["steps"] == 100
+
+
+def test_each_class_refuses_the_other_value_of_the_dynamic_flag():
+    with pytest.raises(ProblemConfigError, match="problem.dynamic=True: Spring1D is the static"):
+        Spring1D(dynamic=True)
+    with pytest.raises(ProblemConfigError, match="DynamicSpring1D is the dynamic problem"):
+        DynamicSpring1D(n=4)
+    assert type(build_problem("membrane2d", {**SMALL_SHEET, "dynamic": False})) is Membrane2D
 
 
 def test_the_chain_falls_oscillates_and_settles():

@@ -49,8 +49,10 @@ from ..mesh.tetrahedralize import TetMesh, TetOptions, default_cache_dir, tetrah
 from ..params import Parameterization, per_element, per_grid_node, per_region
 from ..physics import NewtonOptions
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
-from .base import (Backend, Choice, InverseProblem, ProblemConfig, ProblemConfigError,
-                   check_newton_settings, require_setting, resolve_backend, setting_error)
+from ..settings import Choice
+from .base import InverseProblem
+from .config import (Backend, ProblemConfig, ProblemConfigError, check_newton_settings,
+                     require_setting, resolve_backend, setting_error)
 
 
 class ElasticModel(Choice):
@@ -89,26 +91,31 @@ class AnimationConfig(ProblemConfig):
 
     name: str = "animation"
     path: str = ""                         # folder holding animation.yaml
-    frames: Optional[List[int]] = None     # which frames to fit (default: all)
-    model: ElasticModel = ElasticModel.corotated
+    frames: Optional[List[int]] = None     # a subset of the frames (numbers); null: all
+    model: ElasticModel = ElasticModel.corotated   # linear | corotated | stable_neo_hookean
     nu: float = 0.45                       # Poisson ratio, fixed
+    # rig (the animated surface) | synthetic (simulated from a known field)
     target: Target = Target.rig
-    truth: Truth = Truth.blocks            # synthetic targets only
-    # truth=regions: one modulus per label (arm: bone, muscle, fat; the bone core is attached
-    # to the rig, so its modulus is unobservable: it gets the muscle's value by default)
+    truth: Truth = Truth.blocks            # synthetic only: blocks | regions (needs labels)
+    # truth=regions: one modulus per label (arm: bone, muscle, fat; the bone core is attached to
+    # the rig, so its modulus is unobservable: it gets the muscle's value by default)
     E_regions: List[float] = dataclasses.field(default_factory=lambda: [4.0, 4.0, 1.0])
+    # truth=blocks: background, stiff block, soft block
     E_blocks: List[float] = dataclasses.field(default_factory=lambda: [1.0, 4.0, 0.4])
+    # grid (coarse nodes, trilinear) | region (one per label; needs labels) | tet
     parameters: Layout = Layout.grid
     grid: List[int] = dataclasses.field(default_factory=lambda: [4, 4, 12])   # nodes x, y, z
-    E0: float = 1.0                        # initial guess, constant
-    backend: Backend = Backend.auto        # auto: pardiso where installed, else scipy
+    E0: float = 1.0                        # initial guess, constant (the homogeneous material)
+    # auto (pardiso where installed, else scipy) | pardiso | scipy | cg
+    backend: Backend = Backend.auto
     # tetrahedralisation (pytetwild): target edge length as a fraction of the bounding-box
     # diagonal, envelope (fraction of the diagonal), quality (stop energy), optimisation
     tet_edge_length: float = 0.05
     tet_epsilon: float = 1e-3
     tet_stop_energy: float = 10.0
     tet_optimize: bool = True
-    cache_dir: str = ""                    # tet-mesh cache ("" : $TORCHFIT_CACHE_DIR or ~/.cache/torchfit)
+    # tet meshes (and the arm's animation): "" is $TORCHFIT_CACHE_DIR or ~/.cache/torchfit
+    cache_dir: str = ""
     newton_rtol: float = 1e-10
     newton_atol: float = 1e-12
     newton_max_iter: int = 300

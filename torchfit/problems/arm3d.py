@@ -27,13 +27,15 @@ from ..mesh.arm import (REGION_NAMES, ArmShape, arm_animation, arm_surface, corr
                         elbow_angles, elbow_region, region_labels)
 from ..mesh.tetrahedralize import default_cache_dir
 from .animation import AnimationConfig, AnimationProblem
-from .base import ProblemConfigError, require_setting
+from .config import ProblemConfigError, require_setting
 
 
 @dataclasses.dataclass
 class Arm3DConfig(AnimationConfig):
     """Settings of ``problem=arm3d``: the arm's shape and animation, then everything of
-    ``problem=animation`` (``path`` is not used: the arm writes its own animation)."""
+    ``problem=animation`` (``path`` is not used: the arm writes its own animation; ``frames``
+    are numbers among the 48, e.g. ``[0, 3, 6, 9, 11]``; the regions of ``E_regions`` are
+    bone, muscle, fat)."""
 
     name: str = "arm3d"
     upper: float = 0.30                # upper-arm length (m)
@@ -45,7 +47,7 @@ class Arm3DConfig(AnimationConfig):
     max_extension: float = 10.0        # degrees
     bicep_bulge: float = 0.012         # peak corrective displacement at full flexion (m)
     tricep_bulge: float = 0.006        # at full extension (m)
-    tet_edge_length: float = 0.028     # about 10k tetrahedra
+    tet_edge_length: float = 0.028     # fraction of the bounding-box diagonal: ~10k tetrahedra
     # noise as a fraction of the mean bulge displacement (0.01: 1 %); sets problem.noise
     noise_of_bulge: float = 0.0
 
