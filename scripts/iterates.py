@@ -38,7 +38,9 @@ RUNS: dict[str, list[str]] = {
                       "solver.max_iter=8"],
     "spring1d_dynamic": ["problem=spring1d_dynamic", "problem.n=16", "problem.duration=2.0",
                          "problem.frames=20", "solver.max_iter=6"],
-    "arm3d_short": [],
+    # one thread: MKL PARDISO's multithreaded factorisation is not bit-reproducible run to run
+    # (the initial damping differed in the last digit between two runs of one tree)
+    "arm3d_short": ["threads=1"],
 }
 _WALL_KEYS = {"wall_time", "wall_s", "solver_wall_s", "setup_s"}
 

@@ -8,7 +8,8 @@ import torch
 import trimesh
 
 from torchfit.mesh import (Embedding, MeshError, TetOptions, box_tetrahedra, boundary_faces,
-                           embed_points, surface_volume, surface_warnings, tetrahedralize)
+                           embed_points, tetrahedralize)
+from torchfit.mesh.surface import surface_volume, surface_warnings
 
 TOL = 1e-10
 

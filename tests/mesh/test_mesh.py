@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from torchfit.mesh import (MeshError, box_tetrahedra, check_rest_cells, element_adjacency,
-                           ipam_mask, normalized_points, rectangle_triangles, word_bitmap)
+                           ipam_mask, normalized_points, rectangle_triangles)
+from torchfit.mesh.font import word_bitmap
 
 
 def test_rectangle_triangulation_numbering_and_orientation():

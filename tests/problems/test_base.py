@@ -16,8 +16,8 @@ import torch
 from omegaconf import OmegaConf
 from omegaconf.errors import ValidationError
 
-from capsule_animation import write_capsule
-from conftest import REPO
+from helpers.capsule_animation import write_capsule
+from helpers.fit_app import REPO
 from torchfit.logging.results import jsonable, write_json
 from torchfit.physics.elasticity import ALIASES, MATERIALS
 from torchfit.problems import (PROBLEMS, Backend, DataMode, DType,

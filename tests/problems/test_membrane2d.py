@@ -87,7 +87,7 @@ def test_taylor_and_dot_product(model):
 def test_explicit_products_equal_the_autograd_products(model):
     """The solvers' explicit J v / J^T w (free-dof layout, per-frame factors) against the
     autograd route through the same equilibrium."""
-    from conftest import explicit_and_autograd
+    from helpers.products import explicit_and_autograd
 
     problem = Membrane2D(nx=12, ny=3, model=model)
     _, lin, reference, v, w = explicit_and_autograd(problem, 2)

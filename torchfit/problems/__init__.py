@@ -8,7 +8,7 @@ from ..settings import Choice
 from .base import FieldImageProblem, FramedProblem, InverseProblem, MeshProblem
 from .config import (Backend, DataMode, DType, ProblemConfig, ProblemConfigError, Transform,
                      make_config)
-from .animation import AnimationConfig, AnimationProblem
+from .rigged_body import RiggedBodyConfig, RiggedBody
 from .arm3d import Arm3D, Arm3DConfig
 from .membrane2d import DynamicMembrane2D, Membrane2D, Membrane2DConfig, Model, SheetData
 from .poisson2d import Pattern, Poisson2D, Poisson2DConfig
@@ -31,7 +31,7 @@ PROBLEMS: dict[str, ProblemEntry] = {
     "poisson2d": ProblemEntry(Poisson2DConfig, Poisson2D),
     "membrane2d": ProblemEntry(Membrane2DConfig, Membrane2D, DynamicMembrane2D),
     "arm3d": ProblemEntry(Arm3DConfig, Arm3D),
-    "animation": ProblemEntry(AnimationConfig, AnimationProblem),
+    "animation": ProblemEntry(RiggedBodyConfig, RiggedBody),
 }
 
 
@@ -47,7 +47,7 @@ def build_problem(name: str, cfg: Any = None) -> InverseProblem:
     return (entry.dynamic_class if dynamic else entry.problem_class)(config)
 
 
-__all__ = ["AnimationConfig", "AnimationProblem", "Arm3D", "Arm3DConfig", "Backend", "Choice", "DType", "DataMode", "FieldImageProblem", "FramedProblem",
+__all__ = ["RiggedBodyConfig", "RiggedBody", "Arm3D", "Arm3DConfig", "Backend", "Choice", "DType", "DataMode", "FieldImageProblem", "FramedProblem",
            "InverseProblem", "Membrane2D", "Membrane2DConfig", "MeshProblem", "Model",
            "PROBLEMS", "Pattern", "Poisson2D", "Poisson2DConfig", "ProblemConfig",
            "ProblemConfigError", "ProblemEntry", "SheetData", "Spring1D", "Spring1DConfig",

@@ -32,9 +32,8 @@ coordinates of every free vertex at the output times. Fitted: ``E`` per triangle
 ``alpha`` and ``beta`` (:mod:`torchfit.problems.dynamic`). Not scale-free (inertia).
 ``conf/problem/membrane2d_dynamic.yaml`` is the preset (a 48 x 12 sheet).
 
-``problem.dtype=float32`` works for every model, but the Newton residuals of the nonlinear
-ones stall near ``1e-5`` (force units) in single precision: it needs
-``problem.newton_atol >= 1e-4`` (checked); the ``linear`` model has no such limit.
+``problem.dtype=float32`` with a nonlinear model needs ``problem.newton_atol >= 1e-4``
+(checked; docs/problems/membrane2d.md); the ``linear`` model has no such limit.
 """
 from __future__ import annotations
 

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from .rig import check_transforms
+from .rig import DrivenSurface, Skeleton, check_transforms
 from .simplicial import MeshError
 
 MANIFEST = "animation.yaml"
@@ -54,50 +54,6 @@ REGION_KEYS = ("labels", "names")
 
 class AnimationError(MeshError):
     """An animation folder that cannot be used; the message names the file and the fault."""
-
-
-@dataclasses.dataclass
-class Skeleton:
-    """Bones in the rest pose and their per-frame transforms (lengths in metres).
-
-    Attributes:
-        heads, tails: ``(B, 3)`` rest-pose segment ends.
-        transforms: ``(F, B, 3, 4)`` ``[A | t]`` with ``x' = A x + t``.
-        attach_radius: material points within this distance of a bone follow it.
-        weights: ``(V, B)`` skinning weights per rest-surface vertex, or ``None`` (from
-            distance).
-        names: ``B`` bone names.
-    """
-
-    heads: np.ndarray
-    tails: np.ndarray
-    transforms: np.ndarray
-    attach_radius: float
-    weights: np.ndarray | None = None
-    names: list[str] = dataclasses.field(default_factory=list)
-
-    @property
-    def n_bones(self) -> int:
-        return int(self.heads.shape[0])
-
-    def joints(self, tol: float = 1e-9) -> np.ndarray:
-        """Rest positions ``(k, 3)`` where one bone's tail meets another's head."""
-        gap = np.linalg.norm(self.tails[:, None, :] - self.heads[None, :, :], axis=-1)
-        scale = max(float(np.linalg.norm(self.tails - self.heads, axis=1).max()), 1e-300)
-        i, j = np.nonzero((gap <= tol * scale) & ~np.eye(self.n_bones, dtype=bool))
-        return self.tails[i] if i.size else np.zeros((0, 3))
-
-
-@dataclasses.dataclass
-class DrivenSurface:
-    """Surface vertices whose animated motion is prescribed (``mask`` ``(V,)`` bool)."""
-
-    mask: np.ndarray
-    tolerance: float
-
-    @property
-    def indices(self) -> np.ndarray:
-        return np.flatnonzero(self.mask)
 
 
 @dataclasses.dataclass

@@ -15,8 +15,8 @@ import pytest
 import torch
 import yaml
 
-from capsule_animation import write_capsule
-from conftest import run_fit_app
+from helpers.capsule_animation import write_capsule
+from helpers.fit_app import run_fit_app
 from torchfit import build_problem, fit
 from torchfit.problems import ProblemConfigError
 
