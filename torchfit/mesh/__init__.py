@@ -1,6 +1,8 @@
-"""Meshes: structured triangle and tetrahedral meshes, user surfaces, tetrahedralisation
-(fTetWild, cached), barycentric embedding, rigs, the animation folder format and the
-procedural arm. Nothing here solves anything."""
+"""Meshes, surfaces, rigs and animations: everything geometric, nothing that solves.
+
+Structured triangle and tetrahedral meshes, user surfaces, tetrahedralisation (fTetWild,
+cached), barycentric embedding, rigs, the animation folder format and the procedural arm.
+"""
 from .animation_format import (Animation, AnimationError, load_animation, write_animation,
                                write_obj)
 from .embedding import Embedding, boundary_faces, embed_points

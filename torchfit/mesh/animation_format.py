@@ -46,10 +46,10 @@ from .simplicial import MeshError
 
 MANIFEST = "animation.yaml"
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
-TOP_KEYS = ("unit", "rest", "frames", "skeleton", "driven", "regions", "description")
-SKELETON_KEYS = ("bones", "attach_radius", "weights")
-DRIVEN_KEYS = ("vertices", "tolerance")
-REGION_KEYS = ("labels", "names")
+_TOP_KEYS = ("unit", "rest", "frames", "skeleton", "driven", "regions", "description")
+_SKELETON_KEYS = ("bones", "attach_radius", "weights")
+_DRIVEN_KEYS = ("vertices", "tolerance")
+_REGION_KEYS = ("labels", "names")
 
 
 class AnimationError(MeshError):
@@ -104,7 +104,7 @@ class Animation:
 
 
 # -- reading ------------------------------------------------------------------------------
-def natural_key(name: str) -> list[Any]:
+def _natural_key(name: str) -> list[Any]:
     """Sort key that orders embedded numbers numerically (``f2`` before ``f10``)."""
     return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
 
@@ -212,7 +212,7 @@ def _read_frames(folder: Path, spec: Any, n_vertices: int, manifest: Path
         names = [f"{path.name}[{i}]" for i in range(frames.shape[0])]
     else:
         pattern = spec if os.path.isabs(spec) else str(folder / spec)
-        files = sorted(glob.glob(pattern), key=lambda p: natural_key(os.path.basename(p)))
+        files = sorted(glob.glob(pattern), key=lambda p: _natural_key(os.path.basename(p)))
         if not files:
             raise AnimationError(f"{manifest}: no frame file matches {pattern}")
         frames_list = []
@@ -265,7 +265,7 @@ def _read_bones(path: Path) -> dict[str, Any]:
 
 def _read_skeleton(folder: Path, section: dict, manifest: Path, unit: float,
                    n_frames: int, n_vertices: int) -> Skeleton:
-    section = _check_keys(section, SKELETON_KEYS, "skeleton", manifest)
+    section = _check_keys(section, _SKELETON_KEYS, "skeleton", manifest)
     bones_path = _file(folder, _require(section, "bones", "skeleton", manifest),
                        "skeleton bones", manifest)
     data = _read_bones(bones_path)
@@ -317,7 +317,7 @@ def _read_skeleton(folder: Path, section: dict, manifest: Path, unit: float,
 
 def _read_driven(folder: Path, section: dict, manifest: Path, unit: float,
                  n_vertices: int) -> DrivenSurface:
-    section = _check_keys(section, DRIVEN_KEYS, "driven", manifest)
+    section = _check_keys(section, _DRIVEN_KEYS, "driven", manifest)
     spec = _require(section, "vertices", "driven", manifest)
     if isinstance(spec, list):
         raw = np.asarray(spec)
@@ -353,7 +353,7 @@ def _read_driven(folder: Path, section: dict, manifest: Path, unit: float,
 
 def _read_regions(folder: Path, section: dict, manifest: Path,
                   n_vertices: int) -> tuple[np.ndarray, list[str]]:
-    section = _check_keys(section, REGION_KEYS, "regions", manifest)
+    section = _check_keys(section, _REGION_KEYS, "regions", manifest)
     path = _file(folder, _require(section, "labels", "regions", manifest), "region labels",
                  manifest)
     labels = _load_array(path, "labels")
@@ -371,7 +371,7 @@ def _read_regions(folder: Path, section: dict, manifest: Path,
     return labels, [str(n) for n in names]
 
 
-def manifest_path(path: str | Path) -> Path:
+def _manifest_path(path: str | Path) -> Path:
     """The manifest of an animation folder (or the manifest file itself)."""
     path = Path(path).expanduser()
     if path.is_dir():
@@ -394,13 +394,13 @@ def load_animation(path: str | Path) -> Animation:
 
     from .surface import load_surface, surface_warnings
 
-    manifest = manifest_path(path)
+    manifest = _manifest_path(path)
     folder = manifest.parent
     try:
         raw = yaml.safe_load(manifest.read_text())
     except (OSError, yaml.YAMLError) as err:
         raise AnimationError(f"{manifest}: cannot read the manifest ({err})") from err
-    spec = _check_keys(raw if raw is not None else {}, TOP_KEYS, "the manifest", manifest)
+    spec = _check_keys(raw if raw is not None else {}, _TOP_KEYS, "the manifest", manifest)
     unit = _unit(spec.get("unit"), manifest)
     rest_file = _file(folder, _require(spec, "rest", "the manifest", manifest), "rest surface",
                       manifest)

@@ -1,5 +1,7 @@
-"""What drives a body: skeletons, linear blend skinning, driven surfaces, and the drive of a
-tetrahedral mesh (which vertices are prescribed, where, and where Newton starts).
+"""What drives a body: skeletons, linear blend skinning, driven surfaces, a tet mesh's drive.
+
+The drive of a tetrahedral mesh says which of its vertices are prescribed, where, and where
+Newton starts.
 
 Convention (the animation format's, :mod:`.animation_format`): a bone is a rest-pose
 segment ``head -> tail``; its pose in frame ``f`` is a ``3 x 4`` matrix ``[A | t]`` acting on

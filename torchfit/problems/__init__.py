@@ -4,14 +4,14 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from ..settings import Choice
-from .base import FieldImageProblem, FramedProblem, InverseProblem, MeshProblem
-from .config import (Backend, DataMode, DType, ProblemConfig, ProblemConfigError, Transform,
-                     make_config)
-from .rigged_body import RiggedBodyConfig, RiggedBody
 from .arm3d import Arm3D, Arm3DConfig
-from .membrane2d import DynamicMembrane2D, Membrane2D, Membrane2DConfig, Model, SheetData
-from .poisson2d import Pattern, Poisson2D, Poisson2DConfig
+from .base import (BodyProblem, FieldImageProblem, FramedProblem, InverseProblem, MeshProblem,
+                   MotionProblem)
+from .config import ProblemConfig, ProblemConfigError, make_config
+from .membrane2d import DynamicMembrane2D, Membrane2D, Membrane2DConfig
+from .poisson2d import Poisson2D, Poisson2DConfig
+from .rigged_body import RiggedBody
+from .rigged_body_config import RiggedBodyConfig
 from .spring1d import DynamicSpring1D, Spring1D, Spring1DConfig
 
 
@@ -47,8 +47,8 @@ def build_problem(name: str, cfg: Any = None) -> InverseProblem:
     return (entry.dynamic_class if dynamic else entry.problem_class)(config)
 
 
-__all__ = ["RiggedBodyConfig", "RiggedBody", "Arm3D", "Arm3DConfig", "Backend", "Choice", "DType", "DataMode", "FieldImageProblem", "FramedProblem",
-           "InverseProblem", "Membrane2D", "Membrane2DConfig", "MeshProblem", "Model",
-           "PROBLEMS", "Pattern", "Poisson2D", "Poisson2DConfig", "ProblemConfig",
-           "ProblemConfigError", "ProblemEntry", "SheetData", "Spring1D", "Spring1DConfig",
-           "Transform", "build_problem"]
+__all__ = ["Arm3D", "Arm3DConfig", "BodyProblem", "DynamicMembrane2D", "DynamicSpring1D",
+           "FieldImageProblem", "FramedProblem", "InverseProblem", "Membrane2D",
+           "Membrane2DConfig", "MeshProblem", "MotionProblem", "PROBLEMS", "Poisson2D",
+           "Poisson2DConfig", "ProblemConfig", "ProblemConfigError", "ProblemEntry",
+           "RiggedBody", "RiggedBodyConfig", "Spring1D", "Spring1DConfig", "build_problem"]

@@ -36,7 +36,7 @@ from .config import (ProblemConfig, ProblemConfigError, check_device, dtype_of, 
 
 
 # -- data helpers -----------------------------------------------------------------------
-def check_finite_targets(targets: Tensor, frame_of: Tensor, node_of: Tensor,
+def _check_finite_targets(targets: Tensor, frame_of: Tensor, node_of: Tensor,
                          what: str = "target") -> None:
     """Raise naming the first frame and node whose target is NaN or infinite.
 
@@ -53,7 +53,7 @@ def check_finite_targets(targets: Tensor, frame_of: Tensor, node_of: Tensor,
             "them before fitting")
 
 
-def add_noise(clean: Tensor, sigma: float, seed: int) -> tuple[Tensor, float | None]:
+def _add_noise(clean: Tensor, sigma: float, seed: int) -> tuple[Tensor, float | None]:
     """I.i.d. Gaussian noise of standard deviation ``sigma`` (seeded, on the CPU generator).
 
     Returns:
@@ -67,7 +67,7 @@ def add_noise(clean: Tensor, sigma: float, seed: int) -> tuple[Tensor, float | N
     return clean + sigma * noise, sigma * math.sqrt(clean.numel())
 
 
-def observe_columns(observe: Callable[[Tensor], Tensor], states: Tensor) -> Tensor:
+def _observe_columns(observe: Callable[[Tensor], Tensor], states: Tensor) -> Tensor:
     """A linear ``observe`` applied to every column of ``states`` ``(..., k)``: ``(m, k)``.
 
     Vectorised with ``torch.func.vmap(observe, in_dims=-1, out_dims=-1)`` (``observe``
@@ -245,8 +245,8 @@ class InverseProblem:
             self.x_true = None
             clean, what = self.measured_data(cfg), "target"
         frame_of, node_of = self.observation_index()
-        check_finite_targets(clean, frame_of, node_of, what)
-        self.data, self.noise_level = add_noise(clean, cfg.noise, cfg.seed)
+        _check_finite_targets(clean, frame_of, node_of, what)
+        self.data, self.noise_level = _add_noise(clean, cfg.noise, cfg.seed)
 
     # -- hooks: what a problem is --------------------------------------------------------
     def check(self, cfg: Any) -> None:
@@ -303,7 +303,7 @@ class InverseProblem:
 
         The default chains the parameterisation's :meth:`~torchfit.params.Parameterization.jacobian`,
         :meth:`simulate_jacobian` and :meth:`observe` applied to every column
-        (:func:`observe_columns`); a problem implements :meth:`simulate_jacobian` (or this
+        (:func:`_observe_columns`); a problem implements :meth:`simulate_jacobian` (or this
         method). Only then does :meth:`residual` hand it to the solvers, which use it when
         ``n_params`` is small (``solver.dense_jacobian_max_params``).
         """
@@ -313,7 +313,7 @@ class InverseProblem:
             theta = theta.detach()
             field = self.parameterization(theta)
             directions = self.parameterization.jacobian(theta)
-            return observe_columns(self.observe, self.simulate_jacobian(field, directions))
+            return _observe_columns(self.observe, self.simulate_jacobian(field, directions))
 
     def has_forward_jacobian(self) -> bool:
         """Whether the subclass implements :meth:`forward_jacobian` or :meth:`simulate_jacobian`."""

@@ -81,9 +81,9 @@ class DType(Choice):
 
 
 #: Backends that factorise on the CPU (a problem on another device needs ``cg``).
-CPU_BACKENDS = (Backend.scipy, Backend.ldl, Backend.banded, Backend.pardiso)
+_CPU_BACKENDS = (Backend.scipy, Backend.ldl, Backend.banded, Backend.pardiso)
 #: Device names understood by :func:`resolve_device` (``cuda:N`` picks a GPU).
-DEVICE_CHOICES = ("cpu", "cuda", "cuda:N", "mps")
+_DEVICE_CHOICES = ("cpu", "cuda", "cuda:N", "mps")
 _DEVICE = re.compile(r"^(cpu|cuda|mps)(?::(\d+))?$")
 
 
@@ -135,7 +135,7 @@ def check_device(key: str, value: Any) -> torch.device:
     match = _DEVICE.match(name)
     if match is None:
         raise setting_error(key, value, "is not a device; choose one of "
-                            f"{', '.join(DEVICE_CHOICES)} (N = GPU index)")
+                            f"{', '.join(_DEVICE_CHOICES)} (N = GPU index)")
     kind, index = match.group(1), match.group(2)
     if kind == "cuda":
         if not torch.cuda.is_available():
@@ -183,7 +183,7 @@ def validate_config(cfg: ProblemConfig) -> None:
     require_setting(cfg.noise >= 0, cfg, "noise", "must be >= 0 (the standard deviation "
                     "of the noise; 0 for none)")
     device = check_device("device", cfg.device)
-    require_setting(device.type == "cpu" or cfg.backend not in CPU_BACKENDS, cfg, "backend",
+    require_setting(device.type == "cpu" or cfg.backend not in _CPU_BACKENDS, cfg, "backend",
                     f"runs on the CPU only; with problem.device={cfg.device} use "
                     "problem.backend=auto (cudss where installed, else cg), cudss or cg")
     require_setting(cfg.backend != Backend.cudss or device.type == "cuda", cfg, "backend",

@@ -24,10 +24,9 @@ import torch
 from torch import Tensor
 
 from ..params import FieldAndScalars, Parameterization
-from ..physics.dynamics import (ADAPTIVE_METHODS, FIXED_METHODS, DynamicSystem,
+from ..physics import NewtonOptions
+from ..physics.dynamics import (ADAPTIVE_METHODS, DynamicsInputError, DynamicSystem,
                                 check_output_times, make_integrator)
-from ..physics.dynamics.errors import DynamicsInputError
-from ..physics.equilibrium import NewtonOptions
 from ..settings import Choice
 from .config import ProblemConfigError, Transform, require_setting, setting_error
 
@@ -58,7 +57,7 @@ class OdeMethod(Choice):
     euler = "euler"
 
 
-DAMPING = ("alpha", "beta")
+_DAMPING = ("alpha", "beta")
 
 
 @dataclasses.dataclass
@@ -110,7 +109,7 @@ def check_dynamic_settings(cfg: Any) -> None:
     require_setting(cfg.ode_atol > 0, cfg, "ode_atol", "must be > 0")
     require_setting(isinstance(cfg.checkpoint_every, int) and cfg.checkpoint_every >= 0, cfg,
                     "checkpoint_every", "must be an integer >= 0 (0: ceil(sqrt(steps)))")
-    for name in DAMPING:
+    for name in _DAMPING:
         for key in (name, f"{name}0"):
             value = getattr(cfg, key)
             if cfg.transform == Transform.exp:
@@ -163,7 +162,7 @@ class DynamicMixin:
             checkpoint_every=cfg.checkpoint_every)
 
     def damped(self, field: Parameterization, cfg: Any) -> FieldAndScalars:
-        return FieldAndScalars(field, DAMPING, (cfg.alpha0, cfg.beta0), cfg.transform.value)
+        return FieldAndScalars(field, _DAMPING, (cfg.alpha0, cfg.beta0), cfg.transform.value)
 
     def true_damping(self) -> Tensor:
         return torch.tensor([self.cfg.alpha, self.cfg.beta], dtype=self.dtype, device=self.device)
@@ -210,7 +209,7 @@ class DynamicMixin:
         out = super().metrics(theta, x)  # type: ignore[misc]
         damping = self.damping(theta)
         truth = self.true_damping()
-        for i, name in enumerate(DAMPING):
+        for i, name in enumerate(_DAMPING):
             out[f"{name}_damping"] = float(damping[i])
             out[f"{name}_damping_err_rel"] = float(abs(damping[i] - truth[i]) / abs(truth[i])) \
                 if float(truth[i]) != 0 else float(abs(damping[i]))
@@ -239,6 +238,3 @@ class DynamicMixin:
             out.update({"method": integrator.method})
         return out
 
-
-__all__ = ["DAMPING", "DynamicMixin", "DynamicSettings", "FIXED_METHODS", "Integrator",
-           "OdeMethod", "Scheme", "check_dynamic_flag", "check_dynamic_settings", "output_times"]

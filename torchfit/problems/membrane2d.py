@@ -75,9 +75,8 @@ class SheetData(Choice):
     dense = "dense"
 
 
-DATA_MODES = tuple(SheetData.choices())
 #: smallest Newton ``atol`` accepted with ``dtype=float32`` for the nonlinear models
-FLOAT32_NEWTON_ATOL = 1e-4
+_FLOAT32_NEWTON_ATOL = 1e-4
 
 #: The animation of PROBLEMS.md: (kind, value) per frame.
 FRAMES: tuple[tuple[str, float], ...] = (
@@ -86,7 +85,7 @@ FRAMES: tuple[tuple[str, float], ...] = (
     ("bend", 10.0), ("bend", 20.0),
     ("stretch", -0.05), ("stretch", -0.10),
 )
-SHEAR_STRETCH = 0.20
+_SHEAR_STRETCH = 0.20
 
 
 @dataclasses.dataclass
@@ -138,7 +137,7 @@ def animation(right_rest: Tensor, width: float, height: float) -> Tensor:
         if kind == "stretch":
             p[:, 0] = width * (1.0 + value)
         elif kind == "shear":
-            p[:, 0] = width * (1.0 + SHEAR_STRETCH)
+            p[:, 0] = width * (1.0 + _SHEAR_STRETCH)
             p[:, 1] = right_rest[:, 1] + value
         else:  # bend
             angle = math.radians(value)
@@ -178,10 +177,10 @@ class Membrane2D(InverseProblem):
         # float32: Newton residuals of the nonlinear models stall near 1e-5 force units on
         # the canonical sheet, so the float64 tolerances can never be met.
         require_setting(cfg.dtype != DType.float32 or cfg.model in (Model.linear,)
-                        or cfg.newton_atol >= FLOAT32_NEWTON_ATOL, cfg, "newton_atol",
+                        or cfg.newton_atol >= _FLOAT32_NEWTON_ATOL, cfg, "newton_atol",
                         f"is below what float32 reaches (problem.dtype=float32, "
                         f"problem.model={cfg.model}); set problem.newton_atol="
-                        f"{FLOAT32_NEWTON_ATOL:g} or more, or use problem.dtype=float64")
+                        f"{_FLOAT32_NEWTON_ATOL:g} or more, or use problem.dtype=float64")
 
     # -- the hooks of the template --------------------------------------------------------
     def build_model(self, cfg: Membrane2DConfig) -> None:
@@ -309,7 +308,7 @@ class Membrane2D(InverseProblem):
             if kind == "stretch":
                 names.append(f"{'stretch' if value > 0 else 'compress'} {abs(value):.0%}")
             elif kind == "shear":
-                names.append(f"shear {value:g} at {SHEAR_STRETCH:.0%}")
+                names.append(f"shear {value:g} at {_SHEAR_STRETCH:.0%}")
             else:
                 names.append(f"bend {value:g} deg")
         return names

@@ -38,8 +38,6 @@ class Pattern(Choice):
     ipam = "ipam"
 
 
-PATTERNS = tuple(Pattern.choices())
-DATA_MODES = tuple(DataMode.choices())
 
 
 @dataclasses.dataclass

@@ -48,7 +48,7 @@ from .rigged_body_config import Layout, RiggedBodyConfig, Target, Truth
 
 #: largest distance (fraction of the bounding-box diagonal) of a surface vertex outside the
 #: tetrahedra before the tetrahedralisation is judged not to match the surface
-MAX_OUTSIDE = 0.02
+_MAX_OUTSIDE = 0.02
 
 
 class RiggedBody(InverseProblem):
@@ -116,7 +116,7 @@ class RiggedBody(InverseProblem):
         diagonal = float(np.linalg.norm(points.max(0) - points.min(0)))
         try:
             self.embedding: Embedding = embed_points(animation.rest_vertices, points, cells,
-                                                     max_distance=MAX_OUTSIDE * diagonal)
+                                                     max_distance=_MAX_OUTSIDE * diagonal)
         except MeshError as err:
             raise ProblemConfigError(f"{animation.path}: {err}") from err
         surface = (animation.rest_vertices, animation.faces, animation.frames)

@@ -1,5 +1,7 @@
-"""Settings of ``problem=animation`` (and of ``arm3d``, which extends them): the choices and
-:class:`RiggedBodyConfig` (lengths in metres, ``noise`` too)."""
+"""Settings of ``problem=animation`` (``arm3d`` extends them): choices, RiggedBodyConfig.
+
+Lengths in metres, ``noise`` too.
+"""
 from __future__ import annotations
 
 import dataclasses

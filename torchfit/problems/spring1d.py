@@ -31,7 +31,6 @@ from .config import (DataMode, ProblemConfig, ProblemConfigError, require, requi
                      resolve_backend)
 from .dynamic import DynamicMixin, DynamicSettings, check_dynamic_flag, check_dynamic_settings
 
-DATA_MODES = tuple(DataMode.choices())
 
 
 @dataclasses.dataclass
