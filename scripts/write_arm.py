@@ -20,8 +20,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from torchfit.mesh.animation import write_animation  # noqa: E402
-from torchfit.mesh.arm import ArmShape, arm_animation  # noqa: E402
+from torchfit.mesh import ArmShape, arm_animation, write_animation  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

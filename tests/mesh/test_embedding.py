@@ -8,7 +8,9 @@ import torch
 import trimesh
 
 from torchfit.mesh import (Embedding, MeshError, TetOptions, box_tetrahedra, boundary_faces,
-                           embed_points, surface_volume, surface_warnings, tetrahedralize)
+                           embed_points, tetrahedralize)
+from torchfit.mesh.embedding import dof_matrix
+from torchfit.mesh.surface import surface_volume, surface_warnings
 
 TOL = 1e-10
 
@@ -44,6 +46,20 @@ def test_boundary_faces_are_the_outward_hull_of_a_box():
                                             process=False)) == []
     assert surface.volume == pytest.approx(6.0, rel=1e-14)       # positive: outward
     assert surface_volume(surface) == pytest.approx(6.0, rel=1e-14)
+
+
+def test_dof_matrix_is_apply_on_the_flat_dofs():
+    box = box_tetrahedra(2, 2, 2)
+    x, _, _ = inner_points(box.points, box.cells, n=20)
+    embedding = embed_points(x, box.points, box.cells)
+    keep = torch.tensor([3, 0, 7])                                # some points, any order
+    vertices = torch.as_tensor(embedding.vertices)[keep]
+    weights = torch.as_tensor(embedding.weights)[keep]
+    W = dof_matrix(vertices, weights, embedding.n_vertices, 3)
+    assert W.is_coalesced() and W.shape == (9, 3 * embedding.n_vertices)
+    moved = torch.as_tensor(box.points) + 0.1 * torch.randn(box.points.shape)
+    assert torch.allclose(W @ moved.reshape(-1), embedding.apply(moved)[keep].reshape(-1),
+                          rtol=0, atol=1e-14)
 
 
 def test_every_capsule_vertex_is_reproduced_exactly(capsule):

@@ -1,10 +1,13 @@
-"""Linear blend skinning and the bone-transform checks (torchfit.mesh.rig)."""
+"""What drives a body (torchfit.mesh.rig): linear blend skinning, the bone-transform checks,
+the drive of a tetrahedral mesh by a skeleton or a driven surface, joints and the most
+rotated frame."""
 import numpy as np
 import pytest
 
-from torchfit.mesh import MeshError
+from torchfit.mesh import DrivenSurface, MeshError, Skeleton, box_tetrahedra, boundary_faces
 from torchfit.mesh.rig import (axial_coordinates, blend, check_transforms, distance_weights,
-                               segment_distances)
+                               joint_cells, most_rotated_frame, segment_distances,
+                               skeleton_drive, surface_drive)
 
 
 def rotation_z(angle):
@@ -75,3 +78,64 @@ def test_check_transforms_names_the_bad_bone_and_frame():
     homogeneous[..., :3, :3] = np.eye(3)
     homogeneous[..., 3, 3] = 1
     assert np.array_equal(check_transforms(homogeneous, 2, 3, "rig"), T)
+
+
+# -- the drive of a tetrahedral mesh ---------------------------------------------------------
+SHIFT = np.array([0.1, -0.05, 0.02])
+
+
+def translated_box():
+    """A 2 x 2 x 4 box (0.5 cubes), its boundary as the animated surface, two frames: at rest
+    and moved by ``SHIFT``; ``(points, cells, rest, faces, frames, transforms)``."""
+    box = box_tetrahedra(2, 2, 4, size=(1.0, 1.0, 2.0))
+    faces = boundary_faces(box.cells)[0]
+    frames = np.stack([box.points, box.points + SHIFT])
+    transforms = np.zeros((2, 1, 3, 4))
+    transforms[:, 0, :, :3] = np.eye(3)
+    transforms[1, 0, :, 3] = SHIFT
+    return box.points, box.cells, box.points, faces, frames, transforms
+
+
+def test_skeleton_drive_prescribes_the_vertices_near_the_bone():
+    points, cells, rest, faces, frames, transforms = translated_box()
+    axis = np.flatnonzero((points[:, 0] == 0.5) & (points[:, 1] == 0.5))
+    skeleton = Skeleton(np.array([[0.5, 0.5, 0.0]]), np.array([[0.5, 0.5, 2.0]]), transforms, 0.1)
+    drive = skeleton_drive(points, cells, skeleton, rest, faces, frames)
+    assert np.array_equal(drive.vertices, axis)
+    assert np.allclose(drive.positions, np.stack([points[axis], points[axis] + SHIFT]))
+    assert np.array_equal(drive.start[:, axis], drive.positions)
+    assert np.allclose(drive.start, frames, atol=1e-12)      # every vertex moves with the rig
+    far = Skeleton(skeleton.heads + [5.0, 0, 0], skeleton.tails + [5.0, 0, 0], transforms, 0.1)
+    with pytest.raises(MeshError, match=r"^no material point lies within attach_radius=0\.1 m"):
+        skeleton_drive(points, cells, far, rest, faces, frames)
+    everything = Skeleton(skeleton.heads, skeleton.tails, transforms, 10.0)
+    with pytest.raises(MeshError, match="every material point lies within attach_radius"):
+        skeleton_drive(points, cells, everything, rest, faces, frames)
+
+
+def test_surface_drive_prescribes_the_vertices_near_the_driven_region():
+    points, cells, rest, faces, frames, _ = translated_box()
+    bottom = points[:, 2] == 0.0
+    drive = surface_drive(points, DrivenSurface(bottom, 1e-9), rest, faces, frames)
+    assert np.array_equal(drive.vertices, np.flatnonzero(bottom))
+    assert np.allclose(drive.positions[1], points[bottom] + SHIFT, atol=1e-12)
+    assert np.allclose(drive.start, frames, atol=1e-12)
+    with pytest.raises(MeshError, match="^no tetrahedron vertex lies within driven.tolerance"):
+        surface_drive(points + [0, 0, 5.0], DrivenSurface(bottom, 1e-9), rest, faces, frames)
+    with pytest.raises(MeshError, match="every tetrahedron vertex lies within driven.tolerance"):
+        surface_drive(points, DrivenSurface(bottom, 10.0), rest, faces, frames)
+
+
+def test_joint_cells_and_the_most_rotated_frame():
+    centroids = np.array([[0.0, 0.0, 0.95], [0.0, 0.0, 0.5], [0.0, 0.0, 1.1]])
+    transforms = np.zeros((3, 2, 3, 4))
+    transforms[..., :3] = np.eye(3)
+    skeleton = Skeleton(np.array([[0, 0, 0.0], [0, 0, 1.0]]), np.array([[0, 0, 1.0], [0, 0, 2.0]]),
+                        transforms, 0.05)
+    assert joint_cells(centroids, skeleton).tolist() == [0, 2]       # within 3 * 0.05 of z = 1
+    assert joint_cells(centroids, None).tolist() == [0, 1, 2]
+    apart = Skeleton(skeleton.heads, skeleton.tails + [0, 0, -0.5], transforms, 0.05)
+    assert joint_cells(centroids, apart).tolist() == [0, 1, 2]       # no joint: every cell
+    for f, degrees in enumerate((0.0, 30.0, 10.0)):
+        transforms[f, 1, :, :3] = rotation_z(np.radians(degrees))
+    assert most_rotated_frame(skeleton) == 1 and most_rotated_frame(None) == 0

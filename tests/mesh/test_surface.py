@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from torchfit.mesh import (MeshError, SurfaceError, load_surface, surface_volume,
-                           surface_warnings)
+from torchfit.mesh import MeshError, SurfaceError, load_surface
+from torchfit.mesh.surface import surface_volume, surface_warnings
 
 
 def capsule() -> trimesh.Trimesh:

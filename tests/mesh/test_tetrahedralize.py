@@ -9,7 +9,8 @@ import pytest
 import trimesh
 
 from torchfit.mesh import (MeshError, TetOptions, TetrahedralizationError, default_cache_dir,
-                           surface_volume, tetrahedralize)
+                           tetrahedralize)
+from torchfit.mesh.surface import surface_volume
 
 FAST = TetOptions(edge_length_fac=0.1)
 

@@ -2,8 +2,9 @@ import numpy as np
 import pytest
 import torch
 
-from torchfit.params import (Parameterization, chain_edges, grid_edges, grid_groups,
-                             grid_node_positions, per_element, per_grid_node, per_region)
+from torchfit.params import (FieldAndScalars, Parameterization, chain_edges, grid_edges,
+                             grid_groups, per_element, per_grid_node, per_region)
+from torchfit.params.parameterization import grid_node_positions
 
 
 def test_exp_map_inverse_and_scale_direction():
@@ -197,8 +198,20 @@ def test_explicit_jvp_and_vjp_are_the_jacobian_products(kind, transform):
 
 
 def test_field_and_scalars_explicit_products():
-    from torchfit.params import FieldAndScalars
-
     param = FieldAndScalars(per_region(np.array([0, 1, 1, 2]), chain_edges(4)),
                             ("alpha", "beta"), (0.1, 0.2))
     _check_explicit_products(param, torch.Generator().manual_seed(2))
+
+
+def test_field_and_scalars_parameterisation():
+    field = per_element(4, chain_edges(4), "exp")
+    param = FieldAndScalars(field, ("alpha", "beta"), (0.5, 2e-3), "exp")
+    theta = param.constant(3.0)
+    physical = param(theta)
+    assert torch.allclose(physical, torch.tensor([3.0, 3.0, 3.0, 3.0, 0.5, 2e-3]))
+    assert torch.allclose(param.inverse(physical), theta)
+    D = param.difference_operator().to_dense()
+    assert D.shape == (3, 6) and bool((D[:, 4:] == 0).all())      # TV leaves alpha, beta alone
+    J = param.jacobian(theta)
+    assert torch.allclose(J, torch.diag(physical))
+    assert torch.allclose(param.scale_direction(theta)[4:], torch.zeros(2))

@@ -15,7 +15,7 @@ import torch
 from torchfit import build_problem, fit, verify
 from torchfit.verification import format_report
 from torchfit.mesh import signed_volumes
-from torchfit.mesh.animation import load_animation
+from torchfit.mesh import load_animation
 from torchfit.problems import ProblemConfigError
 
 COARSE = {"tet_edge_length": 0.1, "grid": [3, 3, 4]}

@@ -2,15 +2,18 @@
 derivatives, the run directory's pictures and TensorBoard tags."""
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 import torchfit
-from torchfit.params import FieldAndScalars, per_element, chain_edges
-from torchfit.problems import ProblemConfigError, build_problem
-from torchfit.problems.membrane2d import DynamicMembrane2D
+from torchfit.problems import (Membrane2DConfig, ProblemConfigError, Spring1DConfig,
+                               build_problem)
+from torchfit.problems.dynamic import DynamicSettings
+from torchfit.problems.membrane2d import DynamicMembrane2D, Membrane2D
 from torchfit.problems.spring1d import DynamicSpring1D, Spring1D
 
 #: a short chain: every dynamic feature, seconds to fit
@@ -49,6 +52,24 @@ def test_dynamic_flag_selects_the_dynamic_problem_and_its_contract():
     assert problem.metrics(truth)["misfit"] == pytest.approx(0.0, abs=1e-10)
     described = problem.describe()
     assert described["integrator"] == "implicit" and described["steps"] == 100
+
+
+def test_each_class_refuses_the_other_value_of_the_dynamic_flag():
+    with pytest.raises(ProblemConfigError, match="problem.dynamic=True: Spring1D is the static"):
+        Spring1D(dynamic=True)
+    with pytest.raises(ProblemConfigError, match="DynamicSpring1D is the dynamic problem"):
+        DynamicSpring1D(n=4)
+    assert type(build_problem("membrane2d", {**SMALL_SHEET, "dynamic": False})) is Membrane2D
+
+
+def test_one_dataclass_holds_the_dynamic_settings_of_both_problems():
+    shared = {f.name for f in dataclasses.fields(DynamicSettings)}
+    assert {"dynamic", "integrator", "scheme", "dt", "output_times", "checkpoint_every"} <= shared
+    for config in (Spring1DConfig, Membrane2DConfig):
+        assert issubclass(config, DynamicSettings)
+        assert shared <= set(OmegaConf.structured(config))      # problem.dt, problem.scheme, ...
+    assert Spring1DConfig().dt == DynamicSettings().dt == 0.01
+    assert Membrane2DConfig().dt == 0.02                        # the sheet's own default
 
 
 def test_the_chain_falls_oscillates_and_settles():
@@ -152,20 +173,6 @@ def test_identity_transform_negative_damping_at_a_trial_point_is_a_simulation_er
     theta[-1] = -1e-3
     with pytest.raises(torchfit.errors.SimulationError, match="beta = -0.001 s is negative"):
         problem.residual().value(theta)
-
-
-def test_field_and_scalars_parameterisation():
-    field = per_element(4, chain_edges(4), "exp")
-    param = FieldAndScalars(field, ("alpha", "beta"), (0.5, 2e-3), "exp")
-    theta = param.constant(3.0)
-    physical = param(theta)
-    assert torch.allclose(physical, torch.tensor([3.0, 3.0, 3.0, 3.0, 0.5, 2e-3]))
-    assert torch.allclose(param.inverse(physical), theta)
-    D = param.difference_operator().to_dense()
-    assert D.shape == (3, 6) and bool((D[:, 4:] == 0).all())      # TV leaves alpha, beta alone
-    J = param.jacobian(theta)
-    assert torch.allclose(J, torch.diag(physical))
-    assert torch.allclose(param.scale_direction(theta)[4:], torch.zeros(2))
 
 
 def test_verify_app_on_the_dynamic_presets(tmp_path):

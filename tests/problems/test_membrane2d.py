@@ -10,7 +10,7 @@ import torch
 from torchfit.linalg import counting
 from torchfit.physics.elasticity import InvalidModulusError
 from torchfit.problems import Membrane2D, ProblemConfigError, build_problem
-from torchfit.problems.membrane2d import FRAMES
+from torchfit.problems.membrane2d import FRAMES, DynamicMembrane2D
 from torchfit.solvers import (SOLVERS, GaussNewtonConfig, LevenbergMarquardtConfig,
                               SolverConfigError, gauss_newton, levenberg_marquardt)
 from torchfit.verification import verify
@@ -87,14 +87,14 @@ def test_taylor_and_dot_product(model):
 def test_explicit_products_equal_the_autograd_products(model):
     """The solvers' explicit J v / J^T w (free-dof layout, per-frame factors) against the
     autograd route through the same equilibrium."""
-    from conftest import explicit_and_autograd
+    from helpers.products import explicit_and_autograd
 
     problem = Membrane2D(nx=12, ny=3, model=model)
     _, lin, reference, v, w = explicit_and_autograd(problem, 2)
     assert torch.allclose(lin.r, reference.r, rtol=0, atol=1e-14)
     assert torch.allclose(lin.jvp(v), reference.jvp(v), rtol=1e-11, atol=1e-14)
     assert torch.allclose(lin.vjp(w), reference.vjp(w), rtol=1e-11, atol=1e-14)
-    dynamic = Membrane2D(nx=6, ny=2, dynamic=True)
+    dynamic = DynamicMembrane2D(nx=6, ny=2, dynamic=True)
     assert not dynamic.has_forward_products() and dynamic.residual().products is None
 
 

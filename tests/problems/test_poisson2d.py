@@ -76,7 +76,7 @@ def test_explicit_products_equal_the_autograd_products_and_cost_one_solve(data):
     (the definition), a dot-product identity, and one solve per product."""
     from torchfit.verification import dot_product_test, taylor_test
 
-    from conftest import explicit_and_autograd
+    from helpers.products import explicit_and_autograd
 
     problem = Poisson2D(N=13, data=data, noise=1e-3)
     theta, lin, reference, v, w = explicit_and_autograd(problem, 3)

@@ -1,17 +1,25 @@
-"""Meshes: structured triangle/tetrahedral meshes, boundary sets, adjacency, the IPAM font,
-user surfaces (loading, checks), tetrahedralisation (fTetWild, cached), barycentric embedding."""
+"""Meshes, surfaces, rigs and animations: everything geometric, nothing that solves.
+
+Structured triangle and tetrahedral meshes, user surfaces, tetrahedralisation (fTetWild,
+cached), barycentric embedding, rigs, the animation folder format and the procedural arm.
+"""
+from .animation_format import (Animation, AnimationError, load_animation, write_animation,
+                               write_obj)
 from .embedding import Embedding, boundary_faces, embed_points
-from .font import GLYPHS, IPAM_BOX, bitmap_mask, ipam_mask, word_bitmap
+from .font import ipam_mask
+from .procedural_arm import ArmShape, arm_animation
+from .rig import DrivenSurface, Skeleton
 from .simplicial import (MeshError, SimplexMesh, box_tetrahedra, check_rest_cells,
                          element_adjacency, normalized_points, rectangle_triangles,
                          signed_volumes)
-from .surface import SurfaceError, load_surface, surface_volume, surface_warnings
+from .surface import SurfaceError, load_surface
 from .tetrahedralize import (TetMesh, TetOptions, TetrahedralizationError, default_cache_dir,
                              tetrahedralize)
 
-__all__ = ["Embedding", "GLYPHS", "IPAM_BOX", "MeshError", "SimplexMesh", "SurfaceError",
-           "TetMesh", "TetOptions", "TetrahedralizationError", "bitmap_mask", "boundary_faces",
-           "box_tetrahedra", "check_rest_cells", "default_cache_dir", "element_adjacency",
-           "embed_points", "ipam_mask", "load_surface", "normalized_points",
-           "rectangle_triangles", "signed_volumes", "surface_volume", "surface_warnings",
-           "tetrahedralize", "word_bitmap"]
+__all__ = ["Animation", "AnimationError", "ArmShape", "DrivenSurface", "Embedding",
+           "MeshError", "SimplexMesh", "Skeleton", "SurfaceError", "TetMesh", "TetOptions",
+           "TetrahedralizationError", "arm_animation", "box_tetrahedra", "boundary_faces",
+           "check_rest_cells", "default_cache_dir", "element_adjacency", "embed_points",
+           "ipam_mask", "load_animation", "load_surface", "normalized_points",
+           "rectangle_triangles", "signed_volumes", "tetrahedralize", "write_animation",
+           "write_obj"]

@@ -113,6 +113,25 @@ class Embedding:
             shape=(self.n_points, self.n_vertices))
 
 
+def dof_matrix(vertices: torch.Tensor, weights: torch.Tensor, n_vertices: int,
+               dim: int) -> torch.Tensor:
+    """Embedded points on flat dofs: a coalesced sparse COO tensor ``(n dim, n_vertices dim)``
+    whose row ``p dim + k`` holds the weights of point ``p``'s corners for coordinate ``k``
+    (rows point-major, columns vertex-major, as ``x.reshape(-1)`` of ``(n_vertices, dim)``).
+
+    Args:
+        vertices: ``(n, c)`` mesh vertices of each point's cell; weights: ``(n, c)``.
+    """
+    n, corners = vertices.shape
+    rows = (torch.arange(n)[:, None, None] * dim
+            + torch.arange(dim)[None, None, :]).expand(n, corners, dim)
+    cols = vertices[:, :, None] * dim + torch.arange(dim)[None, None, :]
+    values = weights[:, :, None].expand(n, corners, dim)
+    return torch.sparse_coo_tensor(
+        torch.stack([rows.reshape(-1), cols.reshape(-1)]), values.reshape(-1),
+        (n * dim, n_vertices * dim), check_invariants=False).coalesce()
+
+
 def boundary_faces(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Faces of a tetrahedral mesh that belong to one tetrahedron only.
 

@@ -1,7 +1,10 @@
-"""Skeletons and linear blend skinning, vectorised over points, bones and frames.
+"""What drives a body: skeletons, linear blend skinning, driven surfaces, a tet mesh's drive.
 
-Convention (the animation format's, see :mod:`.animation`): a bone is a rest-pose segment
-``head -> tail``; its pose in frame ``f`` is a ``3 x 4`` matrix ``[A | t]`` acting on
+The drive of a tetrahedral mesh says which of its vertices are prescribed, where, and where
+Newton starts.
+
+Convention (the animation format's, :mod:`.animation_format`): a bone is a rest-pose
+segment ``head -> tail``; its pose in frame ``f`` is a ``3 x 4`` matrix ``[A | t]`` acting on
 column vectors, ``x' = A x + t`` with ``x`` a *rest-pose* position (world coordinates, not
 bone-local). Rigid bones have ``A`` a rotation; any invertible ``A`` (affine) is allowed.
 A skinned point moves by ``x'(f) = sum_b w_b (A_b(f) x + t_b(f))`` with weights ``w_b >= 0``
@@ -11,13 +14,81 @@ Weights from distance (the default): ``w_b`` proportional to ``(d_b + eps)^-powe
 bones within ``reach`` of the point (all bones when none is that close), so a point near one
 bone follows it and a point near a joint blends the bones that meet there.
 
-Nothing here solves anything (DESIGN.md, layer ``mesh``).
+The drive (:func:`skeleton_drive`, :func:`surface_drive`) of tetrahedron vertices ``points``
+``(n, 3)`` by an animated surface (rest ``(V, 3)``, faces ``(T, 3)``, frames ``(F, V, 3)``)
+is a :class:`Drive`; a rig that holds nothing, or everything, is a one-line
+:class:`~.simplicial.MeshError`. Lengths in metres. Nothing here solves anything.
 """
 from __future__ import annotations
 
-import numpy as np
+import dataclasses
 
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .embedding import boundary_faces
 from .simplicial import MeshError
+
+
+@dataclasses.dataclass
+class Skeleton:
+    """Bones in the rest pose and their per-frame transforms (lengths in metres).
+
+    Attributes:
+        heads, tails: ``(B, 3)`` rest-pose segment ends.
+        transforms: ``(F, B, 3, 4)`` ``[A | t]`` with ``x' = A x + t``.
+        attach_radius: material points within this distance of a bone follow it.
+        weights: ``(V, B)`` skinning weights per rest-surface vertex, or ``None`` (from
+            distance).
+        names: ``B`` bone names.
+    """
+
+    heads: np.ndarray
+    tails: np.ndarray
+    transforms: np.ndarray
+    attach_radius: float
+    weights: np.ndarray | None = None
+    names: list[str] = dataclasses.field(default_factory=list)
+
+    @property
+    def n_bones(self) -> int:
+        return int(self.heads.shape[0])
+
+    def joints(self, tol: float = 1e-9) -> np.ndarray:
+        """Rest positions ``(k, 3)`` where one bone's tail meets another's head."""
+        gap = np.linalg.norm(self.tails[:, None, :] - self.heads[None, :, :], axis=-1)
+        scale = max(float(np.linalg.norm(self.tails - self.heads, axis=1).max()), 1e-300)
+        i, j = np.nonzero((gap <= tol * scale) & ~np.eye(self.n_bones, dtype=bool))
+        return self.tails[i] if i.size else np.zeros((0, 3))
+
+
+@dataclasses.dataclass
+class DrivenSurface:
+    """Surface vertices whose animated motion is prescribed (``mask`` ``(V,)`` bool)."""
+
+    mask: np.ndarray
+    tolerance: float
+
+    @property
+    def indices(self) -> np.ndarray:
+        return np.flatnonzero(self.mask)
+
+
+@dataclasses.dataclass
+class Drive:
+    """How a rig holds a tetrahedral mesh in every frame.
+
+    Attributes:
+        vertices: ``(k,)`` indices of the prescribed (Dirichlet) tetrahedron vertices.
+        positions: ``(F, k, 3)`` their positions in every frame.
+        start: ``(F, n, 3)`` where each frame's Newton starts: the prescribed vertices at
+            ``positions``, the others moved by the rig (surface vertices with the animated
+            surface).
+    """
+
+    vertices: np.ndarray
+    positions: np.ndarray
+    start: np.ndarray
 
 
 def segment_distances(points: np.ndarray, heads: np.ndarray, tails: np.ndarray) -> np.ndarray:
@@ -109,3 +180,102 @@ def check_transforms(transforms: np.ndarray, n_bones: int, n_frames: int | None,
         raise MeshError(f"{source}: the transform of bone {b} in frame {f} is not invertible "
                         f"or mirrors space (det A = {det[f, b]:.3g})")
     return np.ascontiguousarray(t)
+
+
+def joint_cells(centroids: np.ndarray, skeleton: Skeleton | None) -> np.ndarray:
+    """Indices of the cells (centroids ``(m, 3)``) within ``3 attach_radius`` of a joint of
+    ``skeleton`` (a bone's tail meeting another's head); every cell when there is no
+    skeleton, no joint, or no cell that close."""
+    if skeleton is None or not len(skeleton.joints()):
+        return np.arange(len(centroids))
+    joints = skeleton.joints()
+    distance = np.linalg.norm(centroids[:, None, :] - joints[None], axis=-1).min(axis=1)
+    cells = np.flatnonzero(distance <= 3.0 * skeleton.attach_radius)
+    return cells if cells.size else np.arange(len(centroids))
+
+
+def most_rotated_frame(skeleton: Skeleton | None) -> int:
+    """The frame in which some bone is rotated most (the full bend), 0 without a skeleton."""
+    if skeleton is None:
+        return 0
+    A = skeleton.transforms[..., :3]
+    cosine = np.clip((np.trace(A, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    return int(np.argmax(np.arccos(cosine).max(axis=1)))
+
+
+# -- the drive of a tetrahedral mesh -------------------------------------------------------
+def surface_start(points: np.ndarray, rest_vertices: np.ndarray, faces: np.ndarray,
+                  frames: np.ndarray) -> np.ndarray:
+    """Positions ``(F, n, 3)`` of ``points`` moved with the displacement of the closest
+    point of the rest surface (barycentric in its triangle)."""
+    import trimesh
+
+    surface = trimesh.Trimesh(rest_vertices, faces, process=False)
+    closest, _, triangle = trimesh.proximity.closest_point(surface, points)
+    corners = rest_vertices[faces[triangle]]                                  # (n, 3, 3)
+    bary = trimesh.triangles.points_to_barycentric(corners, closest)          # (n, 3)
+    displacement = frames - rest_vertices[None]                               # (F, V, 3)
+    moved = np.einsum("nk,fnkd->fnd", bary, displacement[:, faces[triangle]])
+    return points[None] + moved
+
+
+def skeleton_drive(points: np.ndarray, cells: np.ndarray, skeleton: Skeleton,
+                   rest_vertices: np.ndarray, faces: np.ndarray, frames: np.ndarray) -> Drive:
+    """Tetrahedron vertices within ``attach_radius`` of a bone are prescribed, moved by linear
+    blend skinning (the skeleton's weights carried inward from the nearest rest-surface
+    vertex, else weights from distance); Newton starts from the skinned pose with the mesh's
+    boundary vertices on the animated surface."""
+    distances = segment_distances(points, skeleton.heads, skeleton.tails)   # (n, B)
+    attached = distances.min(axis=1) <= skeleton.attach_radius
+    if not attached.any():
+        raise MeshError(
+            f"no material point lies within attach_radius={skeleton.attach_radius:.4g} m of any "
+            f"bone (nearest: {distances.min():.4g} m); put the bones inside the body or raise "
+            "skeleton.attach_radius")
+    if attached.all():
+        raise MeshError(
+            f"every material point lies within attach_radius={skeleton.attach_radius:.4g} m of "
+            "a bone, so nothing is left to simulate; lower skeleton.attach_radius")
+    if skeleton.weights is not None:
+        # weights given per rest-surface vertex: carried inward from the nearest one
+        _, nearest = cKDTree(rest_vertices).query(points)
+        weights = skeleton.weights[nearest]
+    else:
+        weights = distance_weights(distances, skeleton.attach_radius)
+    rigged = blend(points, weights, skeleton.transforms)                    # (F, n, 3)
+    dirichlet = np.flatnonzero(attached)
+    start = rigged.copy()
+    boundary = np.unique(boundary_faces(cells)[0])
+    start[:, boundary] = surface_start(points[boundary], rest_vertices, faces, frames)
+    positions = rigged[:, dirichlet]
+    start[:, dirichlet] = positions
+    return Drive(dirichlet, positions, start)
+
+
+def surface_drive(points: np.ndarray, driven: DrivenSurface, rest_vertices: np.ndarray,
+                  faces: np.ndarray, frames: np.ndarray) -> Drive:
+    """Tetrahedron vertices within ``driven.tolerance`` of the driven surface region (its
+    whole triangles, else its vertices) are prescribed; every vertex moves with the closest
+    point of the animated surface (:func:`surface_start`)."""
+    import trimesh
+
+    full = driven.mask[faces].all(axis=1)
+    if full.any():
+        region = trimesh.Trimesh(rest_vertices, faces[full], process=False)
+        _, distance, _ = trimesh.proximity.closest_point(region, points)
+    else:
+        distance, _ = cKDTree(rest_vertices[driven.mask]).query(points)
+    near = distance <= driven.tolerance
+    if not near.any():
+        raise MeshError(
+            f"no tetrahedron vertex lies within driven.tolerance={driven.tolerance:.4g} m of "
+            f"the driven surface (nearest: {distance.min():.4g} m); raise driven.tolerance")
+    if near.all():
+        raise MeshError(
+            "every tetrahedron vertex lies within driven.tolerance of the driven surface, so "
+            "nothing is left to simulate; lower driven.tolerance")
+    start = surface_start(points, rest_vertices, faces, frames)
+    dirichlet = np.flatnonzero(near)
+    positions = start[:, dirichlet]
+    start[:, dirichlet] = positions
+    return Drive(dirichlet, positions, start)

@@ -1,5 +1,7 @@
-"""Simplicial meshes: structured triangle grids of a rectangle, tetrahedral boxes,
-boundary sets, element adjacency by shared facets, rest-shape checks.
+"""Simplicial meshes: structured grids, boundary sets, adjacency and rest-shape checks.
+
+Structured triangle grids of a rectangle, tetrahedral boxes, boundary sets, element
+adjacency by shared facets, rest-shape checks.
 
 Conventions (every function here):
 

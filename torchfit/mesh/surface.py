@@ -1,6 +1,7 @@
-"""Triangle surfaces supplied by users: loading (OBJ, PLY, OFF, STL, ...), the problems a
-tetrahedraliser cares about (holes, non-manifold edges, winding, inside-out, duplicate
-vertices), and the enclosed volume.
+"""Triangle surfaces supplied by users: loading, checks and the enclosed volume.
+
+Loading (OBJ, PLY, OFF, STL, ...), the problems a tetrahedraliser cares about (holes,
+non-manifold edges, winding, inside-out, duplicate vertices), and the enclosed volume.
 
 Conventions: vertices are ``(n, 3)`` float64 in the length unit the caller chooses (the
 ``scale`` of :func:`load_surface` converts the file's unit into it), faces ``(k, 3)`` int64

@@ -1,6 +1,7 @@
-"""Tetrahedral meshes of closed (or nearly closed) triangle surfaces with fTetWild
-(pytetwild), cached on disk so that the same surface and options always give the same
-tetrahedra.
+"""Tetrahedralisation of closed triangle surfaces with fTetWild (pytetwild), cached on disk.
+
+The cache makes the same surface and options always give the same tetrahedra; nearly
+closed surfaces are accepted too.
 
 fTetWild is robust to imperfect surfaces but not deterministic (its output changes from
 run to run and with the number of threads); the cache is what makes "the same input gives

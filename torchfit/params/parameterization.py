@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-TRANSFORMS = ("exp", "identity")
+_TRANSFORMS = ("exp", "identity")
 
 
 class Parameterization:
@@ -49,8 +49,8 @@ class Parameterization:
                  dtype: torch.dtype = torch.float64) -> None:
         if n_params < 1:
             raise ValueError(f"a parameterisation needs at least one parameter, got {n_params}")
-        if transform not in TRANSFORMS:
-            raise ValueError(f"unknown transform {transform!r}; choose one of {TRANSFORMS}")
+        if transform not in _TRANSFORMS:
+            raise ValueError(f"unknown transform {transform!r}; choose one of {_TRANSFORMS}")
         self.n_params = int(n_params)
         self.dtype = dtype
         self.transform = str(transform)

@@ -4,45 +4,51 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from .base import (Backend, Choice, DataMode, DType, FieldImageProblem, FramedProblem,
-                   InverseProblem, MeshProblem, ProblemConfig, ProblemConfigError, Transform,
-                   make_config)
-from .animation import AnimationConfig, AnimationProblem
 from .arm3d import Arm3D, Arm3DConfig
-from .membrane2d import Membrane2D, Membrane2DConfig, Model, SheetData
-from .poisson2d import Pattern, Poisson2D, Poisson2DConfig
-from .spring1d import Spring1D, Spring1DConfig
+from .base import (BodyProblem, FieldImageProblem, FramedProblem, InverseProblem, MeshProblem,
+                   MotionProblem)
+from .config import ProblemConfig, ProblemConfigError, make_config
+from .membrane2d import DynamicMembrane2D, Membrane2D, Membrane2DConfig
+from .poisson2d import Poisson2D, Poisson2DConfig
+from .rigged_body import RiggedBody
+from .rigged_body_config import RiggedBodyConfig
+from .spring1d import DynamicSpring1D, Spring1D, Spring1DConfig
 
 
 @dataclasses.dataclass(frozen=True)
 class ProblemEntry:
-    """A registered problem: its config dataclass (the Hydra schema) and its class."""
+    """A registered problem: its config dataclass (the Hydra schema), its class, and the
+    class of its motion (``problem.dynamic=true``) where it has one."""
 
     config_class: type[ProblemConfig]
     problem_class: type[InverseProblem]
+    dynamic_class: type[InverseProblem] | None = None
 
 
 #: config name -> registered problem
 PROBLEMS: dict[str, ProblemEntry] = {
-    "spring1d": ProblemEntry(Spring1DConfig, Spring1D),
+    "spring1d": ProblemEntry(Spring1DConfig, Spring1D, DynamicSpring1D),
     "poisson2d": ProblemEntry(Poisson2DConfig, Poisson2D),
-    "membrane2d": ProblemEntry(Membrane2DConfig, Membrane2D),
+    "membrane2d": ProblemEntry(Membrane2DConfig, Membrane2D, DynamicMembrane2D),
     "arm3d": ProblemEntry(Arm3DConfig, Arm3D),
-    "animation": ProblemEntry(AnimationConfig, AnimationProblem),
+    "animation": ProblemEntry(RiggedBodyConfig, RiggedBody),
 }
 
 
 def build_problem(name: str, cfg: Any = None) -> InverseProblem:
-    """Problem ``name`` from a config (its dataclass, a mapping or an OmegaConf node)."""
+    """Problem ``name`` from a config (its dataclass, a mapping or an OmegaConf node): the
+    entry's dynamic class when the config says ``dynamic=true``, else its class."""
     if name not in PROBLEMS:
         raise ProblemConfigError(f"unknown problem {name!r}; choose one of "
                                  f"{', '.join(sorted(PROBLEMS))}")
     entry = PROBLEMS[name]
-    return entry.problem_class(make_config(entry.config_class, cfg))
+    config = make_config(entry.config_class, cfg)
+    dynamic = entry.dynamic_class is not None and bool(getattr(config, "dynamic", False))
+    return (entry.dynamic_class if dynamic else entry.problem_class)(config)
 
 
-__all__ = ["AnimationConfig", "AnimationProblem", "Arm3D", "Arm3DConfig", "Backend", "Choice", "DType", "DataMode", "FieldImageProblem", "FramedProblem",
-           "InverseProblem", "Membrane2D", "Membrane2DConfig", "MeshProblem", "Model",
-           "PROBLEMS", "Pattern", "Poisson2D", "Poisson2DConfig", "ProblemConfig",
-           "ProblemConfigError", "ProblemEntry", "SheetData", "Spring1D", "Spring1DConfig",
-           "Transform", "build_problem"]
+__all__ = ["Arm3D", "Arm3DConfig", "BodyProblem", "DynamicMembrane2D", "DynamicSpring1D",
+           "FieldImageProblem", "FramedProblem", "InverseProblem", "Membrane2D",
+           "Membrane2DConfig", "MeshProblem", "MotionProblem", "PROBLEMS", "Poisson2D",
+           "Poisson2DConfig", "ProblemConfig", "ProblemConfigError", "ProblemEntry",
+           "RiggedBody", "RiggedBodyConfig", "Spring1D", "Spring1DConfig", "build_problem"]

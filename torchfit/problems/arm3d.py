@@ -1,12 +1,12 @@
 """``arm3d``: the seed's 3-D test, a tetrahedral arm with a two-bone rig (PROBLEMS.md).
 
-The procedural arm of :mod:`torchfit.mesh.arm` (upper arm 0.30 m, forearm 0.28 m, radius
-0.05 to 0.035 m with a muscle profile; 48 frames: elbow bend to 120 degrees with a bicep
-bulge, back, extension to -10 degrees with a tricep bulge, back) is written as an animation
-folder in the user format (:mod:`torchfit.mesh.animation`) and read back through the same
-loader as ``problem=animation``: one path for procedural and user data. The folder lives in
-the cache (``<cache>/animations/arm3d-<hash of the shape>``); every run also copies it into
-its run directory (``animation/``), a worked example of the format.
+The procedural arm of :mod:`torchfit.mesh.procedural_arm` (upper arm 0.30 m, forearm
+0.28 m, radius 0.05 to 0.035 m with a muscle profile; 48 frames: elbow bend to 120 degrees
+with a bicep bulge, back, extension to -10 degrees with a tricep bulge, back) is written as
+an animation folder in the user format (:mod:`torchfit.mesh.animation_format`) and read back
+through the same loader as ``problem=animation``: one path for procedural and user data.
+The folder lives in the cache (``<cache>/animations/arm3d-<hash of the shape>``); every run
+also copies it into its run directory (``animation/``), a worked example of the format.
 
 Differences from ``animation``: regions are geometric (``bone`` within 0.4 of the local
 radius from the bone axis, the attached core; ``muscle`` to 0.75; ``fat`` outside), the joint
@@ -22,18 +22,21 @@ from pathlib import Path
 import numpy as np
 
 from ..mesh import MeshError
-from ..mesh.animation import Animation, load_animation, write_animation
-from ..mesh.arm import (REGION_NAMES, ArmShape, arm_animation, arm_surface, correctives,
-                        elbow_angles, elbow_region, region_labels)
+from ..mesh.animation_format import Animation, load_animation, write_animation
+from ..mesh.procedural_arm import (REGION_NAMES, ArmShape, arm_animation, arm_surface,
+                                   correctives, elbow_angles, elbow_region, region_labels)
 from ..mesh.tetrahedralize import default_cache_dir
-from .animation import AnimationConfig, AnimationProblem
-from .base import ProblemConfigError, require_setting
+from .config import ProblemConfigError, require_setting
+from .rigged_body import RiggedBody
+from .rigged_body_config import RiggedBodyConfig
 
 
 @dataclasses.dataclass
-class Arm3DConfig(AnimationConfig):
+class Arm3DConfig(RiggedBodyConfig):
     """Settings of ``problem=arm3d``: the arm's shape and animation, then everything of
-    ``problem=animation`` (``path`` is not used: the arm writes its own animation)."""
+    ``problem=animation`` (``path`` is not used: the arm writes its own animation; ``frames``
+    are numbers among the 48, e.g. ``[0, 3, 6, 9, 11]``; the regions of ``E_regions`` are
+    bone, muscle, fat)."""
 
     name: str = "arm3d"
     upper: float = 0.30                # upper-arm length (m)
@@ -45,12 +48,12 @@ class Arm3DConfig(AnimationConfig):
     max_extension: float = 10.0        # degrees
     bicep_bulge: float = 0.012         # peak corrective displacement at full flexion (m)
     tricep_bulge: float = 0.006        # at full extension (m)
-    tet_edge_length: float = 0.028     # about 10k tetrahedra
+    tet_edge_length: float = 0.028     # fraction of the bounding-box diagonal: ~10k tetrahedra
     # noise as a fraction of the mean bulge displacement (0.01: 1 %); sets problem.noise
     noise_of_bulge: float = 0.0
 
 
-class Arm3D(AnimationProblem):
+class Arm3D(RiggedBody):
     """The procedural arm, fitted through the animation path."""
 
     config_class = Arm3DConfig

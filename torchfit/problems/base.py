@@ -1,28 +1,20 @@
-"""The shape shared by every canonical problem: ``y = observe(simulate(map(theta)))``.
+"""The template every canonical problem follows: ``y = observe(simulate(map(theta)))``.
 
 A problem owns the mesh, the true field, the data (with seeded noise), the
 observation and the metrics of PROBLEMS.md. It contains no solver logic: solvers get
-:meth:`InverseProblem.residual`, nothing else.
+:meth:`InverseProblem.residual`, nothing else. Its settings are a
+:class:`~torchfit.problems.config.ProblemConfig`.
 
-The contract
-------------
-* :class:`ProblemConfig` holds the settings every problem has (``name``, ``noise``,
-  ``seed``, ``transform``, ``backend``, ``device``, ``dtype``); a problem's config
-  dataclass extends it. Choice settings are :class:`Choice` enums (``str`` subclasses,
-  so ``cfg.data == "dense"`` holds), which lets OmegaConf reject a bad value when Hydra
-  composes the config; plain strings are converted on construction.
-* :func:`validate_config` checks what is generic (every numeric setting finite, the
-  types of the numbers, ``noise >= 0``, the device exists here, a direct solver only on
-  the CPU); every error is one line of :class:`ProblemConfigError` naming the setting as
-  ``problem.<field>=<value>`` and what is allowed.
-* :class:`InverseProblem.__init__` is a template: config -> generic checks ->
-  :meth:`~InverseProblem.check` (the problem's own) -> device and dtype ->
-  :meth:`~InverseProblem.build_model` (mesh, physics) ->
-  :meth:`~InverseProblem.build_parameterization` ->
-  :meth:`~InverseProblem.build_observation` -> ``theta0`` ->
-  :meth:`~InverseProblem.true_field` -> ``x_true = simulate(truth)`` -> ``observe`` (or
-  :meth:`~InverseProblem.measured_data` for user targets) -> finite-target check ->
-  seeded noise -> ``data``. A new problem writes its physics and its data, nothing else.
+:class:`InverseProblem.__init__` is a template: config -> generic checks ->
+:meth:`~InverseProblem.check` (the problem's own) -> device and dtype ->
+:meth:`~InverseProblem.build_model` (mesh, physics) ->
+:meth:`~InverseProblem.build_parameterization` ->
+:meth:`~InverseProblem.build_observation` -> ``theta0`` ->
+:meth:`~InverseProblem.true_field` -> ``x_true = simulate(truth)`` -> ``observe`` (or
+:meth:`~InverseProblem.measured_data` for user targets) -> finite-target check ->
+seeded noise -> ``data``. A new problem writes its physics and its data, nothing else.
+The protocols (:class:`FieldImageProblem`, ...) say what the reporting layer may ask of a
+problem beyond the template.
 
 Nothing here relies on torch's default dtype: tensors are made in ``problem.dtype``
 (``float64`` unless ``problem.dtype=float32``).
@@ -30,203 +22,21 @@ Nothing here relies on torch's default dtype: tensors are made in ``problem.dtyp
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import math
-import re
-from collections.abc import Mapping
 from typing import (Any, Callable, ClassVar, ContextManager, Protocol, Sequence,
                     runtime_checkable)
 
 import torch
 from torch import Tensor
 
-from .. import settings
-from ..errors import ConfigurationError
-from ..linalg import cudss_available, pardiso_available
-from ..linalg.cudss import CUDA_EXTRA
-from ..linalg.pardiso import PARDISO_EXTRA
 from ..params import Parameterization
 from ..residual import ForwardProducts, ResidualFunction
-from ..settings import Choice, check_values, convert_choices, make_settings, show
-
-
-class ProblemConfigError(ConfigurationError):
-    """A problem setting is invalid; the message (one line) names the setting and what to do."""
-
-    def __init__(self, message: str) -> None:
-        super().__init__(" ".join(str(message).split()))
-
-
-def require(condition: bool, message: str) -> None:
-    if not condition:
-        raise ProblemConfigError(message)
-
-
-# -- choices ---------------------------------------------------------------------------
-class DataMode(Choice):
-    """Which part of the state is observed."""
-
-    dense = "dense"
-    sparse = "sparse"
-
-
-class Transform(Choice):
-    """``field = exp(theta)`` (positivity) or ``field = theta``."""
-
-    exp = "exp"
-    identity = "identity"
-
-
-class Backend(Choice):
-    """Linear-solve backend: ``scipy`` (CPU direct, SuperLU), ``ldl`` (CPU sparse
-    ``L D L^T`` with the analysis reused, SPD; SuperLU otherwise), ``banded`` (CPU banded
-    Cholesky), ``pardiso`` (CPU, MKL PARDISO, the optional extra ``torchfit[pardiso]``),
-    ``cudss`` (CUDA sparse direct, the optional extra ``torchfit[cuda]``), ``cg`` (torch
-    Jacobi-CG, any device); ``auto`` lets the problem choose (3-D: pardiso where
-    installed, else scipy; on CUDA cudss where installed, else cg)."""
-
-    scipy = "scipy"
-    ldl = "ldl"
-    banded = "banded"
-    pardiso = "pardiso"
-    cudss = "cudss"
-    cg = "cg"
-    auto = "auto"
-
-
-class DType(Choice):
-    """Floating-point precision of the problem's tensors."""
-
-    float64 = "float64"
-    float32 = "float32"
-
-
-#: Backends that factorise on the CPU (a problem on another device needs ``cg``).
-CPU_BACKENDS = (Backend.scipy, Backend.ldl, Backend.banded, Backend.pardiso)
-#: Device names understood by :func:`resolve_device` (``cuda:N`` picks a GPU).
-DEVICE_CHOICES = ("cpu", "cuda", "cuda:N", "mps")
-_DEVICE = re.compile(r"^(cpu|cuda|mps)(?::(\d+))?$")
-
-
-@dataclasses.dataclass
-class ProblemConfig:
-    """Settings every problem has (a problem's config dataclass extends this one).
-
-    ``name`` is the config name; ``noise`` the standard deviation of the i.i.d. Gaussian
-    noise added to every observed value (seeded by ``seed``); ``transform`` maps
-    ``theta`` to the field; ``backend`` does the linear solves; ``device`` and ``dtype``
-    place and type every tensor of the problem.
-    """
-
-    name: str = "problem"
-    noise: float = 0.0                  # sigma of the Gaussian noise on every observed value
-    seed: int = 0                       # of the noise
-    transform: Transform = Transform.exp    # exp (field = exp(theta)) | identity
-    backend: Backend = Backend.scipy    # scipy (CPU direct) | banded (CPU) | cg (torch, CPU or
-                                        # CUDA) | pardiso (CPU, MKL; torchfit[pardiso])
-    device: str = "cpu"                 # cpu | cuda | cuda:N | mps
-    dtype: DType = DType.float64        # float64 | float32
-
-    def __post_init__(self) -> None:
-        convert_choices(self, "problem", ProblemConfigError)
-
-
-def setting_error(key: str, value: Any, allowed: str) -> ProblemConfigError:
-    """``problem.<key>=<value>: <allowed>`` as a :class:`ProblemConfigError`."""
-    return settings.setting_error(ProblemConfigError, f"problem.{key}", value, allowed)
-
-
-def require_setting(condition: bool, cfg: Any, key: str, allowed: str) -> None:
-    """Raise :func:`setting_error` for ``cfg.<key>`` unless ``condition``."""
-    if not condition:
-        raise setting_error(key, getattr(cfg, key), allowed)
-
-
-# -- generic validation ---------------------------------------------------------------
-def check_newton_settings(cfg: Any) -> None:
-    """``newton_rtol >= 0``, ``newton_atol > 0``, ``newton_max_iter >= 1`` (elastic problems)."""
-    require_setting(cfg.newton_rtol >= 0, cfg, "newton_rtol", "must be >= 0")
-    require_setting(cfg.newton_atol > 0, cfg, "newton_atol", "must be > 0")
-    require_setting(cfg.newton_max_iter >= 1, cfg, "newton_max_iter", "must be >= 1")
-
-
-def check_device(key: str, value: Any) -> torch.device:
-    """The torch device named by a ``device`` setting, if it exists on this machine."""
-    name = str(value).strip().lower()
-    match = _DEVICE.match(name)
-    if match is None:
-        raise setting_error(key, value, "is not a device; choose one of "
-                            f"{', '.join(DEVICE_CHOICES)} (N = GPU index)")
-    kind, index = match.group(1), match.group(2)
-    if kind == "cuda":
-        if not torch.cuda.is_available():
-            built = "without CUDA" if torch.version.cuda is None else \
-                f"with CUDA {torch.version.cuda} but sees no GPU"
-            raise setting_error(key, value, f"this torch ({torch.__version__}, built {built}) "
-                                "has no CUDA here (torch.cuda.is_available() is False); "
-                                "use problem.device=cpu")
-        count = torch.cuda.device_count()
-        if index is not None and int(index) >= count:
-            raise setting_error(key, value, f"there are {count} CUDA device(s) here; "
-                                f"choose cuda:0..cuda:{count - 1}")
-    if kind == "mps" and not (getattr(torch.backends, "mps", None) is not None
-                              and torch.backends.mps.is_available()):
-        raise setting_error(key, value, "this torch has no MPS device here; use "
-                            "problem.device=cpu")
-    return torch.device(name)
-
-
-def resolve_backend(choice: Backend, device: torch.device, dim: int) -> str:
-    """The backend name of a ``backend`` setting: ``auto`` is
-    :func:`torchfit.linalg.backends.default_backend` (3-D CPU: ``pardiso`` where installed,
-    else ``scipy``; CUDA: ``cudss`` where installed, else ``cg``)."""
-    if choice != Backend.auto:
-        return choice.value
-    from ..linalg.backends import default_backend
-
-    return default_backend(dim, device)
-
-
-def dtype_of(choice: DType | str) -> torch.dtype:
-    """``torch.float64`` or ``torch.float32``."""
-    return {DType.float64: torch.float64, DType.float32: torch.float32}[DType(choice)]
-
-
-def validate_config(cfg: ProblemConfig) -> None:
-    """Generic checks of a problem config (one-line :class:`ProblemConfigError` each).
-
-    Choice settings are members of their enum; every numeric setting is a number of the
-    declared type and finite (recursively in lists: ``inf`` is as wrong as ``nan``);
-    ``noise >= 0``; the device exists here; the direct backends run on the CPU only;
-    ``pardiso`` is installed.
-    """
-    check_values(cfg, "problem", ProblemConfigError)
-    require_setting(cfg.noise >= 0, cfg, "noise", "must be >= 0 (the standard deviation "
-                    "of the noise; 0 for none)")
-    device = check_device("device", cfg.device)
-    require_setting(device.type == "cpu" or cfg.backend not in CPU_BACKENDS, cfg, "backend",
-                    f"runs on the CPU only; with problem.device={cfg.device} use "
-                    "problem.backend=auto (cudss where installed, else cg), cudss or cg")
-    require_setting(cfg.backend != Backend.cudss or device.type == "cuda", cfg, "backend",
-                    f"runs on CUDA only; with problem.device={cfg.device} use "
-                    "problem.backend=scipy, pardiso or auto")
-    require_setting(cfg.backend != Backend.cudss or cudss_available(), cfg, "backend",
-                    f"needs nvmath-python with cuDSS, which is not installed here: "
-                    f"{CUDA_EXTRA}, or use problem.backend=cg")
-    require_setting(cfg.backend != Backend.pardiso or pardiso_available(), cfg, "backend",
-                    f"needs MKL PARDISO, which is not installed here: {PARDISO_EXTRA} "
-                    "(x86-64 only, about 700 MB), or use problem.backend=scipy")
-
-
-def make_config(config_class: type[ProblemConfig], cfg: Any = None,
-                overrides: Mapping[str, Any] | None = None) -> ProblemConfig:
-    """A ``config_class`` instance from ``None`` (defaults), an instance, or a mapping
-    (dict, OmegaConf node), with ``overrides`` applied; unknown settings are errors."""
-    return make_settings(config_class, cfg, overrides, "problem", ProblemConfigError)
+from .config import (ProblemConfig, ProblemConfigError, check_device, dtype_of, make_config,
+                     validate_config)
 
 
 # -- data helpers -----------------------------------------------------------------------
-def check_finite_targets(targets: Tensor, frame_of: Tensor, node_of: Tensor,
+def _check_finite_targets(targets: Tensor, frame_of: Tensor, node_of: Tensor,
                          what: str = "target") -> None:
     """Raise naming the first frame and node whose target is NaN or infinite.
 
@@ -243,7 +53,7 @@ def check_finite_targets(targets: Tensor, frame_of: Tensor, node_of: Tensor,
             "them before fitting")
 
 
-def add_noise(clean: Tensor, sigma: float, seed: int) -> tuple[Tensor, float | None]:
+def _add_noise(clean: Tensor, sigma: float, seed: int) -> tuple[Tensor, float | None]:
     """I.i.d. Gaussian noise of standard deviation ``sigma`` (seeded, on the CPU generator).
 
     Returns:
@@ -257,7 +67,7 @@ def add_noise(clean: Tensor, sigma: float, seed: int) -> tuple[Tensor, float | N
     return clean + sigma * noise, sigma * math.sqrt(clean.numel())
 
 
-def observe_columns(observe: Callable[[Tensor], Tensor], states: Tensor) -> Tensor:
+def _observe_columns(observe: Callable[[Tensor], Tensor], states: Tensor) -> Tensor:
     """A linear ``observe`` applied to every column of ``states`` ``(..., k)``: ``(m, k)``.
 
     Vectorised with ``torch.func.vmap(observe, in_dims=-1, out_dims=-1)`` (``observe``
@@ -443,8 +253,8 @@ class InverseProblem:
             self.x_true = None
             clean, what = self.measured_data(cfg), "target"
         frame_of, node_of = self.observation_index()
-        check_finite_targets(clean, frame_of, node_of, what)
-        self.data, self.noise_level = add_noise(clean, cfg.noise, cfg.seed)
+        _check_finite_targets(clean, frame_of, node_of, what)
+        self.data, self.noise_level = _add_noise(clean, cfg.noise, cfg.seed)
 
     # -- hooks: what a problem is --------------------------------------------------------
     def check(self, cfg: Any) -> None:
@@ -501,7 +311,7 @@ class InverseProblem:
 
         The default chains the parameterisation's :meth:`~torchfit.params.Parameterization.jacobian`,
         :meth:`simulate_jacobian` and :meth:`observe` applied to every column
-        (:func:`observe_columns`); a problem implements :meth:`simulate_jacobian` (or this
+        (:func:`_observe_columns`); a problem implements :meth:`simulate_jacobian` (or this
         method). Only then does :meth:`residual` hand it to the solvers, which use it when
         ``n_params`` is small (``solver.dense_jacobian_max_params``).
         """
@@ -511,7 +321,7 @@ class InverseProblem:
             theta = theta.detach()
             field = self.parameterization(theta)
             directions = self.parameterization.jacobian(theta)
-            return observe_columns(self.observe, self.simulate_jacobian(field, directions))
+            return _observe_columns(self.observe, self.simulate_jacobian(field, directions))
 
     def has_forward_jacobian(self) -> bool:
         """Whether the subclass implements :meth:`forward_jacobian` or :meth:`simulate_jacobian`."""

@@ -1,4 +1,4 @@
-"""What the dynamic variants of the problems share (``problem.dynamic=true``).
+"""The dynamic variants of the problems (``problem.dynamic=true``): their settings and hooks.
 
 A dynamic problem fits the per-element field together with the Rayleigh damping
 coefficients ``alpha`` (1/s) and ``beta`` (s) to positions at output times. Its
@@ -7,36 +7,28 @@ alpha, beta]``), its simulation input the physical vector ``[k..., alpha, beta]`
 :meth:`~DynamicMixin.field` the stiffness field alone (what ``k_err_*`` measure, what the
 pictures show). Inertia fixes the stiffness scale: never scale-free.
 
-The settings every dynamic problem has (checked by :func:`check_dynamic_settings`):
-
-``integrator``      ``implicit`` (backward Euler / BDF2 through the equilibrium core) or
-                    ``torchdiffeq`` (``odeint_adjoint``)
-``scheme``          implicit: ``bdf2`` | ``backward_euler``
-``ode_method``      torchdiffeq: ``dopri5`` (adaptive, ``ode_rtol``, ``ode_atol``) or a
-                    fixed-step ``rk4`` | ``midpoint`` | ``euler`` (step ``dt``)
-``dt``              implicit step, fixed explicit step (s)
-``duration``, ``frames``  output times ``duration * (1..frames) / frames`` unless
-                    ``output_times`` lists them (strictly increasing, > 0)
-``density``         mass per unit length (springs) or area (sheet), > 0
-``alpha``, ``beta`` true damping; ``alpha0``, ``beta0`` the initial guess
-``checkpoint_every`` implicit: 1 keeps every step's state and factor; ``c > 1`` keeps
-                    every ``c``-th state and recomputes; 0 is ``ceil(sqrt(steps))``
+:class:`DynamicSettings` holds the settings every dynamic problem has (mixed into the
+problem's config, so the keys are ``problem.dt``, ``problem.scheme``, ...);
+:func:`check_dynamic_settings` checks them. ``build_problem`` builds the problem's dynamic
+class when ``problem.dynamic=true`` (:func:`check_dynamic_flag`: each class refuses the
+other value).
 """
 from __future__ import annotations
 
 import contextlib
-from typing import Any, ContextManager
+import dataclasses
+from typing import Any, ContextManager, List, Optional
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from ..params import FieldAndScalars, Parameterization
-from ..physics.dynamics import (ADAPTIVE_METHODS, FIXED_METHODS, DynamicSystem,
+from ..physics import NewtonOptions
+from ..physics.dynamics import (ADAPTIVE_METHODS, DynamicsInputError, DynamicSystem,
                                 check_output_times, make_integrator)
-from ..physics.dynamics.errors import DynamicsInputError
-from ..physics.equilibrium import NewtonOptions
-from .base import Choice, ProblemConfigError, Transform, require_setting, setting_error
+from ..settings import Choice
+from .config import ProblemConfigError, Transform, require_setting, setting_error
 
 
 class Integrator(Choice):
@@ -65,7 +57,44 @@ class OdeMethod(Choice):
     euler = "euler"
 
 
-DAMPING = ("alpha", "beta")
+_DAMPING = ("alpha", "beta")
+
+
+@dataclasses.dataclass
+class DynamicSettings:
+    """Settings of ``problem.dynamic=true``, mixed into a problem's config (put before
+    :class:`~torchfit.problems.config.ProblemConfig` in the bases). The defaults are the
+    hanging chain's (spring1d); a problem redeclares the ones it changes."""
+
+    dynamic: bool = False               # simulate motion (build_problem: the dynamic class)
+    # implicit (backward Euler / BDF2 through the equilibrium core) | torchdiffeq (odeint_adjoint)
+    integrator: Integrator = Integrator.implicit
+    scheme: Scheme = Scheme.bdf2        # implicit: bdf2 | backward_euler
+    # torchdiffeq: dopri5 (adaptive: ode_rtol, ode_atol) | fixed-step rk4 | midpoint | euler (dt)
+    ode_method: OdeMethod = OdeMethod.dopri5
+    dt: float = 0.01                    # s: implicit step, fixed explicit step
+    ode_rtol: float = 1e-8              # torchdiffeq, adaptive methods
+    ode_atol: float = 1e-10
+    duration: float = 6.0               # s
+    frames: int = 60                    # output times duration * (1..frames) / frames
+    output_times: Optional[List[float]] = None   # or these (s, strictly increasing, > 0)
+    density: float = 1.0                # mass per unit length (chain) or area (sheet), > 0
+    alpha: float = 1.0                  # true mass damping (1/s): C = alpha M + beta K
+    beta: float = 0.001                 # true stiffness damping (s)
+    alpha0: float = 0.5                 # initial guess of alpha
+    beta0: float = 0.002                # initial guess of beta
+    # implicit: 1 keeps every step's state and factor; c > 1 every c-th state (the others
+    # recomputed); 0: ceil(sqrt(steps))
+    checkpoint_every: int = 1
+
+
+def check_dynamic_flag(problem: Any, cfg: Any) -> None:
+    """``problem.dynamic`` matches the class: the static problem refuses ``true``, its
+    dynamic class ``false`` (:func:`torchfit.problems.build_problem` picks the class)."""
+    dynamic = isinstance(problem, DynamicMixin)
+    require_setting(bool(cfg.dynamic) == dynamic, cfg, "dynamic",
+                    f"{type(problem).__name__} is the {'dynamic' if dynamic else 'static'} "
+                    "problem; build_problem picks the class that matches problem.dynamic")
 
 
 def check_dynamic_settings(cfg: Any) -> None:
@@ -80,7 +109,7 @@ def check_dynamic_settings(cfg: Any) -> None:
     require_setting(cfg.ode_atol > 0, cfg, "ode_atol", "must be > 0")
     require_setting(isinstance(cfg.checkpoint_every, int) and cfg.checkpoint_every >= 0, cfg,
                     "checkpoint_every", "must be an integer >= 0 (0: ceil(sqrt(steps)))")
-    for name in DAMPING:
+    for name in _DAMPING:
         for key in (name, f"{name}0"):
             value = getattr(cfg, key)
             if cfg.transform == Transform.exp:
@@ -133,7 +162,7 @@ class DynamicMixin:
             checkpoint_every=cfg.checkpoint_every)
 
     def damped(self, field: Parameterization, cfg: Any) -> FieldAndScalars:
-        return FieldAndScalars(field, DAMPING, (cfg.alpha0, cfg.beta0), cfg.transform.value)
+        return FieldAndScalars(field, _DAMPING, (cfg.alpha0, cfg.beta0), cfg.transform.value)
 
     def true_damping(self) -> Tensor:
         return torch.tensor([self.cfg.alpha, self.cfg.beta], dtype=self.dtype, device=self.device)
@@ -180,7 +209,7 @@ class DynamicMixin:
         out = super().metrics(theta, x)  # type: ignore[misc]
         damping = self.damping(theta)
         truth = self.true_damping()
-        for i, name in enumerate(DAMPING):
+        for i, name in enumerate(_DAMPING):
             out[f"{name}_damping"] = float(damping[i])
             out[f"{name}_damping_err_rel"] = float(abs(damping[i] - truth[i]) / abs(truth[i])) \
                 if float(truth[i]) != 0 else float(abs(damping[i]))
@@ -209,6 +238,3 @@ class DynamicMixin:
             out.update({"method": integrator.method})
         return out
 
-
-__all__ = ["DAMPING", "DynamicMixin", "FIXED_METHODS", "Integrator", "OdeMethod", "Scheme",
-           "check_dynamic_settings", "output_times"]

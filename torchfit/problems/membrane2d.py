@@ -32,15 +32,14 @@ coordinates of every free vertex at the output times. Fitted: ``E`` per triangle
 ``alpha`` and ``beta`` (:mod:`torchfit.problems.dynamic`). Not scale-free (inertia).
 ``conf/problem/membrane2d_dynamic.yaml`` is the preset (a 48 x 12 sheet).
 
-``problem.dtype=float32`` works for every model, but the Newton residuals of the nonlinear
-ones stall near ``1e-5`` (force units) in single precision: it needs
-``problem.newton_atol >= 1e-4`` (checked); the ``linear`` model has no such limit.
+``problem.dtype=float32`` with a nonlinear model needs ``problem.newton_atol >= 1e-4``
+(checked; docs/problems/membrane2d.md); the ``linear`` model has no such limit.
 """
 from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, ContextManager, List, Optional
+from typing import Any, ContextManager, List
 
 import numpy as np
 import torch
@@ -52,9 +51,11 @@ from ..physics import NewtonOptions
 from ..physics.dynamics import DynamicSystem, KeyedMotion
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
 from ..residual import ForwardProducts
-from .base import (Backend, Choice, DType, InverseProblem, ProblemConfig, ProblemConfigError,
-                   check_newton_settings, make_config, require_setting, resolve_backend)
-from .dynamic import DynamicMixin, Integrator, OdeMethod, Scheme, check_dynamic_settings
+from ..settings import Choice
+from .base import InverseProblem
+from .config import (Backend, DType, ProblemConfig, ProblemConfigError, check_newton_settings,
+                     require_setting, resolve_backend)
+from .dynamic import DynamicMixin, DynamicSettings, check_dynamic_flag, check_dynamic_settings
 
 
 class Model(Choice):
@@ -74,9 +75,8 @@ class SheetData(Choice):
     dense = "dense"
 
 
-DATA_MODES = tuple(SheetData.choices())
 #: smallest Newton ``atol`` accepted with ``dtype=float32`` for the nonlinear models
-FLOAT32_NEWTON_ATOL = 1e-4
+_FLOAT32_NEWTON_ATOL = 1e-4
 
 #: The animation of PROBLEMS.md: (kind, value) per frame.
 FRAMES: tuple[tuple[str, float], ...] = (
@@ -85,50 +85,47 @@ FRAMES: tuple[tuple[str, float], ...] = (
     ("bend", 10.0), ("bend", 20.0),
     ("stretch", -0.05), ("stretch", -0.10),
 )
-SHEAR_STRETCH = 0.20
+_SHEAR_STRETCH = 0.20
 
 
 @dataclasses.dataclass
-class Membrane2DConfig(ProblemConfig):
+class Membrane2DConfig(DynamicSettings, ProblemConfig):
     """Settings of ``problem=membrane2d`` (defaults are the canonical values; ``noise``,
-    ``seed``, ``transform``, ``device``, ``dtype`` from :class:`ProblemConfig`)."""
+    ``seed``, ``transform``, ``device``, ``dtype`` from :class:`ProblemConfig`,
+    ``problem.dynamic=true`` and its settings from :class:`DynamicSettings`)."""
 
     name: str = "membrane2d"
     nx: int = 96                        # cells along x (2 nx ny triangles)
     ny: int = 24                        # cells along y
-    width: float = 2.0
+    width: float = 2.0                  # rest rectangle [0, width] x [0, height]
     height: float = 0.5
     nu: float = 0.3                     # Poisson ratio, fixed (plane strain)
     model: Model = Model.corotated      # linear | corotated | stable_neo_hookean (neo_hookean)
     E_background: float = 1.0
     E_ink: float = 10.0                 # on the letters IPAM
-    data: SheetData = SheetData.dense   # dense: every free vertex, every frame
+    data: SheetData = SheetData.dense   # dense: every free vertex (neither edge), every frame
     E0: float = 1.0                     # initial guess, constant
-    backend: Backend = Backend.banded   # linear solves: banded (CPU, SPD) | scipy | cg
-    newton_rtol: float = 1e-11          # relative to the residual of the cold start
-    newton_atol: float = 1e-13          # absolute floor (force units)
+    # linear solves: banded (CPU banded Cholesky, SPD; falls back to scipy) | scipy | cg
+    backend: Backend = Backend.banded
+    newton_rtol: float = 1e-11          # per frame, relative to the residual of the cold start
+    newton_atol: float = 1e-13          # absolute floor (force units); float32 with a
+                                        # nonlinear model needs >= 1e-4 (checked)
     newton_max_iter: int = 50
-    # -- problem.dynamic=true (see torchfit.problems.dynamic) --
-    dynamic: bool = False
-    integrator: Integrator = Integrator.implicit   # implicit | torchdiffeq
-    scheme: Scheme = Scheme.bdf2                   # implicit: bdf2 | backward_euler
-    ode_method: OdeMethod = OdeMethod.dopri5       # torchdiffeq: dopri5 | rk4 | ...
-    dt: float = 0.02                    # s: implicit step, fixed explicit step
+    # -- problem.dynamic=true: the sheet's values of DynamicSettings, then its own --
+    dt: float = 0.02                    # s
     ode_rtol: float = 1e-6
     ode_atol: float = 1e-8
     duration: float = 2.0               # s
-    frames: int = 20                    # output times duration * (1..frames) / frames
-    output_times: Optional[List[float]] = None   # or these (s, strictly increasing)
-    density: float = 1.0                # mass per unit area (lumped: a third per vertex)
-    gravity: float = 0.0                # in-plane, along -y (m/s^2)
+    frames: int = 20
     alpha: float = 0.5                  # true mass damping (1/s)
     beta: float = 0.002                 # true stiffness damping (s)
     alpha0: float = 0.2                 # initial guess
     beta0: float = 0.004
+    gravity: float = 0.0                # in-plane, along -y (m/s^2)
+    # keyed translation (dx, dy) of the right edge at motion_times (s), eased C2 between keys
     motion_times: List[float] = dataclasses.field(default_factory=lambda: [0.0, 0.3, 0.6])
     motion_dx: List[float] = dataclasses.field(default_factory=lambda: [0.0, 0.2, 0.1])
     motion_dy: List[float] = dataclasses.field(default_factory=lambda: [0.0, 0.15, 0.05])
-    checkpoint_every: int = 1           # implicit: 1 all states and factors; c; 0 sqrt(steps)
 
 
 def animation(right_rest: Tensor, width: float, height: float) -> Tensor:
@@ -140,7 +137,7 @@ def animation(right_rest: Tensor, width: float, height: float) -> Tensor:
         if kind == "stretch":
             p[:, 0] = width * (1.0 + value)
         elif kind == "shear":
-            p[:, 0] = width * (1.0 + SHEAR_STRETCH)
+            p[:, 0] = width * (1.0 + _SHEAR_STRETCH)
             p[:, 1] = right_rest[:, 1] + value
         else:  # bend
             angle = math.radians(value)
@@ -163,12 +160,8 @@ class Membrane2D(InverseProblem):
     scale_free = True
     default_sheet_frame = 5            # bend by 20 degrees: the most telling frame to draw
 
-    def __new__(cls, cfg: Any = None, **overrides: Any) -> "Membrane2D":
-        if cls is Membrane2D and make_config(Membrane2DConfig, cfg, overrides).dynamic:
-            return super().__new__(DynamicMembrane2D)
-        return super().__new__(cls)
-
     def check(self, cfg: Membrane2DConfig) -> None:
+        check_dynamic_flag(self, cfg)
         for key in ("nx", "ny"):
             require_setting(isinstance(getattr(cfg, key), int) and getattr(cfg, key) >= 1, cfg,
                             key, "must be an integer >= 1 (cells per side)")
@@ -184,10 +177,10 @@ class Membrane2D(InverseProblem):
         # float32: Newton residuals of the nonlinear models stall near 1e-5 force units on
         # the canonical sheet, so the float64 tolerances can never be met.
         require_setting(cfg.dtype != DType.float32 or cfg.model in (Model.linear,)
-                        or cfg.newton_atol >= FLOAT32_NEWTON_ATOL, cfg, "newton_atol",
+                        or cfg.newton_atol >= _FLOAT32_NEWTON_ATOL, cfg, "newton_atol",
                         f"is below what float32 reaches (problem.dtype=float32, "
                         f"problem.model={cfg.model}); set problem.newton_atol="
-                        f"{FLOAT32_NEWTON_ATOL:g} or more, or use problem.dtype=float64")
+                        f"{_FLOAT32_NEWTON_ATOL:g} or more, or use problem.dtype=float64")
 
     # -- the hooks of the template --------------------------------------------------------
     def build_model(self, cfg: Membrane2DConfig) -> None:
@@ -315,7 +308,7 @@ class Membrane2D(InverseProblem):
             if kind == "stretch":
                 names.append(f"{'stretch' if value > 0 else 'compress'} {abs(value):.0%}")
             elif kind == "shear":
-                names.append(f"shear {value:g} at {SHEAR_STRETCH:.0%}")
+                names.append(f"shear {value:g} at {_SHEAR_STRETCH:.0%}")
             else:
                 names.append(f"bend {value:g} deg")
         return names

@@ -25,8 +25,10 @@ from ..linalg import coo_to_csr
 from ..params import Parameterization, grid_edges, grid_groups, per_element
 from ..physics import Equilibrium, SpringChain1D
 from ..residual import ForwardProducts
-from .base import (Backend, Choice, DataMode, InverseProblem, ProblemConfig, ProblemConfigError,
-                   node_frame_index, require, require_setting, resolve_backend)
+from ..settings import Choice
+from .base import InverseProblem, node_frame_index
+from .config import (Backend, DataMode, ProblemConfig, ProblemConfigError, require,
+                     require_setting, resolve_backend)
 
 
 class Pattern(Choice):
@@ -36,8 +38,6 @@ class Pattern(Choice):
     ipam = "ipam"
 
 
-PATTERNS = tuple(Pattern.choices())
-DATA_MODES = tuple(DataMode.choices())
 
 
 @dataclasses.dataclass
@@ -46,15 +46,16 @@ class Poisson2DConfig(ProblemConfig):
     ``seed``, ``transform``, ``backend``, ``device``, ``dtype`` from :class:`ProblemConfig`)."""
 
     name: str = "poisson2d"
-    N: int = 64                      # nodes per side
-    s: float = 0.5                   # side of the rest square
-    pattern: Pattern = Pattern.blocks    # blocks | ipam
-    data: DataMode = DataMode.dense  # dense | sparse
+    N: int = 64                      # nodes per side; (N - 1)^2 cells, one k each
+    s: float = 0.5                   # side of the rest square (stretched onto the unit square)
+    pattern: Pattern = Pattern.blocks    # the truth: blocks | ipam
+    # dense: every non-Dirichlet node | sparse: nodes (i, j) on the sparse_stride lattice
+    data: DataMode = DataMode.dense
     sparse_stride: int = 4           # sparse: nodes (i, j) with i, j multiples of the stride
-    k0: float = 1.0                  # initial guess, constant
+    k0: float = 1.0                  # initial guess, constant (scale-free: aligned errors)
     # The free stiffness is SPD (a graph Laplacian with positive k and Dirichlet columns):
-    # sparse L D L^T with the ordering kept per pattern factorises 3x faster than SuperLU
-    # (docs/linalg/ldl.md); scipy | banded | cg as for every problem.
+    # ldl, sparse L D L^T with the ordering kept per pattern (docs/linalg/ldl.md); scipy
+    # (SuperLU) | banded | cg (torch, CPU or CUDA) as for every problem.
     backend: Backend = Backend.ldl
 
 
@@ -69,7 +70,7 @@ def blocks_field(centres: np.ndarray) -> np.ndarray:
 
 def ipam_field(centres: np.ndarray) -> np.ndarray:
     """The ``ipam`` truth: ``5`` on the ink of the word IPAM, ``1`` elsewhere."""
-    from ..mesh.font import ipam_mask
+    from ..mesh import ipam_mask
 
     return np.where(ipam_mask(centres), 5.0, 1.0)
 

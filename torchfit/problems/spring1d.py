@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any, List, Optional
+from typing import List, Optional
 
 import numpy as np
 import torch
@@ -26,47 +26,32 @@ from torch import Tensor
 from ..params import Parameterization, chain_edges, per_element
 from ..physics import Equilibrium, SpringChain1D
 from ..physics.dynamics import DynamicSystem, KeyedMotion
-from .base import (DataMode, InverseProblem, ProblemConfig, ProblemConfigError, make_config,
-                   require, require_setting, resolve_backend)
-from .dynamic import DynamicMixin, Integrator, OdeMethod, Scheme, check_dynamic_settings
+from .base import InverseProblem
+from .config import (DataMode, ProblemConfig, ProblemConfigError, require, require_setting,
+                     resolve_backend)
+from .dynamic import DynamicMixin, DynamicSettings, check_dynamic_flag, check_dynamic_settings
 
-DATA_MODES = tuple(DataMode.choices())
 
 
 @dataclasses.dataclass
-class Spring1DConfig(ProblemConfig):
+class Spring1DConfig(DynamicSettings, ProblemConfig):
     """Settings of ``problem=spring1d`` (defaults are the canonical values; ``noise``,
-    ``seed``, ``transform``, ``backend``, ``device``, ``dtype`` from :class:`ProblemConfig`)."""
+    ``seed``, ``transform``, ``backend``, ``device``, ``dtype`` from :class:`ProblemConfig`,
+    ``problem.dynamic=true`` and its settings from :class:`DynamicSettings`)."""
 
     name: str = "spring1d"
-    n: int = 64                         # number of springs
+    n: int = 64                         # number of springs (n + 1 nodes)
     gravity: float = 9.81               # m/s^2, downward (the positive axis)
     loads: List[float] = dataclasses.field(default_factory=lambda: [0.0, 1.0, 2.0])  # end load per frame
     fixed_nodes: List[int] = dataclasses.field(default_factory=lambda: [0])  # Dirichlet, held at rest
-    data: DataMode = DataMode.dense     # dense | sparse
+    data: DataMode = DataMode.dense     # dense: every free node | sparse: every sparse_stride-th
     sparse_stride: int = 8              # sparse data observe nodes stride, 2*stride, ...
     k_background: float = 100.0
     k0: float = 100.0                   # initial guess, constant
     targets: Optional[str] = None       # .npy of user target positions (frames, n + 1)
-    # -- problem.dynamic=true (see torchfit.problems.dynamic) --
-    dynamic: bool = False
-    integrator: Integrator = Integrator.implicit   # implicit | torchdiffeq
-    scheme: Scheme = Scheme.bdf2                   # implicit: bdf2 | backward_euler
-    ode_method: OdeMethod = OdeMethod.dopri5       # torchdiffeq: dopri5 | rk4 | ...
-    dt: float = 0.01                    # s: implicit step, fixed explicit step
-    ode_rtol: float = 1e-8
-    ode_atol: float = 1e-10
-    duration: float = 6.0               # s
-    frames: int = 60                    # output times duration * (1..frames) / frames
-    output_times: Optional[List[float]] = None   # or these (s, strictly increasing)
-    density: float = 1.0                # mass per unit length: node mass density / n
-    alpha: float = 1.0                  # true mass damping (1/s)
-    beta: float = 0.001                 # true stiffness damping (s)
-    alpha0: float = 0.5                 # initial guess
-    beta0: float = 0.002
+    # -- problem.dynamic=true: the end load eases from load_values[0] to load_values[-1] --
     load_times: List[float] = dataclasses.field(default_factory=lambda: [0.5, 1.0])   # s
     load_values: List[float] = dataclasses.field(default_factory=lambda: [0.0, 2.0])  # end load
-    checkpoint_every: int = 1           # implicit: 1 all states and factors; c; 0 sqrt(steps)
 
 
 def true_stiffness(n: int, background: float = 100.0,
@@ -94,12 +79,8 @@ class Spring1D(InverseProblem):
     initial_setting = "k0"
     dim = 1
 
-    def __new__(cls, cfg: Any = None, **overrides: Any) -> "Spring1D":
-        if cls is Spring1D and make_config(Spring1DConfig, cfg, overrides).dynamic:
-            return super().__new__(DynamicSpring1D)
-        return super().__new__(cls)
-
     def check(self, cfg: Spring1DConfig) -> None:
+        check_dynamic_flag(self, cfg)
         require_setting(isinstance(cfg.n, int) and cfg.n >= 1, cfg, "n",
                         "must be an integer >= 1 (number of springs)")
         require_setting(cfg.sparse_stride >= 1, cfg, "sparse_stride", "must be >= 1")

@@ -31,8 +31,7 @@ import math
 
 import numpy as np
 
-from .animation import Skeleton
-from .rig import axial_coordinates, blend, distance_weights, segment_distances
+from .rig import Skeleton, axial_coordinates, blend, distance_weights, segment_distances
 
 REGION_NAMES = ("bone", "muscle", "fat")
 

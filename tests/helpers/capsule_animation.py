@@ -14,7 +14,7 @@ import numpy as np
 import trimesh
 import yaml
 
-from torchfit.mesh.animation import DrivenSurface, Skeleton, write_animation
+from torchfit.mesh import DrivenSurface, Skeleton, write_animation
 from torchfit.mesh.rig import blend, distance_weights, segment_distances
 
 RADIUS = 0.04

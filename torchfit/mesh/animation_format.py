@@ -41,63 +41,19 @@ from typing import Any
 
 import numpy as np
 
-from .rig import check_transforms
+from .rig import DrivenSurface, Skeleton, check_transforms
 from .simplicial import MeshError
 
 MANIFEST = "animation.yaml"
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
-TOP_KEYS = ("unit", "rest", "frames", "skeleton", "driven", "regions", "description")
-SKELETON_KEYS = ("bones", "attach_radius", "weights")
-DRIVEN_KEYS = ("vertices", "tolerance")
-REGION_KEYS = ("labels", "names")
+_TOP_KEYS = ("unit", "rest", "frames", "skeleton", "driven", "regions", "description")
+_SKELETON_KEYS = ("bones", "attach_radius", "weights")
+_DRIVEN_KEYS = ("vertices", "tolerance")
+_REGION_KEYS = ("labels", "names")
 
 
 class AnimationError(MeshError):
     """An animation folder that cannot be used; the message names the file and the fault."""
-
-
-@dataclasses.dataclass
-class Skeleton:
-    """Bones in the rest pose and their per-frame transforms (lengths in metres).
-
-    Attributes:
-        heads, tails: ``(B, 3)`` rest-pose segment ends.
-        transforms: ``(F, B, 3, 4)`` ``[A | t]`` with ``x' = A x + t``.
-        attach_radius: material points within this distance of a bone follow it.
-        weights: ``(V, B)`` skinning weights per rest-surface vertex, or ``None`` (from
-            distance).
-        names: ``B`` bone names.
-    """
-
-    heads: np.ndarray
-    tails: np.ndarray
-    transforms: np.ndarray
-    attach_radius: float
-    weights: np.ndarray | None = None
-    names: list[str] = dataclasses.field(default_factory=list)
-
-    @property
-    def n_bones(self) -> int:
-        return int(self.heads.shape[0])
-
-    def joints(self, tol: float = 1e-9) -> np.ndarray:
-        """Rest positions ``(k, 3)`` where one bone's tail meets another's head."""
-        gap = np.linalg.norm(self.tails[:, None, :] - self.heads[None, :, :], axis=-1)
-        scale = max(float(np.linalg.norm(self.tails - self.heads, axis=1).max()), 1e-300)
-        i, j = np.nonzero((gap <= tol * scale) & ~np.eye(self.n_bones, dtype=bool))
-        return self.tails[i] if i.size else np.zeros((0, 3))
-
-
-@dataclasses.dataclass
-class DrivenSurface:
-    """Surface vertices whose animated motion is prescribed (``mask`` ``(V,)`` bool)."""
-
-    mask: np.ndarray
-    tolerance: float
-
-    @property
-    def indices(self) -> np.ndarray:
-        return np.flatnonzero(self.mask)
 
 
 @dataclasses.dataclass
@@ -148,7 +104,7 @@ class Animation:
 
 
 # -- reading ------------------------------------------------------------------------------
-def natural_key(name: str) -> list[Any]:
+def _natural_key(name: str) -> list[Any]:
     """Sort key that orders embedded numbers numerically (``f2`` before ``f10``)."""
     return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
 
@@ -256,7 +212,7 @@ def _read_frames(folder: Path, spec: Any, n_vertices: int, manifest: Path
         names = [f"{path.name}[{i}]" for i in range(frames.shape[0])]
     else:
         pattern = spec if os.path.isabs(spec) else str(folder / spec)
-        files = sorted(glob.glob(pattern), key=lambda p: natural_key(os.path.basename(p)))
+        files = sorted(glob.glob(pattern), key=lambda p: _natural_key(os.path.basename(p)))
         if not files:
             raise AnimationError(f"{manifest}: no frame file matches {pattern}")
         frames_list = []
@@ -309,7 +265,7 @@ def _read_bones(path: Path) -> dict[str, Any]:
 
 def _read_skeleton(folder: Path, section: dict, manifest: Path, unit: float,
                    n_frames: int, n_vertices: int) -> Skeleton:
-    section = _check_keys(section, SKELETON_KEYS, "skeleton", manifest)
+    section = _check_keys(section, _SKELETON_KEYS, "skeleton", manifest)
     bones_path = _file(folder, _require(section, "bones", "skeleton", manifest),
                        "skeleton bones", manifest)
     data = _read_bones(bones_path)
@@ -361,7 +317,7 @@ def _read_skeleton(folder: Path, section: dict, manifest: Path, unit: float,
 
 def _read_driven(folder: Path, section: dict, manifest: Path, unit: float,
                  n_vertices: int) -> DrivenSurface:
-    section = _check_keys(section, DRIVEN_KEYS, "driven", manifest)
+    section = _check_keys(section, _DRIVEN_KEYS, "driven", manifest)
     spec = _require(section, "vertices", "driven", manifest)
     if isinstance(spec, list):
         raw = np.asarray(spec)
@@ -397,7 +353,7 @@ def _read_driven(folder: Path, section: dict, manifest: Path, unit: float,
 
 def _read_regions(folder: Path, section: dict, manifest: Path,
                   n_vertices: int) -> tuple[np.ndarray, list[str]]:
-    section = _check_keys(section, REGION_KEYS, "regions", manifest)
+    section = _check_keys(section, _REGION_KEYS, "regions", manifest)
     path = _file(folder, _require(section, "labels", "regions", manifest), "region labels",
                  manifest)
     labels = _load_array(path, "labels")
@@ -415,7 +371,7 @@ def _read_regions(folder: Path, section: dict, manifest: Path,
     return labels, [str(n) for n in names]
 
 
-def manifest_path(path: str | Path) -> Path:
+def _manifest_path(path: str | Path) -> Path:
     """The manifest of an animation folder (or the manifest file itself)."""
     path = Path(path).expanduser()
     if path.is_dir():
@@ -438,13 +394,13 @@ def load_animation(path: str | Path) -> Animation:
 
     from .surface import load_surface, surface_warnings
 
-    manifest = manifest_path(path)
+    manifest = _manifest_path(path)
     folder = manifest.parent
     try:
         raw = yaml.safe_load(manifest.read_text())
     except (OSError, yaml.YAMLError) as err:
         raise AnimationError(f"{manifest}: cannot read the manifest ({err})") from err
-    spec = _check_keys(raw if raw is not None else {}, TOP_KEYS, "the manifest", manifest)
+    spec = _check_keys(raw if raw is not None else {}, _TOP_KEYS, "the manifest", manifest)
     unit = _unit(spec.get("unit"), manifest)
     rest_file = _file(folder, _require(spec, "rest", "the manifest", manifest), "rest surface",
                       manifest)

@@ -1,9 +1,9 @@
-"""The procedural arm of PROBLEMS.md (torchfit.mesh.arm)."""
+"""The procedural arm of PROBLEMS.md (torchfit.mesh.procedural_arm)."""
 import numpy as np
 import pytest
 import trimesh
 
-from torchfit.mesh.arm import (ArmShape, arm_animation, arm_surface, attach_radius,
+from torchfit.mesh.procedural_arm import (ArmShape, arm_animation, arm_surface, attach_radius,
                                elbow_angles, elbow_region, region_labels)
 
 

@@ -1,8 +1,10 @@
-"""problem=animation: a user's rigged animation, end to end through real pytetwild.
+"""problem=animation (torchfit.problems.rigged_body): a user's rigged animation, end to end
+through real pytetwild.
 
-The capsule of tests/capsule_animation.py (a second closed surface, two bones, three
+The capsule of tests/helpers/capsule_animation.py (a second closed surface, two bones, three
 frames) goes through the loader, tetrahedralisation (cached), embedding, both driving modes,
-a fit, and the bad-input errors of the issue.
+a fit, and the bad-input errors of the issue as the user sees them (the format's and the
+rig's own messages: tests/mesh/test_animation_format.py, tests/mesh/test_rig.py).
 """
 from __future__ import annotations
 
@@ -13,10 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-import yaml
 
-from capsule_animation import write_capsule
-from conftest import run_fit_app
+from helpers.capsule_animation import write_capsule
+from helpers.fit_app import run_fit_app
 from torchfit import build_problem, fit
 from torchfit.problems import ProblemConfigError
 
@@ -103,68 +104,33 @@ def test_fit_app_runs_the_capsule_end_to_end(tmp_path, cache):
 
 
 # -- bad input: one clear line, before any output -------------------------------------
-def edit_manifest(folder, change):
-    path = folder / "animation.yaml"
-    spec = yaml.safe_load(path.read_text())
-    change(spec)
-    path.write_text(yaml.safe_dump(spec))
-
-
 def expect_error(folder, cache, match, **settings):
     with pytest.raises(ProblemConfigError, match=match) as info:
         problem_for(folder, cache, **settings)
     assert "\n" not in str(info.value)
 
 
-def test_frame_with_another_vertex_count_names_the_file(tmp_path, cache):
-    folder = write_capsule(tmp_path / "c", "skeleton", "obj")
-    import trimesh
-
-    trimesh.creation.icosphere(subdivisions=1).export(str(folder / "frames" / "pose2.obj"))
-    expect_error(folder, cache, r"pose2\.obj: frame has 42 vertices but the rest surface has")
-
-
-def test_nan_coordinate_names_frame_and_vertex(tmp_path, cache):
+def test_a_bad_animation_folder_is_one_line_naming_problem_path(tmp_path, cache):
+    """The format's errors (tests/mesh/test_animation_format.py) reach the user as one
+    ProblemConfigError line naming the setting."""
+    expect_error(tmp_path / "nowhere", cache, f"^problem.path={tmp_path / 'nowhere'}: no "
+                 "animation manifest at")
     folder = write_capsule(tmp_path / "c", "skeleton", "npz")
     frames = np.load(folder / "frames.npz")["frames"]
     frames[2, 17, 1] = np.nan
     np.savez(folder / "frames.npz", frames=frames)
-    expect_error(folder, cache, r"frame 2 .*vertex 17 has a NaN or infinite coordinate")
+    expect_error(folder, cache, f"^problem.path={folder}: .*frame 2 .*vertex 17 has a NaN")
 
 
-def test_missing_files_and_manifest_keys(tmp_path, cache):
-    folder = write_capsule(tmp_path / "c", "skeleton", "npz")
-    expect_error(tmp_path / "nowhere", cache, "no animation manifest at")
-    (folder / "rest.obj").rename(folder / "moved.obj")
-    expect_error(folder, cache, r"rest surface file .*rest\.obj does not exist")
-    (folder / "moved.obj").rename(folder / "rest.obj")
-    edit_manifest(folder, lambda s: s.update(colour="red"))
-    expect_error(folder, cache, r"unknown key 'colour' in the manifest")
-    edit_manifest(folder, lambda s: (s.pop("colour"), s.pop("frames")))
-    expect_error(folder, cache, r"missing entry 'frames' in the manifest")
-
-
-def test_driven_sets_empty_or_everything(tmp_path, cache):
-    folder = write_capsule(tmp_path / "c", "driven", "npz")
-    n = len(np.load(folder / "frames.npz")["frames"][0])
-    np.save(folder / "driven.npy", np.zeros(0, dtype=np.int64))
-    expect_error(folder, cache, "the driven set is empty")
-    np.save(folder / "driven.npy", np.ones(n, dtype=bool))
-    expect_error(folder, cache, "the driven set covers every vertex")
-
-
-def test_bone_transform_not_finite_and_no_vertex_near_a_bone(tmp_path, cache):
+def test_a_rig_that_holds_nothing_names_the_animation(tmp_path, cache):
+    """The drive's errors (tests/mesh/test_rig.py) name the animation's manifest."""
     folder = write_capsule(tmp_path / "c", "skeleton", "npz")
     with np.load(folder / "skeleton.npz") as data:
         bones = {k: data[k] for k in data.files}
-    bones["transforms"][1, 0, 2, 3] = np.inf
-    np.savez(folder / "skeleton.npz", **bones)
-    expect_error(folder, cache, "the transform of bone 0 in frame 1 is not finite")
-    bones["transforms"][1, 0, 2, 3] = 0.0
     bones["heads"] = bones["heads"] + [1.0, 0, 0]
     bones["tails"] = bones["tails"] + [1.0, 0, 0]
     np.savez(folder / "skeleton.npz", **bones)
-    expect_error(folder, cache, "no material point lies within attach_radius")
+    expect_error(folder, cache, r"animation\.yaml: no material point lies within attach_radius")
 
 
 def test_broken_surface_is_an_error_and_an_open_one_a_warning(tmp_path, cache):

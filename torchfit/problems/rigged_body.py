@@ -1,31 +1,20 @@
-"""``animation``: fit the Young's modulus of a body to a rigged animation a user brings.
+"""``problem=animation``: a rigged body whose Young's modulus is fitted to a user's animation.
 
-The data are a folder in the format of :mod:`torchfit.mesh.animation` (a manifest naming
-the rest surface, the frames, and the skeleton or driven surface vertices that move the
-body). The problem
+The data are an animation folder (:mod:`torchfit.mesh.animation_format`). The rest surface is
+tetrahedralised by pytetwild (cached on disk by a hash of the surface and the options: the
+same input gives the same tetrahedra); the user's surface vertices are embedded in the
+tetrahedra by barycentric weights, so targets, errors and exports live on them; the rig
+prescribes the tetrahedron vertices it drives (:mod:`torchfit.mesh.rig`). Every frame is an
+independent quasistatic equilibrium (linear, corotated or stable neo-Hookean elasticity)
+started from the animated pose, ``(F, n_vertices, 3)``; ``observe`` is every user surface
+vertex but the driven ones in every frame, ``(F * n_obs * 3,)``.
 
-1. tetrahedralises the rest surface with pytetwild (cached on disk by a hash of the surface
-   and the options: the same input gives the same tetrahedra, hence the same fit);
-2. embeds the user's surface vertices in the tetrahedra by barycentric weights, so targets,
-   errors and exports live on the user's own vertices;
-3. prescribes (Dirichlet) the tetrahedron vertices the rig drives: within
-   ``attach_radius`` of a bone (moved by linear blend skinning), or within ``tolerance`` of
-   the driven surface region (moved with it);
-4. simulates every frame as an independent quasistatic equilibrium (linear, corotated or
-   stable neo-Hookean elasticity) starting from the animated pose: tetrahedron vertices on
-   the surface from the frame, interior ones from the rig;
-5. observes the user's surface vertices (all of them; without the driven ones in the
-   driven mode), in every frame.
-
-Targets: ``target=rig``: the animated surface itself (no material reproduces it exactly;
-the measure is how far fitting lowers the surface error below the homogeneous material's);
-``target=synthetic``: the surface simulated from a known piecewise-constant field
-(``truth=regions``: one value per region; ``truth=blocks``: blocks of grid nodes).
-
-Parameters (``parameters=``): ``grid`` (default: Young's modulus on a coarse regular grid of
-``grid`` nodes over the bounding box, trilinear to tetrahedra, with the grid's difference
-operator for split Bregman), ``region`` (one value per region label) or ``tet`` (one per
-tetrahedron). Every load is a prescribed displacement: scale-free (aligned errors).
+Targets: ``target=rig``, the animated surface (no material reproduces it exactly: the
+measure is how far fitting lowers the surface error below the homogeneous material's);
+``target=synthetic``, simulated from a known field (``truth=regions`` or ``blocks``).
+Parameters: ``grid`` (a coarse node grid over the bounding box, trilinear to tetrahedra),
+``region`` or ``tet``. Every load is a prescribed displacement: scale-free. What the run
+reports of the body: :mod:`.body_report`.
 """
 from __future__ import annotations
 
@@ -34,99 +23,38 @@ import math
 import os
 import warnings
 from pathlib import Path
-from typing import Any, ContextManager, List, Optional
+from typing import Any, ContextManager
 
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
-from ..mesh import MeshError, SimplexMesh, element_adjacency, signed_volumes
-from ..mesh.animation import Animation, AnimationError, load_animation
-from ..mesh.embedding import Embedding, boundary_faces, embed_points
-from ..mesh.rig import blend, distance_weights, segment_distances
+from ..mesh import MeshError, SimplexMesh, element_adjacency
+from ..mesh.animation_format import Animation, AnimationError, load_animation
+from ..mesh.embedding import Embedding, dof_matrix, embed_points
+from ..mesh.rig import joint_cells, most_rotated_frame, skeleton_drive, surface_drive
 from ..mesh.tetrahedralize import TetMesh, TetOptions, default_cache_dir, tetrahedralize
 from ..params import Parameterization, per_element, per_grid_node, per_region
 from ..physics import NewtonOptions
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
-from .base import (Backend, Choice, InverseProblem, ProblemConfig, ProblemConfigError,
-                   check_newton_settings, require_setting, resolve_backend, setting_error)
-
-
-class ElasticModel(Choice):
-    """Constitutive model of the body."""
-
-    linear = "linear"
-    corotated = "corotated"
-    stable_neo_hookean = "stable_neo_hookean"
-
-
-class Target(Choice):
-    """``rig``: the animated surface; ``synthetic``: simulated from a known field."""
-
-    rig = "rig"
-    synthetic = "synthetic"
-
-
-class Truth(Choice):
-    """The known field of ``target=synthetic``."""
-
-    regions = "regions"     # one value per region (E_regions)
-    blocks = "blocks"       # blocks of grid nodes (E_blocks), trilinear between nodes
-
-
-class Layout(Choice):
-    """Where the fitted parameters live."""
-
-    grid = "grid"           # nodes of a coarse regular grid, trilinear to tetrahedra
-    region = "region"       # one per region label
-    tet = "tet"             # one per tetrahedron
-
-
-@dataclasses.dataclass
-class AnimationConfig(ProblemConfig):
-    """Settings of ``problem=animation`` (lengths in metres; ``noise`` in metres too)."""
-
-    name: str = "animation"
-    path: str = ""                         # folder holding animation.yaml
-    frames: Optional[List[int]] = None     # which frames to fit (default: all)
-    model: ElasticModel = ElasticModel.corotated
-    nu: float = 0.45                       # Poisson ratio, fixed
-    target: Target = Target.rig
-    truth: Truth = Truth.blocks            # synthetic targets only
-    # truth=regions: one modulus per label (arm: bone, muscle, fat; the bone core is attached
-    # to the rig, so its modulus is unobservable: it gets the muscle's value by default)
-    E_regions: List[float] = dataclasses.field(default_factory=lambda: [4.0, 4.0, 1.0])
-    E_blocks: List[float] = dataclasses.field(default_factory=lambda: [1.0, 4.0, 0.4])
-    parameters: Layout = Layout.grid
-    grid: List[int] = dataclasses.field(default_factory=lambda: [4, 4, 12])   # nodes x, y, z
-    E0: float = 1.0                        # initial guess, constant
-    backend: Backend = Backend.auto        # auto: pardiso where installed, else scipy
-    # tetrahedralisation (pytetwild): target edge length as a fraction of the bounding-box
-    # diagonal, envelope (fraction of the diagonal), quality (stop energy), optimisation
-    tet_edge_length: float = 0.05
-    tet_epsilon: float = 1e-3
-    tet_stop_energy: float = 10.0
-    tet_optimize: bool = True
-    cache_dir: str = ""                    # tet-mesh cache ("" : $TORCHFIT_CACHE_DIR or ~/.cache/torchfit)
-    newton_rtol: float = 1e-10
-    newton_atol: float = 1e-12
-    newton_max_iter: int = 300
-    # Newton's start at a new parameter vector: an earlier solution (true; the solver's current
-    # point where it is known) or the animated pose (false, the definition in PROBLEMS.md; see
-    # docs/problems/arm3d.md, "Several equilibria near full bend", for when it matters)
-    warm_start: bool = True
+from .base import InverseProblem
+from .body_report import (BODY_METRICS, body_metrics, frame_report, inverted_counts,
+                          min_volume_ratios, region_summary, surface_distances, volume_change)
+from .config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
+                     resolve_backend, setting_error)
+from .rigged_body_config import Layout, RiggedBodyConfig, Target, Truth
 
 
 #: largest distance (fraction of the bounding-box diagonal) of a surface vertex outside the
 #: tetrahedra before the tetrahedralisation is judged not to match the surface
-MAX_OUTSIDE = 0.02
+_MAX_OUTSIDE = 0.02
 
 
-class AnimationProblem(InverseProblem):
+class RiggedBody(InverseProblem):
     """Fit Young's modulus so that the simulated body follows a rigged animation."""
 
-    config_class = AnimationConfig
+    config_class = RiggedBodyConfig
     name = "animation"
     field_name = "E"
     initial_setting = "E0"
@@ -136,7 +64,7 @@ class AnimationProblem(InverseProblem):
     writes_animation = False
 
     # -- hooks of the template --------------------------------------------------------
-    def check(self, cfg: AnimationConfig) -> None:
+    def check(self, cfg: RiggedBodyConfig) -> None:
         require_setting(-1.0 < cfg.nu < 0.5, cfg, "nu", "must lie in (-1, 0.5) (Poisson ratio "
                         "of an isotropic material; 0.5 would be incompressible)")
         require_setting(cfg.E0 > 0, cfg, "E0", "must be a positive Young's modulus")
@@ -157,18 +85,18 @@ class AnimationProblem(InverseProblem):
                         "sheets, not a 3-D body; use auto, pardiso, scipy or cg")
         self.check_source(cfg)
 
-    def check_source(self, cfg: AnimationConfig) -> None:
+    def check_source(self, cfg: RiggedBodyConfig) -> None:
         require_setting(bool(cfg.path), cfg, "path", "must name the folder of your animation "
                         "(holding animation.yaml; see README, 'Bring your own animation')")
 
-    def load(self, cfg: AnimationConfig) -> Animation:
+    def load(self, cfg: RiggedBodyConfig) -> Animation:
         """The animation (``problem=arm3d`` makes and writes its own first)."""
         try:
             return load_animation(cfg.path)
         except MeshError as err:
             raise ProblemConfigError(f"problem.path={cfg.path}: {err}") from err
 
-    def build_model(self, cfg: AnimationConfig) -> None:
+    def build_model(self, cfg: RiggedBodyConfig) -> None:
         animation = self.load(cfg)
         if cfg.frames is not None:
             try:
@@ -188,18 +116,21 @@ class AnimationProblem(InverseProblem):
         diagonal = float(np.linalg.norm(points.max(0) - points.min(0)))
         try:
             self.embedding: Embedding = embed_points(animation.rest_vertices, points, cells,
-                                                     max_distance=MAX_OUTSIDE * diagonal)
+                                                     max_distance=_MAX_OUTSIDE * diagonal)
         except MeshError as err:
             raise ProblemConfigError(f"{animation.path}: {err}") from err
-        if animation.skeleton is not None:
-            dirichlet, positions, start = self._skeleton_drive(animation)
-        else:
-            dirichlet, positions, start = self._surface_drive(animation)
+        surface = (animation.rest_vertices, animation.faces, animation.frames)
+        try:
+            drive = skeleton_drive(points, cells, animation.skeleton, *surface) \
+                if animation.skeleton is not None else \
+                surface_drive(points, animation.driven, *surface)
+        except MeshError as err:
+            raise ProblemConfigError(f"{animation.path}: {err}") from err
+        dirichlet = drive.vertices
         self.dirichlet_vertices = dirichlet
-        self.dirichlet_positions = torch.as_tensor(positions, dtype=self.dtype,
+        self.dirichlet_positions = torch.as_tensor(drive.positions, dtype=self.dtype,
                                                    device=self.device)
-        start[:, dirichlet] = positions
-        self.start_positions = torch.as_tensor(start, dtype=self.dtype, device=self.device)
+        self.start_positions = torch.as_tensor(drive.start, dtype=self.dtype, device=self.device)
         # warm starts (the last solution, at the solver's next point) keep going rather than
         # fall back to the animated pose: near full bend that cold start needs far more
         # Newton iterations (folds and inverted elements at the inner elbow)
@@ -214,7 +145,7 @@ class AnimationProblem(InverseProblem):
         self.full_bend_frame = self.reference_frame()
         self._other_models: dict[str, QuasistaticElasticity] = {}
 
-    def tetrahedralize(self, cfg: AnimationConfig, animation: Animation) -> TetMesh:
+    def tetrahedralize(self, cfg: RiggedBodyConfig, animation: Animation) -> TetMesh:
         options = TetOptions(edge_length_fac=cfg.tet_edge_length, epsilon=cfg.tet_epsilon,
                              stop_energy=cfg.tet_stop_energy, optimize=cfg.tet_optimize)
         cache = Path(cfg.cache_dir).expanduser() / "tetmesh" if cfg.cache_dir else \
@@ -226,79 +157,8 @@ class AnimationProblem(InverseProblem):
         except MeshError as err:
             raise ProblemConfigError(f"{animation.path}: {err}") from err
 
-    # -- what drives the body ---------------------------------------------------------
-    def _surface_start(self, animation: Animation, points: np.ndarray) -> np.ndarray:
-        """Positions ``(F, n, 3)`` of ``points`` moved with the displacement of the closest
-        point of the rest surface (barycentric in its triangle)."""
-        import trimesh
-
-        surface = trimesh.Trimesh(animation.rest_vertices, animation.faces, process=False)
-        closest, _, triangle = trimesh.proximity.closest_point(surface, points)
-        corners = animation.rest_vertices[animation.faces[triangle]]          # (n, 3, 3)
-        bary = trimesh.triangles.points_to_barycentric(corners, closest)       # (n, 3)
-        displacement = animation.frames - animation.rest_vertices[None]       # (F, V, 3)
-        moved = np.einsum("nk,fnkd->fnd", bary, displacement[:, animation.faces[triangle]])
-        return points[None] + moved
-
-    def _skeleton_drive(self, animation: Animation
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        skeleton = animation.skeleton
-        points = self.tet.points
-        distances = segment_distances(points, skeleton.heads, skeleton.tails)   # (n, B)
-        attached = distances.min(axis=1) <= skeleton.attach_radius
-        if not attached.any():
-            raise ProblemConfigError(
-                f"{animation.path}: no material point lies within attach_radius="
-                f"{skeleton.attach_radius:.4g} m of any bone (nearest: "
-                f"{distances.min():.4g} m); put the bones inside the body or raise "
-                "skeleton.attach_radius")
-        if attached.all():
-            raise ProblemConfigError(
-                f"{animation.path}: every material point lies within attach_radius="
-                f"{skeleton.attach_radius:.4g} m of a bone, so nothing is left to simulate; "
-                "lower skeleton.attach_radius")
-        if skeleton.weights is not None:
-            # weights given per rest-surface vertex: carried inward from the nearest one
-            _, nearest = cKDTree(animation.rest_vertices).query(points)
-            weights = skeleton.weights[nearest]
-        else:
-            weights = distance_weights(distances, skeleton.attach_radius)
-        rigged = blend(points, weights, skeleton.transforms)                    # (F, n, 3)
-        dirichlet = np.flatnonzero(attached)
-        start = rigged.copy()
-        boundary = np.unique(boundary_faces(self.tet.cells)[0])
-        start[:, boundary] = self._surface_start(animation, points[boundary])
-        return dirichlet, rigged[:, dirichlet], start
-
-    def _surface_drive(self, animation: Animation
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        import trimesh
-
-        driven = animation.driven
-        points = self.tet.points
-        faces = animation.faces
-        full = driven.mask[faces].all(axis=1)
-        if full.any():
-            region = trimesh.Trimesh(animation.rest_vertices, faces[full], process=False)
-            _, distance, _ = trimesh.proximity.closest_point(region, points)
-        else:
-            distance, _ = cKDTree(animation.rest_vertices[driven.mask]).query(points)
-        near = distance <= driven.tolerance
-        if not near.any():
-            raise ProblemConfigError(
-                f"{animation.path}: no tetrahedron vertex lies within driven.tolerance="
-                f"{driven.tolerance:.4g} m of the driven surface (nearest: {distance.min():.4g} "
-                "m); raise driven.tolerance")
-        if near.all():
-            raise ProblemConfigError(
-                f"{animation.path}: every tetrahedron vertex lies within driven.tolerance of "
-                "the driven surface, so nothing is left to simulate; lower driven.tolerance")
-        start = self._surface_start(animation, points)
-        dirichlet = np.flatnonzero(near)
-        return dirichlet, start[:, dirichlet], start
-
     # -- regions and the joint ----------------------------------------------------------
-    def regions(self, cfg: AnimationConfig) -> tuple[np.ndarray | None, list[str]]:
+    def regions(self, cfg: RiggedBodyConfig) -> tuple[np.ndarray | None, list[str]]:
         """Region label per tetrahedron (carried inward from the nearest labelled surface
         vertex), or ``None`` when the animation has no labels."""
         labels = self.animation.region_labels
@@ -307,29 +167,16 @@ class AnimationProblem(InverseProblem):
         _, nearest = cKDTree(self.animation.rest_vertices).query(self.mesh.centroids())
         return labels[nearest], list(self.animation.region_names)
 
-    def joint_region(self, cfg: AnimationConfig) -> np.ndarray:
-        """Tetrahedra whose volume change is reported: those within ``3 attach_radius`` of a
-        joint of the skeleton (every tetrahedron without a skeleton or joint)."""
-        skeleton = self.animation.skeleton
-        centroids = self.mesh.centroids()
-        if skeleton is None or not len(skeleton.joints()):
-            return np.arange(len(centroids))
-        joints = skeleton.joints()
-        distance = np.linalg.norm(centroids[:, None, :] - joints[None], axis=-1).min(axis=1)
-        cells = np.flatnonzero(distance <= 3.0 * skeleton.attach_radius)
-        return cells if cells.size else np.arange(len(centroids))
+    def joint_region(self, cfg: RiggedBodyConfig) -> np.ndarray:
+        """Tetrahedra whose volume change is reported (:func:`~torchfit.mesh.rig.joint_cells`)."""
+        return joint_cells(self.mesh.centroids(), self.animation.skeleton)
 
     def reference_frame(self) -> int:
         """The frame of largest bone rotation (the full bend), 0 without a skeleton."""
-        skeleton = self.animation.skeleton
-        if skeleton is None:
-            return 0
-        A = skeleton.transforms[..., :3]
-        cosine = np.clip((np.trace(A, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
-        return int(np.argmax(np.arccos(cosine).max(axis=1)))
+        return most_rotated_frame(self.animation.skeleton)
 
     # -- parameters, observation, truth ----------------------------------------------
-    def build_parameterization(self, cfg: AnimationConfig) -> Parameterization:
+    def build_parameterization(self, cfg: RiggedBodyConfig) -> Parameterization:
         centroids = self.mesh.centroids()
         lower, upper = self.tet.points.min(0), self.tet.points.max(0)
         self.grid_shape = tuple(int(n) for n in cfg.grid)
@@ -346,7 +193,7 @@ class AnimationProblem(InverseProblem):
         return per_element(self.model.n_cells, element_adjacency(self.mesh.cells),
                            cfg.transform.value, name="Young's modulus", dtype=self.dtype)
 
-    def build_observation(self, cfg: AnimationConfig) -> None:
+    def build_observation(self, cfg: RiggedBodyConfig) -> None:
         animation = self.animation
         if animation.driven is not None:
             observed = np.flatnonzero(~animation.driven.mask)
@@ -363,7 +210,7 @@ class AnimationProblem(InverseProblem):
         """Tetrahedron vertex indices ``(V_surface, 4)`` of each user surface vertex."""
         return self.mesh.cells[self.embedding.cells]
 
-    def true_field(self, cfg: AnimationConfig) -> Tensor | None:
+    def true_field(self, cfg: RiggedBodyConfig) -> Tensor | None:
         if cfg.target == Target.rig:
             return None
         if cfg.truth == Truth.regions:
@@ -394,14 +241,14 @@ class AnimationProblem(InverseProblem):
         labels[soft] = 2
         return labels.reshape(-1)
 
-    def blocks_field(self, cfg: AnimationConfig) -> Tensor:
+    def blocks_field(self, cfg: RiggedBodyConfig) -> Tensor:
         """The ``blocks`` truth per tetrahedron: grid-node values, trilinear to tetrahedra."""
         grid = per_grid_node(self.grid_shape, self.mesh.centroids(), self.tet.points.min(0),
                              self.tet.points.max(0), "identity", dtype=self.dtype)
         values = torch.tensor(cfg.E_blocks, dtype=self.dtype)[torch.as_tensor(self.block_nodes())]
         return grid(values.to(self.device))
 
-    def measured_data(self, cfg: AnimationConfig) -> Tensor:
+    def measured_data(self, cfg: RiggedBodyConfig) -> Tensor:
         frames = torch.as_tensor(self.animation.frames, dtype=self.dtype, device=self.device)
         return frames[:, self.observed_vertices.to(self.device), :].reshape(-1)
 
@@ -450,17 +297,9 @@ class AnimationProblem(InverseProblem):
         ``(n_obs 3, n_vertices 3)`` (rows and columns point-major, as ``observe``; cached)."""
         key = (like.dtype, like.device)
         if getattr(self, "_observation_key", None) != key:
-            corners = self._observed_corners.cpu()                       # (n_obs, 4)
-            n_obs, n_corners = corners.shape
-            d = self.model.dim
-            rows = (torch.arange(n_obs)[:, None, None] * d
-                    + torch.arange(d)[None, None, :]).expand(n_obs, n_corners, d)
-            cols = corners[:, :, None] * d + torch.arange(d)[None, None, :]
-            values = self._observed_weights.cpu()[:, :, None].expand(n_obs, n_corners, d)
-            self._observation = torch.sparse_coo_tensor(
-                torch.stack([rows.reshape(-1), cols.reshape(-1)]), values.reshape(-1),
-                (n_obs * d, self.model.n_vertices * d), check_invariants=False
-            ).coalesce().to(like)
+            self._observation = dof_matrix(self._observed_corners.cpu(),
+                                           self._observed_weights.cpu(), self.model.n_vertices,
+                                           self.model.dim).to(like)
             self._observation_key = key
         return self._observation
 
@@ -481,18 +320,16 @@ class AnimationProblem(InverseProblem):
     def surface_error_field(self, x: Tensor) -> Tensor:
         """Distance of every user surface vertex to its noise-free target ``(F, V)``."""
         with torch.no_grad():
-            return torch.linalg.vector_norm(self.surface(x) - self.clean_surface(), dim=-1)
+            return surface_distances(self.surface(x), self.clean_surface())
 
     def surface_errors(self, x: Tensor) -> Tensor:
         """Distance of every observed surface vertex to its noise-free target ``(F, n_obs)``."""
-        sim = self.observe(x).reshape(self.n_frames, -1, 3)
-        return torch.linalg.vector_norm(sim - self.clean_targets(), dim=-1)
+        return surface_distances(self.observe(x).reshape(self.n_frames, -1, 3),
+                                 self.clean_targets())
 
     def joint_volume_change(self, x: Tensor) -> np.ndarray:
         """Relative volume change of the joint region per frame ``(F,)`` (``V / V_rest - 1``)."""
-        cells = self.mesh.cells[self.joint_cells]
-        rest = float(signed_volumes(self.mesh.points, cells).sum())
-        return _frame_volumes(x, cells).sum(axis=1) / rest - 1.0
+        return volume_change(_positions(x), self.mesh.points, self.mesh.cells[self.joint_cells])
 
     def inverted_tets(self, x: Tensor) -> np.ndarray:
         """Tetrahedra turned inside out (signed volume <= 0) per frame ``(F,)``.
@@ -502,19 +339,16 @@ class AnimationProblem(InverseProblem):
         frame's simulation is not a unique function of the material: see
         docs/problems/arm3d.md, "Several equilibria near full bend".
         """
-        return (_frame_volumes(x, self.mesh.cells) <= 0).sum(axis=1)
+        return inverted_counts(_positions(x), self.mesh.cells)
 
     def min_volume_ratio(self, x: Tensor) -> np.ndarray:
         """Per frame ``(F,)``, the smallest volume of a tetrahedron relative to its rest
         volume (``<= 0``: inverted). A frame near a fold has one far below 1 before any
         tetrahedron inverts, so a change of material can fold it (see :meth:`inverted_tets`)."""
-        rest = signed_volumes(self.mesh.points, self.mesh.cells)
-        return (_frame_volumes(x, self.mesh.cells) / rest[None]).min(axis=1)
+        return min_volume_ratios(_positions(x), self.mesh.points, self.mesh.cells)
 
     def metric_names(self) -> list[str]:
-        return super().metric_names() + ["surface_err_mean", "surface_err_max",
-                                         "surface_err_reduction", "joint_volume_change",
-                                         "inverted_tets"]
+        return super().metric_names() + list(BODY_METRICS)
 
     def homogeneous_surface_error(self) -> float:
         """Mean surface error of the homogeneous material (any constant: scale-free)."""
@@ -530,23 +364,16 @@ class AnimationProblem(InverseProblem):
                 x = self.simulate(self.field(theta))
             out = super().metrics(theta, x)
             errors = self.surface_errors(x)
-        out["surface_err_mean"] = float(errors.mean())
-        out["surface_err_max"] = float(errors.max())
-        mean = out["surface_err_mean"]
-        out["surface_err_reduction"] = self.homogeneous_surface_error() / mean if mean > 0 \
-            else math.inf
-        out["joint_volume_change"] = float(self.joint_volume_change(x)[self.full_bend_frame])
-        out["inverted_tets"] = float(self.inverted_tets(x).max())
+        out.update(body_metrics(errors, self.homogeneous_surface_error(),
+                                self.joint_volume_change(x), self.inverted_tets(x),
+                                self.full_bend_frame))
         return out
 
     def frame_errors(self, x: Tensor) -> dict[str, np.ndarray]:
         """Per frame: mean and max surface error (m), joint-region volume change."""
         with torch.no_grad():
             errors = self.surface_errors(x)
-        return {"surface_err_mean": errors.mean(dim=1).cpu().numpy(),
-                "surface_err_max": errors.amax(dim=1).cpu().numpy(),
-                "joint_volume_change": self.joint_volume_change(x),
-                "inverted_tets": self.inverted_tets(x)}
+        return frame_report(errors, self.joint_volume_change(x), self.inverted_tets(x))
 
     def frame_names(self) -> list[str]:
         return list(self.animation.frame_files)
@@ -556,7 +383,7 @@ class AnimationProblem(InverseProblem):
         frames = self.cfg.frames
         return [int(f) for f in frames] if frames is not None else list(range(self.n_frames))
 
-    def with_frames(self, numbers: list[int]) -> "AnimationProblem":
+    def with_frames(self, numbers: list[int]) -> "RiggedBody":
         """The same problem on some of its fitted frames (animation frame numbers, in the
         order given), with **this** problem's targets on them, noise included.
 
@@ -583,7 +410,7 @@ class AnimationProblem(InverseProblem):
             sub.noise_level = self.noise_level * math.sqrt(sub.data.numel() / self.data.numel())
         return sub
 
-    def settings_for_frames(self, numbers: list[int]) -> AnimationConfig:
+    def settings_for_frames(self, numbers: list[int]) -> RiggedBodyConfig:
         """This problem's config with ``frames=numbers`` (for :meth:`with_frames`)."""
         return dataclasses.replace(self.cfg, frames=list(numbers))
 
@@ -610,22 +437,8 @@ class AnimationProblem(InverseProblem):
     def region_summary(self, field: Tensor) -> dict[str, dict[str, float]]:
         """Mean, min, max and volume-weighted mean of ``field`` per region (all tetrahedra
         as one region ``body`` when there are no labels)."""
-        values = field.detach().cpu().numpy()
-        volumes = self.mesh.signed_volumes()
-        labels = self.tet_regions if self.tet_regions is not None else \
-            np.zeros(len(values), dtype=np.int64)
-        names = self.region_names or ["body"]
-        out = {}
-        for r, name in enumerate(names):
-            mask = labels == r
-            if not mask.any():
-                continue
-            out[name] = {"tets": int(mask.sum()), "volume": float(volumes[mask].sum()),
-                         "mean": float(values[mask].mean()), "min": float(values[mask].min()),
-                         "max": float(values[mask].max()),
-                         "volume_mean": float((values[mask] * volumes[mask]).sum()
-                                              / volumes[mask].sum())}
-        return out
+        return region_summary(field.detach().cpu().numpy(), self.mesh.signed_volumes(),
+                              self.tet_regions, self.region_names)
 
     def describe(self) -> dict[str, Any]:
         out = super().describe()
@@ -645,8 +458,6 @@ class AnimationProblem(InverseProblem):
         return out
 
 
-def _frame_volumes(x: Tensor, cells: np.ndarray) -> np.ndarray:
-    """Signed volumes ``(F, len(cells))`` of ``cells`` at positions ``x`` ``(F, n, 3)``
-    (frame by frame: the corner array of 48 frames of 10k tetrahedra would be 110 MB)."""
-    positions = x.detach().cpu().numpy()
-    return np.stack([signed_volumes(frame, cells) for frame in positions])
+def _positions(x: Tensor) -> np.ndarray:
+    """Tetrahedron vertex positions ``(F, n, 3)`` as a NumPy array."""
+    return x.detach().cpu().numpy()

@@ -1,0 +1,90 @@
+"""What a run reports of a body fitted to an animation: pure functions on arrays.
+
+Positions are ``(F, n, 3)`` arrays of the tetrahedron vertices in every frame, ``cells``
+``(m, 4)`` positively oriented at rest, ``rest_points`` ``(n, 3)``; volumes are signed
+(``<= 0``: inverted). Surface errors are distances (metres) of surface vertices to their
+noise-free targets, ``(F, V)`` tensors.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..mesh import signed_volumes
+
+#: the body metrics (PROBLEMS.md) after the generic ones, in this order
+BODY_METRICS = ("surface_err_mean", "surface_err_max", "surface_err_reduction",
+                "joint_volume_change", "inverted_tets")
+
+
+def frame_volumes(positions: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Signed volumes ``(F, m)`` of ``cells`` in every frame (frame by frame: the corner array
+    of 48 frames of 10k tetrahedra would be 110 MB)."""
+    return np.stack([signed_volumes(frame, cells) for frame in positions])
+
+
+def volume_change(positions: np.ndarray, rest_points: np.ndarray,
+                  cells: np.ndarray) -> np.ndarray:
+    """Relative volume change ``(F,)`` of ``cells`` taken together (``V / V_rest - 1``)."""
+    rest = float(signed_volumes(rest_points, cells).sum())
+    return frame_volumes(positions, cells).sum(axis=1) / rest - 1.0
+
+
+def inverted_counts(positions: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Tetrahedra turned inside out (signed volume ``<= 0``) per frame ``(F,)``."""
+    return (frame_volumes(positions, cells) <= 0).sum(axis=1)
+
+
+def min_volume_ratios(positions: np.ndarray, rest_points: np.ndarray,
+                      cells: np.ndarray) -> np.ndarray:
+    """Per frame ``(F,)``, the smallest volume of a tetrahedron relative to its rest volume."""
+    rest = signed_volumes(rest_points, cells)
+    return (frame_volumes(positions, cells) / rest[None]).min(axis=1)
+
+
+def surface_distances(simulated: Tensor, targets: Tensor) -> Tensor:
+    """Distance of every vertex to its target, ``(..., V, 3)`` each -> ``(..., V)``."""
+    return torch.linalg.vector_norm(simulated - targets, dim=-1)
+
+
+def body_metrics(errors: Tensor, homogeneous_error: float, joint_change: np.ndarray,
+                 inverted: np.ndarray, reference_frame: int) -> dict[str, float]:
+    """The keys of :data:`BODY_METRICS`: mean and max surface error ``errors`` ``(F, V)``,
+    how far the mean is below the homogeneous material's (``inf`` at zero error), the joint's
+    volume change in the reference frame, the most inverted tetrahedra of any frame."""
+    out = {"surface_err_mean": float(errors.mean()), "surface_err_max": float(errors.max())}
+    mean = out["surface_err_mean"]
+    out["surface_err_reduction"] = homogeneous_error / mean if mean > 0 else math.inf
+    out["joint_volume_change"] = float(joint_change[reference_frame])
+    out["inverted_tets"] = float(inverted.max())
+    return out
+
+
+def frame_report(errors: Tensor, joint_change: np.ndarray,
+                 inverted: np.ndarray) -> dict[str, np.ndarray]:
+    """Per frame ``(F,)``: mean and max surface error, joint volume change, inverted tets."""
+    return {"surface_err_mean": errors.mean(dim=1).cpu().numpy(),
+            "surface_err_max": errors.amax(dim=1).cpu().numpy(),
+            "joint_volume_change": joint_change, "inverted_tets": inverted}
+
+
+def region_summary(values: np.ndarray, volumes: np.ndarray, labels: np.ndarray | None,
+                   names: list[str]) -> dict[str, dict[str, float]]:
+    """Count, volume, mean, min, max and volume-weighted mean of per-cell ``values`` per
+    region (``labels`` ``(m,)`` indexing ``names``; all cells as one region ``body`` when
+    ``labels`` is ``None``); regions without cells are left out."""
+    labels = labels if labels is not None else np.zeros(len(values), dtype=np.int64)
+    out = {}
+    for r, name in enumerate(names or ["body"]):
+        mask = labels == r
+        if not mask.any():
+            continue
+        out[name] = {"tets": int(mask.sum()), "volume": float(volumes[mask].sum()),
+                     "mean": float(values[mask].mean()), "min": float(values[mask].min()),
+                     "max": float(values[mask].max()),
+                     "volume_mean": float((values[mask] * volumes[mask]).sum()
+                                          / volumes[mask].sum())}
+    return out

@@ -1,0 +1,81 @@
+"""Settings of ``problem=animation`` (``arm3d`` extends them): choices, RiggedBodyConfig.
+
+Lengths in metres, ``noise`` too.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import List, Optional
+
+from ..settings import Choice
+from .config import Backend, ProblemConfig
+
+
+class ElasticModel(Choice):
+    """Constitutive model of the body."""
+
+    linear = "linear"
+    corotated = "corotated"
+    stable_neo_hookean = "stable_neo_hookean"
+
+
+class Target(Choice):
+    """``rig``: the animated surface; ``synthetic``: simulated from a known field."""
+
+    rig = "rig"
+    synthetic = "synthetic"
+
+
+class Truth(Choice):
+    """The known field of ``target=synthetic``."""
+
+    regions = "regions"     # one value per region (E_regions)
+    blocks = "blocks"       # blocks of grid nodes (E_blocks), trilinear between nodes
+
+
+class Layout(Choice):
+    """Where the fitted parameters live."""
+
+    grid = "grid"           # nodes of a coarse regular grid, trilinear to tetrahedra
+    region = "region"       # one per region label
+    tet = "tet"             # one per tetrahedron
+
+
+@dataclasses.dataclass
+class RiggedBodyConfig(ProblemConfig):
+    """Settings of ``problem=animation`` (lengths in metres; ``noise`` in metres too)."""
+
+    name: str = "animation"
+    path: str = ""                         # folder holding animation.yaml
+    frames: Optional[List[int]] = None     # a subset of the frames (numbers); null: all
+    model: ElasticModel = ElasticModel.corotated   # linear | corotated | stable_neo_hookean
+    nu: float = 0.45                       # Poisson ratio, fixed
+    # rig (the animated surface) | synthetic (simulated from a known field)
+    target: Target = Target.rig
+    truth: Truth = Truth.blocks            # synthetic only: blocks | regions (needs labels)
+    # truth=regions: one modulus per label (arm: bone, muscle, fat; the bone core is attached to
+    # the rig, so its modulus is unobservable: it gets the muscle's value by default)
+    E_regions: List[float] = dataclasses.field(default_factory=lambda: [4.0, 4.0, 1.0])
+    # truth=blocks: background, stiff block, soft block
+    E_blocks: List[float] = dataclasses.field(default_factory=lambda: [1.0, 4.0, 0.4])
+    # grid (coarse nodes, trilinear) | region (one per label; needs labels) | tet
+    parameters: Layout = Layout.grid
+    grid: List[int] = dataclasses.field(default_factory=lambda: [4, 4, 12])   # nodes x, y, z
+    E0: float = 1.0                        # initial guess, constant (the homogeneous material)
+    # auto (pardiso where installed, else scipy) | pardiso | scipy | cg
+    backend: Backend = Backend.auto
+    # tetrahedralisation (pytetwild): target edge length as a fraction of the bounding-box
+    # diagonal, envelope (fraction of the diagonal), quality (stop energy), optimisation
+    tet_edge_length: float = 0.05
+    tet_epsilon: float = 1e-3
+    tet_stop_energy: float = 10.0
+    tet_optimize: bool = True
+    # tet meshes (and the arm's animation): "" is $TORCHFIT_CACHE_DIR or ~/.cache/torchfit
+    cache_dir: str = ""
+    newton_rtol: float = 1e-10
+    newton_atol: float = 1e-12
+    newton_max_iter: int = 300
+    # Newton's start at a new parameter vector: an earlier solution (true; the solver's current
+    # point where it is known) or the animated pose (false, the definition in PROBLEMS.md; see
+    # docs/problems/arm3d.md, "Several equilibria near full bend", for when it matters)
+    warm_start: bool = True
