@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from conftest import SHARED_VECTORS, VECTOR_FILES, VECTORS
+from helpers.vectors import SHARED_VECTORS, VECTOR_FILES, VECTORS
 
 
 def test_vendored_vectors_are_all_there():

@@ -6,7 +6,7 @@ import torch
 
 from torchfit.linalg import BandedBackend, ScipyBackend, counting, get_backend
 
-from grid_matrices import grid_laplacian
+from helpers.grid_matrices import grid_laplacian
 from helpers.linear_system import gradients, linear_equilibrium
 
 

@@ -12,7 +12,7 @@ from torchfit.linalg import (BackendDeviceError, CudssBackend, CudssUnavailableE
 from torchfit.linalg.cudss import gpu_memory_error
 from torchfit.mesh import box_tetrahedra
 from torchfit.problems import build_problem
-from torchfit.problems.base import ProblemConfigError
+from torchfit.problems import ProblemConfigError
 
 from helpers.linear_system import gradients, linear_equilibrium
 
@@ -236,7 +236,7 @@ def test_equilibrium_out_of_gpu_memory_is_one_line_with_the_size(monkeypatch):
     """CUDA's allocator error inside a solve becomes one line naming frames, dofs and what
     to lower (simulated: CI has no GPU to exhaust)."""
     from torchfit.linalg.cudss import GpuMemoryError
-    from tetbox import clamped_box
+    from helpers.tetbox import clamped_box
     _, qs, _, _ = clamped_box((2, 2, 2), (1.0, 1.0, 1.0), "linear")
     eq = qs.equilibrium
 

@@ -11,7 +11,7 @@ from torchfit.linalg import (BackendDeviceError, ScipyBackend, SingularMatrixErr
                              SparsePattern, counting, get_backend)
 from torchfit.linalg.ldl import LdlBackend
 
-from grid_matrices import grid_laplacian
+from helpers.grid_matrices import grid_laplacian
 from helpers.linear_system import gradients, linear_equilibrium
 
 

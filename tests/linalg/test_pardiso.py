@@ -191,7 +191,7 @@ def test_float32_values_give_float32_solutions(backend):
 
 
 def box_equilibrium(material: str, backend: str):
-    from tetbox import clamped_box
+    from helpers.tetbox import clamped_box
 
     model, qs, bottom, top = clamped_box((3, 2, 4), (0.6, 0.4, 1.0), material, backend)
     X = model.rest.points

@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 from omegaconf.errors import ValidationError
 
 from helpers.small_problems import SMALL
-from torchfit.logging.results import jsonable, write_json
+from torchfit.reporting.results import jsonable, write_json
 from torchfit.physics.elasticity import ALIASES, MATERIALS
 from torchfit.problems import (PROBLEMS, Membrane2DConfig, ProblemConfigError, Spring1D,
                                Spring1DConfig, build_problem)

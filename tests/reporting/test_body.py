@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from capsule_animation import write_capsule
+from helpers.capsule_animation import write_capsule
 from helpers.simulations import SimulationCounter
 from torchfit import build_problem, fit
 

@@ -43,7 +43,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..mesh.animation import write_obj
+from ..mesh import write_obj
 from ..problems.base import BodyProblem
 from .evaluation import Evaluation
 from .figures import colorize, frame_errors_figure, save_png

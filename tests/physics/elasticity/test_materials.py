@@ -142,7 +142,7 @@ def test_svd_memo_serves_repeated_frames_bit_for_bit_and_decomposes_only_new_one
 
 
 def test_corotated_newton_reuses_the_line_search_decomposition_for_its_tangent():
-    from tetbox import clamped_box
+    from helpers.tetbox import clamped_box
 
     model, qs, bottom, top = clamped_box((2, 2, 3), (0.5, 0.5, 1.0), "corotated", atol=1e-15)
     X = model.rest.points

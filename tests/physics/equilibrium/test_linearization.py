@@ -11,7 +11,7 @@ from helpers.equilibrium_models import jvp_columns, make_hardening, relative
 
 @pytest.mark.parametrize("material", ["linear", "corotated"])
 def test_jacobian_columns_are_the_jvps_and_cost_one_solve_per_frame(material):
-    from tetbox import clamped_box
+    from helpers.tetbox import clamped_box
 
     model, qs, bottom, top = clamped_box((2, 2, 3), (0.5, 0.5, 1.0), material, atol=1e-15)
     X = model.rest.points
@@ -67,7 +67,7 @@ def test_jacobian_of_a_model_without_param_derivative_takes_the_generic_route():
 
 @pytest.mark.parametrize("material", ["linear", "corotated"])
 def test_linearization_products_are_the_autograd_products(material):
-    from tetbox import clamped_box
+    from helpers.tetbox import clamped_box
 
     model, qs, bottom, top = clamped_box((2, 2, 3), (0.5, 0.5, 1.0), material, atol=1e-15)
     X = model.rest.points
