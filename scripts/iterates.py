@@ -104,7 +104,10 @@ def compare(before: Path, after: Path) -> int:
     a, b = json.loads(before.read_text()), json.loads(after.read_text())
     failed = 0
     for name in sorted(set(a) | set(b)):
-        diff = _first_difference(a.get(name), b.get(name), name)
+        if name not in a or name not in b:
+            print(f"{name}: recorded only {'after' if name in b else 'before'} (not compared)")
+            continue
+        diff = _first_difference(a[name], b[name], name)
         print(f"{name}: {'identical' if diff is None else 'DIFFERS ' + diff}")
         failed += diff is not None
     return 1 if failed else 0
