@@ -10,7 +10,7 @@ many element Hessians are indefinite) as it was (``lapack``) and as it is (``now
   fixes) against the closed form :func:`~torchfit.physics.elasticity.kinematics.svd2`;
 * ``neo_hookean_projected_{2,3}d``: the PSD-projected ``dP/dF`` of stable neo-Hookean,
   exact ``A`` + batched Cholesky test + ``torch.linalg.eigh`` of the indefinite ones
-  (:func:`~torchfit.physics.elasticity.materials.project_psd`) against the analytic
+  (:func:`~torchfit.physics.elasticity.material_base.project_psd`) against the analytic
   eigensystem (``StableNeoHookean.stress_derivative(projected=True)``);
 * ``polar_solve``: the 3x3 solve of the polar derivative (``torch.linalg.solve``)
   against the adjugate :func:`~torchfit.physics.elasticity.kinematics.solve_sym3`;
@@ -41,8 +41,8 @@ from benchtools import emit_report, machine_info  # noqa: E402
 from torchfit.mesh import box_tetrahedra  # noqa: E402
 from torchfit.physics.elasticity import SimplicialElasticity  # noqa: E402
 from torchfit.physics.elasticity.kinematics import det3, solve_sym3, svd2  # noqa: E402
-from torchfit.physics.elasticity.materials import (StableNeoHookean, lame_parameters,  # noqa: E402
-                                                   project_psd)
+from torchfit.physics.elasticity.material_base import lame_parameters, project_psd  # noqa: E402
+from torchfit.physics.elasticity.stable_neo_hookean import StableNeoHookean  # noqa: E402
 
 
 def lapack_svd2(F: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from torchfit.mesh import rectangle_triangles
-from torchfit.physics import SpringChain1D
+from torchfit.physics import ScalarSpringNetwork
 from torchfit.physics.dynamics import DynamicSystem, KeyedMotion
 from torchfit.physics.elasticity import SimplicialElasticity
 from torchfit.residual import ResidualFunction
@@ -30,7 +30,7 @@ def one_thread():
 def chain_system(n: int = 6, stiffness: float = 30.0, loads=None, x0=None) -> tuple[DynamicSystem, torch.Tensor]:
     """A hanging chain of ``n`` springs released at rest length, with an eased end load."""
     nodes = torch.arange(n + 1)
-    springs = SpringChain1D(torch.stack([nodes[:-1], nodes[1:]], 1),
+    springs = ScalarSpringNetwork(torch.stack([nodes[:-1], nodes[1:]], 1),
                             torch.full((n,), 1.0 / n, dtype=DT), torch.zeros(1, n + 1, dtype=DT))
     end = torch.zeros(2, n + 1, dtype=DT)
     end[1, n] = 1.5

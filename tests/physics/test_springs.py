@@ -5,7 +5,7 @@ import torch
 import torch.autograd.forward_ad as fwAD
 
 from torchfit.linalg import counting
-from torchfit.physics import Equilibrium, SpringChain1D
+from torchfit.physics import Equilibrium, ScalarSpringNetwork
 
 
 def random_springs(seed: int = 0):
@@ -13,7 +13,7 @@ def random_springs(seed: int = 0):
     edges = torch.tensor([[0, 1], [1, 2], [2, 3], [0, 2], [1, 3], [3, 4]])
     rest = torch.rand(6, generator=gen, dtype=torch.float64)
     forces = torch.randn(2, 5, generator=gen, dtype=torch.float64)
-    return SpringChain1D(edges, rest, forces), gen
+    return ScalarSpringNetwork(edges, rest, forces), gen
 
 
 def test_param_derivative_matches_autograd_of_the_residual():
@@ -51,7 +51,7 @@ def test_equilibrium_gradients_with_param_derivative_match_finite_differences():
 def test_spring_residual_is_gradient_of_energy():
     n = 5
     nodes = torch.arange(n + 1)
-    model = SpringChain1D(torch.stack([nodes[:-1], nodes[1:]], 1), torch.full((n,), 0.2),
+    model = ScalarSpringNetwork(torch.stack([nodes[:-1], nodes[1:]], 1), torch.full((n,), 0.2),
                           torch.rand(2, n + 1))
     x = torch.rand(2, n + 1, requires_grad=True)
     k = torch.rand(n) + 1

@@ -1,6 +1,6 @@
 """Physics: energies, forces, tangents and the differentiable equilibrium solve."""
 from .equilibrium import Equilibrium, EquilibriumModel, NewtonConvergenceError, NewtonOptions
-from .springs import SpringChain1D
+from .springs import ScalarSpringNetwork
 
 __all__ = ["Equilibrium", "EquilibriumModel", "NewtonConvergenceError", "NewtonOptions",
-           "SpringChain1D"]
+           "ScalarSpringNetwork"]

@@ -1,6 +1,9 @@
-"""Linear springs along one axis (the hanging chain of PROBLEMS.md ``spring1d``).
+"""Linear springs between scalar node values: a weighted graph Laplacian with loads.
 
-Positions are scalars measured along gravity. Spring ``e`` joins nodes ``a_e < b_e``
+Two problems use it: the hanging chain of PROBLEMS.md ``spring1d`` (positions along gravity)
+and the 2-D Poisson grid ``poisson2d`` (``div(k grad x) = 0`` by finite differences: one
+spring per grid edge, ``k`` its conductance, rest length 0, each displacement component a
+frame). Node values are scalars. Spring ``e`` joins nodes ``a_e < b_e``
 with stiffness ``k_e`` (force per unit length) and rest length ``L_e``; its tension is
 ``T_e = k_e (x_b - x_a - L_e)``. The residual (net force, positive along gravity) is
 
@@ -18,8 +21,8 @@ from torch import Tensor
 from ..linalg import SparsePattern
 
 
-class SpringChain1D:
-    """Springs on a line with per-frame external nodal forces.
+class ScalarSpringNetwork:
+    """Springs between scalar node values with per-frame external nodal forces.
 
     Args:
         edges: ``(n_springs, 2)`` node pairs ``(a, b)``.
@@ -87,13 +90,13 @@ class SpringChain1D:
 
 
 class SpringParamDerivative:
-    """``dR/dk`` of :class:`SpringChain1D` at fixed positions.
+    """``dR/dk`` of :class:`ScalarSpringNetwork` at fixed positions.
 
     Column ``e`` is the tension of spring ``e`` at unit stiffness (its stretch
     ``x_b - x_a - L_e``, per frame) pushed onto node ``b`` and pulled from node ``a``.
     """
 
-    def __init__(self, springs: SpringChain1D, x: Tensor) -> None:
+    def __init__(self, springs: ScalarSpringNetwork, x: Tensor) -> None:
         self._a = springs.edges[:, 0].to(x.device)
         self._b = springs.edges[:, 1].to(x.device)
         self._n_dofs = springs.n_dofs

@@ -6,7 +6,7 @@ non-Dirichlet node, ``k_pq`` being the mean of the (one or two) cells touching e
 ``pq``; left and right columns are Dirichlet with ``x = X / s``, top and bottom are
 free (zero flux). The scheme is the weighted graph Laplacian of the grid edges, i.e. a
 network of zero-rest-length scalar springs, so the physics is
-:class:`~torchfit.physics.SpringChain1D` with edge weights ``k_pq``. The two components are two right-hand sides of the same matrix
+:class:`~torchfit.physics.ScalarSpringNetwork` with edge weights ``k_pq``. The two components are two right-hand sides of the same matrix
 ``A(k)``: they are solved as two "frames" of one linear equilibrium, sharing one
 factorisation.
 
@@ -23,7 +23,7 @@ from torch import Tensor
 
 from ..linalg import coo_to_csr
 from ..params import Parameterization, grid_edges, grid_groups, per_element
-from ..physics import Equilibrium, SpringChain1D
+from ..physics import Equilibrium, ScalarSpringNetwork
 from ..residual import ForwardProducts
 from ..settings import Choice
 from .base import InverseProblem, node_frame_index
@@ -109,7 +109,7 @@ class Poisson2D(InverseProblem):
         edges, edge_cells = self._edge_cells(N)
         self.edge_cells = torch.from_numpy(edge_cells).to(device)   # (n_edges, 2)
         n_nodes = N * N
-        self.model = SpringChain1D(torch.from_numpy(edges).to(device),
+        self.model = ScalarSpringNetwork(torch.from_numpy(edges).to(device),
                                    torch.zeros(len(edges), dtype=dtype, device=device),
                                    torch.zeros(2, n_nodes, dtype=dtype, device=device))
         self.dirichlet_nodes = np.concatenate([np.arange(N), np.arange((N - 1) * N, N * N)])

@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from ..params import Parameterization, chain_edges, per_element
-from ..physics import Equilibrium, SpringChain1D
+from ..physics import Equilibrium, ScalarSpringNetwork
 from ..physics.dynamics import DynamicSystem, KeyedMotion
 from .base import InverseProblem
 from .config import (DataMode, ProblemConfig, ProblemConfigError, require, require_setting,
@@ -107,7 +107,7 @@ class Spring1D(InverseProblem):
         weight = torch.full((n + 1,), cfg.gravity / n, dtype=dtype)   # mass 1/n times g
         external = weight.repeat(n_frames, 1)
         external[:, n] += loads
-        self.model = SpringChain1D(edges.to(device),
+        self.model = ScalarSpringNetwork(edges.to(device),
                                    torch.full((n,), 1.0 / n, dtype=dtype, device=device),
                                    external.to(device))
         self.fixed = torch.as_tensor(sorted(int(i) for i in cfg.fixed_nodes), dtype=torch.long)
@@ -183,7 +183,7 @@ class DynamicSpring1D(DynamicMixin, Spring1D):
         n, dtype, device = cfg.n, self.dtype, self.device
         nodes = torch.arange(n + 1)
         edges = torch.stack([nodes[:-1], nodes[1:]], dim=1)
-        self.model = SpringChain1D(edges.to(device),
+        self.model = ScalarSpringNetwork(edges.to(device),
                                    torch.full((n,), 1.0 / n, dtype=dtype, device=device),
                                    torch.zeros(1, n + 1, dtype=dtype, device=device))
         self.fixed = torch.as_tensor(sorted(int(i) for i in cfg.fixed_nodes), dtype=torch.long)

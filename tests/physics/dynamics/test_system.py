@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchfit.errors import ConfigurationError, SimulationError
-from torchfit.physics import SpringChain1D
+from torchfit.physics import ScalarSpringNetwork
 from torchfit.physics.dynamics import (DynamicsInputError, DynamicSystem, KeyedMotion,
                                        NegativeDampingError, check_output_times, make_integrator)
 from torchfit.physics.dynamics.system import smootherstep
@@ -49,7 +49,7 @@ def test_output_times_must_increase():
 
 def test_density_must_be_positive():
     nodes = torch.arange(3)
-    springs = SpringChain1D(torch.stack([nodes[:-1], nodes[1:]], 1), torch.full((2,), 0.5),
+    springs = ScalarSpringNetwork(torch.stack([nodes[:-1], nodes[1:]], 1), torch.full((2,), 0.5),
                             torch.zeros(1, 3))
     with pytest.raises(DynamicsInputError) as info:
         DynamicSystem(springs, 2, torch.tensor([0.5, 0.0, 0.5]), torch.tensor([0]),

@@ -9,9 +9,10 @@ import torch
 
 from torchfit.mesh import rectangle_triangles
 from torchfit.physics.elasticity import MaterialError, SimplicialElasticity, get_material
-from torchfit.physics.elasticity.kinematics import polar_rotation, svd2, svd3
-from torchfit.physics.elasticity.materials import (StableNeoHookean, lame_parameters,
-                                                   project_psd, rotation_variant_svd)
+from torchfit.physics.elasticity.kinematics import (polar_rotation, rotation_variant_svd, svd2,
+                                                    svd3)
+from torchfit.physics.elasticity.material_base import lame_parameters, project_psd
+from torchfit.physics.elasticity.stable_neo_hookean import StableNeoHookean
 
 from helpers.decompositions import DT, hard_batch
 

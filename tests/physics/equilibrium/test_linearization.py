@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from torchfit.linalg import counting
-from torchfit.physics import Equilibrium, SpringChain1D
+from torchfit.physics import Equilibrium, ScalarSpringNetwork
 
 from helpers.equilibrium_models import jvp_columns, make_hardening, relative
 
@@ -106,7 +106,7 @@ def test_spring_products_through_the_sparse_derivative_matrix():
     external = torch.full((frames, n + 1), 0.1, dtype=torch.float64)
     external[:, n] += torch.tensor([0.0, 1.0, 2.0], dtype=torch.float64)
     nodes = torch.arange(n + 1)
-    model = SpringChain1D(torch.stack([nodes[:-1], nodes[1:]], 1),
+    model = ScalarSpringNetwork(torch.stack([nodes[:-1], nodes[1:]], 1),
                           torch.full((n,), 1.0 / n, dtype=torch.float64), external)
     eq = Equilibrium(model, torch.tensor([0]))
     g = torch.Generator().manual_seed(5)

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from torchfit.linalg import counting
-from torchfit.physics import Equilibrium, NewtonConvergenceError, NewtonOptions, SpringChain1D
+from torchfit.physics import Equilibrium, NewtonConvergenceError, NewtonOptions, ScalarSpringNetwork
 
 from helpers.equilibrium_models import make_hardening
 
@@ -27,7 +27,7 @@ def test_linear_chain_one_factorization_for_all_frames(vectors_dir):
     external = torch.full((3, n + 1), float(data["gravity"]) / n)
     external[:, n] += torch.from_numpy(data["loads"])
     nodes = torch.arange(n + 1)
-    model = SpringChain1D(torch.stack([nodes[:-1], nodes[1:]], 1), torch.full((n,), 1.0 / n),
+    model = ScalarSpringNetwork(torch.stack([nodes[:-1], nodes[1:]], 1), torch.full((n,), 1.0 / n),
                           external)
     eq = Equilibrium(model, torch.tensor([0]))
     with counting() as count:

@@ -24,8 +24,9 @@ from torch import Tensor
 
 from ...linalg import SparsePattern
 from .kinematics import RestShape
-from .materials import (InvalidModulusError, Material, MaterialError, check_poisson_ratio,
-                        get_material, project_psd)
+from .material_base import (InvalidModulusError, Material, MaterialError, check_poisson_ratio,
+                            project_psd)
+from .materials import get_material
 
 
 class ElasticParamDerivative:

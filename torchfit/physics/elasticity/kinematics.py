@@ -340,3 +340,16 @@ def rotation_differential(R: Tensor, F: Tensor, dF: Tensor) -> Tensor:
         return (R @ J) * omega[..., None, None]
     w = _polar_solve(R.expand_as(M), F.expand_as(M), vee(M))
     return R @ hat(w)
+
+
+def rotation_variant_svd(F: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``F = U diag(sigma) V^T`` with ``det U = det V = +1`` (``(..., d, d)``): the last
+    singular value carries the sign of ``det F`` (negative for an inverted element).
+    3-D: :func:`svd3` (vectorised Jacobi); 2-D: :func:`svd2`
+    (closed form). Neither calls LAPACK or cuSOLVER (any batch size, any device)."""
+    if F.shape[-1] == 3:
+        return svd3(F)
+    if F.shape[-1] == 2:
+        return svd2(F)
+    raise ValueError(f"rotation-variant SVD of {F.shape[-1]}x{F.shape[-1]} matrices is not "
+                     "implemented (d = 2 or 3)")
