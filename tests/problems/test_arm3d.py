@@ -18,17 +18,9 @@ from torchfit.mesh import signed_volumes
 from torchfit.mesh import load_animation
 from torchfit.problems import ProblemConfigError
 
-COARSE = {"tet_edge_length": 0.1, "grid": [3, 3, 4]}
+from helpers.coarse_arm import arm, cache  # noqa: F401 (cache: a fixture)
+
 DATA = Path(__file__).resolve().parents[1] / "data"
-
-
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    return str(tmp_path_factory.mktemp("arm-cache"))
-
-
-def arm(cache, **settings):
-    return build_problem("arm3d", {"cache_dir": cache, **COARSE, **settings})
 
 
 def test_arm_goes_through_the_user_animation_format(cache):

@@ -20,18 +20,10 @@ from torchfit.run import FitConfigError, fit_continued
 from torchfit.run.continuation import FIRST_STAGE_DIR, frames_near_fold
 from torchfit.run.start import digest
 
-COARSE = {"tet_edge_length": 0.1, "grid": [3, 3, 4]}
+from helpers.coarse_arm import arm, cache  # noqa: F401 (cache: a fixture)
+
 LM = {"name": "levenberg_marquardt", "max_iter": 3, "max_step": 1.0}
 DATA = Path(__file__).resolve().parents[1] / "data"
-
-
-@pytest.fixture(scope="module")
-def cache(tmp_path_factory):
-    return str(tmp_path_factory.mktemp("arm-cache"))
-
-
-def arm(cache, **settings):
-    return build_problem("arm3d", {"cache_dir": cache, **COARSE, **settings})
 
 
 def between(problem) -> float:
