@@ -1,5 +1,5 @@
-"""The materials: the PSD projection, Poisson ratios and names, the rotation-variant SVD
-and the neo-Hookean eigensystem against LAPACK, the SVD memo shared by Newton."""
+"""The materials: names and defaults, the rotation-variant SVD against LAPACK, the SVD memo
+shared by Newton."""
 from __future__ import annotations
 
 import math
@@ -11,28 +11,8 @@ from torchfit.mesh import rectangle_triangles
 from torchfit.physics.elasticity import MaterialError, SimplicialElasticity, get_material
 from torchfit.physics.elasticity.kinematics import (polar_rotation, rotation_variant_svd, svd2,
                                                     svd3)
-from torchfit.physics.elasticity.material_base import lame_parameters, project_psd
-from torchfit.physics.elasticity.stable_neo_hookean import StableNeoHookean
 
 from helpers.decompositions import DT, hard_batch
-
-
-def test_project_psd_clamps_only_negative_eigenvalues():
-    g = torch.Generator().manual_seed(0)
-    M = torch.randn(5, 4, 4, generator=g)
-    M = M + M.transpose(-1, -2)
-    P = project_psd(M.reshape(5, 2, 2, 2, 2)).reshape(5, 4, 4)
-    w, V = torch.linalg.eigh(M)
-    expected = (V * w.clamp(min=0)[:, None, :]) @ V.transpose(-1, -2)
-    assert torch.allclose(P, expected, atol=1e-12)
-
-
-@pytest.mark.parametrize("nu", [0.5, -1.0, 0.7, float("nan")])
-def test_poisson_ratio_outside_range_is_rejected(nu):
-    mesh = rectangle_triangles(2, 1)
-    with pytest.raises(MaterialError, match=r"\(-1, 0.5\)"):
-        SimplicialElasticity(torch.from_numpy(mesh.points), torch.from_numpy(mesh.cells),
-                             "corotated", nu=nu)
 
 
 def test_unknown_model_and_defaults():
@@ -70,34 +50,6 @@ def test_rotation_variant_svd_matches_lapack(d):
         R = U @ Vh
         R_ref = polar_rotation(F[:500])
         assert torch.allclose(R[:500][distinct], R_ref[distinct], atol=1e-13)
-
-
-@pytest.mark.parametrize("d", [2, 3])
-def test_neo_hookean_eigensystem_and_projection_match_eigh(d):
-    F = hard_batch(d, seed=7)
-    F = torch.cat([F, 0.6 * torch.eye(d, dtype=DT) + 0.05 * F[:200]])   # compressed: indefinite
-    n = F.shape[0]
-    material = StableNeoHookean()
-    E = torch.rand(n, dtype=DT, generator=torch.Generator().manual_seed(8)) + 0.5
-    mu, lam = lame_parameters(E, 0.3)
-    A = material.stress_derivative(F, mu, lam)
-    values, modes = material.eigensystem(F, mu, lam)
-    d2 = d * d
-    flat = modes.reshape(n, d2, d2)
-    assert torch.allclose(flat @ flat.transpose(-1, -2), torch.eye(d2, dtype=DT).expand(n, -1, -1),
-                          atol=1e-13)
-    reconstructed = torch.einsum("nm,nmij,nmkl->nijkl", values, modes, modes)
-    scale = A.abs().amax()
-    assert float((reconstructed - A).abs().max()) < 1e-14 * float(scale) * 10
-    reference = torch.linalg.eigvalsh(A.reshape(n, d2, d2))
-    assert torch.allclose(values.sort(-1).values, reference, atol=1e-13 * float(scale))
-    projected = material.stress_derivative(F, mu, lam, projected=True)
-    indefinite = reference.amin(-1) < -1e-6
-    assert int(indefinite.sum()) > 50              # the projection has work to do
-    assert torch.allclose(projected, project_psd(A), atol=1e-13 * float(scale))
-    # unchanged (bit for bit) where nothing is negative
-    assert torch.equal(projected[~indefinite & (reference.amin(-1) > 0)],
-                       A[~indefinite & (reference.amin(-1) > 0)])
 
 
 def test_rotation_variant_svd_2d_is_closed_form_and_3d_is_jacobi():
