@@ -427,6 +427,18 @@ class InverseProblem:
         nothing to isolate."""
         return contextlib.nullcontext()
 
+    def simulation_state(self) -> dict[str, Any]:
+        """What the next simulations depend on besides their input, as tensors (a run's
+        checkpoint keeps it): a problem whose simulations warm-start from earlier solutions
+        returns those (:meth:`Equilibrium.warm_start_state`). Default: ``{}``, every
+        simulation depends on its input alone."""
+        return {}
+
+    def restore_simulation_state(self, state: dict[str, Any]) -> None:
+        """Put back what :meth:`simulation_state` returned (in another process, for a resume):
+        the next simulations then start exactly where they did there. Default: nothing to
+        restore."""
+
     def describe(self) -> dict[str, object]:
         """Sizes for logs and result files."""
         return {"name": self.name, "n_params": self.parameterization.n_params,

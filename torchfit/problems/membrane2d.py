@@ -235,6 +235,13 @@ class Membrane2D(InverseProblem):
         :meth:`Equilibrium.independent`."""
         return self.quasistatic.equilibrium.independent()
 
+    def simulation_state(self) -> dict[str, Any]:
+        """The solutions Newton's next warm start reads (the anchor, the most recent one)."""
+        return self.quasistatic.equilibrium.warm_start_state()
+
+    def restore_simulation_state(self, state: dict[str, Any]) -> None:
+        self.quasistatic.equilibrium.restore_warm_start_state(state, self.device)
+
     def observe(self, x: Tensor) -> Tensor:
         """Both coordinates of every free vertex, frame-major ``(F * n_free * 2,)``."""
         return x[:, self.observed_vertices.to(x.device), :].reshape(-1)

@@ -266,6 +266,13 @@ class RiggedBody(InverseProblem):
         target, the homogeneous baseline): :meth:`Equilibrium.independent`."""
         return self.quasistatic.equilibrium.independent()
 
+    def simulation_state(self) -> dict[str, Any]:
+        """The solutions Newton's next warm start reads (the anchor, the most recent one)."""
+        return self.quasistatic.equilibrium.warm_start_state()
+
+    def restore_simulation_state(self, state: dict[str, Any]) -> None:
+        self.quasistatic.equilibrium.restore_warm_start_state(state, self.device)
+
     def simulation_accuracy(self) -> float | None:
         """Newton's relative tolerance: 48 nonlinear frames are solved to it, not to round-off."""
         return max(float(self.cfg.newton_rtol), torch.finfo(self.dtype).eps)

@@ -1,8 +1,13 @@
 """Checkpoint and exact resume of a run.
 
 ``checkpoint.pt`` is written after every outer iteration: ``theta``, the solver's
-:meth:`~torchfit.solvers.Solver.state_dict`, the iteration and the settings and start it
-belongs to; nothing time-dependent, so identical runs write identical bytes.
+:meth:`~torchfit.solvers.Solver.state_dict`, the problem's
+:meth:`~torchfit.problems.InverseProblem.simulation_state` (what its next simulations
+depend on: the equilibria a warm-started Newton starts from), the iteration and the
+settings and start it belongs to; nothing time-dependent, so identical runs write identical
+bytes. A resume restores the simulation state before the solver re-linearises at the
+checkpointed point, so the resumed process simulates exactly what the uninterrupted one
+did. Checkpoints of another format are refused (one line).
 ``history.jsonl`` beside it holds the per-iteration rows (wall times included); a row is
 written before its checkpoint, and the checkpoint is the commit point. ``resume=True``
 continues from them exactly: the same ``theta`` bit for bit, the same metrics, ``max_iter``
@@ -32,7 +37,7 @@ from .start import digest
 log = logging.getLogger("torchfit.run")
 
 HISTORY_FILE = "history.jsonl"
-CHECKPOINT_FORMAT = 2
+CHECKPOINT_FORMAT = 3      # 3: with the simulation state
 
 
 class ResumeError(ConfigurationError):
@@ -48,6 +53,7 @@ class Resume:
     rows: list[dict[str, Any]]
     finished: bool
     stop_reason: str | None
+    simulation: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
 def _read_rows(path: Path, last: int) -> list[dict[str, Any]]:
@@ -79,8 +85,11 @@ def read_checkpoint(run_dir: Path, problem: InverseProblem, solver: Solver,
         raise ResumeError(f"cannot resume: {path} is not a readable checkpoint ({e}); "
                           "use another run directory or resume=false") from None
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise ResumeError(f"cannot resume: {path} was written by an older torchfit (no solver "
-                          "state); use another run directory or resume=false")
+        written = payload.get("format") if isinstance(payload, dict) else None
+        raise ResumeError(f"cannot resume: {path} has checkpoint format {written!r}, this "
+                          f"torchfit continues format {CHECKPOINT_FORMAT} only (an older one "
+                          "lacks the state an exact resume needs); use another run directory "
+                          "or resume=false")
     expected = {"problem": problem.name,
                 "problem_config": json.dumps(plain_settings(problem.cfg)),
                 "solver": solver.config.name,
@@ -107,7 +116,7 @@ def read_checkpoint(run_dir: Path, problem: InverseProblem, solver: Solver,
     state = payload["solver_state"]
     state["wall_time"] = float(rows[-1].get("wall_time", 0.0))
     return Resume(iteration, state, rows, bool(payload.get("finished", False)),
-                   payload.get("stop_reason"))
+                   payload.get("stop_reason"), payload["simulation_state"])
 
 
 def _resumable(settings: dict[str, Any]) -> dict[str, Any]:
@@ -136,6 +145,7 @@ class Checkpointer:
     def __init__(self, run_dir: Path, problem: InverseProblem, solver: Solver,
                  rows: list[dict[str, Any]], start: Tensor | None = None) -> None:
         self.run_dir = run_dir
+        self.problem = problem
         self.solver = solver
         self.rows = rows
         self.fixed = {"format": CHECKPOINT_FORMAT, "problem": problem.name,
@@ -162,6 +172,7 @@ class Checkpointer:
         state.pop("wall_time", None)        # time lives in history.jsonl: same runs, same bytes
         payload = {**self.fixed, "iteration": int(iteration),
                    "theta": theta.detach().cpu().clone(), "solver_state": _cpu(state),
+                   "simulation_state": _cpu(self.problem.simulation_state()),
                    "finished": stop_reason is not None, "stop_reason": stop_reason}
         save_torch(self.run_dir / CHECKPOINT_FILE, payload)
 

@@ -117,6 +117,9 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
         chain.append(lambda record: rows.append(record.row()))
     chain.extend(callbacks)
     warm_up_autograd()     # torch's lazy one-time set-up, outside the solver's clock
+    if restart is not None:
+        # the equilibria the checkpointed process's next simulations start from
+        problem.restore_simulation_state(restart.simulation)
     try:
         solved = solver.solve(problem.residual(),
                               problem.theta0 if start is None else start, chain,

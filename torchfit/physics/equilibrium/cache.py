@@ -12,6 +12,11 @@ starts from the solution derivatives were last taken at (the *anchor*, a solver'
 linearisation point) while it is alive, else from the most recently used one, unless that
 came from :meth:`SolutionCache.independent` (a simulation beside the solver's sequence:
 cold starts, never a seed).
+
+What a warm start reads is the cache's *seed state* (:meth:`SolutionCache.seed_solutions`:
+the anchor and the most recently used solution, with which is the anchor); a run's
+checkpoint keeps it (:meth:`~.equilibrium.Equilibrium.warm_start_state`) so that a resumed
+process's next solve starts where the uninterrupted one's did.
 """
 from __future__ import annotations
 
@@ -111,6 +116,14 @@ class SolutionCache:
         """Derivatives are taken at ``solution``: the first choice of a warm start while it
         is alive."""
         self._anchor = weakref.ref(solution)
+
+    def seed_solutions(self) -> tuple[list[Solution], int]:
+        """What :meth:`warm_source` reads: the anchor (while alive) and the most recently
+        used solution (once each, the anchor first), and the anchor's index (``-1``: none)."""
+        anchor = self._anchor() if self._anchor is not None else None
+        chosen = [] if anchor is None else [anchor]
+        chosen += [sol for sol in self._entries[-1:] if sol is not anchor]
+        return chosen, 0 if anchor is not None else -1
 
     def clear(self) -> None:
         self._entries.clear()

@@ -9,7 +9,10 @@ implicit-function adjoint (:mod:`.adjoint`). The solution and the factors of the
 tangent at ``x*`` are cached (:mod:`.cache`): calling again at the same parameters and
 Dirichlet values (a solver's ``J v`` and ``J^T w`` products, :meth:`Equilibrium.jacobian`,
 :meth:`Equilibrium.linearization`) costs no Newton iteration and no factorisation, and
-every backward and jvp at one parameter vector reuses one factorisation. Counted work
+every backward and jvp at one parameter vector reuses one factorisation.
+:meth:`Equilibrium.warm_start_state` / :meth:`Equilibrium.restore_warm_start_state` carry
+what the next warm start reads into another process (a run's checkpoint), so that its next
+solve starts, and ends, bit for bit where the saving process's would have. Counted work
 (:mod:`torchfit.linalg.counters`): a linear model, one factorisation (shared by all frames)
 and one solve per new point; a non-linear one, see :mod:`.newton`; each derivative
 product, one solve per stored factor.
@@ -263,6 +266,45 @@ class Equilibrium:
         factors and its parameter derivative): no Newton, no factorisation."""
         self.cache.restore(solution)
 
+    def warm_start_state(self) -> dict[str, Any]:
+        """What the next warm start reads, as tensors for a checkpoint: the anchor and the
+        most recently used solution (:meth:`~.cache.SolutionCache.seed_solutions`), each
+        with its parameters, Dirichlet values, positions, reference residuals and Newton
+        counts, and ``anchor`` (its index, ``-1``: none); ``{}`` for a linear model or
+        without warm starts (the next solve does not depend on earlier ones)."""
+        if self.model.linear or not self.cache.warm_start:
+            return {}
+        solutions, anchor = self.cache.seed_solutions()
+        if not solutions:
+            return {}
+        return {"solutions": [_saved_solution(sol) for sol in solutions], "anchor": anchor}
+
+    def restore_warm_start_state(self, state: dict[str, Any],
+                                 device: torch.device | str | None = None) -> None:
+        """Put back what :meth:`warm_start_state` saved (the exact tangent at each solution
+        factorised once, as the solve that found it did; a point already cached is kept),
+        the anchor included: the next solve starts exactly where it did in the process
+        that saved it. ``{}``: nothing to do."""
+        if not state:
+            return
+        restored = []
+        for saved in state["solutions"]:
+            params = saved["params"].to(device)
+            fixed_values = saved["fixed_values"].to(device)
+            sol = self.cache.lookup(params, fixed_values)
+            if sol is None:
+                x = saved["x"].to(device)
+                reference = saved.get("reference")
+                sol = Solution(params, fixed_values, x, self.reduction.factorize(x, params),
+                               [int(i) for i in saved["newton_iterations"].tolist()],
+                               None if reference is None else reference.to(device),
+                               warm_started=bool(saved["warm_started"]),
+                               seeds=bool(saved["seeds"]))
+                self.cache.remember(sol)
+            restored.append(sol)
+        if int(state["anchor"]) >= 0:
+            self.cache.anchor(restored[int(state["anchor"])])
+
     def clear_cache(self) -> None:
         self.cache.clear()
 
@@ -277,3 +319,15 @@ class Equilibrium:
         from them would put the fit on their branch.
         """
         return self.cache.independent()
+
+
+def _saved_solution(sol: Solution) -> dict[str, Any]:
+    """A solution's tensors and flags, detached copies (no factors: they are recomputed)."""
+    saved: dict[str, Any] = {
+        "params": sol.params.detach().clone(), "fixed_values": sol.fixed_values.detach().clone(),
+        "x": sol.x.detach().clone(),
+        "newton_iterations": torch.tensor(sol.newton_iterations, dtype=torch.long),
+        "warm_started": bool(sol.warm_started), "seeds": bool(sol.seeds)}
+    if sol.reference is not None:
+        saved["reference"] = sol.reference.detach().clone()
+    return saved
