@@ -11,12 +11,20 @@ Exit statuses of ``experiments/fit.py`` and ``experiments/verify.py``:
   the earlier run's ``.hydra/`` back. In a sweep, a value Hydra cannot compose stops the
   whole sweep before any job runs (Hydra composes every job first); settings that compose
   but are invalid fail only their own job (``result.json`` says ``failed``);
-* 130: interrupted (Ctrl-C).
+* 130: interrupted (Ctrl-C); 143: terminated (SIGTERM, what a scheduler sends): both with
+  the hint to resume.
+
+A single run with ``hydra.run.dir=<dir>`` holds that directory (:mod:`torchfit.run.lock`)
+from before Hydra writes ``.hydra/`` into it to the end of the process: a second run into
+it is refused at once (exit 2, one line naming the pid and host holding it) and writes
+nothing.
 """
 from __future__ import annotations
 
 import logging
+import os
 import shutil
+import signal
 import sys
 from pathlib import Path
 from typing import Any, Callable, NoReturn
@@ -33,24 +41,57 @@ def one_line(error: BaseException | str) -> str:
     return " ".join(str(error).split())
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the process is (like Ctrl-C's KeyboardInterrupt): the run ends
+    through its ``finally`` blocks, its lock released; the app exits 143."""
+
+
+def _terminate(signum: int, frame: Any) -> None:
+    raise Terminated()
+
+
 class RunDirGuard:
     """Remembers what a run directory held before Hydra wrote into it, to restore it when the
-    job is refused (Hydra writes ``.hydra/`` and opens ``<job>.log`` before the task runs)."""
+    job is refused or did nothing (Hydra writes ``.hydra/`` and opens ``<job>.log`` before
+    the task runs)."""
 
     def __init__(self, argv: list[str]) -> None:
+        self.run_dir = next((Path(a.split("=", 1)[1]) for a in argv
+                             if a.startswith("hydra.run.dir=")), None)
+        self.snapshot()
+
+    def snapshot(self) -> None:
+        """Read ``.hydra/`` and the sizes of the ``*.log`` files (again: once the run holds
+        its directory, before Hydra writes)."""
         self.saved: dict[Path, bytes] = {}
-        run_dir = next((a.split("=", 1)[1] for a in argv if a.startswith("hydra.run.dir=")), None)
-        if run_dir is not None and (Path(run_dir) / ".hydra").is_dir():
-            self.saved = {p: p.read_bytes() for p in (Path(run_dir) / ".hydra").iterdir()
+        self.logs: dict[Path, int] = {}
+        if self.run_dir is not None and (self.run_dir / ".hydra").is_dir():
+            self.saved = {p: p.read_bytes() for p in (self.run_dir / ".hydra").iterdir()
                           if p.is_file()}
+        if self.run_dir is not None and self.run_dir.is_dir():
+            self.logs = {p: p.stat().st_size for p in self.run_dir.glob("*.log") if p.is_file()}
 
     def undo(self, run_dir: Path) -> None:
         """Leave ``run_dir`` as it was before this job."""
         if self.saved and all(p.parent.parent.resolve() == run_dir.resolve() for p in self.saved):
-            for path, content in self.saved.items():
-                path.write_bytes(content)
+            self.restore(run_dir)
             return
         remove_if_only_hydra(run_dir)
+
+    def restore(self, run_dir: Path) -> None:
+        """Put back ``.hydra/`` and cut the logs back to their sizes (a job that changed
+        nothing, e.g. the resume of a finished run, leaves the directory byte-identical)."""
+        if not self.saved or any(p.parent.parent.resolve() != run_dir.resolve()
+                                 for p in self.saved):
+            return
+        for handler in logging.getLogger().handlers:
+            handler.flush()
+        for path, content in self.saved.items():
+            if not path.is_file() or path.read_bytes() != content:
+                path.write_bytes(content)
+        for path, size in self.logs.items():
+            if path.is_file() and path.stat().st_size > size:
+                os.truncate(path, size)
 
 
 def remove_if_only_hydra(run_dir: Path) -> None:
@@ -68,7 +109,10 @@ def remove_if_only_hydra(run_dir: Path) -> None:
 
 
 def refuse(message: BaseException | str, run_dir: Path, guard: RunDirGuard) -> NoReturn:
+    from torchfit.run.lock import release_all
+
     print("error: " + one_line(message), file=sys.stderr, flush=True)
+    release_all()       # the lock goes before the directory is left as it was
     guard.undo(run_dir)
     sys.exit(2)
 
@@ -85,23 +129,34 @@ def output_root(argv: list[str], default: str) -> Path:
 
 
 def run_hydra_app(main: Callable[[], Any], started: Callable[[], bool],
-                  default_root: str = "outputs") -> None:
+                  default_root: str = "outputs", guard: RunDirGuard | None = None) -> None:
     """Call a ``@hydra.main`` function. A run directory that cannot be written is one
     ``error:`` line (Hydra would report it as a traceback); a config Hydra cannot compose
     (unknown option, misspelt or mistyped override: Hydra exits 1 before the task) exits 2
-    like every other bad input."""
-    from torchfit.run.directory import RunDirectoryError, check_writable
+    like every other bad input. With a ``guard`` (the fit app), a single run into a given
+    ``hydra.run.dir`` holds it first (module docstring), and the guard reads it then."""
+    from torchfit.run.directory import check_writable
+    from torchfit.run.lock import acquire, release_all
 
     argv = sys.argv[1:]
+    root = output_root(argv, default_root).resolve()
     try:
-        check_writable(output_root(argv, default_root).resolve())
-    except RunDirectoryError as error:
+        check_writable(root)
+        if guard is not None and guard.run_dir is not None and "${" not in str(guard.run_dir) \
+                and not any(a in ("-m", "--multirun") for a in argv):
+            acquire(root)
+            guard.snapshot()
+    except OSError as error:        # RunDirectoryError, RunLockedError, a failed mkdir
         print("error: " + one_line(error), file=sys.stderr, flush=True)
         sys.exit(2)
+    signal.signal(signal.SIGTERM, _terminate)
     stderr = _Tail(sys.stderr)
     sys.stderr = stderr                 # keeps Hydra's composition message to name the key
     try:
         main()
+    except Terminated:      # before or after the task (the task reports its own)
+        print("terminated (SIGTERM)", file=stderr.stream, flush=True)
+        sys.exit(143)
     except SystemExit as exit_:
         if exit_.code != 1 or started() or "Traceback (most recent call last)" in stderr.tail:
             raise           # not a configuration Hydra refused: a crash (its traceback is above)
@@ -116,6 +171,7 @@ def run_hydra_app(main: Callable[[], Any], started: Callable[[], bool],
         sys.exit(2)
     finally:
         sys.stderr = stderr.stream
+        release_all()
 
 
 class _Tail:

@@ -9,10 +9,11 @@
 
 The run directory's files are those of :mod:`torchfit.run` plus Hydra's ``.hydra/`` and
 ``fit.log`` (which has the progress table). Exit statuses: :mod:`app` (0 done, 1 the fit
-failed, 2 bad input and nothing written, 130 interrupted). In a multirun (``-m``) a job
-that fails writes ``result.json`` with ``"status": "failed"`` and its ``error`` line, and
-returns ``+inf`` (what a sweeper minimises is ``objective_metric``; Optuna aborts a study
-on NaN), so that the other jobs run.
+failed, 2 bad input or the directory in use by another run, and nothing written, 130
+interrupted, 143 terminated). In a multirun (``-m``) a job that fails writes
+``result.json`` with ``"status": "failed"`` and its ``error`` line, and returns ``+inf``
+(what a sweeper minimises is ``objective_metric``; Optuna aborts a study on NaN), so that
+the other jobs run.
 """
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:       # this checkout's experiments/ (and torchfit), installed or not
     sys.path.insert(0, str(REPO))
 
-from experiments.app import BAD_INPUT, RunDirGuard, one_line, refuse, run_hydra_app
+from experiments.app import BAD_INPUT, RunDirGuard, Terminated, one_line, refuse, run_hydra_app
 
 import hydra  # noqa: E402
 import matplotlib  # noqa: E402
@@ -81,10 +82,12 @@ def main(cfg: DictConfig) -> float:
         else:
             result = fit(problem, solver, run_dir=run_dir, resume=bool(config["resume"]),
                          options=options, config=config, init=config["init"])
-    except KeyboardInterrupt:
-        print(f"interrupted; continue with: python experiments/fit.py hydra.run.dir={run_dir} "
-              "resume=true (and the same overrides)", file=sys.stderr, flush=True)
-        sys.exit(130)
+    except KeyboardInterrupt as interrupt:     # Ctrl-C, or SIGTERM (app.Terminated)
+        terminated = isinstance(interrupt, Terminated)
+        print(f"{'terminated (SIGTERM)' if terminated else 'interrupted'}; continue with: "
+              f"python experiments/fit.py hydra.run.dir={run_dir} resume=true (and the same "
+              "overrides)", file=sys.stderr, flush=True)
+        sys.exit(143 if terminated else 130)
     except Exception as error:  # noqa: BLE001  (reported as one line; the log has the rest)
         bad_input = isinstance(error, BAD_INPUT)
         if not bad_input:
@@ -100,6 +103,8 @@ def main(cfg: DictConfig) -> float:
         print(f"error: the fit failed: {one_line(error)} (traceback in {run_dir / 'fit.log'})",
               file=sys.stderr, flush=True)
         sys.exit(1)
+    if result.solve is None and result.resumed_from is not None:
+        GUARD.restore(run_dir)      # a finished run: nothing done, nothing rewritten
     print(result.summary())
     names = list(dict.fromkeys(  # frames/frame_000.obj ... shown once as frames/
         p.relative_to(run_dir).parts[0] + ("/" if len(p.relative_to(run_dir).parts) > 1 else "")
@@ -119,4 +124,4 @@ def main(cfg: DictConfig) -> float:
 
 
 if __name__ == "__main__":
-    run_hydra_app(main, lambda: _started)
+    run_hydra_app(main, lambda: _started, guard=GUARD)

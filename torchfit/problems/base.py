@@ -22,10 +22,12 @@ Nothing here relies on torch's default dtype: tensors are made in ``problem.dtyp
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import math
 from typing import (Any, Callable, ClassVar, ContextManager, Protocol, Sequence,
                     runtime_checkable)
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -439,8 +441,25 @@ class InverseProblem:
         the next simulations then start exactly where they did there. Default: nothing to
         restore."""
 
+    def input_digests(self) -> dict[str, str]:
+        """Digests of the input data the problem was built from beyond its settings (a tet
+        mesh from a cache, an animation read from files), by name: a checkpoint records
+        them, and a resume on other data is refused naming what changed. Default: none
+        (the settings determine everything)."""
+        return {}
+
     def describe(self) -> dict[str, object]:
         """Sizes for logs and result files."""
         return {"name": self.name, "n_params": self.parameterization.n_params,
                 "n_data": int(self.data.numel()), "noise_level": self.noise_level,
                 "scale_free": self.scale_free}
+
+
+def array_digest(*arrays: Any) -> str:
+    """A short hash of arrays' shapes, dtypes and bytes (:meth:`InverseProblem.input_digests`)."""
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a.detach().cpu().numpy() if isinstance(a, Tensor) else a)
+        h.update(f"{a.dtype.str}{a.shape};".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()[:16]

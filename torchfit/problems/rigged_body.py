@@ -38,7 +38,7 @@ from ..mesh.tetrahedralize import TetMesh, TetOptions, default_cache_dir, tetrah
 from ..params import Parameterization, per_element, per_grid_node, per_region
 from ..physics import NewtonOptions
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
-from .base import InverseProblem
+from .base import InverseProblem, array_digest
 from .body_report import (BODY_METRICS, body_metrics, frame_report, inverted_counts,
                           min_volume_ratios, region_summary, surface_distances, volume_change)
 from .config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
@@ -381,6 +381,13 @@ class RiggedBody(InverseProblem):
         with torch.no_grad():
             errors = self.surface_errors(x)
         return frame_report(errors, self.joint_volume_change(x), self.inverted_tets(x))
+
+    def input_digests(self) -> dict[str, str]:
+        """The tet mesh (vertices and cells: a cache entry rebuilt into another mesh is
+        another mesh) and the animation's fitted surface (rest pose, faces, frames)."""
+        a = self.animation
+        return {"tet mesh": array_digest(self.mesh.points, self.mesh.cells),
+                "animation": array_digest(a.rest_vertices, a.faces, a.frames)}
 
     def frame_names(self) -> list[str]:
         return list(self.animation.frame_files)

@@ -6,7 +6,10 @@
 :mod:`torchfit.run.checkpoint`). Every file goes to a temporary file in the same directory
 that is then renamed over the target, so none is ever half-written; ``torch.save`` writes
 into the open file (never to a path, whose name would end up inside its zip archive). What
-``result.json`` and ``checkpoint.pt`` hold is :mod:`torchfit.run`'s contract.
+``result.json`` and ``checkpoint.pt`` hold is :mod:`torchfit.run`'s contract. A writer
+killed between the two leaves its temporary file (``.<name>.<pid>.<thread>.tmp``, or
+``<name>.tmp.vtu`` of the body's ParaView file): :func:`remove_stale_temporaries` removes
+them when the next run or resume takes the directory.
 """
 from __future__ import annotations
 
@@ -15,6 +18,7 @@ import enum
 import json
 import math
 import os
+import re
 import threading
 from pathlib import Path
 from typing import Any, Mapping
@@ -76,6 +80,23 @@ def atomic_write(path: Path, write, mode: str = "wb") -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+#: Names of the temporary files of :func:`atomic_write` and of the body's ParaView writer.
+_TEMPORARY = re.compile(r"^\..+\.\d+\.\d+\.tmp$|^.+\.tmp\.vtu$")
+
+
+def remove_stale_temporaries(run_dir: Path) -> list[Path]:
+    """Delete the temporary files a killed writer left in ``run_dir`` (and below); only
+    for the process that holds the run directory (:mod:`torchfit.run.lock`), before it
+    writes. Returns what was removed."""
+    removed = []
+    if run_dir.is_dir():
+        for path in sorted(run_dir.rglob("*")):
+            if _TEMPORARY.match(path.name) and path.is_file() and not path.is_symlink():
+                path.unlink()
+                removed.append(path)
+    return removed
 
 
 def _torch_bytes(obj: Any, f) -> None:

@@ -12,6 +12,11 @@ did. Checkpoints of another format are refused (one line).
 written before its checkpoint, and the checkpoint is the commit point. ``resume=True``
 continues from them exactly: the same ``theta`` bit for bit, the same metrics, ``max_iter``
 the budget of the whole run; a refused resume (:class:`ResumeError`) touches nothing.
+The checkpoint also records digests of the problem's input data
+(:meth:`~torchfit.problems.InverseProblem.input_digests`: a body's tet mesh and animation),
+and a resume on other data is refused naming what changed. A directory that holds a run
+(:func:`run_files`) but no readable ``checkpoint.pt`` is refused too: a resume never
+starts over.
 """
 from __future__ import annotations
 
@@ -19,6 +24,7 @@ import dataclasses
 import json
 import logging
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +36,7 @@ from ..problems import InverseProblem
 from ..records import IterationRecord
 from ..reporting.results import CHECKPOINT_FILE, PARAMS_FILE, RESULT_FILE, jsonable, save_torch
 from ..solvers import Solver
-from .options import plain_settings
+from .options import FitConfigError, plain_settings
 from .result import FitResult
 from .start import digest
 
@@ -38,6 +44,9 @@ log = logging.getLogger("torchfit.run")
 
 HISTORY_FILE = "history.jsonl"
 CHECKPOINT_FORMAT = 3      # 3: with the simulation state
+#: What a resume that cannot continue tells the user (the same instruction every time: a
+#: run without resume into the directory is refused too, since it holds a run).
+NOT_CONTINUABLE = "this run cannot be continued: start it again in another run directory"
 
 
 class ResumeError(ConfigurationError):
@@ -76,20 +85,26 @@ def read_checkpoint(run_dir: Path, problem: InverseProblem, solver: Solver,
     (``None``: the problem's ``theta0``); ``None`` when there is none;
     :class:`ResumeError` naming what differs otherwise."""
     path = run_dir / CHECKPOINT_FILE
-    if not path.is_file():
+    if not os.path.lexists(path):
+        found = run_files(run_dir)
+        if found:
+            raise ResumeError(f"cannot resume: {path} is missing, but {run_dir} holds a run "
+                              f"({', '.join(found)}); {NOT_CONTINUABLE}")
         return None
+    if not path.is_file():
+        raise ResumeError(f"cannot resume: {path} is not a file; {NOT_CONTINUABLE}")
     try:
         with open(path, "rb") as f:
             payload = torch.load(f, map_location="cpu", weights_only=True)
     except Exception as e:  # noqa: BLE001  (a truncated, foreign or corrupt file)
-        raise ResumeError(f"cannot resume: {path} is not a readable checkpoint ({e}); "
-                          "use another run directory or resume=false") from None
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0][:160]
+        raise ResumeError(f"cannot resume: {path} is not a readable checkpoint ({first}); "
+                          f"{NOT_CONTINUABLE}") from None
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         written = payload.get("format") if isinstance(payload, dict) else None
         raise ResumeError(f"cannot resume: {path} has checkpoint format {written!r}, this "
                           f"torchfit continues format {CHECKPOINT_FORMAT} only (an older one "
-                          "lacks the state an exact resume needs); use another run directory "
-                          "or resume=false")
+                          f"lacks the state an exact resume needs); {NOT_CONTINUABLE}")
     expected = {"problem": problem.name,
                 "problem_config": json.dumps(plain_settings(problem.cfg)),
                 "solver": solver.config.name,
@@ -99,24 +114,67 @@ def read_checkpoint(run_dir: Path, problem: InverseProblem, solver: Solver,
             saved = payload.get(key)
             raise ResumeError(f"cannot resume: {path} belongs to other {key.replace('_', ' ')} "
                               f"settings ({_difference(saved, value)}); repeat the first run's "
-                              "settings, or use another run directory or resume=false")
+                              "settings, or start again in another run directory")
     started = None if start is None else digest(start)
     if payload.get("init") != started:
         def origin(digest: str | None) -> str:
             return "the initial guess" if digest is None else f"an init= start ({digest})"
         raise ResumeError(f"cannot resume: {path} belongs to a run that started from "
                           f"{origin(payload.get('init'))}, this one starts from "
-                          f"{origin(started)}; repeat the first run's init, or use another run "
-                          "directory or resume=false")
+                          f"{origin(started)}; repeat the first run's init, or start again in "
+                          "another run directory")
+    saved_inputs = payload.get("inputs")
+    if saved_inputs is not None:           # checkpoints before inputs were recorded: unchecked
+        now = problem.input_digests()
+        changed = sorted(k for k in set(saved_inputs) | set(now)
+                         if saved_inputs.get(k) != now.get(k))
+        if changed:
+            raise ResumeError(f"cannot resume: {path} belongs to a run on another "
+                              f"{' and '.join(changed)} than this one builds ("
+                              + "; ".join(f"{k}: {saved_inputs.get(k)} there, {now.get(k)} now"
+                                          for k in changed)
+                              + "); give the run the inputs it ran on (the same mesh cache "
+                              "entry, problem.path), or start again in another run directory")
     iteration = int(payload["iteration"])
     rows = _read_rows(run_dir / HISTORY_FILE, iteration)
     if not rows or int(rows[-1]["iteration"]) != iteration:
         raise ResumeError(f"cannot resume: {run_dir / HISTORY_FILE} does not reach iteration "
-                          f"{iteration} of the checkpoint; use resume=false")
+                          f"{iteration} of the checkpoint; {NOT_CONTINUABLE}")
     state = payload["solver_state"]
     state["wall_time"] = float(rows[-1].get("wall_time", 0.0))
     return Resume(iteration, state, rows, bool(payload.get("finished", False)),
                    payload.get("stop_reason"), payload["simulation_state"])
+
+
+def check_fresh_start(run_dir: Path) -> None:
+    """Raise :class:`~.options.FitConfigError` where a run without ``resume`` would overwrite
+    the run of ``run_dir`` (its ``checkpoint.pt``): resume it where the checkpoint can be
+    read, else start again elsewhere (what :func:`read_checkpoint` says too)."""
+    path = run_dir / CHECKPOINT_FILE
+    if not os.path.lexists(path):
+        return
+    try:
+        with open(path, "rb") as f:
+            payload = torch.load(f, map_location="cpu", weights_only=True)
+        readable = isinstance(payload, dict) and payload.get("format") == CHECKPOINT_FORMAT
+    except Exception:  # noqa: BLE001  (a directory, a truncated, foreign or corrupt file)
+        readable = False
+    if readable:
+        raise FitConfigError(f"{run_dir} already holds a run (its {CHECKPOINT_FILE}); "
+                             "resume=true continues it, or choose another run directory")
+    raise FitConfigError(f"{run_dir} already holds a run whose {CHECKPOINT_FILE} cannot be "
+                         f"read; {NOT_CONTINUABLE}")
+
+
+def run_files(run_dir: Path) -> list[str]:
+    """The files of ``run_dir`` that show a run was there (a fresh start would overwrite
+    them): ``result.json``, ``params.pt``, a ``history.jsonl`` with rows."""
+    found = [name for name in (RESULT_FILE, PARAMS_FILE) if os.path.lexists(run_dir / name)]
+    history = run_dir / HISTORY_FILE
+    if history.is_file() and history.stat().st_size > 0 or \
+            os.path.lexists(history) and not history.is_file():
+        found.append(HISTORY_FILE)
+    return found
 
 
 def _resumable(settings: dict[str, Any]) -> dict[str, Any]:
@@ -153,7 +211,8 @@ class Checkpointer:
                       "solver": solver.config.name,
                       "solver_config": json.dumps(_resumable(plain_settings(solver.config))),
                       "n_params": int(problem.theta0.numel()),
-                      "init": None if start is None else digest(start)}
+                      "init": None if start is None else digest(start),
+                      "inputs": dict(problem.input_digests())}
         with open(run_dir / HISTORY_FILE, "w", encoding="utf-8") as f:
             for row in rows:
                 f.write(json.dumps(jsonable(row)) + "\n")

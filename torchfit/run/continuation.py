@@ -40,10 +40,12 @@ from ..problems import InverseProblem
 from ..problems.base import BodyProblem
 from ..records import IterationRecord
 from ..reporting.body import frame_spans
-from ..reporting.results import CHECKPOINT_FILE, PARAMS_FILE
+from ..reporting.results import PARAMS_FILE
 from ..solvers import Solver, SolverConfig
+from .checkpoint import check_fresh_start
 from .directory import check_writable
 from .fitting import fit
+from .lock import hold
 from .options import FitConfigError, FitOptions, plain_settings
 from .result import FitResult
 from .solver import solver_config
@@ -114,9 +116,19 @@ def fit_continued(problem: InverseProblem,
     run_path = None if run_dir is None else Path(run_dir).resolve()
     if run_path is not None:
         check_writable(run_path)
-        if not resume and (run_path / CHECKPOINT_FILE).exists():
-            raise FitConfigError(f"{run_path} already holds a run (its checkpoint.pt); "
-                                 "resume=true continues it, or choose another run directory")
+    with hold(run_path):        # both stages: one run per directory (lock.py)
+        return _fit_continued(problem, solver, run_path, callbacks, resume, options, config,
+                              init, start, float(min_volume))
+
+
+def _fit_continued(problem: InverseProblem, solver: SolverConfig, run_path: Path | None,
+                   callbacks: list[Callable[[IterationRecord], Any]], resume: bool,
+                   options: FitOptions | None, config: Mapping[str, Any] | None,
+                   init: Tensor | str | Path | None, start: Tensor,
+                   min_volume: float) -> FitResult:
+    if run_path is not None:
+        if not resume:
+            check_fresh_start(run_path)
     # the stages report folds themselves: no end-of-run hint to use continuation=true
     options = dataclasses.replace(options or FitOptions(), fold_hint=False)
     options.check(problem)

@@ -5,7 +5,8 @@ adapter over :func:`fit`); nothing here knows a Hydra type. The run directory's 
 listed in :mod:`.outputs` and :mod:`.checkpoint`. Every input is checked before the first
 file is written (:class:`~.options.FitConfigError`,
 :class:`~.directory.RunDirectoryError`); a refused resume touches nothing of the earlier
-run.
+run. A run holds its directory for its whole length (:mod:`.lock`: a second run into it
+is refused at once), and removes the temporary files a killed writer left there.
 
 The callbacks of a run, in order: the evaluator (:mod:`.evaluator`: the one simulation per
 record, whose metrics it adds to ``record.extra``), the progress line, the checkpoint
@@ -25,12 +26,13 @@ from ..linalg import set_threads
 from ..problems import InverseProblem
 from ..records import IterationRecord
 from ..reporting.progress import ProgressPrinter
-from ..reporting.results import CHECKPOINT_FILE, RESULT_FILE
+from ..reporting.results import CHECKPOINT_FILE, RESULT_FILE, remove_stale_temporaries
 from ..residual import warm_up_autograd
 from ..solvers import Solver, SolverConfig
-from .checkpoint import Checkpointer, finished_result, read_checkpoint
+from .checkpoint import Checkpointer, check_fresh_start, finished_result, read_checkpoint
 from .directory import check_writable
 from .evaluator import Evaluator
+from .lock import hold
 from .options import FitConfigError, FitOptions, plain_settings
 from .outputs import RunOutputs
 from .result import FitResult
@@ -55,7 +57,9 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
         run_dir: where the outputs go (created); ``None``: no files.
         callbacks: called with every :class:`~torchfit.records.IterationRecord` after the
             run's own (metrics are in ``record.extra``); returning ``True`` stops the fit.
-        resume: continue from ``run_dir``'s checkpoint (a fresh start where there is none).
+        resume: continue from ``run_dir``'s checkpoint (a fresh start where the directory
+            holds no run; :class:`~.checkpoint.ResumeError` where it holds one whose
+            checkpoint is missing, unreadable or belongs to other settings or inputs).
         options: :class:`~.options.FitOptions`.
         config: the settings to store in ``result.json`` and TensorBoard (the Hydra app's
             resolved config); default: the problem's and solver's settings.
@@ -68,6 +72,7 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
         FitConfigError, ResumeError, :class:`~torchfit.problems.ProblemConfigError`,
         :class:`~torchfit.solvers.SolverConfigError`: a bad setting, before any file is
         written. RunDirectoryError: ``run_dir`` cannot be written (nothing written).
+        :class:`~.lock.RunLockedError`: another run holds ``run_dir`` (nothing written).
     """
     options = options or FitOptions()
     if not isinstance(problem, InverseProblem):
@@ -81,9 +86,17 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
         raise FitConfigError("resume=True needs the run_dir of the run to continue")
     if run_path is not None:
         check_writable(run_path)
-        if not resume and (run_path / CHECKPOINT_FILE).exists():
-            raise FitConfigError(f"{run_path} already holds a run (its checkpoint.pt); resume=true "
-                                 "continues it, or choose another run directory")
+    with hold(run_path):        # one run per directory (lock.py), from the first check on
+        return _fit(problem, solver, run_path, callbacks, resume, options, config, init, start)
+
+
+def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
+         callbacks: Iterable[Callable[[IterationRecord], Any]], resume: bool,
+         options: FitOptions, config: Mapping[str, Any] | None,
+         init: Tensor | str | Path | None, start: Tensor | None) -> FitResult:
+    if run_path is not None:
+        if not resume:
+            check_fresh_start(run_path)
     restart = read_checkpoint(run_path, problem, solver, start) if resume and run_path else None
     if resume and run_path is not None and restart is None:
         log.warning("resume: %s has no checkpoint; starting from %s", run_path / CHECKPOINT_FILE,
@@ -96,6 +109,9 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
     if options.threads > 0:
         set_threads(options.threads)
     # -- from here on files are written ---------------------------------------------------
+    if run_path is not None:
+        for path in remove_stale_temporaries(run_path):
+            log.warning("removed %s, left by a writer that was killed", path)
     described = problem.describe()
     log.info("problem %s: %s parameters, %s data, noise level %s%s%s", described["name"],
              described["n_params"], described["n_data"], described["noise_level"],
