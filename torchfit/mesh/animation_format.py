@@ -397,7 +397,10 @@ def load_animation(path: str | Path) -> Animation:
     manifest = _manifest_path(path)
     folder = manifest.parent
     try:
-        raw = yaml.safe_load(manifest.read_text())
+        raw = yaml.safe_load(manifest.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as err:
+        raise AnimationError(f"{manifest}: the manifest is not UTF-8 text (byte {err.start}); "
+                             "save it as UTF-8") from err
     except (OSError, yaml.YAMLError) as err:
         raise AnimationError(f"{manifest}: cannot read the manifest ({err})") from err
     spec = _check_keys(raw if raw is not None else {}, _TOP_KEYS, "the manifest", manifest)

@@ -78,6 +78,8 @@ class RiggedBody(InverseProblem):
                         "must list three moduli: background, stiff block, soft block")
         for key in ("tet_edge_length", "tet_epsilon", "tet_stop_energy"):
             require_setting(getattr(cfg, key) > 0, cfg, key, "must be positive")
+        require_setting(cfg.tet_edge_length <= 1, cfg, "tet_edge_length", "is a fraction of "
+                        "the bounding-box diagonal: must lie in (0, 1] (e.g. 0.05)")
         check_newton_settings(cfg)
         require_setting(cfg.frames is None or len(cfg.frames) >= 1, cfg, "frames",
                         "must list at least one frame (or be null for all)")

@@ -19,10 +19,10 @@ import dataclasses
 from pathlib import Path
 from typing import List, Optional
 
-import numpy as np
 import torch
 from torch import Tensor
 
+from ..memory import load_npy
 from ..params import Parameterization, chain_edges, per_element
 from ..physics import Equilibrium, ScalarSpringNetwork
 from ..physics.dynamics import DynamicSystem, KeyedMotion
@@ -144,7 +144,9 @@ class Spring1D(InverseProblem):
         n_frames, n_nodes = self.n_frames, cfg.n + 1
         file = Path(cfg.targets)
         require(file.is_file(), f"problem.targets={cfg.targets}: the file does not exist")
-        positions = torch.as_tensor(np.load(file), dtype=self.dtype, device=self.device)
+        positions = torch.as_tensor(load_npy(file, f"problem.targets={cfg.targets}",
+                                             ProblemConfigError),
+                                    dtype=self.dtype, device=self.device)
         require(positions.shape == (n_frames, n_nodes),
                 f"problem.targets={cfg.targets}: must hold positions of shape (frames={n_frames}, "
                 f"nodes={n_nodes}), got {tuple(positions.shape)}")
