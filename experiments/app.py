@@ -17,6 +17,8 @@ Exit statuses of ``experiments/fit.py`` and ``experiments/verify.py``:
 """
 from __future__ import annotations
 
+import dataclasses
+import difflib
 import logging
 import os
 import re
@@ -69,6 +71,18 @@ def remove_if_only_hydra(run_dir: Path) -> None:
             logging.getLogger().removeHandler(handler)
             handler.close()
     shutil.rmtree(run_dir, ignore_errors=True)
+
+
+def check_top_level(config: dict, schema: type) -> None:
+    """Refuse a top-level key the app's schema (a dataclass) does not have: Hydra accepts
+    ``+foo=1`` and its hint for a misspelt key (``contination=true``) is to add one."""
+    known = [f.name for f in dataclasses.fields(schema)]
+    unknown = [key for key in config if key not in known]
+    if unknown:
+        close = difflib.get_close_matches(unknown[0], known, n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        raise ConfigurationError(f"unknown top-level setting {unknown[0]}={config[unknown[0]]}"
+                                 f"{hint}: the known ones are {', '.join(known)}")
 
 
 def refuse(message: BaseException | str, run_dir: Path, guard: RunDirGuard) -> NoReturn:

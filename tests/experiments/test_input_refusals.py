@@ -9,6 +9,8 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -36,6 +38,11 @@ def test_refusals_through_the_app(tmp_path):
                    "problem.n=8", f"problem.targets=/tmp/{long_value}"],
                   ["317 bytes", "255", "problem.targets=/tmp/xxx",
                    "exclude_keys=[problem.targets]"]),
+        # Hydra's hint for a misspelt key is to add it with "+": refused, the keys listed
+        "typo": ([f"hydra.run.dir={tmp_path / 'typo'}", "problem=spring1d", "problem.n=8",
+                  "+contination=true"],
+                 ["unknown top-level setting contination=True", "did you mean continuation?",
+                  "problem, solver, resume, init, continuation,"]),
     }
 
     def run(item):
@@ -46,3 +53,15 @@ def test_refusals_through_the_app(tmp_path):
     for name, (_, words) in cases.items():
         refused(done[name], *words)
     assert not (tmp_path / "sweep").exists()       # not even multirun.yaml
+    assert not [p for p in tmp_path.iterdir()]     # no run directory of any case
+
+
+@pytest.mark.slow
+def test_a_size_is_refused_through_the_app(tmp_path):
+    # sizes: refused from the settings before anything is allocated (in-process in
+    # tests/problems/test_input_checks.py; here the exit status and the run directory)
+    proc = fit(f"hydra.run.dir={tmp_path / 'size'}", "problem=spring1d", "problem.n=10000000000",
+               env={"TORCHFIT_MEMORY_LIMIT": "1G"})
+    refused(proc, "problem.n=10000000000: needs about 2.3 TiB for 10000000001 nodes x 3 frames",
+            "1.0 GiB of TORCHFIT_MEMORY_LIMIT")
+    assert not (tmp_path / "size").exists()

@@ -29,7 +29,8 @@ from ..physics.dynamics import DynamicSystem, KeyedMotion
 from .base import InverseProblem
 from .config import (DataMode, ProblemConfig, ProblemConfigError, require, require_setting,
                      resolve_backend)
-from .dynamic import DynamicMixin, DynamicSettings, check_dynamic_flag, check_dynamic_settings
+from .dynamic import (DynamicMixin, DynamicSettings, check_dynamic_flag, check_dynamic_settings,
+                      time_steps_allocation)
 
 
 
@@ -96,6 +97,13 @@ class Spring1D(InverseProblem):
                         "fixed_nodes", f"must lie in 0..{cfg.n}")
         for key in ("k0", "k_background"):
             require_setting(getattr(cfg, key) > 0, cfg, key, "must be a positive stiffness")
+
+    def allocation(self, cfg: Spring1DConfig) -> list[tuple[str, float, str]]:
+        # per node and frame: load, position, adjoint, two work vectors; per node: the
+        # stiffness, its gradient and the sparse factor (about 16 values)
+        frames = len(cfg.loads)
+        return [(f"problem.n={cfg.n}", (cfg.n + 1) * (5 * frames + 16) * 8.0,
+                 f"{cfg.n + 1} nodes x {frames} frames")]
 
     # -- the hooks of the template --------------------------------------------------------
     def build_model(self, cfg: Spring1DConfig) -> None:
@@ -180,6 +188,12 @@ class DynamicSpring1D(DynamicMixin, Spring1D):
         times = list(cfg.load_times)
         require_setting(all(b > a for a, b in zip(times[:-1], times[1:])), cfg, "load_times",
                         "must increase strictly (s)")
+
+    def allocation(self, cfg: Spring1DConfig) -> list[tuple[str, float, str]]:
+        frames = len(cfg.output_times) if cfg.output_times else cfg.frames
+        return [(f"problem.n={cfg.n}", (cfg.n + 1) * (5 * frames + 16) * 8.0,
+                 f"{cfg.n + 1} nodes x {frames} output times"),
+                *time_steps_allocation(cfg, cfg.n + 1)]
 
     def build_model(self, cfg: Spring1DConfig) -> None:
         n, dtype, device = cfg.n, self.dtype, self.device
