@@ -68,7 +68,7 @@ def check_allocation(setting: str, nbytes: float, what: str,
                      error: type[Exception] = MemoryLimitError) -> None:
     """Raise ``error`` when ``nbytes`` (an estimate of ``what``) exceeds the limit."""
     limit = memory_limit()
-    if limit is not None and nbytes > limit:
+    if limit is not None and not nbytes <= limit:       # nan as well
         source = f"{LIMIT_VARIABLE}" if os.environ.get(LIMIT_VARIABLE, "").strip() else \
             "available memory"
         raise error(f"{setting}: needs about {size_text(nbytes)} for {what}, more than the "

@@ -101,6 +101,8 @@ def test_memory_limit_from_the_environment(monkeypatch):
     ("spring1d", {"dynamic": True, "dt": 1e-5, "checkpoint_every": 0},  # sqrt(steps) stored
      r"^problem.dt=1e-05: needs about 148.0 MiB for 6e\+05 time steps to t = 6 s and "
      r"1.55e\+03 stored states of 65"),
+    ("spring1d", {"dynamic": True, "dt": 5e-324, "checkpoint_every": 0},   # not a crash
+     r"^problem.dt=5e-324: needs about inf TiB for inf time steps"),
     ("poisson2d", {"N": 10 ** 5}, r"^problem.N=100000: needs about 2.9 TiB for 100000 x "
      r"100000 = 1e\+10 grid nodes"),
     ("membrane2d", {"nx": 10 ** 5, "ny": 10 ** 4}, r"^problem.nx=100000 problem.ny=10000: "

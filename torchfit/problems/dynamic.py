@@ -108,10 +108,12 @@ def time_steps_allocation(cfg: Any, n_dofs: int) -> list[tuple[str, float, str]]
     if not implicit and str(cfg.ode_method) in ADAPTIVE_METHODS:
         return []
     end = max(cfg.output_times) if cfg.output_times else cfg.duration
-    steps = math.ceil(end / cfg.dt) + cfg.frames
-    every = cfg.checkpoint_every or math.ceil(math.sqrt(steps))
-    kept = (steps / every + every) if implicit else 2
-    nbytes = steps * (256 if implicit else 16) + kept * n_dofs * 16
+    steps = end / cfg.dt + cfg.frames           # inf for a subnormal dt: refused as well
+    steps = math.ceil(steps) if math.isfinite(steps) else steps
+    every = cfg.checkpoint_every or math.sqrt(steps)
+    kept = (steps / every + every if math.isfinite(steps) else math.inf) if implicit else 2
+    nbytes = steps * (256 if implicit else 16) + kept * n_dofs * 16 if math.isfinite(steps) \
+        else math.inf
     return [(f"problem.dt={cfg.dt}", nbytes, f"{steps:.3g} time steps to t = {end:g} s and "
              f"{kept:.3g} stored states of {n_dofs} degrees of freedom")]
 
