@@ -10,7 +10,9 @@ Exit statuses of ``experiments/fit.py`` and ``experiments/verify.py``:
   directory is left as it was: removed when the run created it, and a refused resume puts
   the earlier run's ``.hydra/`` back. In a sweep, a value Hydra cannot compose stops the
   whole sweep before any job runs (Hydra composes every job first); settings that compose
-  but are invalid fail only their own job (``result.json`` says ``failed``);
+  but are invalid fail only their own job (``result.json`` says ``failed``); a sweep whose
+  job directory name would exceed 255 bytes is refused naming the override that makes it
+  long; a refused sweep leaves no ``multirun.yaml`` behind;
 * 130: interrupted (Ctrl-C); 143: terminated (SIGTERM, what a scheduler sends): both with
   the hint to resume.
 
@@ -21,8 +23,11 @@ nothing.
 """
 from __future__ import annotations
 
+import dataclasses
+import difflib
 import logging
 import os
+import re
 import shutil
 import signal
 import sys
@@ -108,6 +113,18 @@ def remove_if_only_hydra(run_dir: Path) -> None:
     shutil.rmtree(run_dir, ignore_errors=True)
 
 
+def check_top_level(config: dict, schema: type) -> None:
+    """Refuse a top-level key the app's schema (a dataclass) does not have: Hydra accepts
+    ``+foo=1`` and its hint for a misspelt key (``contination=true``) is to add one."""
+    known = [f.name for f in dataclasses.fields(schema)]
+    unknown = [key for key in config if key not in known]
+    if unknown:
+        close = difflib.get_close_matches(unknown[0], known, n=1)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        raise ConfigurationError(f"unknown top-level setting {unknown[0]}={config[unknown[0]]}"
+                                 f"{hint}: the known ones are {', '.join(known)}")
+
+
 def refuse(message: BaseException | str, run_dir: Path, guard: RunDirGuard) -> NoReturn:
     from torchfit.run.lock import release_all
 
@@ -150,7 +167,9 @@ def run_hydra_app(main: Callable[[], Any], started: Callable[[], bool],
         print("error: " + one_line(error), file=sys.stderr, flush=True)
         sys.exit(2)
     signal.signal(signal.SIGTERM, _terminate)
-    stderr = _Tail(sys.stderr)
+    multirun = any(a in ("-m", "--multirun") for a in argv)
+    before = _entries(root, multirun)
+    stderr = _Tail(sys.stderr, started)
     sys.stderr = stderr                 # keeps Hydra's composition message to name the key
     try:
         main()
@@ -158,10 +177,17 @@ def run_hydra_app(main: Callable[[], Any], started: Callable[[], bool],
         print("terminated (SIGTERM)", file=stderr.stream, flush=True)
         sys.exit(143)
     except SystemExit as exit_:
+        if exit_.code == 1 and not started() and "File name too long" in stderr.tail:
+            _remove_new(output_root(argv, default_root).resolve(), before, multirun)
+            stderr.held = ""                # Hydra's traceback: the line below says it all
+            print("error: " + long_name_reason(stderr.tail, argv), file=stderr.stream)
+            sys.exit(2)
         if exit_.code != 1 or started() or "Traceback (most recent call last)" in stderr.tail:
             raise           # not a configuration Hydra refused: a crash (its traceback is above)
         reason = hydra_reason(stderr.tail)
-        if any(a in ("-m", "--multirun") for a in argv):
+        stderr.release()                # Hydra's message, then the line that sums it up
+        if multirun:
+            _remove_new(output_root(argv, default_root).resolve(), before, multirun)
             # Hydra's basic sweeper composes every job before it launches the first: one
             # value it cannot compose stops the whole sweep, and no job has run.
             print(f"error: invalid sweep, no job was run: {reason} (Hydra composes every job "
@@ -170,20 +196,74 @@ def run_hydra_app(main: Callable[[], Any], started: Callable[[], bool],
             print(f"error: invalid configuration: {reason}", file=stderr.stream)
         sys.exit(2)
     finally:
+        stderr.release()
         sys.stderr = stderr.stream
         release_all()
 
 
-class _Tail:
-    """A text stream that writes through and keeps the last few thousand characters."""
+def long_name_reason(message: str, argv: list[str]) -> str:
+    """One line for a job directory whose name exceeds the 255 bytes of a file name (Hydra
+    names a sweep job ``<num>_<override_dirname>``): the override that makes it long."""
+    match = re.search(r"File name too long: '(.*)'", message)
+    parts = Path(match.group(1)).parts if match else ()
+    longest = max(parts, key=lambda p: len(p.encode()), default="")
+    culprit = max((a for a in argv if "=" in a and not a.startswith("hydra.")),
+                  key=lambda a: sum(len(p) for p in a.split("/") if p and p in longest),
+                  default="")
+    key = culprit.split("=", 1)[0].lstrip("+~")
+    shown = culprit if len(culprit) <= 60 else culprit[:57] + "..."
+    return (f"a job directory name would have {len(longest.encode())} bytes, more than the 255 "
+            f"a file name may have: the override {shown} makes it long; shorten its value, or "
+            f"leave it out of the name with hydra.job.config.override_dirname.exclude_keys=[{key}] "
+            "(nothing was run)")
 
-    def __init__(self, stream: Any) -> None:
+
+def _entries(root: Path, multirun: bool) -> set[str] | None:
+    """What the sweep root holds now (``None``: it does not exist); not for a single run."""
+    if not multirun:
+        return set()
+    return {e.name for e in root.iterdir()} if root.is_dir() else None
+
+
+def _remove_new(root: Path, before: set[str] | None, multirun: bool) -> None:
+    """Remove what a refused sweep left under ``root`` that was not there before: its
+    ``multirun.yaml`` and empty directories, nothing that holds any other file."""
+    if not multirun or not root.is_dir():
+        return
+    new = [root] if before is None else [root / n for n in os.listdir(root) if n not in before]
+    for path in new:
+        files = [f for f in path.rglob("*") if not f.is_dir()] if path.is_dir() else [path]
+        if all(f.name == "multirun.yaml" for f in files):
+            shutil.rmtree(path) if path.is_dir() else path.unlink()
+
+
+class _Tail:
+    """A text stream that keeps the last few thousand characters, and holds what is written
+    before the task starts (Hydra's messages) until :meth:`release` or the task's start."""
+
+    def __init__(self, stream: Any, started: Callable[[], bool]) -> None:
         self.stream = stream
+        self.started = started
         self.tail = ""
+        self.held = ""
 
     def write(self, text: str) -> int:
         self.tail = (self.tail + text)[-4000:]
+        if not self.started():
+            self.held += text
+            return len(text)
+        self.release()
         return self.stream.write(text)
+
+    def release(self) -> None:
+        if self.held:
+            self.stream.write(self.held)
+            self.held = ""
+
+    def flush(self) -> None:
+        if self.started():
+            self.release()
+        self.stream.flush()
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.stream, name)

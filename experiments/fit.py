@@ -29,7 +29,8 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:       # this checkout's experiments/ (and torchfit), installed or not
     sys.path.insert(0, str(REPO))
 
-from experiments.app import BAD_INPUT, RunDirGuard, Terminated, one_line, refuse, run_hydra_app
+from experiments.app import (BAD_INPUT, RunDirGuard, Terminated, check_top_level, one_line,
+                             refuse, run_hydra_app)
 
 import hydra  # noqa: E402
 import matplotlib  # noqa: E402
@@ -38,7 +39,7 @@ from hydra.types import RunMode  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 matplotlib.use("Agg")   # pictures are files and TensorBoard images; never a window
-from torchfit.config import register_configs  # noqa: E402
+from torchfit.config import FitConfig, register_configs  # noqa: E402
 from torchfit.linalg import set_threads  # noqa: E402
 from torchfit.problems import build_problem  # noqa: E402
 from torchfit.reporting.results import write_json  # noqa: E402
@@ -56,6 +57,7 @@ def prepare(cfg: DictConfig) -> tuple[Any, Any, FitOptions, dict[str, Any]]:
     """Problem, solver config, options and the plain config; raises on bad input."""
     config = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True, enum_to_str=True)
     assert isinstance(config, dict)
+    check_top_level(config, FitConfig)
     solver = solver_config(dict(config["solver"]))
     threads = config.get("threads")
     if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0:

@@ -17,6 +17,7 @@ missing row:
   its fit raised; its ``error`` line is the reason (``experiments/fit.py`` writes it);
 * no ``result.json`` in its directory (the job was killed, or is still running; the last
   error line of its log is the reason when there is one);
+* a ``result.json`` that cannot be read, is not JSON or is JSON but not an object;
 * a ``result.json`` whose misfit is not finite (written as ``null``);
 * no directory at all, for a sweeper that says how many trials it runs (Optuna's
   ``n_trials`` in ``multirun.yaml``): not run yet.
@@ -117,6 +118,11 @@ def read_job(job_dir: Path) -> JobRow:
         row.result = json.loads(result_path.read_text(encoding="utf-8"))
     except (OSError, ValueError) as e:
         row.failure = f"unreadable result.json ({e})"
+        return row
+    if not isinstance(row.result, dict):
+        row.failure = (f"unreadable result.json (a JSON {type(row.result).__name__}, not an "
+                       "object)")
+        row.result = None
         return row
     if row.result.get("status") == "failed":
         row.failure = str(row.result.get("error") or "failed")

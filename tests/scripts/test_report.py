@@ -160,3 +160,19 @@ def test_real_joblib_sweep(tmp_path):
         assert row[rows[0].index("iterations")] == str(res["iterations"])
         assert row[rows[0].index("factorizations")] == str(res["factorizations"])
     assert "3 jobs, 1 failed or unfinished." in rep.stdout
+
+
+def test_result_json_not_an_object_is_a_failed_row(tmp_path):
+    # valid JSON that is not an object (issue 27, item 6): a failed row, never a traceback
+    sweep = tmp_path / "sweep"
+    fake_job(sweep, 0, ["problem.noise=0"], result(1e-2))
+    fake_job(sweep, 1, ["problem.noise=0.001"], None)
+    (sweep / "1_problem.noise=0.001" / "result.json").write_text("[1, 2, 3]")
+    fake_job(sweep, 2, ["problem.noise=0.01"], None)
+    (sweep / "2_problem.noise=0.01" / "result.json").write_text('"done"')
+    proc = report(sweep)
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    rows = table_rows(proc.stdout)
+    assert rows[1][-1] == "discrepancy"
+    assert rows[2][-1] == "failed: unreadable result.json (a JSON list, not an object)"
+    assert rows[3][-1] == "failed: unreadable result.json (a JSON str, not an object)"

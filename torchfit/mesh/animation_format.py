@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from ..memory import array_bytes, check_allocation, npy_header, npz_headers
 from .rig import DrivenSurface, Skeleton, check_transforms
 from .simplicial import MeshError
 
@@ -158,18 +159,22 @@ def _positive(value: Any, what: str, manifest: Path) -> float:
 
 
 def _load_array(path: Path, key: str | None = None) -> np.ndarray:
+    """The array of a ``.npy`` (or ``key`` of a ``.npz``), its header checked first: numbers,
+    whole, 4 times its float64 size within the memory limit (it, its float64 copy, the
+    problem's tensor of it, the simulated frames of the same size)."""
+    headers = npz_headers(path, str(path), AnimationError) if path.suffix == ".npz" else \
+        {None: npy_header(path, str(path), AnimationError)}
+    name = key if key in headers else (next(iter(headers)) if len(headers) == 1 else "")
+    if name == "":
+        raise AnimationError(f"{path}: expected an array named '{key}' (found "
+                             f"{', '.join(map(str, headers))})")
+    check_allocation(str(path), 4 * array_bytes(headers[name][0], np.float64),
+                     f"its array {headers[name][0]} of {headers[name][1]}", AnimationError)
     try:
-        if path.suffix == ".npz":
-            with np.load(path, allow_pickle=False) as data:
-                if key is not None and key in data:
-                    return np.asarray(data[key])
-                if len(data.files) == 1:
-                    return np.asarray(data[data.files[0]])
-                raise AnimationError(f"{path}: expected an array named '{key}' (found "
-                                     f"{', '.join(data.files)})")
-        return np.asarray(np.load(path, allow_pickle=False))
-    except AnimationError:
-        raise
+        if name is None:
+            return np.asarray(np.load(path, allow_pickle=False))
+        with np.load(path, allow_pickle=False) as data:
+            return np.asarray(data[name])
     except Exception as err:  # noqa: BLE001 - numpy raises many kinds for a bad file
         raise AnimationError(f"{path}: cannot read it as a numpy array ({err})") from err
 
@@ -361,8 +366,9 @@ def _read_regions(folder: Path, section: dict, manifest: Path,
         raise AnimationError(f"{path}: region labels must be integers, one per rest vertex "
                              f"({n_vertices},), got {labels.dtype} {labels.shape}")
     labels = labels.astype(np.int64)
-    if labels.min() < 0:
-        raise AnimationError(f"{path}: region labels must be >= 0")
+    if labels.min() < 0 or labels.max() >= n_vertices:     # at most one region per vertex
+        raise AnimationError(f"{path}: region labels must lie in 0..{n_vertices - 1} (one per "
+                             f"rest vertex at most), got {labels.min()}..{labels.max()}")
     n_regions = int(labels.max()) + 1
     names = section.get("names") or [f"region{r}" for r in range(n_regions)]
     if not isinstance(names, list) or len(names) != n_regions:
@@ -397,9 +403,11 @@ def load_animation(path: str | Path) -> Animation:
     manifest = _manifest_path(path)
     folder = manifest.parent
     try:
-        raw = yaml.safe_load(manifest.read_text())
-    except (OSError, yaml.YAMLError) as err:
-        raise AnimationError(f"{manifest}: cannot read the manifest ({err})") from err
+        raw = yaml.safe_load(manifest.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
+        why = f"not UTF-8 text (byte {err.start}); save it as UTF-8" if isinstance(
+            err, UnicodeDecodeError) else f"cannot read the manifest ({err})"
+        raise AnimationError(f"{manifest}: {why}") from err
     spec = _check_keys(raw if raw is not None else {}, _TOP_KEYS, "the manifest", manifest)
     unit = _unit(spec.get("unit"), manifest)
     rest_file = _file(folder, _require(spec, "rest", "the manifest", manifest), "rest surface",

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -87,17 +88,27 @@ class Arm3D(RiggedBody):
         root = Path(cfg.cache_dir).expanduser() if cfg.cache_dir else default_cache_dir().parent
         folder = root / "animations" / f"arm3d-{key}"
         if not (folder / "animation.yaml").is_file():
-            data = arm_animation(self.arm)
-            write_animation(folder, data["rest_vertices"], data["faces"], data["frames"],
-                            skeleton=data["skeleton"],
-                            description="procedural arm of torchfit's arm3d problem "
-                                        "(PROBLEMS.md): two bones, 48 frames, elbow bend with "
-                                        "bicep bulge, extension with tricep bulge")
+            self.write_arm(folder)
         self.elbow_angles = elbow_angles(self.arm)
+        try:
+            return load_animation(folder)
+        except Exception as err:  # noqa: BLE001 - derived data: an unreadable copy is rebuilt
+            warnings.warn(f"arm3d animation cache {folder} is unreadable ({type(err).__name__}: "
+                          f"{' '.join(str(err).split())}); rebuilding it", UserWarning,
+                          stacklevel=2)
+        self.write_arm(folder)
         try:
             return load_animation(folder)
         except MeshError as err:
             raise ProblemConfigError(f"arm3d animation in {folder}: {err}") from err
+
+    def write_arm(self, folder: Path) -> None:
+        data = arm_animation(self.arm)
+        write_animation(folder, data["rest_vertices"], data["faces"], data["frames"],
+                        skeleton=data["skeleton"],
+                        description="procedural arm of torchfit's arm3d problem "
+                                    "(PROBLEMS.md): two bones, 48 frames, elbow bend with "
+                                    "bicep bulge, extension with tricep bulge")
 
     def regions(self, cfg: Arm3DConfig) -> tuple[np.ndarray, list[str]]:
         return region_labels(self.arm, self.mesh.centroids()), list(REGION_NAMES)

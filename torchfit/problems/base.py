@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..memory import check_allocation
 from ..params import Parameterization
 from ..residual import ForwardProducts, ResidualFunction
 from .config import (ProblemConfig, ProblemConfigError, check_device, dtype_of, make_config,
@@ -236,6 +237,8 @@ class InverseProblem:
         cfg = make_config(self.config_class, cfg, overrides)
         validate_config(cfg)
         self.check(cfg)
+        for setting, nbytes, what in self.allocation(cfg):    # before anything is allocated
+            check_allocation(setting, nbytes, what, ProblemConfigError)
         self.cfg = cfg
         self.device = check_device("device", cfg.device)
         self.dtype = dtype_of(cfg.dtype)
@@ -262,6 +265,13 @@ class InverseProblem:
     def check(self, cfg: Any) -> None:
         """The problem's own checks of ``cfg`` (after the generic ones); raise
         :class:`ProblemConfigError` via :func:`require_setting`."""
+
+    def allocation(self, cfg: Any) -> list[tuple[str, float, str]]:
+        """What the settings will allocate, known from ``cfg`` alone: ``(setting, bytes,
+        what)`` per size setting (a lower bound: the solver's work arrays come on top); each
+        is refused when it exceeds :func:`torchfit.memory.memory_limit`. Sizes known only
+        from files (a mesh, an animation) are checked where they are read."""
+        return []
 
     def build_model(self, cfg: Any) -> None:
         """Mesh and physics (the simulator), on ``self.device`` in ``self.dtype``."""

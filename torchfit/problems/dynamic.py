@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 from typing import Any, ContextManager, List, Optional
 
 import numpy as np
@@ -95,6 +96,26 @@ def check_dynamic_flag(problem: Any, cfg: Any) -> None:
     require_setting(bool(cfg.dynamic) == dynamic, cfg, "dynamic",
                     f"{type(problem).__name__} is the {'dynamic' if dynamic else 'static'} "
                     "problem; build_problem picks the class that matches problem.dynamic")
+
+
+def time_steps_allocation(cfg: Any, n_dofs: int) -> list[tuple[str, float, str]]:
+    """What ``problem.dt`` allocates: the step grid (``steps``: each step's time,
+    coefficients and index, Python objects of about 256 bytes, implicit; a float tensor,
+    fixed-step torchdiffeq) and the states kept for the gradient (``steps / c + c`` states
+    ``(x, v)`` of ``n_dofs`` each, ``c`` = ``checkpoint_every`` or ``sqrt(steps)``).
+    Adaptive methods choose their steps: nothing known ahead."""
+    implicit = cfg.integrator == Integrator.implicit
+    if not implicit and str(cfg.ode_method) in ADAPTIVE_METHODS:
+        return []
+    end = max(cfg.output_times) if cfg.output_times else cfg.duration
+    steps = end / cfg.dt + cfg.frames           # inf for a subnormal dt: refused as well
+    steps = math.ceil(steps) if math.isfinite(steps) else steps
+    every = cfg.checkpoint_every or math.sqrt(steps)
+    kept = (steps / every + every if math.isfinite(steps) else math.inf) if implicit else 2
+    nbytes = steps * (256 if implicit else 16) + kept * n_dofs * 16 if math.isfinite(steps) \
+        else math.inf
+    return [(f"problem.dt={cfg.dt}", nbytes, f"{steps:.3g} time steps to t = {end:g} s and "
+             f"{kept:.3g} stored states of {n_dofs} degrees of freedom")]
 
 
 def check_dynamic_settings(cfg: Any) -> None:

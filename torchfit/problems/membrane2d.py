@@ -55,7 +55,8 @@ from ..settings import Choice
 from .base import InverseProblem
 from .config import (Backend, DType, ProblemConfig, ProblemConfigError, check_newton_settings,
                      require_setting, resolve_backend)
-from .dynamic import DynamicMixin, DynamicSettings, check_dynamic_flag, check_dynamic_settings
+from .dynamic import (DynamicMixin, DynamicSettings, check_dynamic_flag, check_dynamic_settings,
+                      time_steps_allocation)
 
 
 class Model(Choice):
@@ -181,6 +182,13 @@ class Membrane2D(InverseProblem):
                         f"is below what float32 reaches (problem.dtype=float32, "
                         f"problem.model={cfg.model}); set problem.newton_atol="
                         f"{_FLOAT32_NEWTON_ATOL:g} or more, or use problem.dtype=float64")
+
+    def allocation(self, cfg: Membrane2DConfig) -> list[tuple[str, float, str]]:
+        # per vertex: two coordinates of rest, position, load, adjoint and work vectors, the
+        # triangles' deformation gradients and the factor (about 60 values, a lower bound)
+        vertices = (cfg.nx + 1) * (cfg.ny + 1)
+        return [(f"problem.nx={cfg.nx} problem.ny={cfg.ny}", vertices * 60 * 8.0,
+                 f"{vertices:.3g} vertices")]
 
     # -- the hooks of the template --------------------------------------------------------
     def build_model(self, cfg: Membrane2DConfig) -> None:
@@ -347,6 +355,10 @@ class DynamicMembrane2D(DynamicMixin, Membrane2D):
         times = list(cfg.motion_times)
         require_setting(all(b > a for a, b in zip(times[:-1], times[1:])), cfg, "motion_times",
                         "must increase strictly (s)")
+
+    def allocation(self, cfg: Membrane2DConfig) -> list[tuple[str, float, str]]:
+        return [*super().allocation(cfg),
+                *time_steps_allocation(cfg, 2 * (cfg.nx + 1) * (cfg.ny + 1))]
 
     def build_model(self, cfg: Membrane2DConfig) -> None:
         dtype, device = self.dtype, self.device

@@ -95,6 +95,12 @@ class Poisson2D(InverseProblem):
                         "column would be observed; use a stride < N - 1")
         require_setting(cfg.k0 > 0, cfg, "k0", "must be a positive stiffness")
 
+    def allocation(self, cfg: Poisson2DConfig) -> list[tuple[str, float, str]]:
+        # per node: two components of position, load, adjoint and work vectors, the index
+        # grids, the edges and the sparse factor (about 40 values, a lower bound)
+        return [(f"problem.N={cfg.N}", cfg.N * cfg.N * 40 * 8.0,
+                 f"{cfg.N} x {cfg.N} = {cfg.N * cfg.N:.3g} grid nodes")]
+
     # -- the hooks of the template --------------------------------------------------------
     def build_model(self, cfg: Poisson2DConfig) -> None:
         N, s, dtype, device = cfg.N, cfg.s, self.dtype, self.device

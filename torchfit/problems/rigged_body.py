@@ -30,6 +30,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor
 
+from ..memory import check_allocation
 from ..mesh import MeshError, SimplexMesh, element_adjacency
 from ..mesh.animation_format import Animation, AnimationError, load_animation
 from ..mesh.embedding import Embedding, dof_matrix, embed_points
@@ -78,12 +79,25 @@ class RiggedBody(InverseProblem):
                         "must list three moduli: background, stiff block, soft block")
         for key in ("tet_edge_length", "tet_epsilon", "tet_stop_energy"):
             require_setting(getattr(cfg, key) > 0, cfg, key, "must be positive")
+        require_setting(cfg.tet_edge_length <= 1, cfg, "tet_edge_length", "is a fraction of "
+                        "the bounding-box diagonal: must lie in (0, 1] (e.g. 0.05)")
         check_newton_settings(cfg)
         require_setting(cfg.frames is None or len(cfg.frames) >= 1, cfg, "frames",
                         "must list at least one frame (or be null for all)")
+        require_setting(cfg.frames is None or len(set(cfg.frames)) == len(cfg.frames), cfg,
+                        "frames", "lists a frame twice; list each frame once")
         require_setting(cfg.backend != Backend.banded, cfg, "backend", "banded suits thin 2-D "
                         "sheets, not a 3-D body; use auto, pardiso, scipy or cg")
         self.check_source(cfg)
+
+    def allocation(self, cfg: RiggedBodyConfig) -> list[tuple[str, float, str]]:
+        # a grid (the parameters, or the blocks truth): per node theta, its gradient, the
+        # search direction, the truth and the blocks' index grids (about 8 values)
+        if cfg.parameters != Layout.grid and not (cfg.target == Target.synthetic
+                                                  and cfg.truth == Truth.blocks):
+            return []
+        nodes = float(np.prod([float(n) for n in cfg.grid]))
+        return [(f"problem.grid={list(cfg.grid)}", nodes * 8 * 8.0, f"{nodes:.3g} grid nodes")]
 
     def check_source(self, cfg: RiggedBodyConfig) -> None:
         require_setting(bool(cfg.path), cfg, "path", "must name the folder of your animation "
@@ -108,6 +122,13 @@ class RiggedBody(InverseProblem):
             warnings.warn(f"{animation.path}: rest surface: {text}", UserWarning, stacklevel=2)
         self.n_frames = animation.n_frames
         self.tet = self.tetrahedralize(cfg, animation)
+        # per frame: every tetrahedron's deformation gradient, stress and their derivatives
+        # (about 40 values), every vertex's position, residual and adjoint (9 values)
+        cells, points = len(self.tet.cells), len(self.tet.points)
+        check_allocation(f"problem.tet_edge_length={cfg.tet_edge_length} with "
+                         f"{animation.n_frames} frames", animation.n_frames * (
+                             cells * 40 + points * 9) * 8.0,
+                         f"{cells} tetrahedra x {animation.n_frames} frames", ProblemConfigError)
         points, cells = self.tet.points, self.tet.cells
         self.mesh = SimplexMesh(points, cells)
         self.model = SimplicialElasticity(torch.from_numpy(points), torch.from_numpy(cells),

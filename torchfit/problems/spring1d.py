@@ -19,17 +19,18 @@ import dataclasses
 from pathlib import Path
 from typing import List, Optional
 
-import numpy as np
 import torch
 from torch import Tensor
 
+from ..memory import load_npy
 from ..params import Parameterization, chain_edges, per_element
 from ..physics import Equilibrium, ScalarSpringNetwork
 from ..physics.dynamics import DynamicSystem, KeyedMotion
 from .base import InverseProblem
 from .config import (DataMode, ProblemConfig, ProblemConfigError, require, require_setting,
                      resolve_backend)
-from .dynamic import DynamicMixin, DynamicSettings, check_dynamic_flag, check_dynamic_settings
+from .dynamic import (DynamicMixin, DynamicSettings, check_dynamic_flag, check_dynamic_settings,
+                      time_steps_allocation)
 
 
 
@@ -97,6 +98,13 @@ class Spring1D(InverseProblem):
         for key in ("k0", "k_background"):
             require_setting(getattr(cfg, key) > 0, cfg, key, "must be a positive stiffness")
 
+    def allocation(self, cfg: Spring1DConfig) -> list[tuple[str, float, str]]:
+        # per node and frame: load, position, adjoint, two work vectors; per node: the
+        # stiffness, its gradient and the sparse factor (about 16 values)
+        frames = len(cfg.loads)
+        return [(f"problem.n={cfg.n}", (cfg.n + 1) * (5 * frames + 16) * 8.0,
+                 f"{cfg.n + 1} nodes x {frames} frames")]
+
     # -- the hooks of the template --------------------------------------------------------
     def build_model(self, cfg: Spring1DConfig) -> None:
         n, dtype, device = cfg.n, self.dtype, self.device
@@ -144,7 +152,9 @@ class Spring1D(InverseProblem):
         n_frames, n_nodes = self.n_frames, cfg.n + 1
         file = Path(cfg.targets)
         require(file.is_file(), f"problem.targets={cfg.targets}: the file does not exist")
-        positions = torch.as_tensor(np.load(file), dtype=self.dtype, device=self.device)
+        positions = torch.as_tensor(load_npy(file, f"problem.targets={cfg.targets}",
+                                             ProblemConfigError),
+                                    dtype=self.dtype, device=self.device)
         require(positions.shape == (n_frames, n_nodes),
                 f"problem.targets={cfg.targets}: must hold positions of shape (frames={n_frames}, "
                 f"nodes={n_nodes}), got {tuple(positions.shape)}")
@@ -178,6 +188,12 @@ class DynamicSpring1D(DynamicMixin, Spring1D):
         times = list(cfg.load_times)
         require_setting(all(b > a for a, b in zip(times[:-1], times[1:])), cfg, "load_times",
                         "must increase strictly (s)")
+
+    def allocation(self, cfg: Spring1DConfig) -> list[tuple[str, float, str]]:
+        frames = len(cfg.output_times) if cfg.output_times else cfg.frames
+        return [(f"problem.n={cfg.n}", (cfg.n + 1) * (5 * frames + 16) * 8.0,
+                 f"{cfg.n + 1} nodes x {frames} output times"),
+                *time_steps_allocation(cfg, cfg.n + 1)]
 
     def build_model(self, cfg: Spring1DConfig) -> None:
         n, dtype, device = cfg.n, self.dtype, self.device

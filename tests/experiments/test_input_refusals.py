@@ -1,0 +1,67 @@
+"""Bad input of issue 27 refused by the app (experiments/fit.py as a subprocess): exit 2,
+one ``error:`` line naming the setting, nothing written. The in-process checks are in
+tests/problems/test_input_checks.py."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def fit(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    base = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    return subprocess.run([sys.executable, "experiments/fit.py", *args], cwd=REPO,
+                          env={**base, **(env or {})}, capture_output=True, text=True,
+                          timeout=120)
+
+
+def refused(proc: subprocess.CompletedProcess, *words: str) -> str:
+    """The one error line of a refusal (exit 2, no traceback) that holds ``words``."""
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error: ")]
+    assert proc.returncode == 2, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr and len(errors) == 1, proc.stderr[-3000:]
+    assert all(w in errors[0] for w in words), errors[0]
+    return errors[0]
+
+
+def test_refusals_through_the_app(tmp_path):
+    long_value = "x" * 300
+    cases = {
+        # a job directory name over 255 bytes: Hydra's traceback became one line
+        "sweep": (["-m", f"hydra.sweep.dir={tmp_path / 'sweep'}", "problem=spring1d",
+                   "problem.n=8", f"problem.targets=/tmp/{long_value}"],
+                  ["317 bytes", "255", "problem.targets=/tmp/xxx",
+                   "exclude_keys=[problem.targets]"]),
+        # Hydra's hint for a misspelt key is to add it with "+": refused, the keys listed
+        "typo": ([f"hydra.run.dir={tmp_path / 'typo'}", "problem=spring1d", "problem.n=8",
+                  "+contination=true"],
+                 ["unknown top-level setting contination=True", "did you mean continuation?",
+                  "problem, solver, resume, init, continuation,"]),
+    }
+
+    def run(item):
+        return item[0], fit(*item[1][0])
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        done = dict(pool.map(run, cases.items()))
+    for name, (_, words) in cases.items():
+        refused(done[name], *words)
+    assert not (tmp_path / "sweep").exists()       # not even multirun.yaml
+    assert not [p for p in tmp_path.iterdir()]     # no run directory of any case
+
+
+@pytest.mark.slow
+def test_a_size_is_refused_through_the_app(tmp_path):
+    # sizes: refused from the settings before anything is allocated (in-process in
+    # tests/problems/test_input_checks.py; here the exit status and the run directory)
+    proc = fit(f"hydra.run.dir={tmp_path / 'size'}", "problem=spring1d", "problem.n=10000000000",
+               env={"TORCHFIT_MEMORY_LIMIT": "1G"})
+    refused(proc, "problem.n=10000000000: needs about 2.3 TiB for 10000000001 nodes x 3 frames",
+            "1.0 GiB of TORCHFIT_MEMORY_LIMIT")
+    assert not (tmp_path / "size").exists()
