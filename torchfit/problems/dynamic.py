@@ -172,6 +172,14 @@ class DynamicMixin:
         step's Newton starts from the step before, within that simulation)."""
         return contextlib.nullcontext()
 
+    def simulation_state(self) -> dict[str, Any]:
+        """Nothing carries over between simulations (each integrates from the initial
+        state), so a checkpoint needs no simulation state."""
+        return {}
+
+    def restore_simulation_state(self, state: dict[str, Any]) -> None:
+        """Nothing to restore (:meth:`simulation_state`)."""
+
     # -- building ---------------------------------------------------------------------------
     def build_integrator(self, cfg: Any, backend: str, newton: NewtonOptions | None = None) -> None:
         self.output_times = output_times(cfg)
