@@ -36,10 +36,11 @@ from ..mesh.animation_format import Animation, AnimationError, load_animation
 from ..mesh.embedding import Embedding, dof_matrix, embed_points
 from ..mesh.rig import joint_cells, most_rotated_frame, skeleton_drive, surface_drive
 from ..mesh.tetrahedralize import TetMesh, TetOptions, default_cache_dir, tetrahedralize
-from ..params import Parameterization, per_element, per_grid_node, per_region
+from ..params import Parameterization, per_element, per_region
 from ..physics import NewtonOptions
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
 from .base import InverseProblem, array_digest
+from .body_grid import block_nodes, blocks_field, grid_parameterization
 from .body_report import (BODY_METRICS, body_metrics, frame_report, inverted_counts,
                           min_volume_ratios, region_summary, surface_distances, volume_change)
 from .config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
@@ -199,11 +200,10 @@ class RiggedBody(InverseProblem):
     # -- parameters, observation, truth ----------------------------------------------
     def build_parameterization(self, cfg: RiggedBodyConfig) -> Parameterization:
         centroids = self.mesh.centroids()
-        lower, upper = self.tet.points.min(0), self.tet.points.max(0)
         self.grid_shape = tuple(int(n) for n in cfg.grid)
         if cfg.parameters == Layout.grid:
-            return per_grid_node(self.grid_shape, centroids, lower, upper,
-                                 cfg.transform.value, name="Young's modulus", dtype=self.dtype)
+            return grid_parameterization(self.grid_shape, self.tet.points, centroids,
+                                         cfg.transform.value, self.dtype)
         if cfg.parameters == Layout.region:
             if self.tet_regions is None:
                 raise setting_error("parameters", cfg.parameters.value,
@@ -247,27 +247,13 @@ class RiggedBody(InverseProblem):
         return self.blocks_field(cfg)
 
     def block_nodes(self) -> np.ndarray:
-        """Label per grid node of the ``blocks`` truth: 0 background, 1 stiff, 2 soft.
-
-        In grid index space: the stiff block is the nodes with ``ix >= nx/2`` (the front
-        half) and ``iz`` in the second quarter of the length; the soft block ``iy < ny/2``
-        and ``iz`` in the third quarter. Both span several nodes in every direction.
-        """
-        nx, ny, nz = self.grid_shape
-        ix, iy, iz = np.meshgrid(np.arange(nx), np.arange(ny), np.arange(nz), indexing="ij")
-        labels = np.zeros((nx, ny, nz), dtype=np.int64)
-        stiff = (ix >= nx // 2) & (iz >= nz // 4) & (iz < nz // 2)
-        soft = (iy < ny // 2) & (iz >= nz // 2) & (iz < (3 * nz) // 4)
-        labels[stiff] = 1
-        labels[soft] = 2
-        return labels.reshape(-1)
+        """Label per grid node of the ``blocks`` truth (:func:`.body_grid.block_nodes`)."""
+        return block_nodes(self.grid_shape)
 
     def blocks_field(self, cfg: RiggedBodyConfig) -> Tensor:
-        """The ``blocks`` truth per tetrahedron: grid-node values, trilinear to tetrahedra."""
-        grid = per_grid_node(self.grid_shape, self.mesh.centroids(), self.tet.points.min(0),
-                             self.tet.points.max(0), "identity", dtype=self.dtype)
-        values = torch.tensor(cfg.E_blocks, dtype=self.dtype)[torch.as_tensor(self.block_nodes())]
-        return grid(values.to(self.device))
+        """The ``blocks`` truth per tetrahedron (:func:`.body_grid.blocks_field`)."""
+        return blocks_field(self.grid_shape, self.tet.points, self.mesh.centroids(),
+                            cfg.E_blocks, self.dtype, self.device)
 
     def measured_data(self, cfg: RiggedBodyConfig) -> Tensor:
         frames = torch.as_tensor(self.animation.frames, dtype=self.dtype, device=self.device)
