@@ -25,12 +25,14 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import errno
 import logging
 import os
 import re
 import shutil
 import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Any, Callable, NoReturn
 
@@ -44,6 +46,38 @@ BAD_INPUT = (ConfigurationError, OmegaConfBaseException, OSError)
 
 def one_line(error: BaseException | str) -> str:
     return " ".join(str(error).split())
+
+
+#: errno values of a full file system or an exhausted quota
+_NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+
+
+def no_space(error: BaseException) -> bool:
+    """Whether ``error`` (or what it was raised from) is a full disk or quota."""
+    while error is not None:
+        if isinstance(error, OSError) and error.errno in _NO_SPACE:
+            return True
+        error = error.__cause__ or error.__context__
+    return False
+
+
+def no_space_line(error: BaseException, run_dir: Path, resume_command: str) -> str:
+    """The one line for a run stopped by a full disk: what was being written, and how to
+    continue (the checkpoint and every file were written atomically: nothing is half)."""
+    while not (isinstance(error, OSError) and error.errno in _NO_SPACE):
+        error = error.__cause__ or error.__context__
+    where = f" (writing {error.filename})" if error.filename else ""
+    return (f"no space left on the device of {run_dir}{where}; free space there, "
+            f"then continue with: {resume_command}")
+
+
+def _quiet_thread_errors(args: threading.ExceptHookArgs) -> None:
+    """A writer thread (TensorBoard's) that hits a full disk: its error reaches the main
+    thread at the next write, which reports it in one line; no traceback on the console."""
+    if issubclass(args.exc_type, OSError) and getattr(args.exc_value, "errno", None) in _NO_SPACE:
+        logging.getLogger("torchfit.run").debug("thread %s: %s", args.thread, args.exc_value)
+        return
+    threading.__excepthook__(args)
 
 
 class Terminated(KeyboardInterrupt):
@@ -167,6 +201,9 @@ def run_hydra_app(main: Callable[[], Any], started: Callable[[], bool],
         print("error: " + one_line(error), file=sys.stderr, flush=True)
         sys.exit(2)
     signal.signal(signal.SIGTERM, _terminate)
+    threading.excepthook = _quiet_thread_errors
+    # a log file on a full disk: no "--- Logging error ---" traceback per line on the console
+    logging.raiseExceptions = False
     multirun = any(a in ("-m", "--multirun") for a in argv)
     before = _entries(root, multirun)
     stderr = _Tail(sys.stderr, started)

@@ -29,8 +29,8 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:       # this checkout's experiments/ (and torchfit), installed or not
     sys.path.insert(0, str(REPO))
 
-from experiments.app import (BAD_INPUT, RunDirGuard, Terminated, check_top_level, one_line,
-                             refuse, run_hydra_app)
+from experiments.app import (BAD_INPUT, RunDirGuard, Terminated, check_top_level, no_space,
+                             no_space_line, one_line, refuse, run_hydra_app)
 
 import hydra  # noqa: E402
 import matplotlib  # noqa: E402
@@ -68,6 +68,11 @@ def prepare(cfg: DictConfig) -> tuple[Any, Any, FitOptions, dict[str, Any]]:
     return problem, solver, options, config
 
 
+def resume_command(run_dir: Path) -> str:
+    """The command that continues the run in ``run_dir``."""
+    return f"python experiments/fit.py hydra.run.dir={run_dir} resume=true (and the same overrides)"
+
+
 @hydra.main(config_path="../conf", config_name="fit", version_base="1.3")
 def main(cfg: DictConfig) -> float:
     global _started
@@ -87,10 +92,16 @@ def main(cfg: DictConfig) -> float:
     except KeyboardInterrupt as interrupt:     # Ctrl-C, or SIGTERM (app.Terminated)
         terminated = isinstance(interrupt, Terminated)
         print(f"{'terminated (SIGTERM)' if terminated else 'interrupted'}; continue with: "
-              f"python experiments/fit.py hydra.run.dir={run_dir} resume=true (and the same "
-              "overrides)", file=sys.stderr, flush=True)
+              f"{resume_command(run_dir)}", file=sys.stderr, flush=True)
         sys.exit(143 if terminated else 130)
     except Exception as error:  # noqa: BLE001  (reported as one line; the log has the rest)
+        if no_space(error) and not multirun:
+            # a fault, not bad input: what the run wrote stays (checkpoint, history) and the
+            # same command with resume=true continues it once there is space
+            log.error("the fit stopped, the disk is full:\n%s", traceback.format_exc())
+            print("error: " + no_space_line(error, run_dir, resume_command(run_dir)),
+                  file=sys.stderr, flush=True)
+            sys.exit(2)
         bad_input = isinstance(error, BAD_INPUT)
         if not bad_input:
             log.error("the fit failed:\n%s", traceback.format_exc())

@@ -166,3 +166,14 @@ def test_animation_files_checked_by_their_headers(monkeypatch, tmp_path):
     manifest.write_text(manifest.read_text() + "regions:\n  labels: regions.npy\n")
     refused("animation", {"path": str(folder)}, r"regions.npy: region labels must lie in "
             rf"0..{n_vertices - 1} \(one per rest vertex at most\), got 0..1000000000")
+
+
+def test_frames_given_as_a_glob_of_meshes_are_sized_before_they_are_read(monkeypatch, tmp_path):
+    folder = write_capsule(tmp_path / "c", "skeleton", "obj")
+    files = [p for p in folder.rglob("*.obj") if p.name != "rest.obj"]
+    assert len(files) >= 2, "the capsule writes its frames as OBJ files"
+    # above the grid's few KiB, below four float64 copies of the stacked frames
+    monkeypatch.setenv("TORCHFIT_MEMORY_LIMIT", "100K")
+    refused("animation", {"path": str(folder)},
+            rf"\*\.obj: needs about .* for {len(files)} frame files x \d+ vertices, more than "
+            r"the 100.0 KiB of TORCHFIT_MEMORY_LIMIT")

@@ -46,3 +46,19 @@ def test_init_refuses_a_run_of_another_parameterisation(tmp_path):
         assert str(tmp_path / key / "params.pt") in str(info.value)
     save_params(tmp_path / "same", theta + 1, theta.exp(), "k", "exp")
     assert torch.equal(initial_theta(problem, tmp_path / "same"), theta + 1)
+
+
+def test_init_refuses_another_problems_params_whose_count_agrees(tmp_path):
+    # poisson2d N=5 has (N - 1)^2 = 16 parameters, as spring1d n=16: the count alone would accept it
+    poisson = build_problem("poisson2d", {"N": 5})
+    springs = build_problem("spring1d", {"n": 16})
+    assert poisson.parameterization.n_params == springs.parameterization.n_params
+    assert poisson.field_name == springs.field_name == "k"
+    first = fit(poisson, {"name": "gauss_newton", "max_iter": 1}, run_dir=tmp_path / "poisson",
+                options=QUIET)
+    with pytest.raises(FitConfigError, match=r"another problem \(problem 'poisson2d' there, "
+                                              r"'spring1d' here\)"):
+        initial_theta(springs, tmp_path / "poisson")
+    # the same problem with other settings (noise, another seed) starts from it
+    again = build_problem("poisson2d", {"N": 5, "noise": 1e-3, "seed": 3})
+    assert torch.equal(initial_theta(again, tmp_path / "poisson"), first.theta)

@@ -105,11 +105,6 @@ class Animation:
 
 
 # -- reading ------------------------------------------------------------------------------
-def _natural_key(name: str) -> list[Any]:
-    """Sort key that orders embedded numbers numerically (``f2`` before ``f10``)."""
-    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
-
-
 def _unit(value: Any, manifest: Path) -> float:
     if value is None:
         return 1.0
@@ -217,9 +212,12 @@ def _read_frames(folder: Path, spec: Any, n_vertices: int, manifest: Path
         names = [f"{path.name}[{i}]" for i in range(frames.shape[0])]
     else:
         pattern = spec if os.path.isabs(spec) else str(folder / spec)
-        files = sorted(glob.glob(pattern), key=lambda p: _natural_key(os.path.basename(p)))
+        files = sorted(glob.glob(pattern), key=lambda p: [     # natural order: f2 before f10
+            int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", os.path.basename(p))])
         if not files:
             raise AnimationError(f"{manifest}: no frame file matches {pattern}")
+        check_allocation(pattern, 4 * array_bytes((len(files), n_vertices, 3), np.float64),
+                         f"{len(files)} frame files x {n_vertices} vertices", AnimationError)
         frames_list = []
         for name in files:
             vertices = _read_mesh_vertices(Path(name))

@@ -458,6 +458,19 @@ class InverseProblem:
         (the settings determine everything)."""
         return {}
 
+    def parameter_meaning(self) -> dict[str, object]:
+        """What the parameters mean beyond their count, recorded in ``params.pt``: ``init=``
+        refuses a run whose meaning differs even where the counts agree. The problem
+        (problems of one family share parameters), the spatial dimension, and whether the
+        damping is appended (dynamic)."""
+        return {"problem": self.parameter_family, "dim": int(self.dim),
+                "dynamic": bool(getattr(self.cfg, "dynamic", False))}
+
+    #: problems whose parameters mean the same thing share a family (default: the name)
+    @property
+    def parameter_family(self) -> str:
+        return self.name
+
     def describe(self) -> dict[str, object]:
         """Sizes for logs and result files."""
         return {"name": self.name, "n_params": self.parameterization.n_params,

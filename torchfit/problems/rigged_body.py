@@ -64,6 +64,8 @@ class RiggedBody(InverseProblem):
     scale_free = True
     #: the problem wrote its animation folder itself (a run copies it as an example)
     writes_animation = False
+    #: arm3d's fitted grid may start a fit of the same arm read as an animation folder
+    parameter_family = "rigged body"
 
     # -- hooks of the template --------------------------------------------------------
     def check(self, cfg: RiggedBodyConfig) -> None:

@@ -49,7 +49,7 @@ from .evaluation import Evaluation
 from .figures import colorize, frame_errors_figure, save_png
 from .guard import PlotGuard
 from .progress import PROGRESS_LOGGER
-from .results import write_json
+from .results import write_folder, write_json
 
 if TYPE_CHECKING:  # pragma: no cover
     from .tensorboard import TensorBoardLogger
@@ -219,14 +219,16 @@ class BodyOutputs:
 
     def _write_frames(self, x: Tensor) -> list[Path]:
         folder = self.run_dir / FRAMES_DIR
-        folder.mkdir(exist_ok=True)
         surface = _numpy(self.problem.surface(x))
         faces = np.asarray(self.problem.animation.faces)
-        paths = []
-        for f in range(surface.shape[0]):
-            path = folder / f"frame_{f:03d}.obj"
-            write_obj(path, surface[f], faces)
-            paths.append(path)
+        names = [f"frame_{f:03d}.obj" for f in range(surface.shape[0])]
+
+        def fill(partial: Path) -> None:
+            for f, name in enumerate(names):
+                write_obj(partial / name, surface[f], faces)
+
+        write_folder(folder, fill)
+        paths = [folder / name for name in names]
         progress.info("wrote %d simulated frames to %s", len(paths), folder)
         return paths
 
@@ -247,8 +249,11 @@ class BodyOutputs:
                            point_data=point_data, cell_data=cell_data)
         path = self.run_dir / VTU_FILE
         tmp = path.with_name(path.name + ".tmp.vtu")
-        meshio.write(str(tmp), mesh)
-        tmp.replace(path)
+        try:
+            meshio.write(str(tmp), mesh)
+            tmp.replace(path)
+        finally:
+            tmp.unlink(missing_ok=True)
         return [path]
 
     def _write_regions(self, field: Tensor) -> list[Path]:
@@ -386,9 +391,8 @@ class BodyOutputs:
         if not self.problem.writes_animation:
             return []
         target = self.run_dir / "animation"
-        if target.exists():
-            shutil.rmtree(target)
-        shutil.copytree(source, target)
+        write_folder(target, lambda partial: shutil.copytree(source, partial,
+                                                             dirs_exist_ok=True))
         return [target / source.joinpath("animation.yaml").name]
 
 

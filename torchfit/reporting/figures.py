@@ -28,6 +28,7 @@ from torch import Tensor
 
 from ..problems.base import FieldImageProblem, MeshProblem
 from .guard import PlotGuard
+from .results import atomic_write
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problems import InverseProblem
@@ -304,11 +305,12 @@ def error_curves_figure(history: Sequence[Mapping[str, float]], keys: Sequence[s
 
 
 def save_png(fig, path) -> None:
-    """Render ``fig`` with the Agg canvas (no display, no pyplot state) into ``path``."""
+    """Render ``fig`` with the Agg canvas (no display, no pyplot state) into ``path``
+    (atomically: a full disk or a kill leaves the earlier picture or none, never a part)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     FigureCanvasAgg(fig)
-    fig.savefig(path)
+    atomic_write(Path(path), lambda f: fig.savefig(f, format="png"))
 
 
 def field_is_chain(problem: "InverseProblem") -> bool:

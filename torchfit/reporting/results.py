@@ -19,9 +19,10 @@ import json
 import math
 import os
 import re
+import shutil
 import threading
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 import torch
@@ -76,11 +77,34 @@ def atomic_write(path: Path, write, mode: str = "wb") -> None:
         with open(tmp, mode, encoding=encoding) as f:
             write(f)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as error:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(error, OSError) and error.errno is not None and not error.filename:
+            # torch.save and write(f) raise without a file name: name the file being written
+            raise OSError(error.errno, error.strerror or str(error), str(path)) from error
         raise
 
+
+#: Suffix of a folder of the run being written (renamed to its name when whole).
+PARTIAL = ".partial"
+
+
+def write_folder(target: Path, fill: Callable[[Path], Any]) -> Any:
+    """Fill a new folder beside ``target`` (``.<name>.partial``, by ``fill(folder)``), then
+    put it in ``target``'s place: a kill or a full disk never leaves a partial folder
+    (0-byte files) under the name a user opens. Returns what ``fill`` returns."""
+    partial = target.with_name(f".{target.name}{PARTIAL}")
+    shutil.rmtree(partial, ignore_errors=True)
+    try:
+        partial.mkdir(parents=True)
+        out = fill(partial)
+        if target.exists():
+            shutil.rmtree(target)
+        partial.rename(target)
+        return out
+    finally:
+        shutil.rmtree(partial, ignore_errors=True)
 
 #: Names of the temporary files of :func:`atomic_write` and of the body's ParaView writer.
 _TEMPORARY = re.compile(r"^\..+\.\d+\.\d+\.tmp$|^.+\.tmp\.vtu$")
@@ -92,6 +116,10 @@ def remove_stale_temporaries(run_dir: Path) -> list[Path]:
     writes. Returns what was removed."""
     removed = []
     if run_dir.is_dir():
+        for partial in sorted(run_dir.glob(f".*{PARTIAL}")):
+            if partial.is_dir() and not partial.is_symlink():
+                shutil.rmtree(partial)
+                removed.append(partial)
         for path in sorted(run_dir.rglob("*")):
             if _TEMPORARY.match(path.name) and path.is_file() and not path.is_symlink():
                 path.unlink()
@@ -123,10 +151,11 @@ def history_rows(history: list[IterationRecord], step_offset: int = 0) -> list[d
 
 
 def save_params(run_dir: str | Path, theta: Tensor, field: Tensor,
-                field_name: str = "k", transform: str | None = None) -> tuple[Path, Path]:
+                field_name: str = "k", transform: str | None = None,
+                meaning: Mapping[str, Any] | None = None) -> tuple[Path, Path]:
     """Write ``params.pt`` (theta, field, the field's name and, if given, the
-    parameterisation's transform: what ``init=`` checks) and ``field.npy``; returns both
-    paths."""
+    parameterisation's transform and the parameters' ``meaning``: what ``init=`` checks)
+    and ``field.npy``; returns both paths."""
     run_dir = Path(run_dir)
     theta_cpu = theta.detach().cpu().clone()
     field_cpu = field.detach().cpu().clone()
@@ -134,6 +163,8 @@ def save_params(run_dir: str | Path, theta: Tensor, field: Tensor,
     payload: dict[str, Any] = {"theta": theta_cpu, "field": field_cpu, "field_name": field_name}
     if transform is not None:
         payload["transform"] = transform
+    if meaning is not None:
+        payload["meaning"] = dict(meaning)
     atomic_write(params_path, lambda f: _torch_bytes(payload, f))
     field_path = run_dir / FIELD_FILE
     atomic_write(field_path, lambda f: np.save(f, field_cpu.numpy()))

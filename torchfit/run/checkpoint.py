@@ -152,6 +152,10 @@ def check_fresh_start(run_dir: Path) -> None:
     read, else start again elsewhere (what :func:`read_checkpoint` says too)."""
     path = run_dir / CHECKPOINT_FILE
     if not os.path.lexists(path):
+        found = run_files(run_dir)
+        if found:
+            raise FitConfigError(f"{run_dir} already holds a run ({', '.join(found)}) "
+                                 f"without its {CHECKPOINT_FILE}; choose another run directory")
         return
     try:
         with open(path, "rb") as f:
@@ -168,13 +172,23 @@ def check_fresh_start(run_dir: Path) -> None:
 
 def run_files(run_dir: Path) -> list[str]:
     """The files of ``run_dir`` that show a run was there (a fresh start would overwrite
-    them): ``result.json``, ``params.pt``, a ``history.jsonl`` with rows."""
+    them): ``result.json``, ``params.pt``, a ``history.jsonl`` with rows beyond the first.
+
+    A history holding only iteration 0's row is a run killed before its first commit (the
+    row is written before the checkpoint): nothing of it can be continued or lost, so it
+    does not count (the run starts again, rewriting that row)."""
     found = [name for name in (RESULT_FILE, PARAMS_FILE) if os.path.lexists(run_dir / name)]
     history = run_dir / HISTORY_FILE
-    if history.is_file() and history.stat().st_size > 0 or \
-            os.path.lexists(history) and not history.is_file():
+    if os.path.lexists(history) and not history.is_file() or \
+            history.is_file() and _has_rows_after_the_first(history):
         found.append(HISTORY_FILE)
     return found
+
+
+def _has_rows_after_the_first(history: Path) -> bool:
+    with open(history, "rb") as f:
+        lines = [line for line in f.read().split(b"\n") if line.strip()]
+    return len(lines) > 1
 
 
 def _resumable(settings: dict[str, Any]) -> dict[str, Any]:

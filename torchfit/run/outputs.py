@@ -37,7 +37,7 @@ from ..reporting.guard import PlotGuard
 from ..reporting.motion import MotionOutputs
 from ..reporting.progress import PROGRESS_LOGGER
 from ..reporting.results import RESULT_FILE, atomic_write, save_params, write_json
-from ..reporting.tensorboard import TensorBoardLogger
+from ..reporting.tensorboard import TensorBoardLogger, event_files
 from .checkpoint import Resume
 from .evaluator import Evaluator
 from .options import FitOptions
@@ -65,6 +65,12 @@ class RunOutputs:
         self.evaluator = evaluator
         self.config = config
         self.guard = PlotGuard()    # a failed drawing is warned about once, never fails the fit
+        if restart is None:
+            # a fresh start (allowed: nothing committed here) begins its curves afresh; the
+            # events of a run killed before its first commit would show beside them
+            for stale in event_files(run_dir / "tb"):
+                stale.unlink()
+                progress.debug("removed %s of a run that committed nothing", stale)
         self.tb = TensorBoardLogger(run_dir / "tb", log_every=options.log_every)
         if restart is not None:
             self.tb.resume(restart.rows, restart.iteration)
@@ -113,7 +119,8 @@ class RunOutputs:
                    "solver": self.config.get("solver", {})}
         self.tb.finish(problem, final.field, metrics, hparams, self.guard)
         files[:0] = list(save_params(run_dir, result.theta, result.field, problem.field_name,
-                                     problem.parameterization.transform))
+                                     problem.parameterization.transform,
+                                     problem.parameter_meaning()))
         if isinstance(problem, MeshProblem):
             _save_frames(run_dir / "frames.npz", problem, final)
             files.append(run_dir / "frames.npz")

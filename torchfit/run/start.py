@@ -57,6 +57,14 @@ def initial_theta(problem: InverseProblem, init: Tensor | str | Path | None = No
                 raise FitConfigError(f"{where} holds a {name} with {key} {saved[key]!r}, but "
                                      f"{problem.name}'s is {ours!r}; start from a run of the "
                                      "same parameterisation")
+        meaning = saved.get("meaning")
+        if isinstance(meaning, dict):       # params.pt of 2026-11-26 on
+            for key, ours in problem.parameter_meaning().items():
+                if key in meaning and meaning[key] != ours:
+                    raise FitConfigError(
+                        f"{where} holds the parameters of another problem ({key} "
+                        f"{meaning[key]!r} there, {ours!r} here), though their count may "
+                        f"agree; start from a run of {problem.name} with the same parameters")
     if theta.shape != (n,):
         raise FitConfigError(f"{where} has {tuple(theta.shape)} parameters, but {problem.name}'s "
                              f"parameterisation has ({n},); start from a run with the same "
