@@ -1,4 +1,4 @@
-"""Writing USD (the extra ``usd``): a rigged animation as a UsdSkel-skinned mesh.
+"""Writing USD (the extra ``usd``): a skinned rig, simulated frames, a tetrahedral mesh.
 
 :func:`write_skinned_usd` writes the animation format's rig (bones, per-frame ``[A | t]``,
 per-vertex weights, rest-pose corrective shapes) as a stage that
@@ -14,9 +14,17 @@ per-vertex weights, rest-pose corrective shapes) as a stage that
 - ``torchfit:attachRadius`` on the skeleton; lengths in metres (``metersPerUnit`` 1), Z up.
 
 Bone transforms must be rigid (rotation and translation; a USD joint holds no shear).
+
+:func:`write_point_cache_usd` writes frames ``(F, V, 3)`` as a mesh prim whose ``points``
+and ``extent`` hold one time sample per frame; given the user's stage (``over``), the new
+layer has it as a sublayer and converts metres to its ``metersPerUnit``, so the TD opens
+(or references) one layer and sees the simulated body next to the original.
+:func:`write_tet_mesh_usd` writes a ``UsdGeom.TetMesh`` (points, tetrahedra, surface
+faces) with per-tetrahedron fields as ``uniform`` primvars ``primvars:torchfit:<name>``.
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -126,5 +134,86 @@ def write_skinned_usd(path: str | Path, rest_vertices: np.ndarray, faces: np.nda
             targets.append(shape.GetPath())
         binding.CreateBlendShapesAttr(list(shapes))
         binding.CreateBlendShapeTargetsRel().SetTargets(targets)
+    stage.GetRootLayer().Save()
+    return Path(path)
+
+
+def write_point_cache_usd(path: str | Path, faces: np.ndarray, frames: np.ndarray, *,
+                          prim: str = "/Simulated", times: list[float] | None = None,
+                          over: str | Path | None = None, fps: float = 24.0) -> Path:
+    """Write ``frames`` ``(F, V, 3)`` (metres, world) as a time-sampled mesh at ``prim``
+    (missing ancestors are defined as plain ``Xform`` prims; an existing ancestor with a
+    transform of its own would move the frames: choose a path under untransformed prims).
+
+    Args:
+        faces: ``(T, 3)`` triangles of the frames' vertices.
+        times: the time code of each frame (default ``0 .. F-1``).
+        over: the user's stage: sublayered under the new layer, whose ``metersPerUnit``,
+            up axis and time codes per second are taken from it (lengths converted).
+    """
+    from pxr import Sdf, Usd, UsdGeom, Vt
+
+    frames = np.asarray(frames, dtype=np.float64)
+    times = list(range(len(frames))) if times is None else [float(t) for t in times]
+    if len(times) != len(frames):
+        raise ValueError(f"{len(times)} times for {len(frames)} frames")
+    path = Path(path)
+    stage = Usd.Stage.CreateNew(str(path))
+    scale = 1.0
+    if over is not None:
+        original = Usd.Stage.Open(str(over))
+        scale = float(UsdGeom.GetStageMetersPerUnit(original))
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.GetStageUpAxis(original))
+        stage.SetTimeCodesPerSecond(original.GetTimeCodesPerSecond())
+        relative = os.path.relpath(Path(over).resolve(), path.resolve().parent)
+        stage.GetRootLayer().subLayerPaths.append(Path(relative).as_posix())
+    else:
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+        stage.SetTimeCodesPerSecond(fps)
+    UsdGeom.SetStageMetersPerUnit(stage, scale)
+    stage.SetStartTimeCode(min(times))
+    stage.SetEndTimeCode(max(times))
+    for parent in Sdf.Path(prim).GetPrefixes()[:-1]:
+        if not stage.GetPrimAtPath(parent):
+            UsdGeom.Xform.Define(stage, parent)
+    mesh = UsdGeom.Mesh.Define(stage, prim)
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(faces)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray([int(i) for i in np.ravel(faces)]))
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    points, extent = mesh.CreatePointsAttr(), mesh.CreateExtentAttr()
+    for time, positions in zip(times, frames / scale):
+        points.Set(Vt.Vec3fArray.FromNumpy(positions.astype(np.float32)), time)
+        extent.Set(Vt.Vec3fArray.FromNumpy(np.stack([positions.min(0), positions.max(0)])
+                                           .astype(np.float32)), time)
+    stage.GetRootLayer().Save()
+    return path
+
+
+def write_tet_mesh_usd(path: str | Path, points: np.ndarray, cells: np.ndarray,
+                       fields: dict[str, np.ndarray] | None = None, *,
+                       prim: str = "/Body") -> Path:
+    """Write a tetrahedral mesh (``points`` ``(n, 3)`` metres, ``cells`` ``(m, 4)``) as a
+    ``UsdGeom.TetMesh`` with each field ``(m,)`` as a per-tetrahedron primvar."""
+    from pxr import Sdf, Usd, UsdGeom, Vt
+
+    points = np.asarray(points, dtype=np.float64)
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    tet = UsdGeom.TetMesh.Define(stage, prim)
+    tet.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(points.astype(np.float32)))
+    tet.CreateTetVertexIndicesAttr(Vt.Vec4iArray.FromNumpy(np.asarray(cells, np.int32)))
+    tet.CreateSurfaceFaceVertexIndicesAttr(UsdGeom.TetMesh.ComputeSurfaceFaces(tet))
+    tet.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(
+        np.stack([points.min(0), points.max(0)]).astype(np.float32)))
+    primvars = UsdGeom.PrimvarsAPI(tet.GetPrim())
+    for name, values in (fields or {}).items():
+        values = np.asarray(values, dtype=np.float64).reshape(-1)
+        if values.shape != (len(cells),):
+            raise ValueError(f"field {name} has {values.size} values for {len(cells)} "
+                             "tetrahedra")
+        primvars.CreatePrimvar(f"torchfit:{name}", Sdf.ValueTypeNames.DoubleArray,
+                               UsdGeom.Tokens.uniform).Set(Vt.DoubleArray.FromNumpy(values))
+    stage.SetDefaultPrim(tet.GetPrim())
     stage.GetRootLayer().Save()
     return Path(path)
