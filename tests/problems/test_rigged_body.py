@@ -166,3 +166,28 @@ def test_app_reports_bad_animation_in_one_line_and_writes_nothing(tmp_path, cach
     lines = [l for l in proc.stderr.strip().splitlines() if l.strip()]
     assert len(lines) == 1 and "driven set is empty" in lines[0], proc.stderr
     assert not (run / "result.json").exists() and not (run / "tb").exists()
+
+
+def test_app_reports_a_usd_stage_without_skinned_mesh_in_one_line(tmp_path, cache):
+    pytest.importorskip("pxr")
+    from pxr import Usd, UsdGeom
+
+    path = tmp_path / "still.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.Mesh.Define(stage, "/Still").CreatePointsAttr([(0, 0, 0), (1, 0, 0), (0, 1, 0)])
+    stage.GetRootLayer().Save()
+    run = tmp_path / "run"
+    proc = run_fit_app(run, "problem=animation", f"problem.path={path}",
+                       f"problem.cache_dir={cache}")
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    lines = [l for l in proc.stderr.strip().splitlines() if l.strip()]
+    assert len(lines) == 1 and "no skinned mesh" in lines[0], proc.stderr
+    assert not (run / "result.json").exists()
+
+
+def test_negative_fps_is_refused_before_reading(tmp_path):
+    from torchfit import build_problem
+    from torchfit.errors import ConfigurationError
+
+    with pytest.raises(ConfigurationError, match=r"^problem.fps=-1.0: must be >= 0"):
+        build_problem("animation", {"path": str(tmp_path / "a.glb"), "fps": -1.0})
