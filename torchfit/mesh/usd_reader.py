@@ -13,7 +13,8 @@ imported only here and only then), one mesh prim of the stage into the same
   points UsdSkel computes (blend shapes, then ``SkinningQuery.ComputeSkinnedPoints`` with the
   ``geomBindTransform``), so the targets are what the TD sees; rest and frames are in the
   skeleton's space, placed in the world by the skeleton prim's transform (the skinned mesh's
-  own transform is ignored, as UsdSkel says). Bones: the joints' segments
+  own transform is ignored, as UsdSkel says; with ``skel:skinningMethod`` dualQuaternion the
+  frames are UsdSkel's, the interior's drive stays linear). Bones: the joints' segments
   (:func:`.joint_rig.skeleton_from_joints`); ``attach_radius`` from the float attribute
   ``torchfit:attachRadius`` (stage units) on the mesh or skeleton, else the default there.
 - **a point cache**: a mesh whose ``points`` are time-sampled; the driven vertices are the
