@@ -197,13 +197,14 @@ def _trs(t=(0, 0, 0), q=(0, 0, 0, 1), s=(1, 1, 1)) -> np.ndarray:
 
 
 def gltf_tube(*, cubic: bool = False, sparse: bool = False, draco: bool = False,
-              skinned_nodes: int = 1, short_weights: bool = False):
+              skinned_nodes: int = 1, short_weights: bool = False, byte_weights: bool = False):
     """A glTF (pygltflib object) of a metre-scale tube along y and the data to check it.
 
     Nodes (in this order): ``world`` (a root moved by (0, 1, 0) and scaled by 2, parent of
     the joints and the mesh), the joints ``C``, ``B``, ``A`` (so the skin's joint list
     ``[A, B, C]`` is not the node order), the skinned node ``tube`` moved by (100, 0, 0)
-    (which the specification says to ignore). ``B``'s bind is turned 10 degrees about z
+    (which the specification says to ignore); ``byte_weights``: the weights as normalised
+    unsigned bytes (``data["weight_b"]`` then the quantised share of ``B``). ``B``'s bind is turned 10 degrees about z
     (inverse bind matrices column-major). Two influences (``B`` and ``A``) per vertex.
     Animation: ``A`` translates (keys 0, 0.5, 1 s), ``B`` turns about x from 0 to 60 degrees
     (keys 0, 1 s: slerp).
@@ -238,9 +239,15 @@ def gltf_tube(*, cubic: bool = False, sparse: bool = False, draco: bool = False,
     joints0[:, 0], joints0[:, 1] = 1, 0                            # skin slots: B, A
     weights0 = np.zeros((len(points), 4), np.float32)
     weights0[:, 0], weights0[:, 1] = weight_b, 1 - weight_b
+    if byte_weights:
+        weights0 = np.round(weights0 * 255).astype(np.uint8)
+        weight_b = weights0[:, 0] / weights0[:, :2].sum(1, dtype=np.float64)
     attributes = g.Attributes(POSITION=add(points.astype(np.float32), "VEC3", g.FLOAT),
                               JOINTS_0=add(joints0, "VEC4", g.UNSIGNED_BYTE),
-                              WEIGHTS_0=add(weights0[:n_weights], "VEC4", g.FLOAT))
+                              WEIGHTS_0=add(weights0[:n_weights], "VEC4",
+                                            g.UNSIGNED_BYTE if byte_weights else g.FLOAT))
+    if byte_weights:
+        accessors[attributes.WEIGHTS_0].normalized = True
     indices = add(triangles.astype(np.uint16).ravel(), "SCALAR", g.UNSIGNED_SHORT)
     inverse = np.stack([np.linalg.inv(bind[j]) for j in order]).astype(np.float32)
     ibm = add(inverse.transpose(0, 2, 1).reshape(3, 16), "MAT4", g.FLOAT)   # column-major

@@ -47,8 +47,9 @@ def test_skinned_tube_at_its_keyframes(tmp_path, suffix):
                   - want).max() < 1e-7
 
 
-def test_sampled_at_a_frame_rate_with_slerp(tmp_path):
-    gltf, data = gltf_tube()
+@pytest.mark.parametrize("byte_weights", [False, True])
+def test_sampled_at_a_frame_rate_with_slerp(tmp_path, byte_weights):
+    gltf, data = gltf_tube(byte_weights=byte_weights)
     animation = load_gltf(save(gltf, tmp_path / "tube.glb"), fps=4.0)
     times = np.arange(5) / 4.0
     assert animation.n_frames == 5
