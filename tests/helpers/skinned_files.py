@@ -204,8 +204,8 @@ def gltf_tube(*, cubic: bool = False, sparse: bool = False, draco: bool = False,
     the joints and the mesh), the joints ``C``, ``B``, ``A`` (so the skin's joint list
     ``[A, B, C]`` is not the node order), the skinned node ``tube`` moved by (100, 0, 0)
     (which the specification says to ignore); ``byte_weights``: the weights as normalised
-    unsigned bytes (``data["weight_b"]`` then the quantised share of ``B``). ``B``'s bind is turned 10 degrees about z
-    (inverse bind matrices column-major). Two influences (``B`` and ``A``) per vertex.
+    unsigned bytes (``data["weight_b"]`` then the quantised share of ``B``). ``B``'s bind is
+    turned 10 degrees about z (inverse bind matrices column-major). Two influences (``B`` and ``A``) per vertex.
     Animation: ``A`` translates (keys 0, 0.5, 1 s), ``B`` turns about x from 0 to 60 degrees
     (keys 0, 1 s: slerp).
     """
