@@ -5,10 +5,20 @@ of README's "Bring your own animation").
     .venv/bin/python scripts/write_arm.py my_arm            # 48 frames, skeleton-driven
     .venv/bin/python scripts/write_arm.py my_arm --frames-as-meshes
     scripts/fit.sh problem=animation problem.path=my_arm
+    .venv/bin/python scripts/write_arm.py --usd arm.usda --gltf arm.glb   # the same arm as a
+    scripts/fit.sh problem=animation problem.path=arm.usda    # UsdSkel rig and as a glTF skin
 
 The folder holds ``animation.yaml`` (the manifest), ``rest.obj``, the frames (``frames.npz``
 or ``frames/frame_000.obj`` ...), ``skeleton.npz`` (bone heads, tails and per-frame
 ``[A | t]`` transforms) and ``weights.npy`` (skinning weights per rest vertex).
+
+``--usd`` (extra ``usd``) and ``--gltf`` (extra ``gltf``) write the arm as a skinned mesh:
+joints shoulder, elbow and wrist tip, the weights, the elbow's animation and the bicep and
+tricep correctives as blend shapes (morph targets in glTF), so that UsdSkel (or the glTF
+skinning) poses it to the folder's frames (float32 storage: within 1e-7 m). Both formats
+store the rest surface in float32, and pytetwild meshes a surface moved by that rounding
+(3e-8 m) differently; ``--float32-rest`` rounds the rest surface of every output (the folder
+too) to float32, so that all three tetrahedralise alike and fit to the same figures.
 """
 from __future__ import annotations
 
@@ -21,17 +31,42 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from torchfit.mesh import ArmShape, arm_animation, write_animation  # noqa: E402
+from torchfit.mesh.procedural_arm import corrective_shapes  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("folder", type=Path, help="where to write the animation (replaced)")
+    parser.add_argument("folder", type=Path, nargs="?",
+                        help="where to write the animation folder (replaced)")
     parser.add_argument("--frames-as-meshes", action="store_true",
                         help="write the frames as OBJ files frames/frame_NNN.obj (a glob in the "
                              "manifest) instead of one frames.npz")
+    parser.add_argument("--usd", type=Path, help="also write the arm as a UsdSkel stage (.usda, "
+                        ".usdc or .usd)")
+    parser.add_argument("--gltf", type=Path, help="also write the arm as a glTF skin (.glb or "
+                        ".gltf)")
+    parser.add_argument("--float32-rest", action="store_true",
+                        help="round the rest surface to float32 in every output (as USD and "
+                             "glTF store it), so that the folder meshes like the files")
     args = parser.parse_args(argv)
+    if args.folder is None and args.usd is None and args.gltf is None:
+        parser.error("name a folder, --usd FILE or --gltf FILE")
     shape = ArmShape()
     data = arm_animation(shape)
+    if args.float32_rest:
+        data["rest_vertices"] = data["rest_vertices"].astype(np.float32).astype(np.float64)
+    shapes, shape_weights = corrective_shapes(shape, data["rest_vertices"], data["angles"])
+    for option, module, function in ((args.usd, "usd_writer", "write_skinned_usd"),
+                                     (args.gltf, "gltf_writer", "write_skinned_gltf")):
+        if option is not None:
+            import importlib
+
+            write = getattr(importlib.import_module(f"torchfit.mesh.{module}"), function)
+            write(option, data["rest_vertices"], data["faces"], data["skeleton"], shapes,
+                  shape_weights)
+            print(f"wrote {option}")
+    if args.folder is None:
+        return 0
     manifest = write_animation(args.folder, data["rest_vertices"], data["faces"],
                                data["frames"], skeleton=data["skeleton"],
                                description="the procedural arm of torchfit's arm3d problem")

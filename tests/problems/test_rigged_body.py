@@ -166,3 +166,54 @@ def test_app_reports_bad_animation_in_one_line_and_writes_nothing(tmp_path, cach
     lines = [l for l in proc.stderr.strip().splitlines() if l.strip()]
     assert len(lines) == 1 and "driven set is empty" in lines[0], proc.stderr
     assert not (run / "result.json").exists() and not (run / "tb").exists()
+
+
+def test_app_reports_a_usd_stage_without_skinned_mesh_in_one_line(tmp_path, cache):
+    pytest.importorskip("pxr")
+    from pxr import Usd, UsdGeom
+
+    path = tmp_path / "still.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.Mesh.Define(stage, "/Still").CreatePointsAttr([(0, 0, 0), (1, 0, 0), (0, 1, 0)])
+    stage.GetRootLayer().Save()
+    run = tmp_path / "run"
+    proc = run_fit_app(run, "problem=animation", f"problem.path={path}",
+                       f"problem.cache_dir={cache}")
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    lines = [l for l in proc.stderr.strip().splitlines() if l.strip()]
+    assert len(lines) == 1 and "no skinned mesh" in lines[0], proc.stderr
+    assert not (run / "result.json").exists()
+
+
+def test_negative_fps_is_refused_before_reading(tmp_path):
+    from torchfit import build_problem
+    from torchfit.errors import ConfigurationError
+
+    with pytest.raises(ConfigurationError, match=r"^problem.fps=-1.0: must be >= 0"):
+        build_problem("animation", {"path": str(tmp_path / "a.glb"), "fps": -1.0})
+
+
+@pytest.mark.parametrize("suffix, extra", [(".usda", "pxr"), (".glb", "pygltflib")])
+def test_the_capsule_rig_from_usd_and_gltf_builds_the_same_problem(tmp_path, cache, suffix,
+                                                                   extra):
+    pytest.importorskip(extra)
+    from torchfit.mesh import load_animation
+    from torchfit.mesh.rig import blend, distance_weights, segment_distances
+
+    folder = write_capsule(tmp_path / "c", "skeleton", "npz")
+    animation = load_animation(folder)
+    skeleton = animation.skeleton
+    skeleton.weights = distance_weights(segment_distances(
+        animation.rest_vertices, skeleton.heads, skeleton.tails), 0.06)
+    path = tmp_path / f"capsule{suffix}"
+    if suffix == ".usda":
+        from torchfit.mesh.usd_writer import write_skinned_usd as write
+    else:
+        from torchfit.mesh.gltf_writer import write_skinned_gltf as write
+    write(path, animation.rest_vertices, animation.faces, skeleton)
+    problem = problem_for(path, cache)
+    read = problem.animation
+    assert read.n_frames == 3 and read.skeleton.names == ["lower", "upper"]
+    assert np.abs(read.frames - blend(animation.rest_vertices, skeleton.weights,
+                                      skeleton.transforms)).max() < 1e-6
+    assert problem.model.n_cells > 0 and problem.data.numel() == 3 * read.n_vertices * 3

@@ -196,6 +196,20 @@ def correctives(shape: ArmShape, rest: np.ndarray, angles_deg: np.ndarray) -> np
     return amount[..., None] * radial[None]
 
 
+def corrective_shapes(shape: ArmShape, rest: np.ndarray, angles_deg: np.ndarray
+                      ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The correctives as two blend shapes (a DCC's form): offsets ``(V, 3)`` of the full
+    bicep and tricep bulge, and their weights ``(F, 2)`` per frame (the flexion and the
+    extension as fractions of their maxima), so that ``weights @ offsets`` is
+    :func:`correctives`."""
+    angles = np.asarray(angles_deg, dtype=np.float64)
+    shapes = {"bicep": correctives(shape, rest, np.array([shape.max_flexion]))[0],
+              "tricep": correctives(shape, rest, np.array([-shape.max_extension]))[0]}
+    weights = np.stack([np.clip(angles, 0, None) / shape.max_flexion,
+                        np.clip(-angles, 0, None) / max(shape.max_extension, 1e-300)], axis=1)
+    return shapes, weights
+
+
 def skinning_weights(shape: ArmShape, points: np.ndarray) -> np.ndarray:
     """Distance skinning weights ``(n, 2)`` of the arm's rig at rest ``points``."""
     heads, tails = rig(shape)

@@ -32,7 +32,8 @@ from torch import Tensor
 
 from ..memory import check_allocation
 from ..mesh import MeshError, SimplexMesh, element_adjacency
-from ..mesh.animation_format import Animation, AnimationError, load_animation
+from ..mesh.animation_format import Animation, AnimationError
+from ..mesh.animation_readers import read_animation
 from ..mesh.embedding import Embedding, dof_matrix, embed_points
 from ..mesh.rig import joint_cells, most_rotated_frame, skeleton_drive, surface_drive
 from ..mesh.tetrahedralize import TetMesh, TetOptions, default_cache_dir, tetrahedralize
@@ -89,6 +90,8 @@ class RiggedBody(InverseProblem):
                         "must list at least one frame (or be null for all)")
         require_setting(cfg.frames is None or len(set(cfg.frames)) == len(cfg.frames), cfg,
                         "frames", "lists a frame twice; list each frame once")
+        require_setting(cfg.fps >= 0, cfg, "fps", "must be >= 0 (glTF frames per second; 0: "
+                        "the animation's keyframes)")
         require_setting(cfg.backend != Backend.banded, cfg, "backend", "banded suits thin 2-D "
                         "sheets, not a 3-D body; use auto, pardiso, scipy or cg")
         self.check_source(cfg)
@@ -109,7 +112,7 @@ class RiggedBody(InverseProblem):
     def load(self, cfg: RiggedBodyConfig) -> Animation:
         """The animation (``problem=arm3d`` makes and writes its own first)."""
         try:
-            return load_animation(cfg.path)
+            return read_animation(cfg.path, cfg.prim, cfg.fps)
         except MeshError as err:
             raise ProblemConfigError(f"problem.path={cfg.path}: {err}") from err
 

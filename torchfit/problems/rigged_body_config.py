@@ -46,7 +46,12 @@ class RiggedBodyConfig(ProblemConfig):
     """Settings of ``problem=animation`` (lengths in metres; ``noise`` in metres too)."""
 
     name: str = "animation"
-    path: str = ""                         # folder holding animation.yaml
+    path: str = ""                         # folder holding animation.yaml, or .usd/.usda/.usdc/
+    #                                        .usdz (extra usd), or .glb/.gltf (extra gltf)
+    prim: str = ""                         # USD: the mesh's prim path; glTF: the skinned node's
+    #                                        name; "": the one skinned mesh (else point cache)
+    fps: float = 0.0                       # glTF: sample the animation at this rate; 0: at its
+    #                                        keyframes (every input time of its samplers)
     frames: Optional[List[int]] = None     # a subset of the frames (numbers); null: all
     model: ElasticModel = ElasticModel.corotated   # linear | corotated | stable_neo_hookean
     nu: float = 0.45                       # Poisson ratio, fixed
