@@ -7,6 +7,7 @@ import torch
 
 from torchfit.problems import build_problem
 from torchfit.run import FitResult
+from torchfit.run.identifiability import from_jacobian
 from torchfit.run.result import result_dict
 
 
@@ -36,3 +37,20 @@ def test_result_json_keys_in_their_order():
                          "resumed_from_iteration", "problem", "config", "history"]
     assert out["status"] == "completed" and out["resumed_from_iteration"] == 2
     assert "resumed_from_iteration" not in result_dict(problem, result(), {})
+
+
+def test_an_undetermined_fit_says_so_beside_its_stop_reason():
+    flat = torch.zeros(4, 2, dtype=torch.float64)
+    report = from_jacobian(flat, torch.zeros(2, dtype=torch.float64),
+                           torch.arange(4.0, dtype=torch.float64))
+    done = result(identifiability=report)
+    assert done.determined is False and result().determined is None
+    assert done.summary().startswith("discrepancy after 3 iterations (not determined by the "
+                                     "data) in 1.25 s")
+    out = result_dict(build_problem("spring1d", {"n": 2}), done, {})
+    assert out["converged"] is True and out["stop_reason"] == "discrepancy"
+    assert out["determined"] is False
+    assert out["identifiability"] == {"determined": False, "n_params": 2, "n_determined": 0,
+                                      "effective_rank": 0, "source": "",
+                                      "reason": report.reason}
+    assert list(out).index("determined") == list(out).index("status") + 1

@@ -12,7 +12,9 @@ The callbacks of a run, in order: the evaluator (:mod:`.evaluator`: the one simu
 record, whose metrics it adds to ``record.extra``), the progress line, the checkpoint
 commit, TensorBoard, the problem's own outputs (fed the evaluation), then the caller's; an
 iteration is thus in the checkpoint before TensorBoard shows it. The end of the run reads
-the last evaluation (:meth:`~.evaluator.Evaluator.final`).
+the last evaluation (:meth:`~.evaluator.Evaluator.final`) and reports what the data
+determine (:mod:`.identifiability`, from the solver's last linearisation; one warning line
+where they determine no material).
 """
 from __future__ import annotations
 
@@ -32,6 +34,7 @@ from ..solvers import Solver, SolverConfig
 from .checkpoint import Checkpointer, check_fresh_start, finished_result, read_checkpoint
 from .directory import check_writable
 from .evaluator import Evaluator
+from .identifiability import identify
 from .lock import hold
 from .options import FitConfigError, FitOptions, plain_settings
 from .outputs import RunOutputs
@@ -150,6 +153,9 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
                        solved.wall_time, solved.factorizations, solved.solves, solved.converged,
                        str(solved.stop_reason), rows, run_path, [],
                        restart.iteration if restart else None, solved)
+    result.identifiability = identify(problem, getattr(solver, "lin", None), solved.theta)
+    if not result.identifiability.determined:
+        log.warning("%s", result.identifiability.warning())
     if run_path is not None:
         assert outputs is not None and checkpointer is not None
         result.files = outputs.finish(result, final)

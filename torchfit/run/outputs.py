@@ -5,7 +5,8 @@ Run directory (besides ``checkpoint.pt`` and ``history.jsonl``, :mod:`.checkpoin
 and field (byte-identical for identical runs; ``init=`` of a later run starts from
 ``params.pt``); ``tb/``, TensorBoard events (:mod:`torchfit.reporting.tensorboard`; a
 resumed run adds the steps lost with the killed process and never repeats one);
-``field.png``, ``error_curves.png`` and what the problem's own outputs write:
+``field.png``, ``error_curves.png``, ``identifiability.json`` / ``.vtu`` / ``.png``
+(:mod:`torchfit.reporting.identifiability`) and what the problem's own outputs write:
 ``snapshots.png``, ``frame_errors.png``, ``sheet_frame<f>.png`` for 2-D fields
 (:class:`~torchfit.reporting.field_snapshots.FieldSnapshots`), ``frames.npz`` for meshes,
 the files of a 3-D body (:class:`~torchfit.reporting.body.BodyOutputs`) and of a dynamic
@@ -34,6 +35,7 @@ from ..reporting.evaluation import Evaluation
 from ..reporting.field_snapshots import FieldSnapshots
 from ..reporting.figures import field_is_chain, write_run_pngs
 from ..reporting.guard import PlotGuard
+from ..reporting.identifiability import write_identifiability
 from ..reporting.motion import MotionOutputs
 from ..reporting.progress import PROGRESS_LOGGER
 from ..reporting.results import RESULT_FILE, atomic_write, save_params, write_json
@@ -132,6 +134,12 @@ class RunOutputs:
                     name: {k: v for k, v in values.items() if not k.endswith("_per_frame")}
                     for name, values in comparison[material].items()}
         write_json(run_dir / RESULT_FILE, summary)
+        if result.identifiability is not None:
+            report = result.identifiability
+            files.extend(write_identifiability(
+                run_dir, problem, report.as_json(), {"sensitivity": report.cell_sensitivity,
+                                                     "determined": report.cell_determined},
+                self.guard))
         files[:0] = write_run_pngs(run_dir, problem, final.field, result.history, self.guard,
                                    field_is_chain(problem))
         return files

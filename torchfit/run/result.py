@@ -4,7 +4,8 @@
 ``factorizations``, ``solves`` (whole-run totals, a resumed run included), ``converged``,
 ``stop_reason``, ``status`` (``completed``), ``resumed_from_iteration`` (a resumed run),
 ``problem`` (sizes), ``config`` and ``history`` (one row per outer iteration); a 3-D body
-adds ``model_comparison``.
+adds ``model_comparison``. ``determined`` (whether the data determine the material at all)
+and ``identifiability`` (its summary, :mod:`.identifiability`) where the run made the report.
 """
 from __future__ import annotations
 
@@ -38,6 +39,9 @@ class FitResult:
             (:func:`~torchfit.run.fit_continued`), else ``None``.
         highlights: one line per output worth pointing a user at (written by the outputs
             themselves, e.g. a 3-D body's comparison picture and ParaView file).
+        identifiability: the report of what the data determine
+            (:class:`~.identifiability.Identifiability`), ``None`` where none was made (a
+            finished run read back); ``determined`` its verdict (``None``: no report).
     """
 
     theta: Tensor
@@ -56,6 +60,11 @@ class FitResult:
     solve: SolveResult | None = None
     first_stage: "FitResult | None" = None
     highlights: list[str] = dataclasses.field(default_factory=list)
+    identifiability: Any = None
+
+    @property
+    def determined(self) -> bool | None:
+        return None if self.identifiability is None else bool(self.identifiability.determined)
 
     def value(self, key: str) -> float:
         """``metrics[key]`` or a count (``iterations``, ...); ``+inf`` where not finite, so
@@ -69,8 +78,10 @@ class FitResult:
         """One line: stop reason, iterations, time, counts and the headline metrics."""
         shown = ", ".join(f"{k} {self.metrics[k]:.3e}" for k in
                           ("misfit", "k_err_rel", "k_err_rel_aligned") if k in self.metrics)
+        verdict = "not determined by the data" if self.determined is False else \
+            "converged" if self.converged else "not converged"
         return (f"{self.stop_reason} after {self.iterations} iterations "
-                f"({'converged' if self.converged else 'not converged'}) in {self.wall_s:.2f} s, "
+                f"({verdict}) in {self.wall_s:.2f} s, "
                 f"{self.factorizations} factorizations, {self.solves} solves: {shown}")
 
 
@@ -82,6 +93,9 @@ def result_dict(problem: InverseProblem, result: FitResult,
                 "factorizations": result.factorizations, "solves": result.solves,
                 "converged": result.converged, "stop_reason": result.stop_reason,
                 "status": "completed"})
+    if result.identifiability is not None:
+        out["determined"] = result.determined
+        out["identifiability"] = result.identifiability.summary()
     if result.resumed_from is not None:
         out["resumed_from_iteration"] = result.resumed_from
     out["problem"] = problem.describe()
