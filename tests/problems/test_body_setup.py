@@ -116,4 +116,6 @@ def test_every_set_up_step_is_on_the_console_with_its_counts(tmp_path, caplog, m
     for line, start in zip(lines, expected):
         assert line.startswith(start), (line, start)
     assert "skinning not checked" in lines[3]                  # distance weights
+    assert problem.rig_report.skinning_error is None
+    assert problem.rig_report.scale_ratios.shape == (3,)
     assert lines[-1].endswith(" s")

@@ -34,7 +34,7 @@ ENVELOPE_PER_EDGE = 0.05
 #: tetrahedra fTetWild makes per regular tetrahedron of the target edge that fits the volume
 TETS_PER_REGULAR = 3.0
 #: accepted relative difference between the count made and the target
-COUNT_TOLERANCE = 0.15
+COUNT_TOLERANCE = 0.10
 #: builds at most per target
 MAX_BUILDS = 4
 #: assumed ``-d log(count) / d log(edge)`` before two builds have measured it

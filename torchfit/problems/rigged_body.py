@@ -41,8 +41,8 @@ from ..physics import NewtonOptions
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
 from ..steps import count, step
 from .base import InverseProblem, array_digest
-from .body_setup import animation_summary, check_rig, first_simulation, tet_mesh
 from .body_grid import block_nodes, blocks_field, grid_parameterization
+from .body_setup import animation_summary, check_rig, first_simulation, tet_mesh
 from .body_report import (BODY_METRICS, body_metrics, frame_report, inverted_counts,
                           min_volume_ratios, region_summary, surface_distances, volume_change)
 from .config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
@@ -479,6 +479,8 @@ class RiggedBody(InverseProblem):
                     "backend": self.backend, "full_bend_frame": self.full_bend_frame,
                     "joint_tets": int(len(self.joint_cells)),
                     "surface_err_mean_homogeneous": self.homogeneous_surface_error()})
+        if self.rig_report is not None:     # the rig check's largest skinning distance
+            out["rig_skinning_error"] = self.rig_report.skinning_error
         if os.environ.get("TORCHFIT_CACHE_DIR"):
             out["cache_dir"] = os.environ["TORCHFIT_CACHE_DIR"]
         return out
