@@ -7,11 +7,12 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "torchfit"
 
-NEUTRAL = {"errors", "memory", "records", "residual", "settings"}   # the contract every layer may use
+NEUTRAL = {"errors", "memory", "records", "residual", "settings", "steps"}   # the contract every layer may use
 #: layer -> the layers it may import (DESIGN.md's table): solvers know nothing of meshes or
 #: physics, problems nothing of solvers, reporting meets solvers only through the records.
 ALLOWED = {
     "errors": set(), "memory": {"errors"}, "records": set(), "residual": {"errors"}, "settings": {"errors"},
+    "steps": set(),
     "linalg": NEUTRAL, "mesh": NEUTRAL | {"linalg"}, "params": NEUTRAL | {"linalg"},
     "physics": NEUTRAL | {"linalg", "mesh"}, "verification": NEUTRAL,
     "problems": NEUTRAL | {"linalg", "mesh", "physics", "params"},

@@ -78,6 +78,16 @@ def test_check_transforms_names_the_bad_bone_and_frame():
     homogeneous[..., :3, :3] = np.eye(3)
     homogeneous[..., 3, 3] = 1
     assert np.array_equal(check_transforms(homogeneous, 2, 3, "rig"), T)
+    row_vector = homogeneous.copy()
+    row_vector[..., 3, :3] = [0.1, 0.2, 0.3]                    # x' = x M: t in the last row
+    with pytest.raises(MeshError, match=r"last row 0 0 0 1; these have it as their last "
+                       r"column, the translation in the last row: a row-vector layout"):
+        check_transforms(row_vector, 2, 3, "rig")
+    skewed = homogeneous.copy()
+    skewed[..., 3, 0] = 0.5
+    skewed[..., 0, 3] = 0.5
+    with pytest.raises(MeshError, match="last row 0 0 0 1$"):
+        check_transforms(skewed, 2, 3, "rig")
 
 
 # -- the drive of a tetrahedral mesh ---------------------------------------------------------

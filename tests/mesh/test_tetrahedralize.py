@@ -1,7 +1,10 @@
 """Tetrahedralisation with the real fTetWild (pytetwild), its disk cache and its checks."""
 from __future__ import annotations
 
+import importlib
+import logging
 import os
+import time
 import warnings
 
 import numpy as np
@@ -13,6 +16,7 @@ from torchfit.mesh import (MeshError, TetOptions, TetrahedralizationError, defau
 from torchfit.mesh.surface import surface_volume
 
 FAST = TetOptions(edge_length_fac=0.1)
+tetrahedralize_module = importlib.import_module("torchfit.mesh.tetrahedralize")
 
 
 def capsule() -> trimesh.Trimesh:
@@ -126,16 +130,15 @@ def test_a_degenerate_surface_is_refused_in_one_line(tmp_path, cwd, case):
 
 @pytest.fixture
 def fake_tetwild(monkeypatch):
-    """Replace fTetWild by a function returning given arrays (to reach every check)."""
-    import pytetwild
-
+    """Replace fTetWild's child process by a function returning given arrays (to reach
+    every check)."""
     result = {}
 
-    def fake(vertices, faces, **kwargs):
-        assert kwargs["vtk_ordering"] and kwargs["quiet"]
+    def fake(folder, progress):
+        assert (folder / "surface.npz").is_file() and (folder / "options.json").is_file()
         return result["points"], result["cells"]
 
-    monkeypatch.setattr(pytetwild, "tetrahedralize", fake)
+    monkeypatch.setattr(tetrahedralize_module, "_run_worker", fake)
     return result
 
 
@@ -199,22 +202,93 @@ def test_options_are_checked_and_the_cache_directory_follows_the_environment(mon
 def test_a_concurrent_build_gets_the_entry_stored_first(tmp_path, monkeypatch):
     """Two processes building the same key: the one that stores second returns the first's
     arrays (never overwriting them), so both fit on the same tetrahedra."""
-    import pytetwild
-
     box = trimesh.creation.box((1.0, 1.0, 1.0))
     box.vertices += 0.5
     points, cells = unit_box_tets()
     calls = []
 
-    def racing(vertices, faces, **kwargs):
+    def racing(folder, progress):
         calls.append(len(calls))
         if len(calls) == 1:           # another process finishes first, while this one runs
             winner = tetrahedralize(box.vertices, box.faces, FAST, cache_dir=tmp_path)
             assert not winner.from_cache
         return points * (1.0 + 1e-3 * len(calls)), cells       # fTetWild varies run to run
 
-    monkeypatch.setattr(pytetwild, "tetrahedralize", racing)
+    monkeypatch.setattr(tetrahedralize_module, "_run_worker", racing)
     late = tetrahedralize(box.vertices, box.faces, FAST, cache_dir=tmp_path)
     assert len(calls) == 2 and late.from_cache
     np.testing.assert_array_equal(late.points, points[1:-1] * 1.002)   # the winner's
     assert [p.suffix for p in tmp_path.iterdir()] == [".npz"]
+
+
+def test_the_worker_hands_pytetwild_the_surface_and_options(tmp_path, monkeypatch):
+    """The child's script (run here in-process, pytetwild replaced): vtk ordering, quiet,
+    int32 faces and the options as given."""
+    import pytetwild
+
+    worker = importlib.import_module("torchfit.mesh.tetwild_worker")
+    seen = {}
+
+    def fake(vertices, faces, **kwargs):
+        seen.update(kwargs, faces_dtype=faces.dtype, n=len(vertices))
+        return np.eye(4, 3), np.array([[0, 1, 2, 3]])
+
+    monkeypatch.setattr(pytetwild, "tetrahedralize", fake)
+    np.savez(tmp_path / "surface.npz", vertices=np.eye(3), faces=np.array([[0, 1, 2]], np.int32))
+    (tmp_path / "options.json").write_text('{"edge_length_fac": 0.07, "epsilon": 0.002}')
+    worker.main(tmp_path)
+    assert seen["vtk_ordering"] and seen["quiet"] and seen["faces_dtype"] == np.int32
+    assert seen["edge_length_fac"] == 0.07 and seen["epsilon"] == 0.002 and seen["n"] == 3
+    with np.load(tmp_path / "mesh.npz") as mesh:
+        assert mesh["cells"].tolist() == [[0, 1, 2, 3]]
+
+
+def test_a_crash_of_pytetwild_is_one_line_and_the_run_goes_on(tmp_path, cwd, monkeypatch):
+    """A segmentation fault of fTetWild ends its child process only: one line naming it."""
+    crash = tmp_path / "crash.py"
+    crash.write_text("import os, signal, sys\nprint('fTetWild: bad things')\n"
+                     "sys.stdout.flush()\nos.kill(os.getpid(), signal.SIGSEGV)\n")
+    monkeypatch.setattr(tetrahedralize_module, "WORKER", crash)
+    surface = capsule()
+    with pytest.raises(TetrahedralizationError, match=r"^pytetwild failed \(signal SIGSEGV: "
+                       r"fTetWild: bad things\); repair the surface") as info:
+        tetrahedralize(surface.vertices, surface.faces, FAST, cache_dir=tmp_path / "cache")
+    assert "\n" not in str(info.value) and os.listdir(cwd) == []
+    assert not (tmp_path / "cache").exists() or not list((tmp_path / "cache").iterdir())
+
+
+def test_progress_starts_at_once_beats_while_pytetwild_runs_and_names_the_result(
+        tmp_path, cwd, monkeypatch, caplog):
+    """The start line comes before pytetwild is done (well within a second), heartbeats
+    while it runs, and the tetrahedron count and cache file at the end."""
+    monkeypatch.setattr(tetrahedralize_module, "HEARTBEAT_S", 0.1)
+    surface = trimesh.creation.capsule(height=0.58, radius=0.045, count=[16, 16])
+    stamps = []
+
+    class Stamp(logging.Handler):
+        def emit(self, record):
+            stamps.append((time.perf_counter(), record.getMessage()))
+
+    handler = Stamp()
+    logging.getLogger("torchfit.setup").addHandler(handler)
+    caplog.set_level(logging.INFO, logger="torchfit.setup")
+    try:
+        start = time.perf_counter()
+        mesh = tetrahedralize(surface.vertices, surface.faces, FAST, cache_dir=tmp_path)
+    finally:
+        logging.getLogger("torchfit.setup").removeHandler(handler)
+    lines = [m for _, m in stamps]
+    assert lines[0] == (f"tetrahedralising a surface of {len(surface.faces):,} faces (pytetwild: "
+                        "edge length 0.1 of the diagonal, envelope 0.001) ...")
+    assert stamps[0][0] - start < 1.0
+    assert any("pytetwild running" in m for m in lines[1:-1])
+    assert lines[-1].startswith(f"tetrahedralising a surface of {len(surface.faces):,} faces")
+    assert f": {len(mesh.cells):,} tetrahedra, {len(mesh.points):,} vertices, built and cached "\
+           f"in {mesh.path}, " in lines[-1]
+    stamps.clear()
+    logging.getLogger("torchfit.setup").addHandler(handler)
+    try:
+        tetrahedralize(surface.vertices, surface.faces, FAST, cache_dir=tmp_path)
+    finally:
+        logging.getLogger("torchfit.setup").removeHandler(handler)
+    assert f"read from the cache {mesh.path}" in stamps[-1][1] and len(stamps) == 2

@@ -169,7 +169,10 @@ def check_transforms(transforms: np.ndarray, n_bones: int, n_frames: int | None,
                         "(NaN or infinite entries)")
     if t.shape[2] == 4:
         if not np.allclose(t[:, :, 3, :], [0.0, 0.0, 0.0, 1.0]):
-            raise MeshError(f"{source}: a 4x4 bone transform must have last row 0 0 0 1")
+            row_vector = np.allclose(t[:, :, :, 3], [0.0, 0.0, 0.0, 1.0])
+            raise MeshError(f"{source}: a 4x4 bone transform must have last row 0 0 0 1" + (
+                "; these have it as their last column, the translation in the last row: a "
+                "row-vector layout (x' = x M); transpose every matrix" if row_vector else ""))
         t = t[:, :, :3, :]
     if n_frames is not None and t.shape[0] != n_frames:
         raise MeshError(f"{source}: {t.shape[0]} frames of bone transforms for {n_frames} "

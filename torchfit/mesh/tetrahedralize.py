@@ -23,6 +23,9 @@ import hashlib
 import json
 import math
 import os
+import signal
+import subprocess
+import sys
 import tempfile
 import time
 import warnings
@@ -32,8 +35,10 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from ..steps import count, step
 from .simplicial import MeshError, signed_volumes
 from .surface import surface_volume, surface_warnings
+from .tet_size import build_for_count
 
 #: Version of the cache file layout (part of the key: a new layout never reads old files).
 _CACHE_FORMAT = "torchfit-tetmesh-1"
@@ -44,6 +49,10 @@ _NO_TETS = ("tetrahedralisation produced no tetrahedra: the surface is too broke
 _VOLUME_RATIO = (0.7, 1.3)
 #: Accepted ratio of the tetrahedral volume to the convex hull's for an open surface.
 _HULL_RATIO = 1.1
+#: seconds between two progress lines while pytetwild runs
+HEARTBEAT_S = 10.0
+#: the script that runs pytetwild in a child process
+WORKER = Path(__file__).with_name("tetwild_worker.py")
 
 
 class TetrahedralizationError(MeshError):
@@ -67,6 +76,8 @@ class TetOptions:
             a regular tetrahedron) falls below this.
         num_opt_iter: maximum number of optimisation passes.
         coarsen: coarsen the output as much as the quality allows.
+        count: a target number of tetrahedra; when given, the edge length and the
+            envelope are chosen for it (:mod:`.tet_size`) and the two above are unused.
     """
 
     edge_length_fac: float = 0.05
@@ -76,6 +87,7 @@ class TetOptions:
     stop_energy: float = 10.0
     num_opt_iter: int = 80
     coarsen: bool = False
+    count: int | None = None
 
     def __post_init__(self) -> None:
         self.check()
@@ -100,14 +112,19 @@ class TetOptions:
                 self.num_opt_iter, (int, np.integer)) or self.num_opt_iter < 1:
             raise ValueError(f"TetOptions.num_opt_iter must be a positive integer, got "
                              f"{self.num_opt_iter!r}")
+        if self.count is not None and (isinstance(self.count, bool) or not isinstance(
+                self.count, (int, np.integer)) or self.count < 1):
+            raise ValueError(f"TetOptions.count must be a positive integer, got {self.count!r}")
         for name in ("optimize", "coarsen"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise ValueError(f"TetOptions.{name} must be True or False, got "
                                  f"{getattr(self, name)!r}")
 
     def as_dict(self) -> dict[str, Any]:
-        """Plain JSON-serialisable values (floats, ints, bools, ``None``)."""
-        return {"edge_length_fac": float(self.edge_length_fac),
+        """Plain JSON-serialisable values (floats, ints, bools, ``None``); ``count`` only
+        when given (so the keys of meshes made without it stay what they were)."""
+        sized = {} if self.count is None else {"count": int(self.count)}
+        return sized | {"edge_length_fac": float(self.edge_length_fac),
                 "edge_length_abs": None if self.edge_length_abs is None
                 else float(self.edge_length_abs),
                 "optimize": bool(self.optimize), "epsilon": float(self.epsilon),
@@ -184,17 +201,39 @@ def tetrahedralize(vertices: np.ndarray, faces: np.ndarray,
             volume; for an open one, positive and at most 1.1 times the convex hull's.
         ValueError: invalid options.
 
-    fTetWild runs with the working directory set to a temporary directory (it leaves a
-    ``__tracked_surface.stl`` behind), so do not call this from several threads at once.
+    fTetWild runs in a child process (:mod:`.tetwild_worker`: pytetwild holds the GIL, and
+    a crash of it ends only the child) working in a temporary directory (it leaves a
+    ``__tracked_surface.stl`` there). Progress (:mod:`torchfit.steps`, logger
+    ``torchfit.setup``): a line when it starts, one every ``HEARTBEAT_S`` seconds while
+    pytetwild runs, and the tetrahedron count and the cache file at the end.
     """
     start = time.perf_counter()
     vertices, faces = _check_surface(vertices, faces)
     options.check()
+    size = f"edge length {options.edge_length_abs:.3g} (absolute)" if options.edge_length_abs \
+        is not None else f"edge length {options.edge_length_fac:.3g} of the diagonal"
+    if options.count is not None:
+        size = f"about {count(options.count)} tetrahedra"
+    with step(f"tetrahedralising a surface of {count(len(faces))} faces (pytetwild: {size}"
+              f"{'' if options.count else f', envelope {options.epsilon:.3g}'})") as progress:
+        mesh = _cached_or_built(vertices, faces, options, cache_dir, warn, use_cache, start,
+                                progress)
+        where = ("read from the cache " if mesh.from_cache else "built and cached in ") + \
+            str(mesh.path) if mesh.path is not None else "built, not cached"
+        progress.result = (f"{count(len(mesh.cells))} tetrahedra, {count(len(mesh.points))} "
+                           f"vertices, {where}")
+    return mesh
+
+
+def _cached_or_built(vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
+                     cache_dir: str | Path | None, warn: bool, use_cache: bool, start: float,
+                     progress: step) -> TetMesh:
+    """The body of :func:`tetrahedralize`: the cache entry, else a build stored in it."""
     surface = trimesh.Trimesh(vertices, faces, process=False)
     problems = surface_warnings(surface)
     if warn and problems:
         warnings.warn("surface given to tetrahedralize: " + "; ".join(problems), UserWarning,
-                      stacklevel=2)
+                      stacklevel=4)
     version = _pytetwild_version()
     key = _cache_key(vertices, faces, options, version)
     path: Path | None = None
@@ -207,17 +246,24 @@ def tetrahedralize(vertices: np.ndarray, faces: np.ndarray,
             except Exception as e:                    # any unreadable entry is rebuilt
                 warnings.warn(f"tetrahedral mesh cache file {path} is unreadable "
                               f"({type(e).__name__}: {' '.join(str(e).split())}); rebuilding it",
-                              UserWarning, stacklevel=2)
+                              UserWarning, stacklevel=4)
                 corrupt = True
             else:
                 return TetMesh(points, cells, key, True, time.perf_counter() - start,
                                build_seconds, path)
 
-    points, cells, build_seconds = _build(vertices, faces, options)
+    if options.count is None:
+        points, cells, build_seconds = _build(vertices, faces, options, progress)
+        made = options
+    else:
+        points, cells, build_seconds, made = build_for_count(
+            lambda trial: _build(vertices, faces, trial, progress), vertices, faces, options,
+            progress)
+        progress.beat(f"kept edge length {made.edge_length_fac:.3g}, envelope {made.epsilon:.3g}")
     _check_volume(points, cells, surface, problems)
     from_cache = False
     if path is not None:
-        stored = _write_entry(path, key, points, cells, build_seconds, options, version,
+        stored = _write_entry(path, key, points, cells, build_seconds, made, version,
                               overwrite=corrupt)
         if stored is None:
             path = None
@@ -288,9 +334,42 @@ def _flatness(vertices: np.ndarray, faces: np.ndarray) -> tuple[float, float]:
     return float(across.max() - across.min()), diagonal
 
 
-def _build(vertices: np.ndarray, faces: np.ndarray,
-           options: TetOptions) -> tuple[np.ndarray, np.ndarray, float]:
-    """fTetWild in a temporary working directory; unreferenced vertices dropped."""
+def _run_worker(folder: Path, progress: step | None) -> tuple[np.ndarray, np.ndarray]:
+    """pytetwild in a child process (:mod:`.tetwild_worker`) working in ``folder``, a
+    heartbeat on ``progress`` every ``HEARTBEAT_S``; the child is killed if this is
+    interrupted."""
+    with open(folder / "worker.log", "wb") as log_file:
+        child = subprocess.Popen([sys.executable, str(WORKER), str(folder)], cwd=folder,
+                                 stdin=subprocess.DEVNULL, stdout=log_file, stderr=log_file)
+        try:
+            while True:
+                try:
+                    code = child.wait(timeout=HEARTBEAT_S)
+                    break
+                except subprocess.TimeoutExpired:
+                    if progress is not None:
+                        progress.beat("pytetwild running")
+        finally:
+            if child.poll() is None:
+                child.kill()
+                child.wait()
+    if code != 0:
+        lines = (folder / "worker.log").read_text(errors="replace").strip().splitlines()
+        why = f"signal {signal.Signals(-code).name}" if code < 0 else f"exit status {code}"
+        last = f": {' '.join(lines[-1].split())}" if lines else ""
+        if "No module named 'pytetwild'" in last:
+            raise TetrahedralizationError("pytetwild cannot be imported; install it with "
+                                          "pip install 'pytetwild>=0.2,<0.3'")
+        raise TetrahedralizationError(f"pytetwild failed ({why}{last}); repair the surface "
+                                      "or change the options")
+    with np.load(folder / "mesh.npz", allow_pickle=False) as mesh:
+        return mesh["points"], mesh["cells"]
+
+
+def _build(vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
+           progress: step | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    """fTetWild in a child process and a temporary working directory; unreferenced
+    vertices dropped."""
     thickness, diagonal = _flatness(vertices, faces)
     if not thickness > options.epsilon * diagonal:
         # fTetWild finds nothing inside a surface thinner than its envelope, and crashes
@@ -298,29 +377,14 @@ def _build(vertices: np.ndarray, faces: np.ndarray,
         raise TetrahedralizationError(_NO_TETS.format(
             reason=f" (it is flat: {thickness:.3g} thick across, within the envelope "
                    f"epsilon x diagonal = {options.epsilon * diagonal:.3g})"))
-    try:
-        import pytetwild
-    except ImportError as e:
-        raise TetrahedralizationError(f"pytetwild cannot be imported ({e}); install it with "
-                                      "pip install 'pytetwild>=0.2,<0.3'") from e
-    opts = options.as_dict()
-    previous = os.getcwd()
+    opts = {k: v for k, v in options.as_dict().items() if k != "count"}
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="torchfit-tetwild-") as scratch:
-        os.chdir(scratch)
-        try:
-            points, cells = pytetwild.tetrahedralize(
-                vertices, faces.astype(np.int32), edge_length_fac=opts["edge_length_fac"],
-                edge_length_abs=opts["edge_length_abs"], optimize=opts["optimize"],
-                epsilon=opts["epsilon"], stop_energy=opts["stop_energy"],
-                coarsen=opts["coarsen"], num_opt_iter=opts["num_opt_iter"],
-                loglevel=6, quiet=True, vtk_ordering=True)
-        except Exception as e:
-            raise TetrahedralizationError(f"pytetwild failed ({type(e).__name__}: "
-                                          f"{' '.join(str(e).split())}); repair the surface "
-                                          "or change the options") from e
-        finally:
-            os.chdir(previous)
+        folder = Path(scratch)
+        np.savez(folder / "surface.npz", vertices=vertices, faces=faces.astype(np.int32))
+        (folder / "options.json").write_text(json.dumps(opts))
+        points, cells = _run_worker(folder, progress)
+    seconds = time.perf_counter() - start
     seconds = time.perf_counter() - start
     points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     cells = np.ascontiguousarray(cells, dtype=np.int64).reshape(-1, 4)

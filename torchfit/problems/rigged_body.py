@@ -18,11 +18,11 @@ reports of the body: :mod:`.body_report`.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
 import warnings
-from pathlib import Path
 from typing import Any, ContextManager
 
 import numpy as np
@@ -36,12 +36,14 @@ from ..mesh.animation_format import Animation, AnimationError
 from ..mesh.animation_readers import read_animation
 from ..mesh.embedding import Embedding, dof_matrix, embed_points
 from ..mesh.rig import joint_cells, most_rotated_frame, skeleton_drive, surface_drive
-from ..mesh.tetrahedralize import TetMesh, TetOptions, default_cache_dir, tetrahedralize
+from ..mesh.tetrahedralize import TetMesh
 from ..params import Parameterization, per_element, per_region
 from ..physics import NewtonOptions
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
+from ..steps import count, step
 from .base import InverseProblem, array_digest
 from .body_grid import block_nodes, blocks_field, grid_parameterization
+from .body_setup import animation_summary, check_rig, first_simulation, tet_mesh
 from .body_report import (BODY_METRICS, body_metrics, frame_report, inverted_counts,
                           min_volume_ratios, region_summary, surface_distances, volume_change)
 from .config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
@@ -81,8 +83,10 @@ class RiggedBody(InverseProblem):
                             "must list positive Young's moduli")
         require_setting(len(cfg.E_blocks) == 3, cfg, "E_blocks",
                         "must list three moduli: background, stiff block, soft block")
-        for key in ("tet_edge_length", "tet_epsilon", "tet_stop_energy"):
+        for key in ("tet_edge_length", "tet_epsilon", "tet_stop_energy", "rig_tolerance"):
             require_setting(getattr(cfg, key) > 0, cfg, key, "must be positive")
+        require_setting(cfg.tet_count is None or cfg.tet_count >= 1, cfg, "tet_count",
+                        "must be a positive number of tetrahedra (or null)")
         require_setting(cfg.tet_edge_length <= 1, cfg, "tet_edge_length", "is a fraction of "
                         "the bounding-box diagonal: must lie in (0, 1] (e.g. 0.05)")
         check_newton_settings(cfg)
@@ -117,12 +121,15 @@ class RiggedBody(InverseProblem):
             raise ProblemConfigError(f"problem.path={cfg.path}: {err}") from err
 
     def build_model(self, cfg: RiggedBodyConfig) -> None:
-        animation = self.load(cfg)
-        if cfg.frames is not None:
-            try:
-                animation = animation.select([int(f) for f in cfg.frames])
-            except AnimationError as err:
-                raise setting_error("frames", cfg.frames, str(err)) from err
+        with step(f"reading the animation {cfg.path or self.name}") as progress:
+            animation = self.load(cfg)
+            if cfg.frames is not None:
+                try:
+                    animation = animation.select([int(f) for f in cfg.frames])
+                except AnimationError as err:
+                    raise setting_error("frames", cfg.frames, str(err)) from err
+            progress.result = animation_summary(animation)
+        self.rig_report = check_rig(cfg, animation)
         self.animation = animation
         for text in animation.warnings:
             warnings.warn(f"{animation.path}: rest surface: {text}", UserWarning, stacklevel=2)
@@ -142,15 +149,17 @@ class RiggedBody(InverseProblem):
                                           device=self.device)
         diagonal = float(np.linalg.norm(points.max(0) - points.min(0)))
         try:
-            self.embedding: Embedding = embed_points(animation.rest_vertices, points, cells,
-                                                     max_distance=_MAX_OUTSIDE * diagonal)
-        except MeshError as err:
-            raise ProblemConfigError(f"{animation.path}: {err}") from err
-        surface = (animation.rest_vertices, animation.faces, animation.frames)
-        try:
-            drive = skeleton_drive(points, cells, animation.skeleton, *surface) \
-                if animation.skeleton is not None else \
-                surface_drive(points, animation.driven, *surface)
+            with step(f"embedding {count(animation.n_vertices)} surface vertices in "
+                      f"{count(len(cells))} tetrahedra"):
+                self.embedding: Embedding = embed_points(animation.rest_vertices, points, cells,
+                                                         max_distance=_MAX_OUTSIDE * diagonal)
+            surface = (animation.rest_vertices, animation.faces, animation.frames)
+            with step(f"attaching the rig to {count(len(points))} tetrahedron vertices in "
+                      f"{count(animation.n_frames)} frames") as progress:
+                drive = skeleton_drive(points, cells, animation.skeleton, *surface) \
+                    if animation.skeleton is not None else \
+                    surface_drive(points, animation.driven, *surface)
+                progress.result = f"{count(len(drive.vertices))} driven (prescribed)"
         except MeshError as err:
             raise ProblemConfigError(f"{animation.path}: {err}") from err
         dirichlet = drive.vertices
@@ -173,16 +182,8 @@ class RiggedBody(InverseProblem):
         self._other_models: dict[str, QuasistaticElasticity] = {}
 
     def tetrahedralize(self, cfg: RiggedBodyConfig, animation: Animation) -> TetMesh:
-        options = TetOptions(edge_length_fac=cfg.tet_edge_length, epsilon=cfg.tet_epsilon,
-                             stop_energy=cfg.tet_stop_energy, optimize=cfg.tet_optimize)
-        cache = Path(cfg.cache_dir).expanduser() / "tetmesh" if cfg.cache_dir else \
-            default_cache_dir()
-        try:
-            # the surface's warnings were given once above, with the animation's name
-            return tetrahedralize(animation.rest_vertices, animation.faces, options,
-                                  cache_dir=cache, warn=False)
-        except MeshError as err:
-            raise ProblemConfigError(f"{animation.path}: {err}") from err
+        """The rest surface's tet mesh (:func:`.body_setup.tet_mesh`)."""
+        return tet_mesh(cfg, animation)
 
     # -- regions and the joint ----------------------------------------------------------
     def regions(self, cfg: RiggedBodyConfig) -> tuple[np.ndarray | None, list[str]]:
@@ -270,8 +271,12 @@ class RiggedBody(InverseProblem):
         if E.shape != (self.model.n_cells,):
             raise ProblemConfigError(f"Young's modulus must have shape ({self.model.n_cells},) "
                                      f"(one per tetrahedron), got {tuple(E.shape)}")
-        return self.quasistatic(E, self.dirichlet_positions.to(E),
-                                x_init=self.start_positions.to(E))
+        with contextlib.nullcontext() if getattr(self, "_simulated", False) else \
+                first_simulation(self.n_frames, self.model.n_cells, self.cfg.model.value):
+            x = self.quasistatic(E, self.dirichlet_positions.to(E),
+                                 x_init=self.start_positions.to(E))
+        self._simulated = True
+        return x
 
     def independent_simulation(self) -> ContextManager[None]:
         """Cold starts from the animated pose that seed no warm start (the synthetic
@@ -479,6 +484,8 @@ class RiggedBody(InverseProblem):
                     "backend": self.backend, "full_bend_frame": self.full_bend_frame,
                     "joint_tets": int(len(self.joint_cells)),
                     "surface_err_mean_homogeneous": self.homogeneous_surface_error()})
+        if self.rig_report is not None:     # the rig check's largest skinning distance
+            out["rig_skinning_error"] = self.rig_report.skinning_error
         if os.environ.get("TORCHFIT_CACHE_DIR"):
             out["cache_dir"] = os.environ["TORCHFIT_CACHE_DIR"]
         return out

@@ -73,8 +73,18 @@ class RiggedBodyConfig(ProblemConfig):
     # diagonal, envelope (fraction of the diagonal), quality (stop energy), optimisation
     tet_edge_length: float = 0.05
     tet_epsilon: float = 1e-3
+    # a target number of tetrahedra instead (null: the two above): the edge length from the
+    # body's volume and the envelope matched to it (on a finely tessellated surface the count
+    # follows tet_epsilon more than tet_edge_length); torchfit/mesh/tet_size.py
+    tet_count: Optional[int] = None
     tet_stop_energy: float = 10.0
     tet_optimize: bool = True
+    # before anything is built: every frame at the rest's scale (not 10x off), and, where the
+    # manifest gives skinning weights, the rest skinned with them reproduces the frames: the
+    # median distance per frame and bone at most rig_tolerance (a fraction of the rest's
+    # bounding-box diagonal); torchfit/mesh/rig_check.py
+    rig_check: bool = True
+    rig_tolerance: float = 0.05
     # tet meshes (and the arm's animation): "" is $TORCHFIT_CACHE_DIR or ~/.cache/torchfit
     cache_dir: str = ""
     newton_rtol: float = 1e-10

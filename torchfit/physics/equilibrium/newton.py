@@ -23,9 +23,11 @@ exact step is redone with the projected tangent, and one per frame at ``x*``.
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import math
-from typing import Callable
+from typing import Callable, Iterator
 
 import torch
 from torch import Tensor
@@ -34,6 +36,23 @@ from ...errors import SimulationError
 from ...linalg import SingularMatrixError
 from .cache import Solution
 from .dirichlet import DirichletReduction
+
+
+#: where set (:func:`newton_progress`), called after every Newton iteration with the
+#: iteration, the number of frames converged and the number of frames
+_PROGRESS: contextvars.ContextVar[Callable[[int, int, int], None] | None] = \
+    contextvars.ContextVar("torchfit_newton_progress", default=None)
+
+
+@contextlib.contextmanager
+def newton_progress(report: Callable[[int, int, int], None]) -> Iterator[None]:
+    """Within the block, ``report(iteration, frames_converged, n_frames)`` after every
+    Newton iteration (a problem's first simulation shows its progress with it)."""
+    token = _PROGRESS.set(report)
+    try:
+        yield
+    finally:
+        _PROGRESS.reset(token)
 
 
 class NewtonConvergenceError(SimulationError):
@@ -294,6 +313,9 @@ class NewtonSolver:
             norms = norms.clone()
             norms[frames] = torch.where(finite, norms_trial, norms_a)
             history.append(norms)
+            report = _PROGRESS.get()
+            if report is not None:
+                report(len(history) - 1, int((norms <= targets).sum()), n_frames)
         if bool((norms > targets).any()) or not torch.isfinite(norms).all():
             frame = int(torch.argmax(torch.nan_to_num(norms / targets, nan=math.inf)))
             why = (f"its residual stopped decreasing (not halved in {opts.stall_iter} iterations)"
