@@ -4,7 +4,9 @@
 ``factorizations``, ``solves`` (whole-run totals, a resumed run included), ``converged``,
 ``stop_reason``, ``status`` (``completed``), ``resumed_from_iteration`` (a resumed run),
 ``problem`` (sizes), ``config`` and ``history`` (one row per outer iteration); a 3-D body
-adds ``model_comparison``.
+adds ``model_comparison``; a run with frames held out of the fit adds
+``validation_iteration``, ``validation_surface_err_mean``, ``validation_surface_err_reduction``
+and ``validation`` (:mod:`.validation`).
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ from torch import Tensor
 
 from ..problems import InverseProblem
 from ..records import SolveResult
+from .validation import result_values, validation_line
 
 
 @dataclasses.dataclass
@@ -38,6 +41,8 @@ class FitResult:
             (:func:`~torchfit.run.fit_continued`), else ``None``.
         highlights: one line per output worth pointing a user at (written by the outputs
             themselves, e.g. a 3-D body's comparison picture and ParaView file).
+        validation: ``result.json``'s ``validation`` section (frames held out of the fit:
+            the chosen iteration, the errors there and at the end), else ``None``.
     """
 
     theta: Tensor
@@ -56,22 +61,28 @@ class FitResult:
     solve: SolveResult | None = None
     first_stage: "FitResult | None" = None
     highlights: list[str] = dataclasses.field(default_factory=list)
+    validation: dict[str, Any] | None = None
 
     def value(self, key: str) -> float:
-        """``metrics[key]`` or a count (``iterations``, ...); ``+inf`` where not finite, so
+        """``metrics[key]``, a count (``iterations``, ...) or a validation value
+        (``validation_surface_err_mean``, ...); ``+inf`` where not finite or missing, so
         that a sweeper ranks such a run last."""
-        counts = {"iterations": self.iterations, "wall_s": self.wall_s,
-                  "factorizations": self.factorizations, "solves": self.solves}
-        value = float(self.metrics[key] if key in self.metrics else counts[key])
+        counts: dict[str, Any] = {"iterations": self.iterations, "wall_s": self.wall_s,
+                                  "factorizations": self.factorizations, "solves": self.solves}
+        if self.validation is not None:
+            counts.update(result_values(self.validation))
+        raw = self.metrics[key] if key in self.metrics else counts[key]
+        value = math.nan if raw is None else float(raw)
         return value if math.isfinite(value) else math.inf
 
     def summary(self) -> str:
         """One line: stop reason, iterations, time, counts and the headline metrics."""
         shown = ", ".join(f"{k} {self.metrics[k]:.3e}" for k in
                           ("misfit", "k_err_rel", "k_err_rel_aligned") if k in self.metrics)
-        return (f"{self.stop_reason} after {self.iterations} iterations "
+        line = (f"{self.stop_reason} after {self.iterations} iterations "
                 f"({'converged' if self.converged else 'not converged'}) in {self.wall_s:.2f} s, "
                 f"{self.factorizations} factorizations, {self.solves} solves: {shown}")
+        return line + validation_line(self.metrics, self.validation)
 
 
 def result_dict(problem: InverseProblem, result: FitResult,
@@ -84,6 +95,9 @@ def result_dict(problem: InverseProblem, result: FitResult,
                 "status": "completed"})
     if result.resumed_from is not None:
         out["resumed_from_iteration"] = result.resumed_from
+    if result.validation is not None:
+        out.update(result_values(result.validation))
+        out["validation"] = result.validation
     out["problem"] = problem.describe()
     out["config"] = dict(config)
     out["history"] = result.history
