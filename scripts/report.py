@@ -8,7 +8,11 @@ Usage::
 One row per job of the sweep, in job order: the job's overrides (those that differ between
 jobs; the ones shared by every job are listed above the table), ``u_err_inf``, ``u_err_2``,
 ``k_err_inf``, ``k_err_2``, ``k_err_rel_aligned`` (``k_err_rel`` as well when a problem is
-not scale-free), iterations, solver wall seconds, factorisations and the stop reason.
+not scale-free), iterations, solver wall seconds, factorisations and the stop reason. Jobs
+with frames held out of the fit (``problem.validation_frames`` / ``validation_every``) add
+the validation error at the chosen iteration (``validation_surface_err_mean``), its
+reduction and that iteration, and the job of lowest validation error is named below the
+table: how validation chooses a regularisation weight (``-m solver.mu=...``).
 
 A job that did not produce a usable result is a row marked ``failed: <reason>``, never a
 missing row:
@@ -48,7 +52,13 @@ METRIC_COLUMNS = (("u_err_inf", "u_err_inf"), ("u_err_2", "u_err_2"),
                   ("k_err_inf", "k_err_inf"), ("k_err_2", "k_err_2"),
                   ("k_err_rel", "k_err_rel"), ("k_err_rel_aligned", "k_err_rel_aligned"),
                   ("iterations", "iterations"), ("wall_s", "wall [s]"),
-                  ("factorizations", "factorizations"))
+                  ("factorizations", "factorizations"),
+                  ("validation_surface_err_mean", "validation err"),
+                  ("validation_surface_err_reduction", "validation reduction"),
+                  ("validation_iteration", "chosen iteration"))
+#: Columns shown only when some job has them (runs with validation frames).
+OPTIONAL_COLUMNS = ("validation_surface_err_mean", "validation_surface_err_reduction",
+                    "validation_iteration")
 #: Overrides that name the preset, not a setting of the job.
 IGNORED_OVERRIDES = ("experiment",)
 
@@ -194,6 +204,8 @@ def metric_columns(rows: Sequence[JobRow]) -> list[tuple[str, str]]:
             continue
         if key == "k_err_rel_aligned" and results and not any(has_aligned):
             continue
+        if key in OPTIONAL_COLUMNS and not any(key in r for r in results):
+            continue
         columns.append((key, header))
     return columns
 
@@ -210,7 +222,7 @@ def _format_override(value: str) -> str:
 def _format_metric(key: str, value: Any) -> str:
     if value is None:
         return "nan"
-    if key in ("iterations", "factorizations"):
+    if key in ("iterations", "factorizations", "validation_iteration"):
         return str(int(value))
     if key == "wall_s":
         return f"{float(value):.1f}"
@@ -247,10 +259,22 @@ def markdown_table(rows: Sequence[JobRow], sweep_dir: Path) -> str:
         lines.append("| " + " | ".join(cells) + " |")
     n_failed = sum(row.failed for row in rows)
     lines += ["", f"{len(rows)} jobs, {n_failed} failed or unfinished."]
-    best = optuna_best(sweep_dir)
-    if best:
-        lines.append(best)
+    lines += [line for line in (best_validation(rows, keys), optuna_best(sweep_dir)) if line]
     return "\n".join(lines) + "\n"
+
+
+def best_validation(rows: Sequence[JobRow], keys: Sequence[str]) -> Optional[str]:
+    """One line on the job of lowest validation error (``None`` without validation)."""
+    scored = [(float(row.result["validation_surface_err_mean"]), row) for row in rows
+              if not row.failed and row.result is not None
+              and _finite(row.result.get("validation_surface_err_mean"))]
+    if not scored:
+        return None
+    error, row = min(scored, key=lambda item: item[0])
+    settings = ", ".join(f"`{k}={_format_override(row.overrides.get(k, '?'))}`" for k in keys)
+    return (f"Lowest validation error {error:.3e}: job {row.num}"
+            + (f" ({settings})" if settings else "")
+            + f", at its iteration {row.result.get('validation_iteration')}.")
 
 
 def optuna_best(sweep_dir: Path) -> Optional[str]:

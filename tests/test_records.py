@@ -27,8 +27,9 @@ def emitted_reasons() -> set[str]:
 def test_every_reason_the_solvers_emit_is_a_member_and_documented():
     members = {reason.name for reason in StopReason}
     assert emitted_reasons() <= members
+    # ``validation``: the run's early stopping by validation (torchfit/run/validation.py)
     assert members == {"discrepancy", "tolerance", "resolution", "plateau", "max_iter",
-                       "line_search", "stalled", "interrupted"}
+                       "line_search", "stalled", "interrupted", "validation"}
     for reason in StopReason:
         assert reason.name == reason.value
         assert f"``{reason.value}``" in StopReason.__doc__

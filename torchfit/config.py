@@ -67,7 +67,8 @@ FitConfig = dataclasses.make_dataclass("FitConfig", [
     _field("continuation", bool, default=False),
     _argument("continuation_min_volume", float, fit_continued, "min_volume"),
     *_fields_of(FitOptions, ["progress", "log_every", "threads", "snapshot_iterations",
-                             "snapshot_every", "sheet_frame", "objective_metric"]),
+                             "snapshot_every", "sheet_frame", "objective_metric",
+                             "validation_patience"]),
 ])
 FitConfig.__module__ = __name__
 

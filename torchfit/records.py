@@ -84,6 +84,9 @@ class StopReason(str, enum.Enum):
     * ``stalled``: Levenberg-Marquardt's damping exceeded ``damping_max`` times its start,
       or split Bregman rejected more than ``max_rejections`` outer steps in a row.
     * ``interrupted``: a callback returned ``True``.
+    * ``validation``: a run's validation stopped it (no lower error on the frames held out
+      of the fit for ``validation_patience`` iterations; :mod:`torchfit.run.validation`);
+      the solver itself reports ``interrupted``.
     """
 
     discrepancy = "discrepancy"
@@ -94,6 +97,7 @@ class StopReason(str, enum.Enum):
     line_search = "line_search"
     stalled = "stalled"
     interrupted = "interrupted"
+    validation = "validation"
 
     def __str__(self) -> str:
         return self.value

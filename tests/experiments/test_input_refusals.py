@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from helpers.repeating_animation import write_tube
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -65,3 +67,30 @@ def test_a_size_is_refused_through_the_app(tmp_path):
     refused(proc, "problem.n=10000000000: needs about 2.3 TiB for 10000000001 nodes x 3 frames",
             "1.0 GiB of TORCHFIT_MEMORY_LIMIT")
     assert not (tmp_path / "size").exists()
+
+
+def test_bad_validation_frames_are_refused_through_the_app(tmp_path):
+    """A validation frame not in the animation, every frame held out, a frame both fitted
+    and validated: one line naming the setting, exit 2, no run directory (the rules in-process:
+    tests/problems/test_held_out.py)."""
+    body = [f"problem.path={write_tube(tmp_path / 'tube')}", "problem=animation",
+            f"problem.cache_dir={tmp_path / 'cache'}"]
+    cases = {
+        "missing": (["problem.validation_frames=[2,8]"],
+                    ["problem.validation_frames=[2, 8]: frame 8 is not a frame of the "
+                     "animation (0..7)"]),
+        "all": (["problem.validation_every=1"],
+                ["problem.validation_every=1: holds out every frame of the fit"]),
+        "overlap": (["problem.frames=[0,1,2]", "problem.validation_frames=[2,5]"],
+                    ["problem.validation_frames=[2, 5]: overlaps problem.frames (frames [2])"]),
+    }
+
+    def run(item):
+        name, (overrides, _) = item
+        return name, fit(f"hydra.run.dir={tmp_path / name}", *body, *overrides)
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        done = dict(pool.map(run, cases.items()))
+    for name, (_, words) in cases.items():
+        refused(done[name], *words)
+        assert not (tmp_path / name).exists(), name

@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from helpers.coarse_arm import arm, cache  # noqa: F401  (the fixture)
+from helpers.repeating_animation import write_tube
 from torchfit.problems import build_problem
 from torchfit.run import FitOptions, ResumeError, fit
 
@@ -56,6 +57,7 @@ def check_resumes(make, tmp_path, max_iter, kills):
         assert resumed.metrics == full.metrics
         assert without_time(resumed.history) == without_time(full.history)
         assert (resumed.factorizations, resumed.solves) == (full.factorizations, full.solves)
+        assert resumed.validation == full.validation        # frames held out: the same choice
 
 
 def test_the_checkpoint_holds_the_warm_start_anchor(cache, tmp_path):  # noqa: F811
@@ -85,6 +87,17 @@ def test_warm_started_arm_resumes_exactly(cache, tmp_path):  # noqa: F811
 @pytest.mark.slow
 def test_warm_started_arm_resumes_exactly_after_any_iteration(cache, tmp_path):  # noqa: F811
     check_resumes(lambda: arm(cache, frames=[0, 11]), tmp_path, 4, [1, 2])
+
+
+def test_a_body_with_validation_frames_resumes_exactly(tmp_path):
+    """Frames held out of the fit (``problem.validation_frames``): the checkpoint holds the
+    chosen iteration so far and the validation's own warm starts, so the validation errors
+    of every iteration, the choice and the counts (the validation's work is not the
+    solver's) are the uninterrupted run's."""
+    settings = {"path": str(write_tube(tmp_path / "tube")), "tet_edge_length": 0.3,
+                "grid": [2, 2, 2], "cache_dir": str(tmp_path / "cache"), "frames": [0, 2, 6],
+                "validation_frames": [1]}
+    check_resumes(lambda: build_problem("animation", settings), tmp_path, 3, [1])
 
 
 @pytest.mark.slow

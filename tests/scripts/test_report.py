@@ -123,6 +123,31 @@ def test_not_scale_free_shows_k_err_rel(tmp_path):
     assert rows[2][-1] == "max_iter (not converged)"
 
 
+def test_a_sweep_in_mu_with_validation_names_the_lowest_validation_error(tmp_path):
+    """``-m solver.mu=...`` with validation frames: the validation columns, and the job the
+    validation error picks (not the one of lowest misfit on the fitted frames)."""
+    sweep = tmp_path / "sweep"
+    for num, (mu, misfit, validation, chosen) in enumerate([(1.0, 0.3, 2.5e-3, 7),
+                                                            (10.0, 0.2, 1.9e-3, 5),
+                                                            (100.0, 0.1, 2.2e-3, 9)]):
+        fake_job(sweep, num, ["solver=split_bregman", f"solver.mu={mu}"], result(
+            1e-2, misfit=misfit, validation_surface_err_mean=validation,
+            validation_surface_err_reduction=4e-3 / validation, validation_iteration=chosen))
+    fake_job(sweep, 3, ["solver=split_bregman", "solver.mu=1000.0"], result(1e-2))
+    proc = report(sweep)
+    assert proc.returncode == 0, proc.stderr
+    rows = table_rows(proc.stdout)
+    assert rows[0][-4:] == ["validation err", "validation reduction", "chosen iteration",
+                            "stop reason"]
+    assert rows[2][-4:-1] == ["1.90e-03", "2.11e+00", "5"]
+    assert rows[4][-4:-1] == ["nan", "nan", "nan"]          # a job without validation
+    assert "Lowest validation error 1.900e-03: job 1 (`solver.mu=10.0`), at its iteration " \
+        "5." in proc.stdout
+    # a sweep without validation has none of its columns
+    fake_job(tmp_path / "plain", 0, ["problem.noise=0"], result(1e-2))
+    assert "validation" not in report(tmp_path / "plain").stdout
+
+
 @pytest.mark.parametrize("make,message", [
     (lambda p: p / "missing", "does not exist"),
     (lambda p: p, "holds no jobs"),

@@ -122,20 +122,17 @@ class Arm3D(RiggedBody):
 
     def frame_angles(self) -> np.ndarray:
         """Elbow angle (degrees) of every fitted frame."""
-        frames = self.cfg.frames if self.cfg.frames is not None else range(self.arm.n_frames)
-        return np.asarray([self.elbow_angles[int(f)] for f in frames])
+        return np.asarray([self.elbow_angles[f] for f in self.frame_numbers()])
 
     def frame_names(self) -> list[str]:
-        frames = self.cfg.frames if self.cfg.frames is not None else range(self.arm.n_frames)
-        return [f"frame {int(f)}: elbow {a:+.0f} deg" for f, a in zip(frames, self.frame_angles())]
+        return [f"frame {f}: elbow {a:+.0f} deg"
+                for f, a in zip(self.frame_numbers(), self.frame_angles())]
 
     def settings_for_frames(self, numbers: list[int]) -> Arm3DConfig:
         # with noise_of_bulge, check() derived cfg.noise from it: give it back at 0, or the
         # rebuilt config would hold both (its data are replaced by this problem's anyway)
-        changes: dict = {"frames": list(numbers)}
-        if self.cfg.noise_of_bulge > 0:
-            changes["noise"] = 0.0
-        return dataclasses.replace(self.cfg, **changes)
+        cfg = super().settings_for_frames(numbers)
+        return dataclasses.replace(cfg, noise=0.0) if self.cfg.noise_of_bulge > 0 else cfg
 
     def describe(self) -> dict:
         out = super().describe()

@@ -451,6 +451,12 @@ class InverseProblem:
         the next simulations then start exactly where they did there. Default: nothing to
         restore."""
 
+    def validation_problem(self) -> "InverseProblem | None":
+        """The same problem on the frames held out of its fit, simulated for validation at
+        every recorded iteration (:mod:`torchfit.run.validation`); built on each call.
+        Default: ``None``, nothing held out."""
+        return None
+
     def input_digests(self) -> dict[str, str]:
         """Digests of the input data the problem was built from beyond its settings (a tet
         mesh from a cache, an animation read from files), by name: a checkpoint records

@@ -48,6 +48,7 @@ from .body_report import (BODY_METRICS, body_metrics, frame_report, inverted_cou
                           min_volume_ratios, region_summary, surface_distances, volume_change)
 from .config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
                      resolve_backend, setting_error)
+from .held_out import NO_VALIDATION, split_frames, validation_problem
 from .rigged_body_config import Layout, RiggedBodyConfig, Target, Truth
 
 
@@ -123,9 +124,11 @@ class RiggedBody(InverseProblem):
     def build_model(self, cfg: RiggedBodyConfig) -> None:
         with step(f"reading the animation {cfg.path or self.name}") as progress:
             animation = self.load(cfg)
-            if cfg.frames is not None:
+            self.frame_split = split_frames(cfg, animation.rest_vertices, animation.frames)
+            fitted = cfg.frames if self.frame_split is None else self.frame_split.fitted
+            if fitted is not None:
                 try:
-                    animation = animation.select([int(f) for f in cfg.frames])
+                    animation = animation.select([int(f) for f in fitted])
                 except AnimationError as err:
                     raise setting_error("frames", cfg.frames, str(err)) from err
             progress.result = animation_summary(animation)
@@ -411,8 +414,12 @@ class RiggedBody(InverseProblem):
 
     def frame_numbers(self) -> list[int]:
         """The animation's frame number of every fitted frame (``problem.frames``)."""
-        frames = self.cfg.frames
+        frames = self.cfg.frames if self.frame_split is None else self.frame_split.fitted
         return [int(f) for f in frames] if frames is not None else list(range(self.n_frames))
+
+    def validation_problem(self) -> "RiggedBody | None":
+        """The same body on its validation frames (:func:`.held_out.validation_problem`)."""
+        return validation_problem(self)
 
     def with_frames(self, numbers: list[int]) -> "RiggedBody":
         """The same problem on some of its fitted frames (animation frame numbers, in the
@@ -443,7 +450,7 @@ class RiggedBody(InverseProblem):
 
     def settings_for_frames(self, numbers: list[int]) -> RiggedBodyConfig:
         """This problem's config with ``frames=numbers`` (for :meth:`with_frames`)."""
-        return dataclasses.replace(self.cfg, frames=list(numbers))
+        return dataclasses.replace(self.cfg, frames=list(numbers), **NO_VALIDATION)
 
     def simulate_model(self, model: str, E: Tensor, frames: list[int] | None = None) -> Tensor:
         """Positions ``(len(frames), n_vertices, 3)`` of the same body, rig and field with

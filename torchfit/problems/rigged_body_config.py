@@ -53,6 +53,12 @@ class RiggedBodyConfig(ProblemConfig):
     fps: float = 0.0                       # glTF: sample the animation at this rate; 0: at its
     #                                        keyframes (every input time of its samplers)
     frames: Optional[List[int]] = None     # a subset of the frames (numbers); null: all
+    # validation (problems/held_out.py, docs/run/validation.md): frames (numbers) held out of
+    # the fit and simulated at every recorded iteration, or every k-th distinct pose (0: none);
+    # frames repeating a validation pose (within this fraction of the diagonal) leave the fit
+    validation_frames: Optional[List[int]] = None
+    validation_every: int = 0
+    validation_repeat_tol: float = 1e-6
     model: ElasticModel = ElasticModel.corotated   # linear | corotated | stable_neo_hookean
     nu: float = 0.45                       # Poisson ratio, fixed
     # rig (the animated surface) | synthetic (simulated from a known field)

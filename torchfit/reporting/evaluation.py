@@ -25,6 +25,8 @@ class Evaluation:
         metrics: ``problem.metrics(theta, state)``: the metrics of PROBLEMS.md.
         record: the iteration record evaluated (``None``: a point that is not a record's,
             such as a report's baseline).
+        validation: the metrics of the frames held out of the fit at ``theta`` (the run's
+            validation problem, :mod:`torchfit.run.validation`), ``None`` without them.
     """
 
     theta: Tensor
@@ -32,3 +34,4 @@ class Evaluation:
     state: Tensor
     metrics: dict[str, float]
     record: IterationRecord | None = None
+    validation: dict[str, float] | None = None

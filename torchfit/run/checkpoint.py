@@ -4,8 +4,10 @@
 :meth:`~torchfit.solvers.Solver.state_dict`, the problem's
 :meth:`~torchfit.problems.InverseProblem.simulation_state` (what its next simulations
 depend on: the equilibria a warm-started Newton starts from), the iteration and the
-settings and start it belongs to; nothing time-dependent, so identical runs write identical
-bytes. A resume restores the simulation state before the solver re-linearises at the
+settings and start it belongs to, and a run with frames held out of the fit the state of
+its validation (:meth:`.validation.ValidationTracker.state_dict`: the chosen iteration and
+parameters so far, the validation problem's simulation state); nothing time-dependent, so
+identical runs write identical bytes. A resume restores the simulation state before the solver re-linearises at the
 checkpointed point, so the resumed process simulates exactly what the uninterrupted one
 did. Checkpoints of another format are refused (one line).
 ``history.jsonl`` beside it holds the per-iteration rows (wall times included); a row is
@@ -63,6 +65,7 @@ class Resume:
     finished: bool
     stop_reason: str | None
     simulation: dict[str, Any] = dataclasses.field(default_factory=dict)
+    validation: dict[str, Any] | None = None
 
 
 def _read_rows(path: Path, last: int) -> list[dict[str, Any]]:
@@ -143,7 +146,8 @@ def read_checkpoint(run_dir: Path, problem: InverseProblem, solver: Solver,
     state = payload["solver_state"]
     state["wall_time"] = float(rows[-1].get("wall_time", 0.0))
     return Resume(iteration, state, rows, bool(payload.get("finished", False)),
-                   payload.get("stop_reason"), payload["simulation_state"])
+                  payload.get("stop_reason"), payload["simulation_state"],
+                  payload.get("validation"))
 
 
 def check_fresh_start(run_dir: Path) -> None:
@@ -215,10 +219,12 @@ class Checkpointer:
     """
 
     def __init__(self, run_dir: Path, problem: InverseProblem, solver: Solver,
-                 rows: list[dict[str, Any]], start: Tensor | None = None) -> None:
+                 rows: list[dict[str, Any]], start: Tensor | None = None,
+                 validation: Any = None) -> None:
         self.run_dir = run_dir
         self.problem = problem
         self.solver = solver
+        self.validation = validation        # a ValidationTracker, or None
         self.rows = rows
         self.fixed = {"format": CHECKPOINT_FORMAT, "problem": problem.name,
                       "problem_config": json.dumps(plain_settings(problem.cfg)),
@@ -247,6 +253,8 @@ class Checkpointer:
                    "theta": theta.detach().cpu().clone(), "solver_state": _cpu(state),
                    "simulation_state": _cpu(self.problem.simulation_state()),
                    "finished": stop_reason is not None, "stop_reason": stop_reason}
+        if self.validation is not None:
+            payload["validation"] = _cpu(self.validation.state_dict())
         save_torch(self.run_dir / CHECKPOINT_FILE, payload)
 
     def close(self) -> None:
@@ -275,4 +283,4 @@ def finished_result(problem: InverseProblem, run_dir: Path, restart: Resume) -> 
     return FitResult(params["theta"], params["field"], metrics, int(saved["iterations"]),
                      float(saved["wall_s"]), int(saved["factorizations"]), int(saved["solves"]),
                      bool(saved["converged"]), str(saved["stop_reason"]), restart.rows, run_dir,
-                     [], restart.iteration)
+                     [], restart.iteration, validation=saved.get("validation"))

@@ -11,18 +11,30 @@ once per record, which the solver's next warm start and the cache's eviction the
 order of the run's simulations is part of what makes two runs bit-identical).
 :attr:`Evaluator.simulations` counts the simulations made here; nothing else in a run but
 the solver (and a 3-D body's model comparison, :meth:`Evaluator.other_model`) simulates.
+
+With a validation problem (the frames held out of the fit, :mod:`.validation`), every
+evaluation but a report's baseline also simulates it at ``theta`` (its own equilibria and
+warm starts, apart from the fit's: the fit's iterates are unchanged), counted in
+:attr:`Evaluator.validation_simulations`; its metrics are ``Evaluation.validation`` and join
+the record as ``validation/<key>``. Its factorisations and solves are not the solver's: they
+are taken out of the counters the solver reports (:mod:`torchfit.linalg.counters`) and kept
+in :attr:`Evaluator.validation_cost`, so that a run's counts, and an exact resume's, are the
+fit's alone.
 """
 from __future__ import annotations
 
 import contextlib
+import time
 from typing import Any, Callable
 
 import torch
 from torch import Tensor
 
+from ..linalg.counters import COUNTERS, counting
 from ..problems import InverseProblem
 from ..records import IterationRecord
 from ..reporting.evaluation import Evaluation
+from .validation import record_keys, validation_metrics
 
 
 class Evaluator:
@@ -31,17 +43,24 @@ class Evaluator:
     Attributes:
         last: the evaluation of the last record (``None`` before the first).
         simulations: how many times :meth:`evaluate` simulated the problem.
+        validation: the problem on the frames held out of the fit, or ``None``.
+        validation_simulations: how many times it was simulated.
+        validation_cost: its ``factorizations``, ``solves`` and ``seconds``.
     """
 
-    def __init__(self, problem: InverseProblem) -> None:
+    def __init__(self, problem: InverseProblem, validation: InverseProblem | None = None) -> None:
         self.problem = problem
+        self.validation = validation
         self.last: Evaluation | None = None
         self.simulations = 0
+        self.validation_simulations = 0
+        self.validation_cost = {"factorizations": 0, "solves": 0, "seconds": 0.0}
 
     def evaluate(self, theta: Tensor, record: IterationRecord | None = None, *,
                  independent: bool = False) -> Evaluation:
-        """The problem at ``theta`` (one simulation); ``independent``: a cold start that
-        seeds no later warm start (a report's baseline)."""
+        """The problem at ``theta`` (one simulation, and one of the validation problem);
+        ``independent``: a cold start that seeds no later warm start (a report's baseline,
+        not validated)."""
         problem = self.problem
         theta = theta.detach()
         isolated = problem.independent_simulation() if independent else contextlib.nullcontext()
@@ -49,11 +68,32 @@ class Evaluator:
             field = problem.field(theta)
             state = problem.simulate(problem.simulation_input(theta)).detach()
         self.simulations += 1
-        return Evaluation(theta, field.detach(), state, problem.metrics(theta, state), record)
+        validation = None if independent or self.validation is None else self.validate(theta)
+        return Evaluation(theta, field.detach(), state, problem.metrics(theta, state), record,
+                          validation)
+
+    def validate(self, theta: Tensor) -> dict[str, float]:
+        """The validation problem's metrics at ``theta`` (one simulation of its frames)."""
+        problem = self.validation
+        assert problem is not None
+        start = time.perf_counter()
+        with torch.no_grad(), counting() as cost:
+            state = problem.simulate(problem.simulation_input(theta)).detach()
+            metrics = validation_metrics(problem.metrics(theta, state))
+        done = cost.as_dict()
+        for key in ("factorizations", "solves", "rhs_columns"):   # not the solver's work
+            setattr(COUNTERS, key, getattr(COUNTERS, key) - done[key])
+        self.validation_cost["factorizations"] += done["factorizations"]
+        self.validation_cost["solves"] += done["solves"]
+        self.validation_cost["seconds"] += time.perf_counter() - start
+        self.validation_simulations += 1
+        return metrics
 
     def __call__(self, record: IterationRecord) -> None:
         self.last = self.evaluate(record.theta, record)
         record.extra.update(self.last.metrics)
+        if self.last.validation is not None:
+            record.extra.update(record_keys(self.last.validation))
         return None
 
     def feed(self, observer: Callable[[Evaluation], Any]) -> Callable[[IterationRecord], Any]:

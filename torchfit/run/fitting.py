@@ -9,7 +9,8 @@ run. A run holds its directory for its whole length (:mod:`.lock`: a second run 
 is refused at once), and removes the temporary files a killed writer left there.
 
 The callbacks of a run, in order: the evaluator (:mod:`.evaluator`: the one simulation per
-record, whose metrics it adds to ``record.extra``), the progress line, the checkpoint
+record, whose metrics it adds to ``record.extra``), the validation tracker where frames are
+held out of the fit (:mod:`.validation`), the progress line, the checkpoint
 commit, TensorBoard, the problem's own outputs (fed the evaluation), then the caller's; an
 iteration is thus in the checkpoint before TensorBoard shows it. The end of the run reads
 the last evaluation (:meth:`~.evaluator.Evaluator.final`) and reports what the data
@@ -41,6 +42,7 @@ from .outputs import RunOutputs
 from .result import FitResult
 from .solver import build_solver
 from .start import initial_theta
+from .validation import ValidationTracker
 
 log = logging.getLogger("torchfit.run")
 
@@ -81,7 +83,8 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
     if not isinstance(problem, InverseProblem):
         raise FitConfigError(f"problem must be a torchfit InverseProblem, got "
                              f"{type(problem).__name__}")
-    options.check(problem)
+    validation = problem.validation_problem()
+    options.check(problem, validated=validation is not None)
     solver = build_solver(problem, solver)
     start = None if init is None else initial_theta(problem, init)
     run_path = None if run_dir is None else Path(run_dir).resolve()
@@ -90,13 +93,15 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
     if run_path is not None:
         check_writable(run_path)
     with hold(run_path):        # one run per directory (lock.py), from the first check on
-        return _fit(problem, solver, run_path, callbacks, resume, options, config, init, start)
+        return _fit(problem, solver, run_path, callbacks, resume, options, config, init, start,
+                    validation)
 
 
 def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
          callbacks: Iterable[Callable[[IterationRecord], Any]], resume: bool,
          options: FitOptions, config: Mapping[str, Any] | None,
-         init: Tensor | str | Path | None, start: Tensor | None) -> FitResult:
+         init: Tensor | str | Path | None, start: Tensor | None,
+         validation: InverseProblem | None = None) -> FitResult:
     if run_path is not None:
         if not resume:
             check_fresh_start(run_path)
@@ -121,14 +126,21 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
              f"; starting from {init}" if start is not None and not isinstance(init, Tensor)
              else "", f"; resuming after iteration {restart.iteration}" if restart else "")
     rows: list[dict[str, Any]] = list(restart.rows) if restart else []
-    evaluator = Evaluator(problem)
+    evaluator = Evaluator(problem, validation)
     chain: list[Callable[[IterationRecord], Any]] = [evaluator]
+    tracker = None
+    if validation is not None:
+        tracker = ValidationTracker(problem, validation, lambda: evaluator.last,
+                                    options.validation_patience)
+        if restart is not None and restart.validation is not None:
+            tracker.load_state_dict(restart.validation, restart.iteration)
+        chain.append(tracker)
     if options.progress:
         chain.append(ProgressPrinter())
     checkpointer = outputs = None
     if run_path is not None:
         run_path.mkdir(parents=True, exist_ok=True)
-        checkpointer = Checkpointer(run_path, problem, solver, rows, start)
+        checkpointer = Checkpointer(run_path, problem, solver, rows, start, tracker)
         chain.append(checkpointer)
         outputs = RunOutputs(run_path, problem, evaluator, options, config, restart)
         chain.extend(outputs.callbacks())
@@ -149,16 +161,26 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
         if outputs is not None:
             outputs.flush()
     final = evaluator.final(solved.theta)
+    if validation is not None:
+        cost = evaluator.validation_cost
+        log.info("validation: %d simulations of the held-out frames (%d factorizations, %d "
+                 "solves, %.1f s) besides the fit", evaluator.validation_simulations,
+                 cost["factorizations"], cost["solves"], cost["seconds"])
+    stop_reason = str(solved.stop_reason) if tracker is None else \
+        tracker.stop_reason(str(solved.stop_reason))
     result = FitResult(solved.theta.detach(), final.field, final.metrics, solved.iterations,
                        solved.wall_time, solved.factorizations, solved.solves, solved.converged,
-                       str(solved.stop_reason), rows, run_path, [],
-                       restart.iteration if restart else None, solved)
+                       stop_reason, rows, run_path, [],
+                       restart.iteration if restart else None, solved,
+                       validation=None if tracker is None else tracker.summary(final))
     result.identifiability = identify(problem, getattr(solver, "lin", None), solved.theta)
     if not result.identifiability.determined:
         log.warning("%s", result.identifiability.warning())
     if run_path is not None:
         assert outputs is not None and checkpointer is not None
         result.files = outputs.finish(result, final)
+        if tracker is not None:
+            result.files.append(tracker.write_params(run_path, solved.theta))
         checkpointer.commit(solved.iterations, solved.theta, solver.state_dict(),
-                            stop_reason=str(solved.stop_reason))
+                            stop_reason=stop_reason)
     return result

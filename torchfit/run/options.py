@@ -16,6 +16,7 @@ from ..errors import ConfigurationError
 from ..problems import InverseProblem
 from ..problems.base import FramedProblem
 from ..reporting.results import jsonable
+from .validation import RESULT_KEYS as VALIDATION_RESULT_KEYS
 
 #: Counters a result reports beside the metrics; ``objective_metric`` may name them too.
 COUNT_KEYS = ("iterations", "wall_s", "factorizations", "solves")
@@ -48,8 +49,8 @@ class ProcessOptions:
 
 @dataclasses.dataclass
 class FitOptions(ProcessOptions):
-    """How a run reports itself (none of it changes the fit); ``threads``:
-    :class:`ProcessOptions`.
+    """How a run reports itself (none of it changes the fit but ``validation_patience``,
+    which may end it early); ``threads``: :class:`ProcessOptions`.
 
     Attributes:
         progress: one line per outer iteration through the ``torchfit.progress`` logger.
@@ -63,6 +64,11 @@ class FitOptions(ProcessOptions):
             PROBLEMS.md, or ``iterations``, ``wall_s``, ``factorizations``, ``solves``).
         fold_hint: a 3-D body's warning about folded frames at the end suggests
             ``continuation=true`` (off in the stages of one, which report themselves).
+        validation_patience: with frames held out of the fit (a body's
+            ``problem.validation_frames`` or ``validation_every``), stop the fit after this
+            many accepted iterations without a lower validation error (stop reason
+            ``validation``; 0: never stop early). The chosen iteration (lowest validation
+            error) is reported either way (:mod:`.validation`).
     """
 
     progress: bool = True
@@ -72,16 +78,20 @@ class FitOptions(ProcessOptions):
     sheet_frame: int | None = None
     objective_metric: str = "misfit"
     fold_hint: bool = True
+    validation_patience: int = 5
 
-    def check(self, problem: InverseProblem) -> None:
-        """Raise :class:`FitConfigError` naming the first invalid option."""
+    def check(self, problem: InverseProblem, validated: bool = False) -> None:
+        """Raise :class:`FitConfigError` naming the first invalid option (``validated``: the
+        run has a validation problem, whose keys ``objective_metric`` may name)."""
         _need(isinstance(self.progress, bool), f"progress={self.progress!r} must be true or false")
-        for key, low in (("log_every", 1), ("snapshot_every", 0), ("threads", 0)):
+        for key, low in (("log_every", 1), ("snapshot_every", 0), ("threads", 0),
+                         ("validation_patience", 0)):
             value = getattr(self, key)
             _need(_is_int(value) and value >= low, f"{key}={value!r} must be an integer >= {low}")
         _need(all(isinstance(i, int) and i >= 0 for i in self.snapshot_iterations),
               f"snapshot_iterations={list(self.snapshot_iterations)} must be integers >= 0")
-        allowed = list(problem.metric_names()) + list(COUNT_KEYS)
+        allowed = list(problem.metric_names()) + list(COUNT_KEYS) + (
+            list(VALIDATION_RESULT_KEYS) if validated else [])
         _need(self.objective_metric in allowed,
               f"objective_metric={self.objective_metric} is not reported by {problem.name}; "
               f"choose one of {allowed}")

@@ -44,6 +44,7 @@ from .checkpoint import Resume
 from .evaluator import Evaluator
 from .options import FitOptions
 from .result import FitResult, result_dict
+from .validation import result_values
 
 progress = logging.getLogger(PROGRESS_LOGGER)
 
@@ -117,6 +118,9 @@ class RunOutputs:
             files.extend(self.body.copy_animation())
             result.highlights.extend(self.body.highlights)
         metrics = {**result.metrics, "iterations": result.iterations, "wall_s": result.wall_s}
+        if result.validation is not None:   # final/validation_*: one value per run
+            metrics.update({k: v for k, v in result_values(result.validation).items()
+                            if v is not None})
         hparams = {"problem": self.config.get("problem", {}),
                    "solver": self.config.get("solver", {})}
         self.tb.finish(problem, final.field, metrics, hparams, self.guard)

@@ -5,7 +5,10 @@
 ``stop_reason``, ``status`` (``completed``), ``resumed_from_iteration`` (a resumed run),
 ``problem`` (sizes), ``config`` and ``history`` (one row per outer iteration); a 3-D body
 adds ``model_comparison``. ``determined`` (whether the data determine the material at all)
-and ``identifiability`` (its summary, :mod:`.identifiability`) where the run made the report.
+and ``identifiability`` (its summary, :mod:`.identifiability`) where the run made the report;
+a run with frames held out of the fit adds ``validation_iteration``,
+``validation_surface_err_mean``, ``validation_surface_err_reduction`` and ``validation``
+(:mod:`.validation`).
 """
 from __future__ import annotations
 
@@ -18,6 +21,7 @@ from torch import Tensor
 
 from ..problems import InverseProblem
 from ..records import SolveResult
+from .validation import result_values, validation_line
 
 
 @dataclasses.dataclass
@@ -42,6 +46,8 @@ class FitResult:
         identifiability: the report of what the data determine
             (:class:`~.identifiability.Identifiability`), ``None`` where none was made (a
             finished run read back); ``determined`` its verdict (``None``: no report).
+        validation: ``result.json``'s ``validation`` section (frames held out of the fit:
+            the chosen iteration, the errors there and at the end), else ``None``.
     """
 
     theta: Tensor
@@ -61,17 +67,22 @@ class FitResult:
     first_stage: "FitResult | None" = None
     highlights: list[str] = dataclasses.field(default_factory=list)
     identifiability: Any = None
+    validation: dict[str, Any] | None = None
 
     @property
     def determined(self) -> bool | None:
         return None if self.identifiability is None else bool(self.identifiability.determined)
 
     def value(self, key: str) -> float:
-        """``metrics[key]`` or a count (``iterations``, ...); ``+inf`` where not finite, so
+        """``metrics[key]``, a count (``iterations``, ...) or a validation value
+        (``validation_surface_err_mean``, ...); ``+inf`` where not finite or missing, so
         that a sweeper ranks such a run last."""
-        counts = {"iterations": self.iterations, "wall_s": self.wall_s,
-                  "factorizations": self.factorizations, "solves": self.solves}
-        value = float(self.metrics[key] if key in self.metrics else counts[key])
+        counts: dict[str, Any] = {"iterations": self.iterations, "wall_s": self.wall_s,
+                                  "factorizations": self.factorizations, "solves": self.solves}
+        if self.validation is not None:
+            counts.update(result_values(self.validation))
+        raw = self.metrics[key] if key in self.metrics else counts[key]
+        value = math.nan if raw is None else float(raw)
         return value if math.isfinite(value) else math.inf
 
     def summary(self) -> str:
@@ -80,9 +91,10 @@ class FitResult:
                           ("misfit", "k_err_rel", "k_err_rel_aligned") if k in self.metrics)
         verdict = "not determined by the data" if self.determined is False else \
             "converged" if self.converged else "not converged"
-        return (f"{self.stop_reason} after {self.iterations} iterations "
+        line = (f"{self.stop_reason} after {self.iterations} iterations "
                 f"({verdict}) in {self.wall_s:.2f} s, "
                 f"{self.factorizations} factorizations, {self.solves} solves: {shown}")
+        return line + validation_line(self.metrics, self.validation)
 
 
 def result_dict(problem: InverseProblem, result: FitResult,
@@ -98,6 +110,9 @@ def result_dict(problem: InverseProblem, result: FitResult,
         out["identifiability"] = result.identifiability.summary()
     if result.resumed_from is not None:
         out["resumed_from_iteration"] = result.resumed_from
+    if result.validation is not None:
+        out.update(result_values(result.validation))
+        out["validation"] = result.validation
     out["problem"] = problem.describe()
     out["config"] = dict(config)
     out["history"] = result.history
