@@ -35,7 +35,7 @@ from torch import Tensor
 
 from ..errors import ConfigurationError
 from ..problems import InverseProblem
-from ..records import IterationRecord
+from ..records import IterationRecord, SolveResult, StopReason
 from ..reporting.results import CHECKPOINT_FILE, PARAMS_FILE, RESULT_FILE, jsonable, save_torch
 from ..solvers import Solver
 from .options import FitConfigError, plain_settings
@@ -72,12 +72,13 @@ def _read_rows(path: Path, last: int) -> list[dict[str, Any]]:
     """Rows of ``history.jsonl`` up to iteration ``last`` (a torn last line is dropped)."""
     rows: list[dict[str, Any]] = []
     if path.is_file():
-        for line in path.read_text(encoding="utf-8").splitlines():
-            try:
-                row = json.loads(line)
-            except ValueError:
+        for line in path.read_bytes().splitlines():
+            try:        # bytes that are not UTF-8 JSON end the readable rows, like a torn line
+                row = json.loads(line.decode("utf-8"))
+                iteration = int(row.get("iteration", -1))
+            except (ValueError, TypeError, AttributeError):
                 break
-            if int(row.get("iteration", -1)) <= last:
+            if iteration <= last:
                 rows.append(row)
     return rows
 
@@ -269,6 +270,35 @@ def _cpu(value: Any) -> Any:
     if isinstance(value, (list, tuple)):
         return [_cpu(v) for v in value]
     return value
+
+
+def finished_outputs_readable(run_dir: Path) -> bool:
+    """Whether a finished run's ``result.json`` (a JSON object) and ``params.pt`` (theta and
+    field) can be read: then a resume returns them (:func:`finished_result`); otherwise it
+    writes the outputs again from the checkpoint."""
+    try:
+        saved = json.loads((run_dir / RESULT_FILE).read_text(encoding="utf-8"))
+        with open(run_dir / PARAMS_FILE, "rb") as f:
+            params = torch.load(f, map_location="cpu", weights_only=True)
+        return isinstance(saved, dict) and isinstance(params, dict) and all(
+            isinstance(params.get(k), torch.Tensor) for k in ("theta", "field")) and all(
+            k in saved for k in ("iterations", "wall_s", "factorizations", "solves",
+                                 "converged", "stop_reason"))
+    except Exception:  # noqa: BLE001  (missing, truncated, foreign or corrupt files)
+        return False
+
+
+def checkpointed_solve(restart: Resume) -> SolveResult:
+    """The solver's outcome of a finished run, read from its checkpoint (no solver runs):
+    the final ``theta``, iterations, stop reason and the run's clock and counters, for a
+    resume that writes the outputs of a finished run again."""
+    state = restart.state
+    reason = StopReason(str(restart.stop_reason))
+    converged = reason in (StopReason.discrepancy, StopReason.tolerance, StopReason.resolution,
+                           StopReason.plateau)
+    return SolveResult(state["theta"], converged, reason, restart.iteration, [],
+                       float(state["wall_time"]), int(state["factorizations"]),
+                       int(state["solves"]))
 
 
 def finished_result(problem: InverseProblem, run_dir: Path, restart: Resume) -> FitResult:

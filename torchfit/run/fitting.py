@@ -29,10 +29,12 @@ from ..linalg import set_threads
 from ..problems import InverseProblem
 from ..records import IterationRecord
 from ..reporting.progress import ProgressPrinter
-from ..reporting.results import CHECKPOINT_FILE, RESULT_FILE, remove_stale_temporaries
+from ..reporting.results import (CHECKPOINT_FILE, PARAMS_FILE, RESULT_FILE,
+                                 remove_stale_temporaries)
 from ..residual import warm_up_autograd
 from ..solvers import Solver, SolverConfig
-from .checkpoint import Checkpointer, check_fresh_start, finished_result, read_checkpoint
+from .checkpoint import (Checkpointer, check_fresh_start, checkpointed_solve,
+                         finished_outputs_readable, finished_result, read_checkpoint)
 from .directory import check_writable
 from .evaluator import Evaluator
 from .identifiability import identify
@@ -111,9 +113,15 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
                     "the initial guess" if init is None else "init")
     config = dict(config) if config is not None else {
         "problem": plain_settings(problem.cfg), "solver": plain_settings(solver.config)}
-    if restart is not None and restart.finished and (run_path / RESULT_FILE).is_file() and not (
-            restart.stop_reason == "max_iter" and solver.config.max_iter > restart.iteration):
-        return finished_result(problem, run_path, restart)   # a larger max_iter continues
+    finished = restart is not None and restart.finished and not (
+        restart.stop_reason == "max_iter" and solver.config.max_iter > restart.iteration)
+    if finished:                                # (a larger max_iter continues the run)
+        if finished_outputs_readable(run_path):
+            return finished_result(problem, run_path, restart)
+        # killed while writing them, or damaged since: the checkpoint has the final state
+        log.warning("resume: %s finished after iteration %d, but its %s or %s is missing or "
+                    "damaged; writing its outputs again from the checkpoint", run_path,
+                    restart.iteration, RESULT_FILE, PARAMS_FILE)
     if options.threads > 0:
         set_threads(options.threads)
     # -- from here on files are written ---------------------------------------------------
@@ -152,14 +160,17 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
         # the equilibria the checkpointed process's next simulations start from
         problem.restore_simulation_state(restart.simulation)
     try:
-        solved = solver.solve(problem.residual(),
-                              problem.theta0 if start is None else start, chain,
-                              state=restart.state if restart else None)
+        solved = checkpointed_solve(restart) if finished else \
+            solver.solve(problem.residual(), problem.theta0 if start is None else start, chain,
+                         state=restart.state if restart else None)
     finally:
         if checkpointer is not None:
             checkpointer.close()
         if outputs is not None:
             outputs.flush()
+    # the solver's state as it ended: the counters of what follows (the final evaluation,
+    # the identifiability report, the outputs) are not the run's
+    final_state = None if finished else solver.state_dict()
     final = evaluator.final(solved.theta)
     if validation is not None:
         cost = evaluator.validation_cost
@@ -181,6 +192,7 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
         result.files = outputs.finish(result, final)
         if tracker is not None:
             result.files.append(tracker.write_params(run_path, solved.theta))
-        checkpointer.commit(solved.iterations, solved.theta, solver.state_dict(),
-                            stop_reason=stop_reason)
+        if final_state is not None:     # (a finished run's checkpoint is final already)
+            checkpointer.commit(solved.iterations, solved.theta, final_state,
+                                stop_reason=stop_reason)
     return result
