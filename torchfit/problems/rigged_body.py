@@ -35,7 +35,8 @@ from ..mesh import MeshError, SimplexMesh, element_adjacency
 from ..mesh.animation_format import Animation, AnimationError, load_animation
 from ..mesh.embedding import Embedding, dof_matrix, embed_points
 from ..mesh.rig import joint_cells, most_rotated_frame, skeleton_drive, surface_drive
-from ..mesh.tetrahedralize import TetMesh, TetOptions, default_cache_dir, tetrahedralize
+from ..mesh.tet_store import tetrahedralize_kept
+from ..mesh.tetrahedralize import TetMesh, TetOptions, default_cache_dir
 from ..params import Parameterization, per_element, per_region
 from ..physics import NewtonOptions
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
@@ -168,14 +169,16 @@ class RiggedBody(InverseProblem):
         self._other_models: dict[str, QuasistaticElasticity] = {}
 
     def tetrahedralize(self, cfg: RiggedBodyConfig, animation: Animation) -> TetMesh:
-        options = TetOptions(edge_length_fac=cfg.tet_edge_length, epsilon=cfg.tet_epsilon,
-                             stop_energy=cfg.tet_stop_energy, optimize=cfg.tet_optimize)
+        self.tet_options = options = TetOptions(
+            edge_length_fac=cfg.tet_edge_length, epsilon=cfg.tet_epsilon,
+            stop_energy=cfg.tet_stop_energy, optimize=cfg.tet_optimize)
         cache = Path(cfg.cache_dir).expanduser() / "tetmesh" if cfg.cache_dir else \
             default_cache_dir()
         try:
-            # the surface's warnings were given once above, with the animation's name
-            return tetrahedralize(animation.rest_vertices, animation.faces, options,
-                                  cache_dir=cache, warn=False)
+            # the surface's warnings were given once above, with the animation's name; a
+            # run's own mesh (mesh.npz, registered) before the cache: tet_store.py
+            return tetrahedralize_kept(animation.rest_vertices, animation.faces, options,
+                                       cache_dir=cache, warn=False)
         except MeshError as err:
             raise ProblemConfigError(f"{animation.path}: {err}") from err
 
