@@ -17,6 +17,8 @@ import torch
 from helpers.capsule_animation import write_capsule
 from helpers.fit_app import REPO, run_fit_app
 from torchfit.mesh.animation_format import load_animation, write_animation
+from torchfit.problems import build_problem
+from torchfit.run import FitOptions, fit
 from torchfit.run.options import FitConfigError
 from torchfit.run.simulating import simulate
 
@@ -58,6 +60,7 @@ def test_the_fit_keeps_its_mesh(fitted):
     assert result["problem"]["n_tets"] == len(cells)
 
 
+@pytest.mark.slow      # two apps and a fit route on the capsule (about 40 s on 2 free cores)
 def test_simulate_reproduces_the_init_route_on_another_animation(fitted):
     """The same frames (to Newton's tolerance) and per-frame errors as a fit started at the
     fitted parameters that takes no step, on an animation the fit never saw; without the
@@ -101,15 +104,21 @@ def test_simulate_reproduces_the_init_route_on_another_animation(fitted):
     assert (out / "simulation.png").stat().st_size > 1000
 
 
-def test_simulate_on_the_fitted_animation_is_the_fits_final_state(fitted):
-    """No fold on the capsule: the cold solve per frame is the fit's final state."""
+def test_simulate_on_the_fitted_animation_is_the_fits_cold_evaluation(fitted):
+    """Frame by frame, the equilibria the fit's evaluation of its final parameters computes
+    cold (every frame at once, from the animated pose: what init= with max_iter=0 gives),
+    and the errors the fit reports for them."""
     result = simulate(fitted["run"], {"cache_dir": str(fitted["cache"])}, progress_lines=False)
-    final = np.load(fitted["run"] / "frames.npz")
-    scale = np.abs(final["positions"]).max()
-    assert np.abs(result.state.numpy() - final["positions"]).max() <= 1e-8 * scale
-    saved = json.loads((fitted["run"] / "result.json").read_text())
-    assert result.surface_err_mean == pytest.approx(saved["surface_err_mean"], rel=1e-6)
+    problem = result.problem
+    with torch.no_grad(), problem.independent_simulation():
+        cold = problem.simulate(result.field)
+    scale = float(cold.abs().max())
+    assert float((result.state - cold).abs().max()) <= 1e-8 * scale
     assert result.frame_errors["surface_err_mean"].shape == (3,)
+    np.testing.assert_allclose(result.frame_errors["surface_err_mean"],
+                               problem.frame_errors(cold)["surface_err_mean"], rtol=1e-9)
+    saved = torch.load(fitted["run"] / "params.pt", weights_only=True)
+    assert torch.equal(result.field, saved["field"])
 
 
 def test_another_body_is_refused_with_one_line_and_nothing_written(fitted):
@@ -153,12 +162,30 @@ def test_params_of_another_parameter_count_or_problem_are_refused(fitted, tmp_pa
         simulate(copy, {"cache_dir": str(fitted["cache"])}, tmp_path / "out",
                  progress_lines=False)
     assert not (tmp_path / "out").exists()
+
+
+def test_a_fit_of_another_problem_is_refused_with_one_line(tmp_path):
+    """A spring chain's run (fitted from Python: no .hydra/, its settings in result.json):
+    exit 2, one line, nothing written."""
     spring = tmp_path / "spring"
-    assert run_fit_app(spring, "solver.max_iter=1").returncode == 0
+    fit(build_problem("spring1d", {"n": 8}), {"name": "gauss_newton", "max_iter": 1},
+        run_dir=spring, options=FitOptions(progress=False))
     with pytest.raises(FitConfigError, match="is a fit of problem spring1d; simulate applies"):
         simulate(spring, progress_lines=False)
+    out = tmp_path / "out"
+    proc = run_simulate_app(out, f"run={spring}")
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert proc.stderr.strip().splitlines() == [
+        f"error: run={spring} is a fit of problem spring1d; simulate applies the material of "
+        "a body fitted to an animation (problem=animation or arm3d)"]
+    assert not out.exists()
+    proc = run_simulate_app(out, "problem.path=/nowhere")
+    assert proc.returncode == 2 and proc.stderr.startswith("error: run=<the directory of a "
+                                                           "fitted run> is required")
+    assert not out.exists()
 
 
+@pytest.mark.slow      # a resumed fit of the capsule through the app
 def test_a_resume_without_the_cache_uses_the_runs_mesh(fitted, tmp_path):
     """The cache entry gone: the resume builds the body on the run's mesh.npz (the
     checkpoint's mesh digest agrees) and continues; nothing is tetrahedralised."""

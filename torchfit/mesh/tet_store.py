@@ -68,7 +68,8 @@ class StoredMesh:
             return "its rest surface's faces differ from the fitted body's"
         if not np.array_equal(v, self.surface_vertices):
             moved = float(np.abs(v - self.surface_vertices).max())
-            return f"its rest surface's vertices differ from the fitted body's (by up to {moved:.3g})"
+            return (f"its rest surface's vertices differ from the fitted body's (by up to "
+                    f"{moved:.3g})")
         ours = options.as_dict()
         changed = sorted(k for k in ours if ours[k] != self.options.get(k))
         if changed:

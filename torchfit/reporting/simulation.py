@@ -48,7 +48,8 @@ def write_frames(run_dir: Path, problem: Any, x: Tensor, field: Tensor) -> list[
     ``frames.npz``; returns the files written."""
     surface = _numpy(problem.surface(x))
     positions = _numpy(x)
-    return [*_write_obj_sequence(run_dir / FRAMES_DIR, surface, np.asarray(problem.animation.faces)),
+    faces = np.asarray(problem.animation.faces)
+    return [*_write_obj_sequence(run_dir / FRAMES_DIR, surface, faces),
             _write_vtu(run_dir / VTU_FILE, problem, positions, _numpy(field)),
             _write_npz(run_dir / FRAMES_NPZ, problem, positions, surface, _numpy(field))]
 

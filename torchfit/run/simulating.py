@@ -180,7 +180,7 @@ def _input_digests(checkpoint: Path) -> dict[str, str] | None:
 
 
 def simulate(run: str | Path, settings: Mapping[str, Any] | None = None,
-             run_dir: str | Path | None = None, *, threads: int = 0,
+             run_dir: str | Path | None = None, *, threads: int | None = None,
              progress_lines: bool = True) -> SimulationResult:
     """Simulate the material fitted in ``run`` on an animation of the same body (module
     docstring).
@@ -191,7 +191,7 @@ def simulate(run: str | Path, settings: Mapping[str, Any] | None = None,
             ``max_flexion``, ``n_frames``, ...; ``frames``: ``None`` for all).
         run_dir: where the outputs go (created; :mod:`torchfit.reporting.simulation` and
             ``result.json``); ``None``: no files.
-        threads: torch / MKL threads (0: leave as is).
+        threads: torch / MKL threads (``None`` or 0: leave as they are).
         progress_lines: one line per frame (frame i/F, Newton iterations, seconds).
     Raises:
         FitConfigError: a mismatch of parameterisation or body, a bad run (nothing written).
@@ -207,7 +207,7 @@ def simulate(run: str | Path, settings: Mapping[str, Any] | None = None,
         if (run_path / RESULT_FILE).exists():
             raise FitConfigError(f"{run_path} already holds a result ({RESULT_FILE}); choose "
                                  "another directory")
-    if threads > 0:
+    if threads:
         set_threads(threads)
     if progress_lines:
         ensure_progress_visible()
@@ -303,16 +303,32 @@ def simulate_frames(problem: RiggedBody, field: Tensor,
                     progress_lines: bool = True) -> tuple[Tensor, list[int], list[float]]:
     """Every frame's equilibrium for ``field``, one cold Newton solve per frame from the
     animated pose (as the fit's evaluation of a new point): positions ``(F, n, 3)``, Newton
-    iterations and seconds per frame; a progress line per frame."""
-    states, iterations, seconds = [], [], []
+    iterations and seconds per frame; a progress line per frame. A frame that repeats an
+    earlier frame's pose (the same rig positions and start: an animation that plays back)
+    gets that frame's solution (0 iterations), which its own solve would reproduce."""
+    states: list[Tensor] = []
+    iterations: list[int] = []
+    seconds: list[float] = []
+    seen: dict[bytes, int] = {}
     total = problem.n_frames
     names = problem.frame_names()
     quasistatic = problem.quasistatic
     with torch.no_grad(), problem.independent_simulation():
         for f in range(total):
             tick = time.perf_counter()
-            x = quasistatic(field, problem.dirichlet_positions[f:f + 1].to(field),
-                            x_init=problem.start_positions[f:f + 1].to(field))
+            rig = problem.dirichlet_positions[f:f + 1].to(field)
+            start = problem.start_positions[f:f + 1].to(field)
+            pose = rig.cpu().numpy().tobytes() + start.cpu().numpy().tobytes()
+            if pose in seen:
+                states.append(states[seen[pose]])
+                iterations.append(0)
+                seconds.append(time.perf_counter() - tick)
+                if progress_lines:
+                    progress.info("frame %d/%d (%s): the pose of frame %d/%d, its solution",
+                                  f + 1, total, names[f], seen[pose] + 1, total)
+                continue
+            seen[pose] = f
+            x = quasistatic(field, rig, x_init=start)
             states.append(x[0])
             iterations.append(int(sum(quasistatic.last_newton_iterations)))
             seconds.append(time.perf_counter() - tick)
