@@ -1,6 +1,7 @@
-"""What the two Hydra apps share: exit statuses, one-line errors, and leaving nothing behind.
+"""What the Hydra apps share: exit statuses, one-line errors, and leaving nothing behind.
 
-Exit statuses of ``experiments/fit.py`` and ``experiments/verify.py``:
+Exit statuses of ``experiments/fit.py``, ``experiments/verify.py`` and
+``experiments/simulate.py``:
 
 * 0: done (verify: every check passed);
 * 1: the work ran and failed (a derivative check failed; the simulation failed during a

@@ -42,6 +42,7 @@ matplotlib.use("Agg")   # pictures are files and TensorBoard images; never a win
 from torchfit.config import FitConfig, register_configs  # noqa: E402
 from torchfit.linalg import set_threads  # noqa: E402
 from torchfit.problems import build_problem  # noqa: E402
+from torchfit.problems.body_mesh import use_run_mesh  # noqa: E402
 from torchfit.reporting.results import write_json  # noqa: E402
 from torchfit.run import FitOptions, fit, fit_continued  # noqa: E402
 from torchfit.run.continuation import FIRST_STAGE_DIR  # noqa: E402
@@ -53,8 +54,10 @@ GUARD = RunDirGuard(sys.argv[1:])
 _started = False
 
 
-def prepare(cfg: DictConfig) -> tuple[Any, Any, FitOptions, dict[str, Any]]:
-    """Problem, solver config, options and the plain config; raises on bad input."""
+def prepare(cfg: DictConfig, run_dir: Path | None = None
+            ) -> tuple[Any, Any, FitOptions, dict[str, Any]]:
+    """Problem, solver config, options and the plain config; raises on bad input. A resume
+    builds a body on the mesh its run keeps (``mesh.npz``): no mesh cache needed."""
     config = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True, enum_to_str=True)
     assert isinstance(config, dict)
     check_top_level(config, FitConfig)
@@ -62,6 +65,8 @@ def prepare(cfg: DictConfig) -> tuple[Any, Any, FitOptions, dict[str, Any]]:
     threads = config.get("threads")
     if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0:
         set_threads(threads)     # before the build: a synthetic target is simulated there
+    if config["resume"] and run_dir is not None:
+        use_run_mesh(run_dir)
     problem = build_problem(str(config["problem"].get("name")), dict(config["problem"]))
     options = FitOptions(**{f.name: config[f.name] for f in dataclasses.fields(FitOptions)
                             if f.name in config})
@@ -80,7 +85,7 @@ def main(cfg: DictConfig) -> float:
     run_dir = Path(HydraConfig.get().runtime.output_dir).resolve()
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN
     try:
-        problem, solver, options, config = prepare(cfg)
+        problem, solver, options, config = prepare(cfg, run_dir)
         if config["continuation"]:
             result = fit_continued(problem, solver, run_dir=run_dir,
                                    resume=bool(config["resume"]), options=options,

@@ -72,16 +72,32 @@ FitConfig = dataclasses.make_dataclass("FitConfig", [
 ])
 FitConfig.__module__ = __name__
 
-#: Top level of ``experiments/verify.py``; ``solver`` is unused (a problem's default solver,
-#: membrane2d's, may fill it).
+#: ``solver`` of the apps that do not fit: unused (a problem config may name one, e.g.
+#: membrane2d's default solver)
+_UNUSED_SOLVER = _field("solver", Any, default=None)
+
+#: Top level of ``experiments/verify.py``; ``solver`` is unused.
 VerifyConfig = dataclasses.make_dataclass("VerifyConfig", [
     _field("problem", Any, default=MISSING),
     *_fields_of(VerifyOptions, ["seed", "at", "perturbation", "taylor_tol", "dot_tol",
                                 "fd_tol"]),
-    _field("solver", Any, default=None),
+    _UNUSED_SOLVER,
     *_fields_of(VerifyOptions, ["threads"]),
 ])
 VerifyConfig.__module__ = __name__
+
+
+#: Top level of ``experiments/simulate.py``: ``run``, the fitted run (its directory or
+#: ``params.pt``); ``problem``, the fit's problem group with the overrides that make the
+#: animation to simulate (the rest of the fit's settings come from the run); ``solver`` is
+#: unused (a problem config may name one).
+SimulateConfig = dataclasses.make_dataclass("SimulateConfig", [
+    _field("run", str, default=MISSING),
+    _field("problem", Any, default=MISSING),
+    _UNUSED_SOLVER,
+    *_fields_of(FitOptions, ["progress", "threads"]),
+])
+SimulateConfig.__module__ = __name__
 
 
 def register_configs() -> None:
@@ -89,6 +105,7 @@ def register_configs() -> None:
     cs = ConfigStore.instance()
     cs.store(name="fit_schema", node=FitConfig)
     cs.store(name="verify_schema", node=VerifyConfig)
+    cs.store(name="simulate_schema", node=SimulateConfig)
     for name, entry in PROBLEMS.items():
         cs.store(group="schema/problem", name=name, node=entry.config_class)
     for name, entry in SOLVERS.items():

@@ -493,3 +493,8 @@ def _write_entry(path: Path, key: str, points: np.ndarray, cells: np.ndarray,
                 os.unlink(tmp)
             except OSError:
                 pass
+
+
+# what a run's own copy of its mesh (tet_store.py) matches against
+cache_key = _cache_key
+pytetwild_version = _pytetwild_version

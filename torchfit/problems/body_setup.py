@@ -17,7 +17,8 @@ from typing import Any, Iterator
 from ..mesh import MeshError
 from ..mesh.animation_format import Animation, AnimationError
 from ..mesh.rig_check import RigReport, check_animation
-from ..mesh.tetrahedralize import TetMesh, TetOptions, default_cache_dir, tetrahedralize
+from ..mesh.tet_store import tetrahedralize_kept
+from ..mesh.tetrahedralize import TetMesh, TetOptions, default_cache_dir
 from ..physics.equilibrium.newton import newton_progress
 from ..steps import count, step
 from .config import ProblemConfigError
@@ -71,17 +72,22 @@ def first_simulation(n_frames: int, n_tets: int, model: str) -> Iterator[None]:
         progress.result = f"{count(n_frames)} frames in equilibrium"
 
 
+def tet_options(cfg: Any) -> TetOptions:
+    """The tetrahedralisation options of the ``tet_*`` settings."""
+    return TetOptions(edge_length_fac=cfg.tet_edge_length, epsilon=cfg.tet_epsilon,
+                      stop_energy=cfg.tet_stop_energy, optimize=cfg.tet_optimize,
+                      count=cfg.tet_count)
+
+
 def tet_mesh(cfg: Any, animation: Animation) -> TetMesh:
     """The rest surface tetrahedralised with the ``tet_*`` settings (``tet_count``: a
-    target count, :mod:`torchfit.mesh.tet_size`), cached in ``cache_dir``."""
-    options = TetOptions(edge_length_fac=cfg.tet_edge_length, epsilon=cfg.tet_epsilon,
-                         stop_energy=cfg.tet_stop_energy, optimize=cfg.tet_optimize,
-                         count=cfg.tet_count)
+    target count, :mod:`torchfit.mesh.tet_size`): a run's own mesh registered for it
+    (:mod:`torchfit.mesh.tet_store`), else the cache in ``cache_dir``."""
     cache = Path(cfg.cache_dir).expanduser() / "tetmesh" if cfg.cache_dir else \
         default_cache_dir()
     try:
         # the surface's warnings were given once, with the animation's name
-        return tetrahedralize(animation.rest_vertices, animation.faces, options,
-                              cache_dir=cache, warn=False)
+        return tetrahedralize_kept(animation.rest_vertices, animation.faces, tet_options(cfg),
+                                   cache_dir=cache, warn=False)
     except MeshError as err:
         raise ProblemConfigError(f"{animation.path}: {err}") from err

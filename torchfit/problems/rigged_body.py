@@ -43,7 +43,7 @@ from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, ge
 from ..steps import count, step
 from .base import InverseProblem, array_digest
 from .body_grid import block_nodes, blocks_field, grid_parameterization
-from .body_setup import animation_summary, check_rig, first_simulation, tet_mesh
+from .body_setup import animation_summary, check_rig, first_simulation, tet_mesh, tet_options
 from .body_report import (BODY_METRICS, body_metrics, frame_report, inverted_counts,
                           min_volume_ratios, region_summary, surface_distances, volume_change)
 from .config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
@@ -185,7 +185,9 @@ class RiggedBody(InverseProblem):
         self._other_models: dict[str, QuasistaticElasticity] = {}
 
     def tetrahedralize(self, cfg: RiggedBodyConfig, animation: Animation) -> TetMesh:
-        """The rest surface's tet mesh (:func:`.body_setup.tet_mesh`)."""
+        """The rest surface's tet mesh (:func:`.body_setup.tet_mesh`; a run's own mesh,
+        ``mesh.npz``, before the cache: :mod:`torchfit.mesh.tet_store`)."""
+        self.tet_options = tet_options(cfg)
         return tet_mesh(cfg, animation)
 
     # -- regions and the joint ----------------------------------------------------------

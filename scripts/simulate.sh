@@ -1,0 +1,8 @@
+#!/usr/bin/env bash
+# Use a fitted material (experiments/simulate.py) in the project's virtual environment.
+#   scripts/simulate.sh run=<fitted run>                                  # the fit's animation
+#   scripts/simulate.sh run=<arm run> problem.max_flexion=90 problem.n_frames=12 problem.frames=null
+#   scripts/simulate.sh run=<run> problem.path=<another animation of the same body>
+source "$(dirname "${BASH_SOURCE[0]}")/_venv.sh"
+cd "$ROOT"
+exec "$TORCHFIT_PYTHON" experiments/simulate.py "$@"

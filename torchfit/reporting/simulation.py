@@ -1,0 +1,107 @@
+"""The files of ``simulate`` (a fitted material on an animation of the same body).
+
+Into the simulation's directory:
+
+``frames/frame_NNN.obj``
+    the simulated surface of every frame on the user's own vertices and faces (the
+    animation's faces, vertex order of its rest surface; 17 significant digits);
+``body.vtu``
+    the tetrahedral mesh at rest for ParaView (meshio): cell data ``E`` (the fitted field),
+    ``region``; point data ``displacement_NNN`` per frame (``Warp By Vector`` shows one);
+``frames.npz``
+    ``rest_points``, ``cells``, ``positions`` ``(F, n, 3)`` of the tetrahedron vertices,
+    ``surface`` ``(F, V, 3)`` of the user's vertices, ``field``;
+``simulation.png``
+    the frame of largest mean surface error: the animation | the simulation coloured by
+    its distance to the animation;
+``result.json``
+    written by the caller (:mod:`torchfit.run.simulating`).
+
+:func:`write_frames` is the one function that writes the simulated frames (every format a
+frame sequence goes out in; a new format is a line there). Nothing here simulates.
+"""
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+from torch import Tensor
+
+from ..mesh import write_obj
+from .body import FRAMES_DIR, VTU_FILE, surface_figure
+from .figures import save_png
+from .results import atomic_write
+
+SIMULATION_PNG = "simulation.png"
+FRAMES_NPZ = "frames.npz"
+
+
+def _numpy(x: Tensor) -> np.ndarray:
+    return x.detach().cpu().numpy()
+
+
+def write_frames(run_dir: Path, problem: Any, x: Tensor, field: Tensor) -> list[Path]:
+    """Every output of the simulated frames ``x`` ``(F, n, 3)`` (tet vertex positions) of a
+    body problem with ``field`` per tetrahedron: the OBJ sequence, ``body.vtu``,
+    ``frames.npz``; returns the files written."""
+    surface = _numpy(problem.surface(x))
+    positions = _numpy(x)
+    faces = np.asarray(problem.animation.faces)
+    return [*_write_obj_sequence(run_dir / FRAMES_DIR, surface, faces),
+            _write_vtu(run_dir / VTU_FILE, problem, positions, _numpy(field)),
+            _write_npz(run_dir / FRAMES_NPZ, problem, positions, surface, _numpy(field))]
+
+
+def _write_obj_sequence(folder: Path, surface: np.ndarray, faces: np.ndarray) -> list[Path]:
+    folder.mkdir(exist_ok=True)
+    paths = []
+    for f in range(surface.shape[0]):
+        path = folder / f"frame_{f:03d}.obj"
+        write_obj(path, surface[f], faces)
+        paths.append(path)
+    return paths
+
+
+def _write_vtu(path: Path, problem: Any, positions: np.ndarray, field: np.ndarray) -> Path:
+    import meshio
+
+    points = np.asarray(problem.mesh.points)
+    cell_data = {"E": [field]}
+    if getattr(problem, "tet_regions", None) is not None:
+        cell_data["region"] = [np.asarray(problem.tet_regions, dtype=np.int32)]
+    point_data = {f"displacement_{f:03d}": positions[f] - points
+                  for f in range(positions.shape[0])}
+    mesh = meshio.Mesh(points, [("tetra", np.asarray(problem.mesh.cells))],
+                       point_data=point_data, cell_data=cell_data)
+    tmp = path.with_name(path.name + ".tmp.vtu")
+    meshio.write(str(tmp), mesh)
+    tmp.replace(path)
+    return path
+
+
+def _write_npz(path: Path, problem: Any, positions: np.ndarray, surface: np.ndarray,
+               field: np.ndarray) -> Path:
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, rest_points=problem.mesh.points, cells=problem.mesh.cells,
+                        positions=positions, surface=surface, field=field)
+    atomic_write(path, lambda f: f.write(buffer.getvalue()))
+    return path
+
+
+def comparison_picture(run_dir: Path, problem: Any, x: Tensor, frame: int,
+                       frame_names: Sequence[str]) -> Path:
+    """``simulation.png``: the animation at ``frame`` beside the simulation, coloured by the
+    distance of every surface vertex to the animation's."""
+    error = _numpy(problem.surface_error_field(x))[frame]
+    vmax = float(error.max()) or 1.0
+    panels = [("animation (target)", _numpy(problem.clean_surface())[frame], None),
+              (f"simulated, fitted E\nmean error {1e3 * float(error.mean()):.2f} mm",
+               _numpy(problem.surface(x))[frame], error)]
+    fig = surface_figure(panels, np.asarray(problem.animation.faces), vmax,
+                         title=f"{frame_names[frame]} (colour: surface error, 0 to "
+                               f"{1e3 * vmax:.1f} mm)")
+    path = run_dir / SIMULATION_PNG
+    save_png(fig, path)
+    return path
