@@ -41,6 +41,7 @@ from ..physics import NewtonOptions
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
 from .base import InverseProblem, array_digest
 from .body_grid import block_nodes, blocks_field, grid_parameterization
+from .modulus_bounds import check_bounds, modulus_bounds, theta_bounds
 from .body_report import (BODY_METRICS, body_metrics, frame_report, inverted_counts,
                           min_volume_ratios, region_summary, surface_distances, volume_change)
 from .config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
@@ -83,6 +84,7 @@ class RiggedBody(InverseProblem):
         require_setting(cfg.tet_edge_length <= 1, cfg, "tet_edge_length", "is a fraction of "
                         "the bounding-box diagonal: must lie in (0, 1] (e.g. 0.05)")
         check_newton_settings(cfg)
+        check_bounds(cfg)
         require_setting(cfg.frames is None or len(cfg.frames) >= 1, cfg, "frames",
                         "must list at least one frame (or be null for all)")
         require_setting(cfg.frames is None or len(set(cfg.frames)) == len(cfg.frames), cfg,
@@ -459,7 +461,11 @@ class RiggedBody(InverseProblem):
         """Mean, min, max and volume-weighted mean of ``field`` per region (all tetrahedra
         as one region ``body`` when there are no labels)."""
         return region_summary(field.detach().cpu().numpy(), self.mesh.signed_volumes(),
-                              self.tet_regions, self.region_names)
+                              self.tet_regions, self.region_names, modulus_bounds(self.cfg))
+
+    def theta_bounds(self) -> tuple[Tensor, Tensor] | None:
+        """``problem.E_min`` / ``E_max`` on ``theta`` (:mod:`.modulus_bounds`)."""
+        return theta_bounds(self.cfg, self.parameterization.n_params, self.theta0)
 
     def describe(self) -> dict[str, Any]:
         out = super().describe()

@@ -36,7 +36,7 @@ from .lock import hold
 from .options import FitConfigError, FitOptions, plain_settings
 from .outputs import RunOutputs
 from .result import FitResult
-from .solver import build_solver
+from .solver import build_solver, check_start_in_bounds
 from .start import initial_theta
 
 log = logging.getLogger("torchfit.run")
@@ -81,6 +81,7 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
     options.check(problem)
     solver = build_solver(problem, solver)
     start = None if init is None else initial_theta(problem, init)
+    check_start_in_bounds(solver, start, init)
     run_path = None if run_dir is None else Path(run_dir).resolve()
     if resume and run_path is None:
         raise FitConfigError("resume=True needs the run_dir of the run to continue")
