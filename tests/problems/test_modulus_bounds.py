@@ -18,7 +18,7 @@ from torchfit.problems import ProblemConfigError
 from torchfit.problems.body_report import region_summary
 from torchfit.problems.config import Transform
 from torchfit.problems.modulus_bounds import (bounds_apply, check_bounds, modulus_bounds,
-                                              theta_bounds)
+                                              region_report, theta_bounds)
 from torchfit.problems.rigged_body_config import RiggedBodyConfig, Target
 
 DATA = Path(__file__).resolve().parents[1] / "data"
@@ -103,3 +103,20 @@ def test_app_refuses_bad_bounds_in_one_line_and_writes_nothing(tmp_path):
     lines = [line for line in proc.stderr.strip().splitlines() if line.strip()]
     assert len(lines) == 1 and "problem.E_min=3" in lines[0], proc.stderr
     assert not run.exists() or not any(run.iterdir())
+
+
+def test_region_report_counts_the_parameters_on_each_bound_through_the_basis():
+    """A grid node on a bound shows in the parameters that act on a region (its pre-image
+    under the basis), even where no tetrahedron's blended modulus is on the bound."""
+    basis = torch.tensor([[1.0, 0.0, 0.0], [0.5, 0.5, 0.0], [0.0, 0.5, 0.5], [0.0, 0.0, 1.0],
+                          [0.0, 0.5, 0.5]], dtype=torch.float64)
+    values = torch.tensor([0.01, 1.0, 100.0], dtype=torch.float64)
+    labels = np.array([0, 0, 1, 1, 2])
+    out = region_report(basis @ values, np.ones(5), labels, ["a", "b", "c"], basis.to_sparse(),
+                        (0.01, 100.0))
+    assert out["a"]["params"] == 2 and out["a"]["params_at_lower"] == 0.5
+    assert out["a"]["params_at_upper"] == 0.0 and out["a"]["at_lower"] == 0.5
+    assert out["b"]["params"] == 2 and out["b"]["params_at_upper"] == 0.5
+    assert out["c"]["params_at_upper"] == 0.5 and out["c"]["at_upper"] == 0.0
+    assert "params" not in region_report(basis @ values, np.ones(5), labels, ["a", "b", "c"],
+                                         basis, None)["a"]

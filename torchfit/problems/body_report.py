@@ -14,7 +14,9 @@ import torch
 from torch import Tensor
 
 from ..mesh import signed_volumes
-from .modulus_bounds import fraction_on_bounds
+
+#: a value within this relative distance of a bound is on it (region_summary's bounds)
+ON_BOUND_RTOL = 1e-6
 
 #: the body metrics (PROBLEMS.md) after the generic ones, in this order
 BODY_METRICS = ("surface_err_mean", "surface_err_max", "surface_err_reduction",
@@ -93,3 +95,13 @@ def region_summary(values: np.ndarray, volumes: np.ndarray, labels: np.ndarray |
                                           / volumes[mask].sum()),
                      **fraction_on_bounds(values[mask], bounds)}
     return out
+
+
+def fraction_on_bounds(values, bounds: tuple[float, float] | None) -> dict[str, float]:
+    """``{'at_lower': ..., 'at_upper': ...}``: fractions of ``values`` (a region's
+    tetrahedra) on each bound (``{}`` without bounds)."""
+    if bounds is None or len(values) == 0:
+        return {}
+    low, high = bounds
+    return {"at_lower": float((values <= low * (1 + ON_BOUND_RTOL)).mean()),
+            "at_upper": float((values >= high * (1 - ON_BOUND_RTOL)).mean())}

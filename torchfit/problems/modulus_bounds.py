@@ -20,11 +20,10 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from .body_report import ON_BOUND_RTOL, region_summary
 from .config import Transform, require_setting
 from .rigged_body_config import RiggedBodyConfig, Target
 
-#: a tetrahedron whose modulus is within this relative distance of a bound is on it
-ON_BOUND_RTOL = 1e-6
 
 
 def bounds_apply(cfg: RiggedBodyConfig) -> bool:
@@ -69,11 +68,51 @@ def theta_bounds(cfg: RiggedBodyConfig, n_params: int, like: Tensor
             torch.full((n_params,), high, dtype=like.dtype, device=like.device))
 
 
-def fraction_on_bounds(values, bounds: Optional[tuple[float, float]]) -> dict[str, float]:
-    """``{'at_lower': ..., 'at_upper': ...}``: fractions of ``values`` (a region's
-    tetrahedra) on each bound (``{}`` without bounds)."""
-    if bounds is None or len(values) == 0:
-        return {}
+def add_parameter_fractions(summary: dict[str, dict[str, float]], basis: Optional[Tensor],
+                            field: Tensor, labels, names: list[str],
+                            bounds: Optional[tuple[float, float]]) -> None:
+    """Add to each region of ``summary`` (:func:`~.body_report.region_summary`) the
+    parameters that act on it (a non-zero basis weight in one of its tetrahedra:
+    ``params``) and the fractions of them on each bound (``params_at_lower``,
+    ``params_at_upper``). A grid node on a bound rarely puts a tetrahedron on it (the
+    trilinear weights mix it with its neighbours), so this is where a bound shows.
+
+    The parameters' moduli are the least-squares pre-image of ``field`` under ``basis``
+    (exact: the basis has full column rank on the parameters that act on some tetrahedron);
+    ``basis=None`` (one parameter per tetrahedron): the field itself."""
+    if bounds is None:
+        return
+    field = field.detach().to(torch.float64).cpu()
+    n_cells = field.numel()
+    labels_t = torch.zeros(n_cells, dtype=torch.long) if labels is None \
+        else torch.as_tensor(labels, dtype=torch.long)
+    if basis is None:
+        dense = None
+        values = field
+    else:
+        dense = (basis.to_dense() if basis.layout != torch.strided else basis).to(field).cpu()
+        acting = (dense != 0).any(dim=0)
+        values = torch.zeros(dense.shape[1], dtype=field.dtype)
+        values[acting] = torch.linalg.lstsq(dense[:, acting], field[:, None]).solution[:, 0]
     low, high = bounds
-    return {"at_lower": float((values <= low * (1 + ON_BOUND_RTOL)).mean()),
-            "at_upper": float((values >= high * (1 - ON_BOUND_RTOL)).mean())}
+    on_lower = values <= low * (1 + ON_BOUND_RTOL)
+    on_upper = values >= high * (1 - ON_BOUND_RTOL)
+    for r, name in enumerate(names or ["body"]):
+        if name not in summary:
+            continue
+        cells = labels_t == r
+        region_params = cells if dense is None else (dense[cells] != 0).any(dim=0)
+        count = int(region_params.sum())
+        summary[name].update({
+            "params": count,
+            "params_at_lower": float(on_lower[region_params].sum()) / max(count, 1),
+            "params_at_upper": float(on_upper[region_params].sum()) / max(count, 1)})
+
+
+def region_report(field: Tensor, volumes, labels, names: list[str], basis: Optional[Tensor],
+                  bounds: Optional[tuple[float, float]]) -> dict[str, dict[str, float]]:
+    """:func:`~.body_report.region_summary` of ``field`` with, under ``bounds``, the
+    tetrahedra and the parameters on each bound (:func:`add_parameter_fractions`)."""
+    out = region_summary(field.detach().cpu().numpy(), volumes, labels, names, bounds)
+    add_parameter_fractions(out, basis, field, labels, names, bounds)
+    return out

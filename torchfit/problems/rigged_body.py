@@ -41,11 +41,11 @@ from ..physics import NewtonOptions
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
 from .base import InverseProblem, array_digest
 from .body_grid import block_nodes, blocks_field, grid_parameterization
-from .modulus_bounds import check_bounds, modulus_bounds, theta_bounds
 from .body_report import (BODY_METRICS, body_metrics, frame_report, inverted_counts,
-                          min_volume_ratios, region_summary, surface_distances, volume_change)
+                          min_volume_ratios, surface_distances, volume_change)
 from .config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
                      resolve_backend, setting_error)
+from .modulus_bounds import check_bounds, modulus_bounds, region_report, theta_bounds
 from .rigged_body_config import Layout, RiggedBodyConfig, Target, Truth
 
 
@@ -459,9 +459,11 @@ class RiggedBody(InverseProblem):
 
     def region_summary(self, field: Tensor) -> dict[str, dict[str, float]]:
         """Mean, min, max and volume-weighted mean of ``field`` per region (all tetrahedra
-        as one region ``body`` when there are no labels)."""
-        return region_summary(field.detach().cpu().numpy(), self.mesh.signed_volumes(),
-                              self.tet_regions, self.region_names, modulus_bounds(self.cfg))
+        as one region ``body`` when there are no labels); with bounds, the tetrahedra and
+        the parameters on each bound (:mod:`.modulus_bounds`)."""
+        return region_report(field, self.mesh.signed_volumes(), self.tet_regions,
+                             self.region_names, self.parameterization.basis,
+                             modulus_bounds(self.cfg))
 
     def theta_bounds(self) -> tuple[Tensor, Tensor] | None:
         """``problem.E_min`` / ``E_max`` on ``theta`` (:mod:`.modulus_bounds`)."""
@@ -479,6 +481,7 @@ class RiggedBody(InverseProblem):
                     "tetrahedralize_s": float(self.tet.build_seconds),
                     "backend": self.backend, "full_bend_frame": self.full_bend_frame,
                     "joint_tets": int(len(self.joint_cells)),
+                    "E_bounds": modulus_bounds(self.cfg),
                     "surface_err_mean_homogeneous": self.homogeneous_surface_error()})
         if os.environ.get("TORCHFIT_CACHE_DIR"):
             out["cache_dir"] = os.environ["TORCHFIT_CACHE_DIR"]
