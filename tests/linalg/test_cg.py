@@ -142,3 +142,28 @@ def test_cgls_with_a_box_that_holds_the_solution_is_plain_cgls():
     assert float(plain.x.abs().max()) < 1.0
     assert boxed.stop_reason == plain.stop_reason == "tolerance"
     assert torch.equal(boxed.x, plain.x) and boxed.iterations == plain.iterations
+
+
+def test_cgls_with_an_asymmetric_box_stops_on_its_boundary():
+    """``box=(lo, hi)``: a symmetric box gives the ``max_abs`` iterates bit for bit; an
+    asymmetric one (room 0 below for some unknowns) stops inside it, on its boundary."""
+    g = torch.Generator().manual_seed(5)
+    q, _ = torch.linalg.qr(torch.randn(40, 12, generator=g, dtype=torch.float64))
+    a = q * torch.logspace(0, -5, 12, dtype=torch.float64)
+    b = torch.randn(40, generator=g, dtype=torch.float64)
+    ones = torch.ones(12, dtype=torch.float64)
+    symmetric = cgls(lambda v: a @ v, lambda w: a.T @ w, b, 12, max_iter=100,
+                     normal_rtol=1e-13, box=(-ones, ones))
+    scalar = cgls(lambda v: a @ v, lambda w: a.T @ w, b, 12, max_iter=100,
+                  normal_rtol=1e-13, max_abs=1.0)
+    assert torch.equal(symmetric.x, scalar.x) and symmetric.stop_reason == "boundary"
+    lo = torch.where(torch.arange(12) % 2 == 0, -0.05, -0.5).to(torch.float64)
+    hi = torch.full((12,), 0.3, dtype=torch.float64)
+    boxed = cgls(lambda v: a @ v, lambda w: a.T @ w, b, 12, max_iter=100,
+                 normal_rtol=1e-13, box=(lo, hi))
+    assert boxed.stop_reason == "boundary"
+    assert bool((boxed.x >= lo).all() and (boxed.x <= hi).all())
+    on_boundary = torch.isclose(boxed.x, lo, atol=1e-12) | torch.isclose(boxed.x, hi, atol=1e-12)
+    assert bool(on_boundary.any())
+    assert torch.allclose(boxed.Ax, a @ boxed.x, atol=1e-12)
+    assert float((a @ boxed.x - b).norm()) < float(b.norm())

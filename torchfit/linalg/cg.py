@@ -80,7 +80,8 @@ def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor]
          project: Callable[[Tensor], Tensor] | None = None,
          rmatvec_b: Tensor | None = None, normal_rtol: float = 1e-14,
          preconditioner: Callable[[Tensor], Tensor] | None = None,
-         max_abs: float = 0.0) -> CGLSResult:
+         max_abs: float = 0.0,
+         box: tuple[Tensor, Tensor] | None = None) -> CGLSResult:
     """(Preconditioned) CGLS for ``min ||A x - b||^2 + shift ||x||^2`` from ``x = 0``.
 
     Stops when the least-squares residual ``||A x - b||`` drops to
@@ -103,6 +104,10 @@ def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor]
             ``'boundary'``). The iterates' norms grow from ``x = 0``, so this keeps the
             first, best-determined Krylov directions instead of clipping an iterate that
             the later ones (small singular values) have taken far outside.
+        box: ``(lower, upper)`` ``(n,)`` each with ``lower <= 0 <= upper`` (entries may be
+            infinite): the same trust region for a box of any shape, e.g. the room a bounded
+            parameter has left (``theta_min - theta``, ``theta_max - theta``); used with or
+            instead of ``max_abs`` (the caller intersects them).
         preconditioner: ``s (n,) -> M s (n,)`` with ``M`` SPD, an approximation of
             ``(A^T A + shift I)^{-1}``: CG on the normal equations in the ``M^{-1}`` inner
             product. The iterates solve the same problem; only the Krylov space changes
@@ -144,7 +149,16 @@ def cgls(matvec: Callable[[Tensor], Tensor], rmatvec: Callable[[Tensor], Tensor]
             iterations -= 1
             break
         alpha = gamma / delta
-        if max_abs > 0:
+        if box is not None:
+            reach = _general_box_reach(x, p, box)
+            if float(alpha) > reach:
+                x = torch.minimum(torch.maximum(x + reach * p, box[0]), box[1])
+                Ax = Ax + reach * q
+                r = r - reach * q
+                r_norm = float(torch.linalg.vector_norm(r))
+                stop = "boundary"
+                break
+        elif max_abs > 0:
             reach = _box_reach(x, p, max_abs)
             if float(alpha) > reach:
                 # clamped: the point is on the boundary, not round-off outside it
@@ -179,3 +193,13 @@ def _box_reach(x: Tensor, p: Tensor, radius: float) -> float:
         return float("inf")
     room = radius - torch.sign(p[moving]) * x[moving]
     return float(torch.clamp(room, min=0.0).div(p[moving].abs()).min())
+
+
+def _general_box_reach(x: Tensor, p: Tensor, box: tuple[Tensor, Tensor]) -> float:
+    """The largest ``t >= 0`` with ``lower <= x + t p <= upper`` (``x`` inside the box)."""
+    lower, upper = box
+    room = torch.where(p > 0, upper - x, torch.where(p < 0, lower - x, torch.inf))
+    moving = p != 0
+    if not bool(moving.any()):
+        return float("inf")
+    return float(torch.clamp(room[moving] / p[moving], min=0.0).min())

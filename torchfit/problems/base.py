@@ -371,6 +371,12 @@ class InverseProblem:
         return ResidualFunction(self.forward, self.data, self.noise_level, gauge, jacobian,
                                 accuracy=self.simulation_accuracy(), products=products)
 
+    def theta_bounds(self) -> tuple[Tensor, Tensor] | None:
+        """``(lower, upper)`` ``(n_params,)`` bounds on ``theta`` that the solver keeps
+        (``torchfit.solvers.bounds``; ``-inf`` / ``inf`` entries: unbounded), or ``None``
+        (the default: unbounded)."""
+        return None
+
     def simulation_accuracy(self) -> float | None:
         """Relative accuracy of :meth:`simulate` (``None``: machine precision); problems
         solved by Newton to a tolerance say so, for the finite-difference check."""

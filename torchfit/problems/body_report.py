@@ -15,6 +15,9 @@ from torch import Tensor
 
 from ..mesh import signed_volumes
 
+#: a value within this relative distance of a bound is on it (region_summary's bounds)
+ON_BOUND_RTOL = 1e-6
+
 #: the body metrics (PROBLEMS.md) after the generic ones, in this order
 BODY_METRICS = ("surface_err_mean", "surface_err_max", "surface_err_reduction",
                 "joint_volume_change", "inverted_tets")
@@ -72,10 +75,13 @@ def frame_report(errors: Tensor, joint_change: np.ndarray,
 
 
 def region_summary(values: np.ndarray, volumes: np.ndarray, labels: np.ndarray | None,
-                   names: list[str]) -> dict[str, dict[str, float]]:
+                   names: list[str], bounds: tuple[float, float] | None = None
+                   ) -> dict[str, dict[str, float]]:
     """Count, volume, mean, min, max and volume-weighted mean of per-cell ``values`` per
     region (``labels`` ``(m,)`` indexing ``names``; all cells as one region ``body`` when
-    ``labels`` is ``None``); regions without cells are left out."""
+    ``labels`` is ``None``); regions without cells are left out. With ``bounds``
+    ``(low, high)``, also the fractions of the region's cells on each bound (``at_lower``,
+    ``at_upper``: within a relative 1e-6 of it)."""
     labels = labels if labels is not None else np.zeros(len(values), dtype=np.int64)
     out = {}
     for r, name in enumerate(names or ["body"]):
@@ -86,5 +92,16 @@ def region_summary(values: np.ndarray, volumes: np.ndarray, labels: np.ndarray |
                      "mean": float(values[mask].mean()), "min": float(values[mask].min()),
                      "max": float(values[mask].max()),
                      "volume_mean": float((values[mask] * volumes[mask]).sum()
-                                          / volumes[mask].sum())}
+                                          / volumes[mask].sum()),
+                     **fraction_on_bounds(values[mask], bounds)}
     return out
+
+
+def fraction_on_bounds(values, bounds: tuple[float, float] | None) -> dict[str, float]:
+    """``{'at_lower': ..., 'at_upper': ...}``: fractions of ``values`` (a region's
+    tetrahedra) on each bound (``{}`` without bounds)."""
+    if bounds is None or len(values) == 0:
+        return {}
+    low, high = bounds
+    return {"at_lower": float((values <= low * (1 + ON_BOUND_RTOL)).mean()),
+            "at_upper": float((values >= high * (1 - ON_BOUND_RTOL)).mean())}

@@ -45,10 +45,11 @@ from .base import InverseProblem, array_digest
 from .body_grid import block_nodes, blocks_field, grid_parameterization
 from .body_setup import animation_summary, check_rig, first_simulation, tet_mesh, tet_options
 from .body_report import (BODY_METRICS, body_metrics, frame_report, inverted_counts,
-                          min_volume_ratios, region_summary, surface_distances, volume_change)
+                          min_volume_ratios, surface_distances, volume_change)
 from .config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
                      resolve_backend, setting_error)
 from .held_out import NO_VALIDATION, split_frames, validation_problem
+from .modulus_bounds import check_bounds, modulus_bounds, region_report, theta_bounds
 from .rigged_body_config import Layout, RiggedBodyConfig, Target, Truth
 
 
@@ -91,6 +92,7 @@ class RiggedBody(InverseProblem):
         require_setting(cfg.tet_edge_length <= 1, cfg, "tet_edge_length", "is a fraction of "
                         "the bounding-box diagonal: must lie in (0, 1] (e.g. 0.05)")
         check_newton_settings(cfg)
+        check_bounds(cfg)
         require_setting(cfg.frames is None or len(cfg.frames) >= 1, cfg, "frames",
                         "must list at least one frame (or be null for all)")
         require_setting(cfg.frames is None or len(set(cfg.frames)) == len(cfg.frames), cfg,
@@ -476,9 +478,15 @@ class RiggedBody(InverseProblem):
 
     def region_summary(self, field: Tensor) -> dict[str, dict[str, float]]:
         """Mean, min, max and volume-weighted mean of ``field`` per region (all tetrahedra
-        as one region ``body`` when there are no labels)."""
-        return region_summary(field.detach().cpu().numpy(), self.mesh.signed_volumes(),
-                              self.tet_regions, self.region_names)
+        as one region ``body`` when there are no labels); with bounds, the tetrahedra and
+        the parameters on each bound (:mod:`.modulus_bounds`)."""
+        return region_report(field, self.mesh.signed_volumes(), self.tet_regions,
+                             self.region_names, self.parameterization.basis,
+                             modulus_bounds(self.cfg))
+
+    def theta_bounds(self) -> tuple[Tensor, Tensor] | None:
+        """``problem.E_min`` / ``E_max`` on ``theta`` (:mod:`.modulus_bounds`)."""
+        return theta_bounds(self.cfg, self.parameterization.n_params, self.theta0)
 
     def describe(self) -> dict[str, Any]:
         out = super().describe()
@@ -492,6 +500,7 @@ class RiggedBody(InverseProblem):
                     "tetrahedralize_s": float(self.tet.build_seconds),
                     "backend": self.backend, "full_bend_frame": self.full_bend_frame,
                     "joint_tets": int(len(self.joint_cells)),
+                    "E_bounds": modulus_bounds(self.cfg),
                     "surface_err_mean_homogeneous": self.homogeneous_surface_error()})
         if self.rig_report is not None:     # the rig check's largest skinning distance
             out["rig_skinning_error"] = self.rig_report.skinning_error

@@ -73,6 +73,12 @@ class RiggedBodyConfig(ProblemConfig):
     parameters: Layout = Layout.grid
     grid: List[int] = dataclasses.field(default_factory=lambda: [4, 4, 12])   # nodes x, y, z
     E0: float = 1.0                        # initial guess, constant (the homogeneous material)
+    # bounds on the fitted modulus, kept by the solver's steps (problems/modulus_bounds.py;
+    # the defaults and why: docs/problems/bounds.md). null: on for target=rig, off for synthetic
+    bounds: Optional[bool] = None
+    E_min: float = 0.01                    # lowest modulus: a factor of E0 (E_bounds_relative)
+    E_max: float = 100.0                   # highest modulus: a factor of E0 (E_bounds_relative)
+    E_bounds_relative: bool = True         # false: E_min, E_max are moduli (units of E0)
     # auto (pardiso where installed, else scipy) | pardiso | scipy | cg
     backend: Backend = Backend.auto
     # tetrahedralisation (pytetwild): target edge length as a fraction of the bounding-box

@@ -43,7 +43,7 @@ from .lock import hold
 from .options import FitConfigError, FitOptions, plain_settings
 from .outputs import RunOutputs
 from .result import FitResult
-from .solver import build_solver
+from .solver import build_solver, check_start_in_bounds
 from .start import initial_theta
 from .validation import ValidationTracker
 
@@ -90,6 +90,7 @@ def fit(problem: InverseProblem, solver: Solver | SolverConfig | Mapping[str, An
     options.check(problem, validated=validation is not None)
     solver = build_solver(problem, solver)
     start = None if init is None else initial_theta(problem, init)
+    check_start_in_bounds(solver, start, init)
     run_path = None if run_dir is None else Path(run_dir).resolve()
     if resume and run_path is None:
         raise FitConfigError("resume=True needs the run_dir of the run to continue")

@@ -40,9 +40,28 @@ def build_solver(problem: InverseProblem, solver: Solver | SolverConfig | Mappin
     from a name/config with what its registry entry says it needs from the problem's
     parameterisation (the difference operator ``D`` and its TV groups)."""
     if isinstance(solver, Solver):
-        return solver
-    config = solver_config(solver)
-    param = problem.parameterization
-    return build(config, difference_operator=param.difference_operator,
-                 difference_groups=param.difference_groups,
-                 offered_by=f"{problem.name}'s ({type(param).__name__})")
+        built = solver
+    else:
+        config = solver_config(solver)
+        param = problem.parameterization
+        built = build(config, difference_operator=param.difference_operator,
+                      difference_groups=param.difference_groups,
+                      offered_by=f"{problem.name}'s ({type(param).__name__})")
+    bounds = problem.theta_bounds()
+    if bounds is not None and built.bounds is None:   # the problem's bounds (solvers/bounds.py)
+        built.set_bounds(*bounds)
+    return built
+
+
+def check_start_in_bounds(solver: Solver, start: Any, init: Any) -> None:
+    """Refuse a start (``init=``) outside the solver's bounds before anything is written
+    (:class:`FitConfigError`, one line naming ``init`` and what to do)."""
+    if solver.bounds is None or start is None:
+        return
+    outside = solver.bounds.outside(start)
+    if outside is not None:
+        raise FitConfigError(
+            f"init={init}: parameter {outside} ({float(start[outside]):.4g}) lies outside the "
+            f"problem's bounds on theta [{float(solver.bounds.lower[outside]):.4g}, "
+            f"{float(solver.bounds.upper[outside]):.4g}] (problem.E_min, problem.E_max); "
+            f"widen them or set problem.bounds=false")

@@ -161,6 +161,8 @@ class Solver(abc.ABC):
     """
 
     config_class: ClassVar[type[SolverConfig]]
+    #: keeps theta inside bounds given by :meth:`set_bounds` (see :mod:`.bounds`)
+    supports_bounds: ClassVar[bool] = False
 
     def __init__(self, config: SolverConfig | None = None, *, D: Tensor | None = None,
                  groups: Tensor | None = None) -> None:
@@ -176,6 +178,15 @@ class Solver(abc.ABC):
         self.iteration = 0
         self.clock: RunClock | None = None
         self._started = False
+        self.bounds: Any = None            # a .bounds.ThetaBounds after set_bounds
+
+    def set_bounds(self, lower: Tensor, upper: Tensor) -> None:
+        """Keep every iterate within ``lower <= theta <= upper`` (:mod:`.bounds`; solvers
+        with ``supports_bounds`` override this). A solver that cannot refuses
+        (:class:`SolverConfigError`, one line), as do bounds that are not a box."""
+        raise SolverConfigError(
+            f"solver={self.config.name} cannot keep the parameters within bounds; use "
+            f"solver=levenberg_marquardt or solver=gauss_newton, or turn the bounds off")
 
     # -- subclass hooks --------------------------------------------------------------------
     @abc.abstractmethod
@@ -227,6 +238,9 @@ class Solver(abc.ABC):
         callbacks = list(callbacks)
         self.residual = residual
         history: list[IterationRecord] = []
+        if self.bounds is not None:
+            self.bounds = self.bounds.to(theta0 if state is None else state["theta"])
+            self.bounds.check_start(theta0 if state is None else state["theta"])
         if state is None:
             self.iteration = 0
             self.clock = RunClock()

@@ -12,6 +12,10 @@ descent direction, ``line_search`` when no step length decreases the objective,
 ``resolution`` (converged) when a trial's misfit is bit-identical to the current one (the
 simulation cannot tell the step from the current point; shorter steps would repeat it).
 
+Bounds on ``theta`` (:meth:`~.base.Solver.set_bounds`, :mod:`.bounds`): the active
+parameters are projected out of CGLS and its trust-region box is the room the free ones
+have left (with ``max_step``'s), so the step and every shorter one stay inside.
+
 ``max_step`` (the largest change of one parameter per step) is a trust region for the
 inner CGLS (Steihaug's truncated CG with a box): it stops where its next update would
 leave ``||d||_inf <= max_step``, on the boundary, so steps are never clipped afterwards
@@ -172,7 +176,7 @@ class GaussNewton(LeastSquaresSolver):
         self._setup(theta)
         self.lin = self.adopt(self.lin)
         self.gradient = self.lin.vjp(self.lin.r)
-        self.gradient_norm0 = float(torch.linalg.vector_norm(self.gradient))
+        self.gradient_norm0 = self.stationarity(theta, self.gradient)
         self.eta = self.config.eta_max
         self.previous_norm: float | None = None
         self.norm0 = self.lin.norm
@@ -189,7 +193,7 @@ class GaussNewton(LeastSquaresSolver):
         cfg = self.config
         assert self.lin is not None
         return least_squares_stop(self.lin.norm, self.previous_norm,
-                                  float(torch.linalg.vector_norm(self.gradient)),
+                                  self.stationarity(self.lin.theta, self.gradient),
                                   self.gradient_norm0, self.residual.noise_level,
                                   cfg.tau, cfg.atol, cfg.gtol, cfg.rtol)
 
@@ -207,9 +211,9 @@ class GaussNewton(LeastSquaresSolver):
             self.preconditioner.shift = cfg.preconditioner_shift * lin.norm / max(self.norm0,
                                                                                  1e-300)
         inner = cgls(lin.jvp, lin.vjp, -lin.r, theta.numel(), residual_target=target,
-                     max_iter=cfg.cg_max_iter, project=residual.projector(theta),
+                     max_iter=cfg.cg_max_iter, project=self.projector(self.gradient),
                      rmatvec_b=-self.gradient, preconditioner=self.preconditioner,
-                     max_abs=cfg.max_step,
+                     max_abs=cfg.max_step, box=self.step_box(),
                      **({"normal_rtol": cfg.cg_rtol} if cfg.cg_rtol > 0 else {}))
         # inside the max_step box by construction (CGLS stops on its boundary)
         direction, model_change = inner.x, inner.Ax
@@ -233,6 +237,12 @@ class GaussNewton(LeastSquaresSolver):
         return self._record(step_norm, inner.iterations, eta=self.eta, step_length=step,
                             gradient_norm=float(torch.linalg.vector_norm(self.gradient)),
                             linear_residual=inner.residual_norm)
+
+    def step_box(self) -> tuple[Tensor, Tensor] | None:
+        """With bounds, CGLS's trust region: the room the free parameters have left (and
+        ``max_step``); every step length of the line search (``<= 1``) stays inside."""
+        limit = self.step_limit(self.gradient)
+        return limit if isinstance(limit, tuple) else None
 
     def _line_search(self, theta: Tensor, direction: Tensor,
                      slope: float) -> tuple[Linearization | None, float, bool]:

@@ -23,6 +23,7 @@ from torch import Tensor
 from ..linalg import CGLSResult
 from ..residual import Linearization
 from .base import Need, Solver, SolverConfig, SolverConfigError, require
+from .bounds import Box, ThetaBounds, box_scale, clip_to_box, gauge_direction, inside
 from .total_variation import check_difference_operator
 
 
@@ -63,8 +64,9 @@ def require_difference_operator(D: Optional[Tensor]) -> None:
 
 
 def box_step(lin: Linearization, direction: Tensor, model_change: Tensor,
-             limit: float) -> tuple[Tensor, Tensor]:
-    """``(d, J d)`` with no component of ``d`` beyond ``limit`` (``solver.max_step``).
+             limit: float | Box) -> tuple[Tensor, Tensor]:
+    """``(d, J d)`` with no component of ``d`` beyond ``limit`` (``solver.max_step``, or a
+    per-component box ``(lo, hi)``, see :mod:`.bounds`).
 
     ``direction`` must descend the linear model (``||r + J d|| < ||r||``, as every
     Gauss-Newton and damped step does) and ``model_change`` be its ``J d``. Each component
@@ -79,17 +81,26 @@ def box_step(lin: Linearization, direction: Tensor, model_change: Tensor,
         return direction, model_change
     if descends:
         return clipped, clipped_change
-    scale = limit / float(direction.abs().max())
+    if isinstance(limit, tuple):
+        scale = box_scale(direction, limit)
+    else:
+        scale = limit / float(direction.abs().max())
     return direction * scale, model_change * scale
 
 
-def clip_step(lin: Linearization, direction: Tensor, limit: float
+def clip_step(lin: Linearization, direction: Tensor, limit: float | Box
               ) -> tuple[Tensor, Tensor | None, bool]:
     """``(clipped d, J clipped d, whether ||r + J clipped d|| < ||r||)``; ``direction``
-    itself (and ``None``, ``True``) when no component exceeds ``limit``."""
-    if not direction.numel() or float(direction.abs().max()) <= limit:
-        return direction, None, True
-    clipped = direction.clamp(-limit, limit)
+    itself (and ``None``, ``True``) when no component exceeds ``limit`` (a number: the
+    box ``[-limit, limit]``; a pair ``(lo, hi)`` of ``(n,)`` tensors: that box)."""
+    if isinstance(limit, tuple):
+        if not direction.numel() or inside(direction, limit):
+            return direction, None, True
+        clipped = clip_to_box(direction, limit)
+    else:
+        if not direction.numel() or float(direction.abs().max()) <= limit:
+            return direction, None, True
+        clipped = direction.clamp(-limit, limit)
     clipped_change = lin.jvp(clipped)
     model = lin.r + clipped_change
     return clipped, clipped_change, float(torch.dot(model, model)) < lin.norm ** 2
@@ -163,6 +174,11 @@ class LeastSquaresSolver(Solver):
         self.lin: Linearization | None = None
         self.dense = False
 
+    supports_bounds = True
+
+    def set_bounds(self, lower: Tensor, upper: Tensor) -> None:
+        self.bounds = ThetaBounds(lower, upper)
+
     def choose_path(self, theta: Tensor) -> None:
         """Dense-Jacobian or matrix-free products for this run (from the residual and ``n``)."""
         self.dense = wants_dense_jacobian(self.residual, theta.numel(),
@@ -175,8 +191,37 @@ class LeastSquaresSolver(Solver):
         return lin
 
     def path_extra(self) -> dict[str, float]:
-        """What the records say about the path (``dense_jacobian = 1.0`` when dense)."""
-        return {"dense_jacobian": 1.0} if self.dense else {}
+        """What the records say about the path (``dense_jacobian = 1.0`` when dense) and,
+        with bounds, how many parameters sit on the lower / upper bound."""
+        extra = {"dense_jacobian": 1.0} if self.dense else {}
+        if self.bounds is not None and self.lin is not None:
+            at_lower, at_upper = self.bounds.on_bounds(self.lin.theta)
+            extra.update(at_lower_bound=float(at_lower.sum()),
+                         at_upper_bound=float(at_upper.sum()))
+        return extra
+
+    # -- bounds (see .bounds): every hook is the unbounded computation without them ------
+    def step_limit(self, gradient: Tensor) -> float | Box:
+        """The box of this iteration's step: ``max_step`` without bounds, else the room
+        the free parameters have left (intersected with ``max_step``)."""
+        if self.bounds is None:
+            return float(self.config.max_step)
+        return self.bounds.step_box(self.theta, gradient, float(self.config.max_step))
+
+    def projector(self, gradient: Tensor) -> Callable[[Tensor], Tensor] | None:
+        """The inner solves' projector: the residual's gauge projector, and with bounds
+        also the active parameters removed (:meth:`.bounds.ThetaBounds.free_projector`)."""
+        theta = self.theta
+        project = self.residual.projector(theta)
+        if self.bounds is None:
+            return project
+        return self.bounds.free_projector(theta, gradient, gauge_direction(project, theta))
+
+    def stationarity(self, theta: Tensor, gradient: Tensor) -> float:
+        """``||J^T r||`` for the stop rules; with bounds, without the active parameters."""
+        if self.bounds is not None:
+            gradient = self.bounds.free_gradient(theta, gradient)
+        return float(torch.linalg.vector_norm(gradient))
 
     @property
     def theta(self) -> Tensor:

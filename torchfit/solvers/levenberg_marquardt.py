@@ -18,6 +18,10 @@ where clipping leaves a step the linear model says does not descend, the damping
 and the damped system is solved again before any trial is simulated (see
 :meth:`LevenbergMarquardt._limit_step`).
 
+Bounds on ``theta`` (:meth:`~.base.Solver.set_bounds`, :mod:`.bounds`): the active
+parameters are projected out of the damped solve and the step's box is the room the free
+ones have left (with ``max_step``'s), handled as ``max_step``'s box is.
+
 Stop rules: :func:`~.base.least_squares_stop` (discrepancy first), then ``stalled``
 when ``lam`` exceeds ``damping_max`` times its start; ``resolution`` (converged) when a
 trial's misfit is bit-identical to the current one: the simulation cannot tell the step
@@ -160,6 +164,12 @@ class LevenbergMarquardt(LeastSquaresSolver):
     config_class = LevenbergMarquardtConfig
     config: LevenbergMarquardtConfig
 
+    def set_bounds(self, lower: Tensor, upper: Tensor) -> None:
+        require(not self.config.geodesic_acceleration, "solver.geodesic_acceleration cannot "
+                "keep the parameters within bounds (its correction leaves the step's box); "
+                "set it false or turn the bounds off")
+        super().set_bounds(lower, upper)
+
     def __init__(self, config: LevenbergMarquardtConfig | None = None, *,
                  D: Tensor | None = None, groups: Tensor | None = None) -> None:
         super().__init__(config, D=D, groups=groups)
@@ -179,7 +189,7 @@ class LevenbergMarquardt(LeastSquaresSolver):
         self.choose_path(theta)
         lin = self.lin = self.adopt(self.residual.linearize(theta))
         self.gradient = lin.vjp(lin.r)
-        self.gradient_norm0 = float(torch.linalg.vector_norm(self.gradient))
+        self.gradient_norm0 = self.stationarity(theta, self.gradient)
         if lin.norm > 0 and self.gradient_norm0 > 0:
             self.damping = cfg.damping_init * (self.gradient_norm0 / lin.norm) ** 2
         else:
@@ -198,7 +208,7 @@ class LevenbergMarquardt(LeastSquaresSolver):
         cfg = self.config
         assert self.lin is not None
         stop = least_squares_stop(self.lin.norm, self.previous_norm,
-                                  float(torch.linalg.vector_norm(self.gradient)),
+                                  self.stationarity(self.lin.theta, self.gradient),
                                   self.gradient_norm0, self.residual.noise_level,
                                   cfg.tau, cfg.atol, cfg.gtol, cfg.rtol)
         if stop is None and self.damping > cfg.damping_max * self.damping0:
@@ -218,7 +228,7 @@ class LevenbergMarquardt(LeastSquaresSolver):
             if self.laplacian is not None and self.precondition is None \
                     and inner.stop_reason == "max_iter":
                 self.laplacian_active = True
-        if cfg.max_step > 0:
+        if cfg.max_step > 0 or self.bounds is not None:     # the step's box (.bounds)
             inner, damping = self._limit_step(inner, damping, normal)
             self.damping = used_damping = damping
         direction = inner.x
@@ -292,9 +302,9 @@ class LevenbergMarquardt(LeastSquaresSolver):
         cfg = self.config
         lin = self.lin
         assert lin is not None
-        growth = 2.0
+        growth, limit = 2.0, self.step_limit(self.gradient)
         for _ in range(cfg.max_box_resolves):
-            clipped, j_clipped, descends = clip_step(lin, inner.x, cfg.max_step)
+            clipped, j_clipped, descends = clip_step(lin, inner.x, limit)
             if clipped is inner.x:
                 return inner, damping
             if descends:
@@ -302,7 +312,7 @@ class LevenbergMarquardt(LeastSquaresSolver):
             damping *= growth
             growth *= 2.0
             inner = self._damped_step(damping, normal)
-        x, Ax = box_step(lin, inner.x, inner.Ax, cfg.max_step)
+        x, Ax = box_step(lin, inner.x, inner.Ax, limit)
         return (inner if x is inner.x else dataclasses.replace(inner, x=x, Ax=Ax)), damping
 
     def _damped_step(self, damping: float, normal: DenseNormalEquations | None) -> CGLSResult:
@@ -311,8 +321,8 @@ class LevenbergMarquardt(LeastSquaresSolver):
         assert lin is not None
         if normal is not None:
             return normal.solve(-lin.r, damping, rmatvec_b=-self.gradient)
-        return _damped_solve(lin, self.gradient, damping, self.residual, lin.theta, self.config,
-                             self.precondition)
+        return _damped_solve(lin, self.gradient, damping, self.projector(self.gradient),
+                             self.config, self.precondition)
 
     def _normal_equations(self) -> DenseNormalEquations | None:
         """The exact damped solver of the current linearisation (dense path only)."""
@@ -321,7 +331,7 @@ class LevenbergMarquardt(LeastSquaresSolver):
         normal = self._normal
         if normal is None or normal.lin is not self.lin:
             normal = self._normal = DenseNormalEquations(self.lin,
-                                                         self.residual.projector(self.theta))
+                                                         self.projector(self.gradient))
         return normal
 
     def _accept(self, candidate: Linearization, gain: float) -> None:
@@ -382,11 +392,12 @@ def levenberg_marquardt(residual: ResidualFunction, theta0: Tensor,
 
 
 def _damped_solve(lin: Linearization, gradient: Tensor, damping: float,
-                  residual: ResidualFunction, theta: Tensor, cfg: LevenbergMarquardtConfig,
+                  project: Callable[[Tensor], Tensor] | None, cfg: LevenbergMarquardtConfig,
                   precondition: Callable[[Tensor], Tensor] | None = None) -> CGLSResult:
-    """CGLS on ``min ||J d + r||^2 + lam ||d||^2`` to relative normal residual ``cg_rtol``."""
-    return cgls(lin.jvp, lin.vjp, -lin.r, theta.numel(), shift=damping, residual_target=0.0,
-                max_iter=cfg.cg_max_iter, project=residual.projector(theta),
+    """CGLS on ``min ||J d + r||^2 + lam ||d||^2`` to relative normal residual ``cg_rtol``
+    (``d`` in the range of ``project``: the gauge's complement, the free parameters)."""
+    return cgls(lin.jvp, lin.vjp, -lin.r, lin.theta.numel(), shift=damping, residual_target=0.0,
+                max_iter=cfg.cg_max_iter, project=project,
                 rmatvec_b=-gradient, normal_rtol=cfg.cg_rtol, preconditioner=precondition)
 
 

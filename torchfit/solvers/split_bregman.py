@@ -32,6 +32,9 @@ steps), ``dense_jacobian`` (dense path), ``restored = 1`` (the return to an earl
 Stop reasons: ``discrepancy``, ``plateau``, ``tolerance``, ``max_iter``, ``stalled``,
 ``interrupted`` (:class:`~torchfit.records.StopReason`).
 
+Bounds on ``theta`` (:meth:`~.base.Solver.set_bounds`): handed to the inner solver, which
+keeps every iterate inside them (:mod:`.bounds`); a rejected iteration keeps ``theta``.
+
 Carried state (:meth:`SplitBregman.state_dict`, plain values): ``theta``, ``D theta + c``,
 ``d``, ``b``, ``e``, ``mu``, ``beta``, the stage and its bookkeeping (iteration count,
 spectral pair, objective, misfit and ADMM-residual windows, best objective, rejections,
@@ -50,6 +53,7 @@ from torch import Tensor
 from ..records import Callback, IterationRecord, SolveResult, StopReason
 from ..residual import ResidualFunction
 from .base import Solver, Stop, clone
+from .bounds import ThetaBounds
 from .gauss_newton import GaussNewton, GaussNewtonConfig, GaussNewtonPreconditioner
 from .least_squares import wants_dense_jacobian
 from .levenberg_marquardt import LevenbergMarquardt, LevenbergMarquardtConfig
@@ -85,6 +89,11 @@ class SplitBregman(Solver):
 
     config_class = SplitBregmanConfig
     config: SplitBregmanConfig
+    supports_bounds = True
+
+    def set_bounds(self, lower: Tensor, upper: Tensor) -> None:
+        """Bounds on ``theta`` (:mod:`.bounds`), kept by the inner GN/LM solve."""
+        self.bounds = ThetaBounds(lower, upper)
 
     def __init__(self, config: SplitBregmanConfig | None = None, *, D: Tensor | None = None,
                  groups: Tensor | None = None, offset: Tensor | None = None,
@@ -134,6 +143,8 @@ class SplitBregman(Solver):
             self.inner = LevenbergMarquardt(LevenbergMarquardtConfig(
                 max_iter=cfg.inner_max_iter, cg_max_iter=cfg.cg_max_iter, cg_rtol=cfg.cg_rtol,
                 dense_jacobian_max_params=dense, max_step=cfg.max_step))
+        if self.bounds is not None:     # every theta comes from the inner solve: it keeps them
+            self.inner.set_bounds(self.bounds.lower, self.bounds.upper)
 
     def start(self, theta0: Tensor) -> IterationRecord:
         theta = theta0.detach().clone()
