@@ -19,9 +19,11 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from typing import Any
 
 import numpy as np
+import torch
 
 from .config import setting_error
 
@@ -158,3 +160,23 @@ def validation_problem(problem: Any) -> Any:
         return None
     log.info("%s", split.describe())
     return type(problem)(problem.settings_for_frames(split.validation))
+
+
+def problem_on_frames(problem: Any, numbers: list[int]) -> Any:
+    """The rigged body ``problem`` on some of its fitted frames, with its own targets there
+    (:meth:`~torchfit.problems.rigged_body.RiggedBody.with_frames`)."""
+    mine = problem.frame_numbers()
+    unknown = [n for n in numbers if n not in mine]
+    if not numbers or unknown:
+        raise ValueError(f"frames {unknown or numbers} are not fitted frames of this "
+                         f"problem ({mine})")
+    sub = type(problem)(problem.settings_for_frames([int(n) for n in numbers]))
+    if sub.tet.key != problem.tet.key or sub.parameterization.n_params != \
+            problem.parameterization.n_params:
+        raise RuntimeError("the problem on a subset of its frames got another tet mesh "
+                           f"({sub.tet.key} against {problem.tet.key}); check the mesh cache")
+    rows = torch.as_tensor([mine.index(n) for n in numbers], device=problem.data.device)
+    sub.data = problem.data.reshape(problem.n_frames, -1)[rows].reshape(-1).clone()
+    if problem.noise_level is not None:
+        sub.noise_level = problem.noise_level * math.sqrt(sub.data.numel() / problem.data.numel())
+    return sub

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import math
 import os
 import warnings
 from typing import Any, ContextManager
@@ -48,7 +47,8 @@ from .body_report import (BODY_METRICS, body_metrics, frame_report, inverted_cou
                           min_volume_ratios, surface_distances, volume_change)
 from .config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
                      resolve_backend, setting_error)
-from .held_out import NO_VALIDATION, split_frames, validation_problem
+from .held_out import NO_VALIDATION, problem_on_frames, split_frames, validation_problem
+from .model_comparison import simulate_with_model
 from .modulus_bounds import check_bounds, modulus_bounds, region_report, theta_bounds
 from .rigged_body_config import Layout, RiggedBodyConfig, Target, Truth
 
@@ -184,7 +184,7 @@ class RiggedBody(InverseProblem):
         self.tet_regions, self.region_names = self.regions(cfg)
         self.joint_cells = self.joint_region(cfg)
         self.full_bend_frame = self.reference_frame()
-        self._other_models: dict[str, QuasistaticElasticity] = {}
+        self.other_models: dict[str, QuasistaticElasticity] = {}   # the model comparison's
 
     def tetrahedralize(self, cfg: RiggedBodyConfig, animation: Animation) -> TetMesh:
         """The rest surface's tet mesh (:func:`.body_setup.tet_mesh`; a run's own mesh,
@@ -436,21 +436,7 @@ class RiggedBody(InverseProblem):
         draw, not a new one, and the noise level ``delta`` is this one's for the subset's
         data count. Raises ``ValueError`` for a frame this problem does not fit.
         """
-        mine = self.frame_numbers()
-        unknown = [n for n in numbers if n not in mine]
-        if not numbers or unknown:
-            raise ValueError(f"frames {unknown or numbers} are not fitted frames of this "
-                             f"problem ({mine})")
-        sub = type(self)(self.settings_for_frames([int(n) for n in numbers]))
-        if sub.tet.key != self.tet.key or sub.parameterization.n_params != \
-                self.parameterization.n_params:
-            raise RuntimeError("the problem on a subset of its frames got another tet mesh "
-                               f"({sub.tet.key} against {self.tet.key}); check the mesh cache")
-        rows = torch.as_tensor([mine.index(n) for n in numbers], device=self.data.device)
-        sub.data = self.data.reshape(self.n_frames, -1)[rows].reshape(-1).clone()
-        if self.noise_level is not None:
-            sub.noise_level = self.noise_level * math.sqrt(sub.data.numel() / self.data.numel())
-        return sub
+        return problem_on_frames(self, numbers)
 
     def settings_for_frames(self, numbers: list[int]) -> RiggedBodyConfig:
         """This problem's config with ``frames=numbers`` (for :meth:`with_frames`)."""
@@ -458,23 +444,9 @@ class RiggedBody(InverseProblem):
 
     def simulate_model(self, model: str, E: Tensor, frames: list[int] | None = None) -> Tensor:
         """Positions ``(len(frames), n_vertices, 3)`` of the same body, rig and field with
-        another constitutive ``model`` (for the model comparison), no gradient."""
-        frames = list(range(self.n_frames)) if frames is None else list(frames)
-        if model == self.cfg.model.value:
-            with torch.no_grad():
-                return self.simulate(E.detach())[frames]   # the fit's own model: its state
-        if model not in self._other_models:
-            other = SimplicialElasticity(torch.from_numpy(self.mesh.points),
-                                         torch.from_numpy(self.mesh.cells), model, nu=self.cfg.nu,
-                                         dtype=self.dtype, device=self.device)
-            newton = NewtonOptions(max_iter=self.cfg.newton_max_iter, rtol=self.cfg.newton_rtol,
-                                   atol=self.cfg.newton_atol)
-            self._other_models[model] = QuasistaticElasticity(
-                other, self.dirichlet_vertices, backend=self.backend, newton=newton, start="rest")
-        index = torch.as_tensor(frames, device=self.device)
-        with torch.no_grad():
-            return self._other_models[model](E.detach(), self.dirichlet_positions[index].to(E),
-                                             x_init=self.start_positions[index].to(E))
+        another constitutive ``model`` (for the model comparison), no gradient
+        (:func:`.model_comparison.simulate_with_model`)."""
+        return simulate_with_model(self, model, E, frames)
 
     def region_summary(self, field: Tensor) -> dict[str, dict[str, float]]:
         """Mean, min, max and volume-weighted mean of ``field`` per region (all tetrahedra
