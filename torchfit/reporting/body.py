@@ -43,12 +43,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..mesh import write_obj
 from ..problems.base import BodyProblem
 from .evaluation import Evaluation
 from .figures import colorize, frame_errors_figure, save_png
 from .guard import PlotGuard
 from .progress import PROGRESS_LOGGER
+from .body_files import (FRAMES_DIR, VTU_FILE, write_body_vtu, write_obj_sequence,
+                         write_usd)
 from .results import write_folder, write_json
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -60,8 +61,6 @@ progress = logging.getLogger(PROGRESS_LOGGER)
 COMPARISON_PNG = "frame_comparison.png"
 COMPARISON_JSON = "model_comparison.json"
 REGIONS_JSON = "regions.json"
-VTU_FILE = "body.vtu"
-FRAMES_DIR = "frames"
 
 
 def _numpy(x: Tensor) -> np.ndarray:
@@ -182,6 +181,7 @@ class BodyOutputs:
         steps = [
             ("simulated frames (OBJ)", self._write_frames, (x,)),
             ("body.vtu", self._write_vtu, (x, field)),
+            ("USD frames and tet mesh", self._write_usd, (x, field)),
             ("regions.json", self._write_regions, (field,)),
             ("TensorBoard meshes", self._write_meshes, (x, field)),
             ("frame_errors.png", self._write_frame_errors, (x,)),
@@ -218,43 +218,24 @@ class BodyOutputs:
         return self.guard.run("animation copy", self._copy_animation) or []
 
     def _write_frames(self, x: Tensor) -> list[Path]:
-        folder = self.run_dir / FRAMES_DIR
-        surface = _numpy(self.problem.surface(x))
-        faces = np.asarray(self.problem.animation.faces)
-        names = [f"frame_{f:03d}.obj" for f in range(surface.shape[0])]
-
-        def fill(partial: Path) -> None:
-            for f, name in enumerate(names):
-                write_obj(partial / name, surface[f], faces)
-
-        write_folder(folder, fill)
-        paths = [folder / name for name in names]
-        progress.info("wrote %d simulated frames to %s", len(paths), folder)
+        paths = write_obj_sequence(self.run_dir / FRAMES_DIR, _numpy(self.problem.surface(x)),
+                                   np.asarray(self.problem.animation.faces))
+        progress.info("wrote %d simulated frames to %s", len(paths), self.run_dir / FRAMES_DIR)
         return paths
 
     def _write_vtu(self, x: Tensor, field: Tensor) -> list[Path]:
-        import meshio
-
         problem = self.problem
-        points = np.asarray(problem.mesh.points)
-        cell_data = {"E": [_numpy(field)]}
+        cell_data = {"E": _numpy(field)}
         if problem.field_true is not None:
-            cell_data["E_true"] = [_numpy(problem.field_true)]
+            cell_data["E_true"] = _numpy(problem.field_true)
         if problem.tet_regions is not None:
-            cell_data["region"] = [np.asarray(problem.tet_regions, dtype=np.int32)]
-        positions = _numpy(x)
-        point_data = {f"displacement_{f:03d}": positions[f] - points
-                      for f in range(positions.shape[0])}
-        mesh = meshio.Mesh(points, [("tetra", np.asarray(problem.mesh.cells))],
-                           point_data=point_data, cell_data=cell_data)
-        path = self.run_dir / VTU_FILE
-        tmp = path.with_name(path.name + ".tmp.vtu")
-        try:
-            meshio.write(str(tmp), mesh)
-            tmp.replace(path)
-        finally:
-            tmp.unlink(missing_ok=True)
-        return [path]
+            cell_data["region"] = np.asarray(problem.tet_regions, dtype=np.int32)
+        return [write_body_vtu(self.run_dir / VTU_FILE, np.asarray(problem.mesh.points),
+                               problem.mesh.cells, _numpy(x), cell_data)]
+
+    def _write_usd(self, x: Tensor, field: Tensor) -> list[Path]:
+        return write_usd(self.run_dir, self.problem, _numpy(self.problem.surface(x)),
+                         _numpy(field))
 
     def _write_regions(self, field: Tensor) -> list[Path]:
         problem = self.problem

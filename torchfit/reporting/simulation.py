@@ -29,8 +29,9 @@ from typing import Any, Sequence
 import numpy as np
 from torch import Tensor
 
-from ..mesh import write_obj
-from .body import FRAMES_DIR, VTU_FILE, surface_figure
+from .body import surface_figure
+from .body_files import (FRAMES_DIR, VTU_FILE, write_body_vtu, write_obj_sequence,
+                         write_usd)
 from .figures import save_png
 from .results import atomic_write
 
@@ -45,40 +46,18 @@ def _numpy(x: Tensor) -> np.ndarray:
 def write_frames(run_dir: Path, problem: Any, x: Tensor, field: Tensor) -> list[Path]:
     """Every output of the simulated frames ``x`` ``(F, n, 3)`` (tet vertex positions) of a
     body problem with ``field`` per tetrahedron: the OBJ sequence, ``body.vtu``,
-    ``frames.npz``; returns the files written."""
+    ``frames.npz`` and the USD files (:mod:`.body_files`); returns the files written."""
     surface = _numpy(problem.surface(x))
     positions = _numpy(x)
-    faces = np.asarray(problem.animation.faces)
-    return [*_write_obj_sequence(run_dir / FRAMES_DIR, surface, faces),
-            _write_vtu(run_dir / VTU_FILE, problem, positions, _numpy(field)),
-            _write_npz(run_dir / FRAMES_NPZ, problem, positions, surface, _numpy(field))]
-
-
-def _write_obj_sequence(folder: Path, surface: np.ndarray, faces: np.ndarray) -> list[Path]:
-    folder.mkdir(exist_ok=True)
-    paths = []
-    for f in range(surface.shape[0]):
-        path = folder / f"frame_{f:03d}.obj"
-        write_obj(path, surface[f], faces)
-        paths.append(path)
-    return paths
-
-
-def _write_vtu(path: Path, problem: Any, positions: np.ndarray, field: np.ndarray) -> Path:
-    import meshio
-
-    points = np.asarray(problem.mesh.points)
-    cell_data = {"E": [field]}
+    cell_data = {"E": _numpy(field)}
     if getattr(problem, "tet_regions", None) is not None:
-        cell_data["region"] = [np.asarray(problem.tet_regions, dtype=np.int32)]
-    point_data = {f"displacement_{f:03d}": positions[f] - points
-                  for f in range(positions.shape[0])}
-    mesh = meshio.Mesh(points, [("tetra", np.asarray(problem.mesh.cells))],
-                       point_data=point_data, cell_data=cell_data)
-    tmp = path.with_name(path.name + ".tmp.vtu")
-    meshio.write(str(tmp), mesh)
-    tmp.replace(path)
-    return path
+        cell_data["region"] = np.asarray(problem.tet_regions, dtype=np.int32)
+    faces = np.asarray(problem.animation.faces)
+    return [*write_obj_sequence(run_dir / FRAMES_DIR, surface, faces),
+            write_body_vtu(run_dir / VTU_FILE, np.asarray(problem.mesh.points),
+                           problem.mesh.cells, positions, cell_data),
+            _write_npz(run_dir / FRAMES_NPZ, problem, positions, surface, _numpy(field)),
+            *write_usd(run_dir, problem, surface, _numpy(field))]
 
 
 def _write_npz(path: Path, problem: Any, positions: np.ndarray, surface: np.ndarray,

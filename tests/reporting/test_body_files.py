@@ -1,0 +1,94 @@
+"""The files of a simulated body (OBJ sequence, VTU, USD point cache and TetMesh), read back."""
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from torchfit.reporting.body_files import write_obj_sequence, write_usd
+
+FACES = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]])
+POINTS = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]])
+CELLS = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
+
+
+def _surface(frames: int = 3) -> np.ndarray:
+    rest = POINTS[:4]
+    return np.stack([rest + 0.1 * f * np.array([1.0, -2.0, 0.5]) for f in range(frames)])
+
+
+def _problem(path: Path, names: list[str]) -> SimpleNamespace:
+    return SimpleNamespace(animation=SimpleNamespace(path=path, faces=FACES),
+                           mesh=SimpleNamespace(points=POINTS, cells=CELLS),
+                           frame_names=lambda: names, tet_regions=np.array([0, 1]))
+
+
+def test_obj_sequence_is_whole_or_absent(tmp_path, monkeypatch):
+    surface = _surface()
+    paths = write_obj_sequence(tmp_path / "frames", surface, FACES)
+    assert [p.name for p in paths] == ["frame_000.obj", "frame_001.obj", "frame_002.obj"]
+    vertices = [line.split()[1:] for line in paths[2].read_text().splitlines()
+                if line.startswith("v ")]
+    np.testing.assert_array_equal(np.array(vertices, dtype=float), surface[2])
+    assert not list(tmp_path.glob(".*partial"))
+    import torchfit.reporting.body_files as body_files
+
+    before = paths[2].read_text()
+
+    written = []
+
+    def full_disk_at_the_third(path, vertices, faces):     # a writer that fails half-way
+        if len(written) == 2:
+            raise OSError(28, "No space left on device")
+        written.append(path)
+        Path(path).write_text("v 0 0 0\n")
+
+    monkeypatch.setattr(body_files, "write_obj", full_disk_at_the_third)
+    with pytest.raises(OSError):
+        write_obj_sequence(tmp_path / "frames", surface + 1, FACES)
+    # the earlier complete sequence is kept, untouched; no partial folder is left
+    assert (tmp_path / "frames" / "frame_002.obj").read_text() == before
+    assert len(written) == 2 and not list(tmp_path.glob(".*partial"))
+
+
+def test_usd_point_cache_and_tet_mesh_read_back(tmp_path):
+    pytest.importorskip("pxr")
+    from pxr import Usd, UsdGeom
+
+    surface = _surface()
+    field = np.array([1.5, 0.25])
+    files = write_usd(tmp_path, _problem(tmp_path / "anim", ["a", "b", "c"]), surface, field)
+    assert [f.name for f in files] == ["frames.usda", "body.usda"]
+    stage = Usd.Stage.Open(str(files[0]))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Simulated"))
+    assert mesh.GetPointsAttr().GetTimeSamples() == [0.0, 1.0, 2.0]
+    np.testing.assert_allclose(np.asarray(mesh.GetPointsAttr().Get(2.0)), surface[2], atol=1e-7)
+    tet_stage = Usd.Stage.Open(str(files[1]))
+    tet = tet_stage.GetDefaultPrim()
+    assert tet.GetTypeName() == "TetMesh"
+    values = UsdGeom.PrimvarsAPI(tet).GetPrimvar("torchfit:youngs_modulus").Get()
+    np.testing.assert_array_equal(np.asarray(values), field)
+
+
+def test_usd_frames_over_the_users_stage_in_its_units_and_times(tmp_path):
+    pytest.importorskip("pxr")
+    from pxr import Usd, UsdGeom
+
+    user = tmp_path / "shot.usda"
+    stage = Usd.Stage.CreateNew(str(user))
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)          # centimetres
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    stage.SetTimeCodesPerSecond(30)
+    stage.GetRootLayer().Save()
+    surface = _surface()
+    names = [f"shot.usda:/Body@{t}" for t in (101, 103, 105)]
+    files = write_usd(tmp_path / "run", _problem(user, names), surface, np.ones(2))
+    layered = Usd.Stage.Open(str(files[0]))
+    assert UsdGeom.GetStageMetersPerUnit(layered) == pytest.approx(0.01)
+    assert UsdGeom.GetStageUpAxis(layered) == UsdGeom.Tokens.y
+    assert layered.GetRootLayer().subLayerPaths[0] == "../../shot.usda"
+    points = UsdGeom.Mesh(layered.GetPrimAtPath("/Simulated")).GetPointsAttr()
+    assert points.GetTimeSamples() == [101.0, 103.0, 105.0]
+    np.testing.assert_allclose(np.asarray(points.Get(105.0)), surface[2] / 0.01, rtol=1e-6)
