@@ -195,7 +195,10 @@ def test_rotate_turns_surface_frames_and_rig_together():
     assert rotated(data, np.eye(3)) is data
 
 
+@pytest.mark.slow
 def test_a_rotated_arm_gets_the_same_tetrahedra_and_grid(cache):
+    """Two coarse arms (one tetrahedralisation, then a cache hit); the short arm's runs of
+    docs/problems/axes.md showed the same (one key, the same iterates)."""
     plain = arm(cache, frames=[0, 11])
     turned = arm(cache, frames=[0, 11], rotate=[0.0, 90.0, 0.0])
     turn = turned.rotation
