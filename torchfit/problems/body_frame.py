@@ -54,7 +54,8 @@ def principal_frame(points: np.ndarray, cells: np.ndarray,
         sizes, denominator = np.abs(np.linalg.det(edges)) / 6.0, 20.0         # volumes
     else:
         sizes, denominator = np.linalg.norm(np.cross(edges[:, 0], edges[:, 1]), axis=1) / 2, 12.0
-    weights = sizes / sizes.sum()
+    total = sizes.sum()          # a broken (flat) surface: equal weights; tetrahedralize says
+    weights = sizes / total if total > 0 else np.full(len(sizes), 1.0 / max(len(sizes), 1))
     centroids = corners.mean(axis=1)
     origin = weights @ centroids
     offsets = centroids - origin
@@ -76,7 +77,8 @@ def principal_frame(points: np.ndarray, cells: np.ndarray,
     scale = np.sqrt(np.maximum(moments.max(), 1e-300))
     for a in (0, 2):
         along = offsets @ axes[a]
-        skew = float(weights @ along ** 3) / max(float(weights @ along ** 2), 1e-300) ** 1.5
+        spread = float(weights @ along ** 2)
+        skew = float(weights @ along ** 3) / spread ** 1.5 if spread > 1e-200 else 0.0
         moved = float(mean_motion @ axes[a])
         if abs(skew) >= SYMMETRIC:
             flip = skew < 0
