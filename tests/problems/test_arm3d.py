@@ -171,3 +171,41 @@ def test_rig_fit_beats_the_homogeneous_material(cache):
     problem = arm(cache, frames=[0, 6, 11])
     result = fit(problem, {"name": "levenberg_marquardt", "max_iter": 6, "max_step": 1.0})
     assert result.metrics["surface_err_reduction"] > 1.0
+
+
+def test_rotate_turns_surface_frames_and_rig_together():
+    """``problem.rotate``: the arm along +x ([0, 90, 0]) or +y ([-90, 0, 0]); the turned
+    skeleton skins the turned rest surface onto the turned frames."""
+    from torchfit.mesh.procedural_arm import ArmShape, arm_animation
+    from torchfit.mesh.rig import blend
+    from torchfit.problems.arm3d import rotated, rotation_matrix
+
+    np.testing.assert_allclose(rotation_matrix([0, 90, 0]) @ [0, 0, 1], [1, 0, 0], atol=1e-15)
+    np.testing.assert_allclose(rotation_matrix([-90, 0, 0]) @ [0, 0, 1], [0, 1, 0], atol=1e-15)
+    shape = ArmShape(n_frames=4, n_around=8, n_along=10)
+    data = arm_animation(shape)
+    turn = rotation_matrix([30, -50, 110])
+    turned = rotated(data, turn)
+    skeleton = turned["skeleton"]
+    np.testing.assert_allclose(turned["rest_vertices"], data["rest_vertices"] @ turn.T)
+    np.testing.assert_allclose(skeleton.tails, data["skeleton"].tails @ turn.T)
+    skinned = blend(data["rest_vertices"], skeleton.weights, data["skeleton"].transforms)
+    np.testing.assert_allclose(blend(turned["rest_vertices"], skeleton.weights,
+                                     skeleton.transforms), skinned @ turn.T, atol=1e-12)
+    assert rotated(data, np.eye(3)) is data
+
+
+@pytest.mark.slow
+def test_a_rotated_arm_gets_the_same_tetrahedra_and_grid(cache):
+    """Two coarse arms (one tetrahedralisation, then a cache hit); the short arm's runs of
+    docs/problems/axes.md showed the same (one key, the same iterates)."""
+    plain = arm(cache, frames=[0, 11])
+    turned = arm(cache, frames=[0, 11], rotate=[0.0, 90.0, 0.0])
+    turn = turned.rotation
+    assert turned.tet.key == plain.tet.key and turned.tet.from_cache
+    assert plain.grid.shape == turned.grid.shape == (4, 4, 12)
+    np.testing.assert_allclose(plain.grid.axes, np.eye(3), atol=1e-4)
+    np.testing.assert_allclose(turned.grid.axes, plain.grid.axes @ turn.T, atol=1e-9)
+    np.testing.assert_array_equal(turned.tet_regions, plain.tet_regions)
+    np.testing.assert_array_equal(turned.joint_cells, plain.joint_cells)
+    assert turned.full_bend_frame == plain.full_bend_frame == 1

@@ -69,7 +69,8 @@ def test_capsule_fits_and_rerun_hits_the_tet_cache(tmp_path, cache, mode, frames
 
 @pytest.mark.parametrize("mode,frames_as", [("skeleton", "obj"), ("driven", "npz")])
 def test_capsule_recovers_the_blocks_on_a_kept_mesh(tmp_path, mode, frames_as):
-    """The capsule's mesh kept in tests/data/capsule_mesh (2,350 tets, pytetwild 2026-11-25):
+    """The capsule's mesh kept in tests/data/capsule_mesh (2,350 tets, pytetwild 2026-11-25;
+    stored in the body's principal frame since 2026-11-26, torchfit.problems.body_frame):
     noise-free blocks are recovered to 1e-3 (3.7e-8 and 6.9e-9 measured) in each mode."""
     shutil.copytree(DATA / "capsule_mesh", tmp_path / "cache")
     folder = write_capsule(tmp_path / "capsule", mode, frames_as)

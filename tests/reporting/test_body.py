@@ -116,3 +116,41 @@ def test_frames_with_inverted_tetrahedra_are_named_in_one_warning(caplog):
     assert "continuation=true" in subset and "init=<that run's directory>" in subset
     assert "frames 9-11 have" not in alone and "frames 9, 11 have" in alone
     assert "problem.frames" not in alone
+
+
+def test_the_fold_warning_points_at_the_problems_docs_only_where_it_has_them(caplog):
+    from torchfit.reporting.body import warn_inverted
+
+    with caplog.at_level("WARNING", logger="torchfit.progress"):
+        warn_inverted(np.array([0, 2]), [0, 9])
+        warn_inverted(np.array([0, 2]), [0, 9], docs="docs/problems/arm3d.md, 'Several'")
+    plain, arm = (r.getMessage() for r in caplog.records)
+    assert "docs/" not in plain and "(docs/problems/arm3d.md, 'Several')" in arm
+
+
+def test_the_comparison_picture_turns_the_body_into_the_camera_axes():
+    """``view`` rows right, depth, up: a body seen through its own camera axes is drawn as
+    the unturned body seen through the world's (the same picture, to
+    round-off in a few edge pixels)."""
+    from scipy.spatial.transform import Rotation
+
+    from torchfit.reporting.body import surface_figure
+
+    mesh = trimesh.creation.capsule(height=0.3, radius=0.05, count=[8, 8])
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    vertices = vertices + 0.1 * vertices[:, 2:3] ** 2 * [1.0, 0.0, 0.0]      # a bend
+    turn = Rotation.from_euler("xyz", [20.0, -60.0, 100.0], degrees=True).as_matrix()
+
+    def pixels(points, view):
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+        canvas = FigureCanvasAgg(surface_figure([("a", points, None)], faces, 1.0, view=view))
+        canvas.draw()
+        return np.asarray(canvas.buffer_rgba())
+
+    def differ(a, b):                   # share of pixels that differ
+        return float(np.any(a != b, axis=-1).mean())
+
+    world = pixels(vertices, None)
+    assert differ(pixels(vertices @ turn.T, turn.T), world) < 1e-3     # camera turned along
+    assert differ(pixels(vertices @ turn.T, None), world) > 1e-2       # a fixed camera: not

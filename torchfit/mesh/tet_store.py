@@ -30,7 +30,7 @@ from typing import Iterator
 import numpy as np
 
 from .simplicial import MeshError
-from .tetrahedralize import TetMesh, TetOptions, cache_key, pytetwild_version, tetrahedralize
+from .tetrahedralize import TetMesh, TetOptions, pytetwild_version, tetrahedralize
 
 #: The file a run keeps its mesh in.
 RUN_MESH_FILE = "mesh.npz"
@@ -53,9 +53,10 @@ class StoredMesh:
     path: Path
 
     def matches(self, vertices: np.ndarray, faces: np.ndarray, options: TetOptions) -> bool:
-        """Whether this mesh is the one built from ``vertices``, ``faces`` and ``options``
-        (the cache key with the pytetwild version it was built with)."""
-        return cache_key(vertices, faces, options, self.version) == self.key
+        """Whether this mesh was built from the rest surface ``vertices``, ``faces`` with
+        ``options`` (compared as given: a body tetrahedralised in its own frame is matched
+        on its surface, not on the frame's cache key)."""
+        return self.difference(vertices, faces, options) == ""
 
     def difference(self, vertices: np.ndarray, faces: np.ndarray, options: TetOptions) -> str:
         """What differs between this mesh's input and ``vertices``/``faces``/``options``
@@ -169,10 +170,10 @@ def requiring(stored: StoredMesh) -> Iterator[None]:
         _REQUIRED.remove(stored)
 
 
-def tetrahedralize_kept(vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
-                        cache_dir: str | Path | None = None, warn: bool = True) -> TetMesh:
-    """:func:`~.tetrahedralize.tetrahedralize`, but a run mesh registered for this surface
-    and options (:func:`register_run_mesh`, :func:`requiring`) comes first."""
+def kept_mesh(vertices: np.ndarray, faces: np.ndarray, options: TetOptions) -> TetMesh | None:
+    """The run mesh registered for this surface and options (:func:`register_run_mesh`,
+    :func:`requiring`), or ``None``; raises :class:`~.simplicial.MeshError` where one is
+    required and this surface is not its own."""
     start = time.perf_counter()
     if _REQUIRED:
         stored = _REQUIRED[-1]
@@ -184,4 +185,14 @@ def tetrahedralize_kept(vertices: np.ndarray, faces: np.ndarray, options: TetOpt
     for stored in _REGISTERED.values():
         if stored.matches(vertices, faces, options):
             return stored.tet_mesh(time.perf_counter() - start)
+    return None
+
+
+def tetrahedralize_kept(vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
+                        cache_dir: str | Path | None = None, warn: bool = True) -> TetMesh:
+    """:func:`~.tetrahedralize.tetrahedralize`, but a run mesh registered for this surface
+    and options (:func:`kept_mesh`) comes first."""
+    kept = kept_mesh(vertices, faces, options)
+    if kept is not None:
+        return kept
     return tetrahedralize(vertices, faces, options, cache_dir=cache_dir, warn=warn)

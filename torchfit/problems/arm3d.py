@@ -11,6 +11,12 @@ also copies it into its run directory (``animation/``), a worked example of the 
 Differences from ``animation``: regions are geometric (``bone`` within 0.4 of the local
 radius from the bone axis, the attached core; ``muscle`` to 0.75; ``fat`` outside), the joint
 region is the elbow (within 1.5 radii of it), frames are named by their elbow angle.
+
+``rotate=[rx, ry, rz]`` (degrees about x, then y, then z) turns the whole animation (rest
+surface, frames, skeleton) before it is written: ``[0, 90, 0]`` lays the arm along ``+x``,
+``[-90, 0, 0]`` along ``+y`` (Y-up). The fit does not depend on it (the grid, the camera
+and the reference frame follow the body: docs/problems/axes.md); regions and the elbow are
+found in the arm's own frame.
 """
 from __future__ import annotations
 
@@ -19,6 +25,7 @@ import hashlib
 import json
 import warnings
 from pathlib import Path
+from typing import List
 
 import numpy as np
 
@@ -52,6 +59,9 @@ class Arm3DConfig(RiggedBodyConfig):
     tet_edge_length: float = 0.028     # fraction of the bounding-box diagonal: ~10k tetrahedra
     # noise as a fraction of the mean bulge displacement (0.01: 1 %); sets problem.noise
     noise_of_bulge: float = 0.0
+    # degrees about x, then y, then z (fixed axes) applied to the whole animation: [0, 90, 0]
+    # lays the arm along +x, [-90, 0, 0] along +y (Y-up); the fit is the same
+    rotate: List[float] = dataclasses.field(default_factory=lambda: [0.0, 0.0, 0.0])
 
 
 class Arm3D(RiggedBody):
@@ -60,6 +70,8 @@ class Arm3D(RiggedBody):
     config_class = Arm3DConfig
     name = "arm3d"
     writes_animation = True
+    joint_label = "elbow"
+    fold_docs = "docs/problems/arm3d.md, 'Several equilibria near full bend'"
 
     def check_source(self, cfg: Arm3DConfig) -> None:
         require_setting(not cfg.path, cfg, "path", "is not used by arm3d (it writes its own "
@@ -70,6 +82,9 @@ class Arm3D(RiggedBody):
         require_setting(cfg.max_flexion > 0, cfg, "max_flexion", "must be positive (degrees)")
         require_setting(cfg.max_extension >= 0, cfg, "max_extension", "must be >= 0 (degrees)")
         require_setting(cfg.noise_of_bulge >= 0, cfg, "noise_of_bulge", "must be >= 0")
+        require_setting(len(cfg.rotate) == 3 and all(np.isfinite(cfg.rotate)), cfg, "rotate",
+                        "must list three angles in degrees (about x, y, z), e.g. [0, 90, 0]")
+        self.rotation = rotation_matrix(cfg.rotate)
         if cfg.noise_of_bulge > 0:
             require_setting(cfg.noise == 0, cfg, "noise", "give either problem.noise (metres) or "
                             "problem.noise_of_bulge (a fraction of the mean bulge), not both")
@@ -83,8 +98,10 @@ class Arm3D(RiggedBody):
 
     def load(self, cfg: Arm3DConfig) -> Animation:
         self.arm = self.shape(cfg)
-        key = hashlib.sha256(json.dumps(dataclasses.asdict(self.arm), sort_keys=True)
-                             .encode()).hexdigest()[:16]
+        spec = dataclasses.asdict(self.arm)
+        if any(float(a) != 0.0 for a in cfg.rotate):
+            spec["rotate"] = [float(a) for a in cfg.rotate]
+        key = hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
         root = Path(cfg.cache_dir).expanduser() if cfg.cache_dir else default_cache_dir().parent
         folder = root / "animations" / f"arm3d-{key}"
         if not (folder / "animation.yaml").is_file():
@@ -103,7 +120,7 @@ class Arm3D(RiggedBody):
             raise ProblemConfigError(f"arm3d animation in {folder}: {err}") from err
 
     def write_arm(self, folder: Path) -> None:
-        data = arm_animation(self.arm)
+        data = rotated(arm_animation(self.arm), self.rotation)
         write_animation(folder, data["rest_vertices"], data["faces"], data["frames"],
                         skeleton=data["skeleton"],
                         description="procedural arm of torchfit's arm3d problem "
@@ -111,10 +128,14 @@ class Arm3D(RiggedBody):
                                     "bicep bulge, extension with tricep bulge")
 
     def regions(self, cfg: Arm3DConfig) -> tuple[np.ndarray, list[str]]:
-        return region_labels(self.arm, self.mesh.centroids()), list(REGION_NAMES)
+        return region_labels(self.arm, self.arm_points()), list(REGION_NAMES)
 
     def joint_region(self, cfg: Arm3DConfig) -> np.ndarray:
-        return np.flatnonzero(elbow_region(self.arm, self.mesh.centroids()))
+        return np.flatnonzero(elbow_region(self.arm, self.arm_points()))
+
+    def arm_points(self) -> np.ndarray:
+        """The tetrahedra's centroids ``(n_tets, 3)`` in the arm's own frame (``rotate`` undone)."""
+        return self.mesh.centroids() @ self.rotation
 
     def reference_frame(self) -> int:
         angles = self.frame_angles()
@@ -148,3 +169,34 @@ def mean_bulge_displacement(shape: ArmShape) -> float:
     bulge = np.linalg.norm(correctives(shape, rest, elbow_angles(shape)), axis=-1)   # (F, V)
     moved = bulge.max(axis=0) > 0
     return float(bulge[:, moved].mean()) if moved.any() else 0.0
+
+
+def rotation_matrix(degrees) -> np.ndarray:
+    """``(3, 3)`` rotation by ``degrees[0]`` about x, then ``[1]`` about y, then ``[2]``
+    about z (fixed axes)."""
+    out = np.eye(3)
+    for axis, angle in enumerate(np.radians(np.asarray(degrees, dtype=np.float64))):
+        c, s = np.cos(angle), np.sin(angle)
+        i, j = [k for k in range(3) if k != axis]
+        turn = np.eye(3)
+        turn[i, i], turn[i, j], turn[j, i], turn[j, j] = c, -s, s, c
+        if axis == 1:       # about y: z -> x is positive
+            turn = turn.T
+        out = turn @ out
+    return out
+
+
+def rotated(data: dict, rotation: np.ndarray) -> dict:
+    """The arm's animation (:func:`~torchfit.mesh.procedural_arm.arm_animation`) turned by
+    ``rotation`` ``(3, 3)``: points ``R p``, bone transforms ``[R A R^T | R t]``."""
+    if np.array_equal(rotation, np.eye(3)):
+        return data
+    skeleton = data["skeleton"]
+    transforms = skeleton.transforms.copy()
+    transforms[..., :3] = rotation @ skeleton.transforms[..., :3] @ rotation.T
+    transforms[..., 3] = skeleton.transforms[..., 3] @ rotation.T
+    return {**data, "rest_vertices": data["rest_vertices"] @ rotation.T,
+            "frames": data["frames"] @ rotation.T, "bulge": data["bulge"] @ rotation.T,
+            "skeleton": dataclasses.replace(skeleton, heads=skeleton.heads @ rotation.T,
+                                            tails=skeleton.tails @ rotation.T,
+                                            transforms=transforms)}

@@ -17,10 +17,11 @@ from typing import Any, Iterator
 from ..mesh import MeshError
 from ..mesh.animation_format import Animation, AnimationError
 from ..mesh.rig_check import RigReport, check_animation
-from ..mesh.tet_store import tetrahedralize_kept
+from ..mesh.tet_store import kept_mesh
 from ..mesh.tetrahedralize import TetMesh, TetOptions, default_cache_dir
 from ..physics.equilibrium.newton import newton_progress
 from ..steps import count, step
+from .body_frame import tetrahedralize_in_frame
 from .config import ProblemConfigError
 
 #: seconds between two progress lines of the first simulation (at most one per iteration)
@@ -79,15 +80,19 @@ def tet_options(cfg: Any) -> TetOptions:
                       count=cfg.tet_count)
 
 
-def tet_mesh(cfg: Any, animation: Animation) -> TetMesh:
+def tet_mesh(cfg: Any, animation: Animation, motion: Any = None) -> TetMesh:
     """The rest surface tetrahedralised with the ``tet_*`` settings (``tet_count``: a
-    target count, :mod:`torchfit.mesh.tet_size`): a run's own mesh registered for it
-    (:mod:`torchfit.mesh.tet_store`), else the cache in ``cache_dir``."""
+    target count, :mod:`torchfit.mesh.tet_size`) in the body's principal frame
+    (:func:`.body_frame.tetrahedralize_in_frame`; ``motion`` ``(F, V, 3)`` settles a round
+    body's frame), cached in ``cache_dir``; a run's own mesh registered for this surface
+    (:mod:`torchfit.mesh.tet_store`) comes first."""
+    options = tet_options(cfg)
     cache = Path(cfg.cache_dir).expanduser() / "tetmesh" if cfg.cache_dir else \
         default_cache_dir()
     try:
+        kept = kept_mesh(animation.rest_vertices, animation.faces, options)
         # the surface's warnings were given once, with the animation's name
-        return tetrahedralize_kept(animation.rest_vertices, animation.faces, tet_options(cfg),
-                                   cache_dir=cache, warn=False)
+        return kept if kept is not None else tetrahedralize_in_frame(
+            animation.rest_vertices, animation.faces, motion, options, cache)
     except MeshError as err:
         raise ProblemConfigError(f"{animation.path}: {err}") from err

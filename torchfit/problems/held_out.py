@@ -163,8 +163,15 @@ def validation_problem(problem: Any) -> Any:
 
 
 def problem_on_frames(problem: Any, numbers: list[int]) -> Any:
-    """The rigged body ``problem`` on some of its fitted frames, with its own targets there
-    (:meth:`~torchfit.problems.rigged_body.RiggedBody.with_frames`)."""
+    """The rigged body ``problem`` on some of its fitted frames (animation frame numbers,
+    in the order given), with **its** targets on them, noise included.
+
+    Built again from the settings with ``frames=numbers``: the tet mesh and the animation
+    come from their caches (the same mesh, so the same parameterisation); a synthetic truth
+    is simulated again on those frames (cold, as here). The targets are then replaced by
+    ``problem``'s rows of those frames, so the noise is the same draw, not a new one, and
+    the noise level ``delta`` is ``problem``'s for the subset's data count. Raises
+    ``ValueError`` for a frame ``problem`` does not fit."""
     mine = problem.frame_numbers()
     unknown = [n for n in numbers if n not in mine]
     if not numbers or unknown:

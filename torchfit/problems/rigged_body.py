@@ -12,9 +12,9 @@ vertex but the driven ones in every frame, ``(F * n_obs * 3,)``.
 Targets: ``target=rig``, the animated surface (no material reproduces it exactly: the
 measure is how far fitting lowers the surface error below the homogeneous material's);
 ``target=synthetic``, simulated from a known field (``truth=regions`` or ``blocks``).
-Parameters: ``grid`` (a coarse node grid over the bounding box, trilinear to tetrahedra),
-``region`` or ``tet``. Every load is a prescribed displacement: scale-free. What the run
-reports of the body: :mod:`.body_report`.
+Parameters: ``grid`` (nodes along the body's principal axes, trilinear to tetrahedra:
+:mod:`.body_grid`), ``region`` or ``tet``. Every load is a prescribed displacement:
+scale-free. What the run reports of the body: :mod:`.body_report`, :mod:`.body_motion`.
 """
 from __future__ import annotations
 
@@ -34,14 +34,15 @@ from ..mesh import MeshError, SimplexMesh, element_adjacency
 from ..mesh.animation_format import Animation, AnimationError
 from ..mesh.animation_readers import read_animation
 from ..mesh.embedding import Embedding, dof_matrix, embed_points
-from ..mesh.rig import joint_cells, most_rotated_frame, skeleton_drive, surface_drive
+from ..mesh.rig import joint_cells, skeleton_drive, surface_drive
 from ..mesh.tetrahedralize import TetMesh
 from ..params import Parameterization, per_element, per_region
 from ..physics import NewtonOptions
 from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
 from ..steps import count, step
 from .base import InverseProblem, array_digest
-from .body_grid import block_nodes, blocks_field, grid_parameterization
+from .body_grid import block_nodes, blocks_field, body_grid, grid_parameterization
+from .body_motion import most_deformed_frame, most_strained_cells, view_axes
 from .body_setup import animation_summary, check_rig, first_simulation, tet_mesh, tet_options
 from .body_report import (BODY_METRICS, body_metrics, frame_report, inverted_counts,
                           min_volume_ratios, surface_distances, volume_change)
@@ -77,8 +78,10 @@ class RiggedBody(InverseProblem):
         require_setting(-1.0 < cfg.nu < 0.5, cfg, "nu", "must lie in (-1, 0.5) (Poisson ratio "
                         "of an isotropic material; 0.5 would be incompressible)")
         require_setting(cfg.E0 > 0, cfg, "E0", "must be a positive Young's modulus")
-        require_setting(len(cfg.grid) == 3 and all(int(n) >= 2 for n in cfg.grid), cfg, "grid",
-                        "must list three node counts >= 2 (x, y, z)")
+        require_setting(cfg.grid is None or (len(cfg.grid) == 3 and all(
+            int(n) >= 2 for n in cfg.grid)), cfg, "grid", "must list three node counts >= 2 "
+            "(along the body's principal axes, the longest last) or be null (grid_nodes)")
+        require_setting(cfg.grid_nodes >= 8, cfg, "grid_nodes", "must be at least 8 (2 per axis)")
         for key in ("E_regions", "E_blocks"):
             values = getattr(cfg, key)
             require_setting(len(values) >= 1 and all(v > 0 for v in values), cfg, key,
@@ -109,8 +112,10 @@ class RiggedBody(InverseProblem):
         if cfg.parameters != Layout.grid and not (cfg.target == Target.synthetic
                                                   and cfg.truth == Truth.blocks):
             return []
-        nodes = float(np.prod([float(n) for n in cfg.grid]))
-        return [(f"problem.grid={list(cfg.grid)}", nodes * 8 * 8.0, f"{nodes:.3g} grid nodes")]
+        nodes = float(np.prod([float(n) for n in cfg.grid])) if cfg.grid else 1.5 * cfg.grid_nodes
+        setting = f"problem.grid={list(cfg.grid)}" if cfg.grid else \
+            f"problem.grid_nodes={cfg.grid_nodes}"
+        return [(setting, nodes * 8 * 8.0, f"{nodes:.3g} grid nodes")]
 
     def check_source(self, cfg: RiggedBodyConfig) -> None:
         require_setting(bool(cfg.path), cfg, "path", "must name the folder of your animation "
@@ -126,6 +131,8 @@ class RiggedBody(InverseProblem):
     def build_model(self, cfg: RiggedBodyConfig) -> None:
         with step(f"reading the animation {cfg.path or self.name}") as progress:
             animation = self.load(cfg)
+            # every frame's motion (not the fitted subset's) settles the frame of a round body
+            self.motion = animation.frames - animation.rest_vertices
             self.frame_split = split_frames(cfg, animation.rest_vertices, animation.frames)
             fitted = cfg.frames if self.frame_split is None else self.frame_split.fitted
             if fitted is not None:
@@ -140,8 +147,7 @@ class RiggedBody(InverseProblem):
             warnings.warn(f"{animation.path}: rest surface: {text}", UserWarning, stacklevel=2)
         self.n_frames = animation.n_frames
         self.tet = self.tetrahedralize(cfg, animation)
-        # per frame: every tetrahedron's deformation gradient, stress and their derivatives
-        # (about 40 values), every vertex's position, residual and adjoint (9 values)
+        # per frame: each tetrahedron's F, stress, derivatives (40 values), vertex (9 values)
         cells, points = len(self.tet.cells), len(self.tet.points)
         check_allocation(f"problem.tet_edge_length={cfg.tet_edge_length} with "
                          f"{animation.n_frames} frames", animation.n_frames * (
@@ -182,15 +188,19 @@ class RiggedBody(InverseProblem):
                                                  newton=newton, start="rest",
                                                  warm_start=cfg.warm_start)
         self.tet_regions, self.region_names = self.regions(cfg)
-        self.joint_cells = self.joint_region(cfg)
         self.full_bend_frame = self.reference_frame()
+        self.grid = body_grid(points, cells, self.motion, cfg.grid_nodes, cfg.grid)
+        self.grid_shape = self.grid.shape
+        self.view_axes = view_axes(animation.rest_vertices, animation.frames, self.grid.axes[2])
+        self.joint_cells = self.joint_region(cfg)
         self.other_models: dict[str, QuasistaticElasticity] = {}   # the model comparison's
 
     def tetrahedralize(self, cfg: RiggedBodyConfig, animation: Animation) -> TetMesh:
-        """The rest surface's tet mesh (:func:`.body_setup.tet_mesh`; a run's own mesh,
-        ``mesh.npz``, before the cache: :mod:`torchfit.mesh.tet_store`)."""
+        """The rest surface's tet mesh, built in the body's frame (the same tetrahedra for
+        a rotated body; :func:`.body_setup.tet_mesh`); a run's own mesh (``mesh.npz``)
+        first."""
         self.tet_options = tet_options(cfg)
-        return tet_mesh(cfg, animation)
+        return tet_mesh(cfg, animation, self.motion)
 
     # -- regions and the joint ----------------------------------------------------------
     def regions(self, cfg: RiggedBodyConfig) -> tuple[np.ndarray | None, list[str]]:
@@ -203,20 +213,26 @@ class RiggedBody(InverseProblem):
         return labels[nearest], list(self.animation.region_names)
 
     def joint_region(self, cfg: RiggedBodyConfig) -> np.ndarray:
-        """Tetrahedra whose volume change is reported (:func:`~torchfit.mesh.rig.joint_cells`)."""
-        return joint_cells(self.mesh.centroids(), self.animation.skeleton)
+        """Tetrahedra whose volume change is reported (their name: :attr:`joint_label`): near
+        the rig's joints, else the most strained in the reference frame's animated pose."""
+        skeleton = self.animation.skeleton
+        if skeleton is not None and len(skeleton.joints()):
+            self.joint_label = "joint region"
+            return joint_cells(self.mesh.centroids(), skeleton)
+        self.joint_label = "most strained region"
+        pose = self.start_positions[self.full_bend_frame].cpu().numpy()
+        return most_strained_cells(self.mesh.points, self.mesh.cells, pose)
 
     def reference_frame(self) -> int:
-        """The frame of largest bone rotation (the full bend), 0 without a skeleton."""
-        return most_rotated_frame(self.animation.skeleton)
+        """The frame the pictures compare: the most deformed target surface
+        (:func:`.body_motion.most_deformed_frame`)."""
+        return most_deformed_frame(self.animation.rest_vertices, self.animation.frames)
 
     # -- parameters, observation, truth ----------------------------------------------
     def build_parameterization(self, cfg: RiggedBodyConfig) -> Parameterization:
         centroids = self.mesh.centroids()
-        self.grid_shape = tuple(int(n) for n in cfg.grid)
         if cfg.parameters == Layout.grid:
-            return grid_parameterization(self.grid_shape, self.tet.points, centroids,
-                                         cfg.transform.value, self.dtype)
+            return grid_parameterization(self.grid, centroids, cfg.transform.value, self.dtype)
         if cfg.parameters == Layout.region:
             if self.tet_regions is None:
                 raise setting_error("parameters", cfg.parameters.value,
@@ -265,8 +281,8 @@ class RiggedBody(InverseProblem):
 
     def blocks_field(self, cfg: RiggedBodyConfig) -> Tensor:
         """The ``blocks`` truth per tetrahedron (:func:`.body_grid.blocks_field`)."""
-        return blocks_field(self.grid_shape, self.tet.points, self.mesh.centroids(),
-                            cfg.E_blocks, self.dtype, self.device)
+        return blocks_field(self.grid, self.mesh.centroids(), cfg.E_blocks, self.dtype,
+                            self.device)
 
     def measured_data(self, cfg: RiggedBodyConfig) -> Tensor:
         frames = torch.as_tensor(self.animation.frames, dtype=self.dtype, device=self.device)
@@ -426,16 +442,8 @@ class RiggedBody(InverseProblem):
         return validation_problem(self)
 
     def with_frames(self, numbers: list[int]) -> "RiggedBody":
-        """The same problem on some of its fitted frames (animation frame numbers, in the
-        order given), with **this** problem's targets on them, noise included.
-
-        Built again from the settings with ``frames=numbers``: the tet mesh and the
-        animation come from their caches (the same mesh, so the same parameterisation);
-        a synthetic truth is simulated again on those frames (cold, as here). The targets
-        are then replaced by this problem's rows of those frames, so the noise is the same
-        draw, not a new one, and the noise level ``delta`` is this one's for the subset's
-        data count. Raises ``ValueError`` for a frame this problem does not fit.
-        """
+        """The same problem on some of its fitted frames, with this problem's targets
+        there, noise included (:func:`.held_out.problem_on_frames`)."""
         return problem_on_frames(self, numbers)
 
     def settings_for_frames(self, numbers: list[int]) -> RiggedBodyConfig:
@@ -471,7 +479,7 @@ class RiggedBody(InverseProblem):
                     "tet_cache_hit": bool(self.tet.from_cache), "tet_key": self.tet.key,
                     "tetrahedralize_s": float(self.tet.build_seconds),
                     "backend": self.backend, "full_bend_frame": self.full_bend_frame,
-                    "joint_tets": int(len(self.joint_cells)),
+                    "joint_tets": int(len(self.joint_cells)), "grid": self.grid.describe(),
                     "E_bounds": modulus_bounds(self.cfg),
                     "surface_err_mean_homogeneous": self.homogeneous_surface_error()})
         if self.rig_report is not None:     # the rig check's largest skinning distance

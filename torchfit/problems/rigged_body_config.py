@@ -71,7 +71,12 @@ class RiggedBodyConfig(ProblemConfig):
     E_blocks: List[float] = dataclasses.field(default_factory=lambda: [1.0, 4.0, 0.4])
     # grid (coarse nodes, trilinear) | region (one per label; needs labels) | tet
     parameters: Layout = Layout.grid
-    grid: List[int] = dataclasses.field(default_factory=lambda: [4, 4, 12])   # nodes x, y, z
+    # parameters=grid (and the blocks truth): a node grid along the body's principal axes
+    # a0, a1, a2 (increasing extent, the longest last; torchfit/problems/body_grid.py), with
+    # about grid_nodes nodes in all, counts proportional to the extents (at least 4 per axis:
+    # the arm gets 4 x 4 x 12); grid=[n0, n1, n2] gives the counts along a0, a1, a2 instead
+    grid_nodes: int = 192
+    grid: Optional[List[int]] = None
     E0: float = 1.0                        # initial guess, constant (the homogeneous material)
     # bounds on the fitted modulus, kept by the solver's steps (problems/modulus_bounds.py;
     # the defaults and why: docs/problems/bounds.md). null: on for target=rig, off for synthetic

@@ -77,14 +77,22 @@ def vertex_field(cells: np.ndarray, values: np.ndarray, n_vertices: int) -> np.n
 
 
 def surface_figure(panels: Sequence[tuple[str, np.ndarray, np.ndarray | None]],
-                   faces: np.ndarray, vmax: float, title: str | None = None):
+                   faces: np.ndarray, vmax: float, title: str | None = None,
+                   view: np.ndarray | None = None):
     """Surfaces side by side (matplotlib 3-D), each ``(label, vertices (V, 3), error (V,))``
-    coloured by its per-vertex error on a common scale ``[0, vmax]`` (grey without one)."""
+    coloured by its per-vertex error on a common scale ``[0, vmax]`` (grey without one).
+
+    ``view`` ``(3, 3)``: the camera's axes, rows ``right, depth, up`` (the problem's
+    ``view_axes``); the camera looks along ``depth``, slightly from above. ``None``: the
+    world's ``x, y, z``."""
     from matplotlib import colormaps
     from matplotlib.figure import Figure
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     fig = Figure(figsize=(4.2 * len(panels), 5.2), dpi=100, layout="constrained")
+    if view is not None:
+        panels = [(label, np.asarray(vertices) @ np.asarray(view).T, error)
+                  for label, vertices, error in panels]
     all_points = np.concatenate([p[1] for p in panels])
     lo, hi = all_points.min(0), all_points.max(0)
     centre, half = (lo + hi) / 2, (hi - lo).max() / 2
@@ -176,7 +184,8 @@ class BodyOutputs:
         field, x = final.field, final.state
         # a run started from an earlier one (init=) is that continuation already
         warn_inverted(problem.frame_errors(x).get("inverted_tets"), problem.frame_numbers(),
-                      suggest=self.suggest_continuation and not self.started_elsewhere)
+                      suggest=self.suggest_continuation and not self.started_elsewhere,
+                      docs=getattr(problem, "fold_docs", None))
         files: list[Path] = []
         steps = [
             ("simulated frames (OBJ)", self._write_frames, (x,)),
@@ -209,7 +218,7 @@ class BodyOutputs:
             return [], {}
         self.highlights.append(
             f"pictures: {self.run_dir / COMPARISON_PNG} (animation | linear | fitted model "
-            f"at full bend), fitted field per region: {self.run_dir / REGIONS_JSON}, for "
+            f"at the most deformed frame), fitted field per region: {self.run_dir / REGIONS_JSON}, for "
             f"ParaView: {self.run_dir / VTU_FILE}")
         return compared
 
@@ -356,13 +365,15 @@ class BodyOutputs:
         for material, name in shown:
             info = summary[material][name]
             label = f"{name}, {'fitted E' if material == 'fitted' else 'homogeneous E'}"
-            panels.append((f"{label}\nelbow volume {100 * info['joint_volume_change_at_frame']:+.1f} %, "
+            panels.append((f"{label}\n{getattr(problem, 'joint_label', 'joint region')} volume "
+                           f"{100 * info['joint_volume_change_at_frame']:+.1f} %, "
                            f"mean error {1e3 * float(errors[(material, name)].mean()):.2f} mm",
                            _numpy(problem.surface(states[material][name]))[frame],
                            errors[(material, name)]))
         fig = surface_figure(panels, np.asarray(problem.animation.faces), vmax,
                              title=f"{names[frame]} (colour: surface error, 0 to "
-                                   f"{1e3 * vmax:.1f} mm)")
+                                   f"{1e3 * vmax:.1f} mm)",
+                             view=getattr(problem, "view_axes", None))
         png = self.run_dir / COMPARISON_PNG
         save_png(fig, png)
         return [png, json_path], summary
@@ -388,14 +399,15 @@ def frame_spans(frames: Sequence[int]) -> str:
 
 
 def warn_inverted(counts: np.ndarray | None, numbers: Sequence[int] | None = None,
-                   suggest: bool = True) -> None:
+                   suggest: bool = True, docs: str | None = None) -> None:
     """One log line naming the frames whose equilibrium has inverted tetrahedra (where
     Newton can reach several equilibria, so the frame depends on where it started), and
     the continuation that avoids it: the other frames first, then all from that run.
 
     ``counts`` ``(F,)`` per fitted frame; ``numbers`` the animation's frame numbers of the
     fitted frames (``problem.frames``; default ``0 .. F-1``); ``suggest``: add the
-    continuation (not for a run that started from an earlier one)."""
+    continuation (not for a run that started from an earlier one); ``docs``: where the
+    problem's documentation explains it (the arm's; none for other bodies)."""
     if counts is None or not np.any(counts > 0):
         return
     numbers = np.arange(len(counts)) if numbers is None else np.asarray(numbers)
@@ -407,7 +419,7 @@ def warn_inverted(counts: np.ndarray | None, numbers: Sequence[int] | None = Non
             f"'problem.frames=[{','.join(str(int(f)) for f in others)}]' and then all frames "
             "with init=<that run's directory>") if len(others) and suggest else ""
     subject = f"frames {spans} have" if len(frames) > 1 else f"frame {spans} has"
+    where = f" ({docs})" if docs else ""
     progress.warning("%s tetrahedra turned inside out at equilibrium (at most %d): a frame "
                      "like that has several equilibria, and which one Newton reaches depends "
-                     "on where it starts (docs/problems/arm3d.md, 'Several equilibria near "
-                     "full bend')%s", subject, int(counts.max()), hint)
+                     "on where it starts%s%s", subject, int(counts.max()), where, hint)
