@@ -74,8 +74,6 @@ FIRST_STAGE_DIR = "unique_frames"
 DEFAULT_MIN_VOLUME = 0.25
 #: The first stage's iteration budget, in units of the solver's ``max_iter``.
 FIRST_STAGE_ITER_FACTOR = 3
-#: The values of the app's ``continuation`` setting.
-CONTINUATION_VALUES = (True, False, "auto")
 
 
 def continuation_setting(value: Any) -> bool | str:
