@@ -6,6 +6,7 @@
     python experiments/fit.py hydra.run.dir=<run> resume=true   # continue a killed run exactly
     python experiments/fit.py problem.frames=null init=<run>    # start from an earlier fit
     python experiments/fit.py problem=arm3d continuation=true   # frames far from a fold first
+                                        # (default auto: where a synthetic target folds)
 
 The run directory's files are those of :mod:`torchfit.run` plus Hydra's ``.hydra/`` and
 ``fit.log`` (which has the progress table). Exit statuses: :mod:`app` (0 done, 1 the fit
@@ -45,7 +46,8 @@ from torchfit.problems import build_problem  # noqa: E402
 from torchfit.problems.body_mesh import use_run_mesh  # noqa: E402
 from torchfit.reporting.results import write_json  # noqa: E402
 from torchfit.run import FitOptions, fit, fit_continued  # noqa: E402
-from torchfit.run.continuation import FIRST_STAGE_DIR  # noqa: E402
+from torchfit.run.continuation import (FIRST_STAGE_DIR, continuation_applies,  # noqa: E402
+                                       continuation_setting, first_stage_iterations)
 from torchfit.run.solver import solver_config  # noqa: E402
 
 register_configs()
@@ -62,6 +64,8 @@ def prepare(cfg: DictConfig, run_dir: Path | None = None
     assert isinstance(config, dict)
     check_top_level(config, FitConfig)
     solver = solver_config(dict(config["solver"]))
+    continuation_setting(config["continuation"])        # checked before the (long) build
+    first_stage_iterations(solver, config["continuation_first_max_iter"])
     threads = config.get("threads")
     if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0:
         set_threads(threads)     # before the build: a synthetic target is simulated there
@@ -86,11 +90,13 @@ def main(cfg: DictConfig) -> float:
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN
     try:
         problem, solver, options, config = prepare(cfg, run_dir)
-        if config["continuation"]:
+        continuation = continuation_setting(config["continuation"])
+        if continuation is True or (continuation == "auto" and continuation_applies(problem)):
             result = fit_continued(problem, solver, run_dir=run_dir,
                                    resume=bool(config["resume"]), options=options,
                                    config=config, init=config["init"],
-                                   min_volume=config["continuation_min_volume"])
+                                   min_volume=config["continuation_min_volume"],
+                                   first_max_iter=config["continuation_first_max_iter"])
         else:
             result = fit(problem, solver, run_dir=run_dir, resume=bool(config["resume"]),
                          options=options, config=config, init=config["init"])

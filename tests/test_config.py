@@ -22,7 +22,8 @@ from torchfit.run.verifying import verification_point
 
 PACKAGE = Path(config.__file__).resolve().parent
 #: keyword arguments that are a schema's setting under another name
-ALIASES = {"min_volume": "continuation_min_volume"}
+ALIASES = {"min_volume": "continuation_min_volume",
+           "first_max_iter": "continuation_first_max_iter"}
 
 
 def _literal(node: ast.AST | None) -> bool:
@@ -130,6 +131,8 @@ def test_the_run_arguments_in_the_fit_schema_keep_their_defaults():
     assert defaults["init"] is fit_args["init"].default is None
     assert defaults["continuation_min_volume"] == \
         inspect.signature(fit_continued).parameters["min_volume"].default
+    assert defaults["continuation_first_max_iter"] is \
+        inspect.signature(fit_continued).parameters["first_max_iter"].default is None
     for name in ("at", "perturbation", "seed"):
         assert inspect.signature(verification_point).parameters[name].default == \
             getattr(VerifyOptions(), name)

@@ -57,15 +57,19 @@ def _fields_of(options: type, names: list[str]) -> list[tuple[str, Any, dataclas
 #: run directory. ``init``: start from an earlier run's fitted parameters (its directory or
 #: ``params.pt``) instead of the problem's initial guess (the same parameterisation).
 #: ``continuation``: fit the frames far from a fold first (no tetrahedron below
-#: ``continuation_min_volume`` of its rest volume at the start), then all frames from there:
-#: two runs in one, the first in ``<run>/unique_frames`` (bodies fitted to an animation).
+#: ``continuation_min_volume`` of its rest volume at the start; at most
+#: ``continuation_first_max_iter`` iterations, null: 3 x ``solver.max_iter``), then all frames
+#: from there: two runs in one, the first in ``<run>/unique_frames`` (bodies fitted to an
+#: animation). ``true``, ``false`` or ``auto``: on for a synthetic target (the body's own
+#: model) with frames near a fold at the start, off otherwise (``torchfit/run/continuation.py``).
 FitConfig = dataclasses.make_dataclass("FitConfig", [
     _field("problem", Any, default=MISSING),
     _field("solver", Any, default=MISSING),
     _argument("resume", bool, fit),
     _argument("init", Optional[str], fit),
-    _field("continuation", bool, default=False),
+    _field("continuation", Any, default="auto"),       # true | false | auto
     _argument("continuation_min_volume", float, fit_continued, "min_volume"),
+    _argument("continuation_first_max_iter", Optional[int], fit_continued, "first_max_iter"),
     *_fields_of(FitOptions, ["progress", "log_every", "threads", "snapshot_iterations",
                              "snapshot_every", "sheet_frame", "objective_metric",
                              "validation_patience"]),

@@ -90,6 +90,8 @@ BAD_INPUT = [
     (["init=/nonexistent/run"], ["init=/nonexistent/run", "no such file"]),
     (["continuation=true"], ["continuation=true", "body fitted to an animation", "spring1d"]),
     (["continuation=true", "continuation_min_volume=2"], ["continuation_min_volume=2"]),
+    (["continuation=maybe"], ["continuation='maybe'", "true", "false", "auto"]),
+    (["continuation_first_max_iter=-1"], ["continuation_first_max_iter=-1"]),
 ]
 
 

@@ -1,4 +1,5 @@
-"""torchfit.run.continuation: the frames far from a fold first, then all (``continuation=true``).
+"""torchfit.run.continuation: the frames far from a fold first, then all (``continuation=true``),
+and ``continuation=auto``'s rule (on a capsule, not the arm).
 
 A coarse arm (pytetwild, a fresh mesh per session) with the frames 0 and 3 (elbow up to
 30 degrees, no tetrahedron far from its rest volume) and 11 (full bend, where the inner
@@ -17,9 +18,12 @@ import torch
 
 from torchfit import build_problem, fit
 from torchfit.run import FitConfigError, fit_continued
-from torchfit.run.continuation import FIRST_STAGE_DIR, frames_near_fold
+from torchfit.run.continuation import (FIRST_STAGE_DIR, FIRST_STAGE_ITER_FACTOR,
+                                       continuation_applies, continuation_setting,
+                                       frames_near_fold)
 from torchfit.run.start import digest
 
+from helpers.capsule_animation import write_capsule
 from helpers.coarse_arm import arm, cache  # noqa: F401 (cache: a fixture)
 
 LM = {"name": "levenberg_marquardt", "max_iter": 3, "max_step": 1.0}
@@ -57,7 +61,7 @@ def test_frames_near_a_fold_and_the_two_stages(cache, tmp_path):
     threshold = between(problem)
     assert frames_near_fold(problem, problem.theta0, threshold) == [11]
     run = tmp_path / "run"
-    result = fit_continued(problem, LM, run_dir=run, min_volume=threshold)
+    result = fit_continued(problem, LM, run_dir=run, min_volume=threshold, first_max_iter=3)
     first = result.first_stage
     assert first is not None and first.iterations >= 1
     stage = json.loads((run / FIRST_STAGE_DIR / "result.json").read_text())
@@ -78,7 +82,7 @@ def test_frames_near_a_fold_and_the_two_stages(cache, tmp_path):
     for name in ("checkpoint.pt", "history.jsonl", "result.json", "params.pt"):
         (run / name).unlink()
     again = fit_continued(arm(cache, frames=[0, 3, 11], target="synthetic"), LM, run_dir=run,
-                          min_volume=threshold, resume=True)
+                          min_volume=threshold, first_max_iter=3, resume=True)
     assert (run / FIRST_STAGE_DIR / "history.jsonl").read_bytes() == history
     assert again.first_stage.iterations == first.iterations
     # the same iterates (to round-off: 1.5e-13 measured, PARDISO's threads and the start)
@@ -102,6 +106,9 @@ def test_bad_input_is_refused_before_anything_is_written(cache, tmp_path):
     for bad in (0.0, 1.0, float("nan"), True):
         with pytest.raises(FitConfigError, match="continuation_min_volume=.* must lie in"):
             fit_continued(problem, LM, run_dir=tmp_path / "b", min_volume=bad)
+    for bad in (-1, 2.5, True):
+        with pytest.raises(FitConfigError, match="continuation_first_max_iter=.* must be an "):
+            fit_continued(problem, LM, run_dir=tmp_path / "b", first_max_iter=bad)
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
     fit(problem, {**LM, "max_iter": 1}, run_dir=tmp_path / "c")
     with pytest.raises(FitConfigError, match="already holds a run"):
@@ -125,3 +132,58 @@ def test_continuation_recovers_the_field_where_one_run_stalls(tmp_path):
     assert continued.first_stage is not None
     errors = (one_run.metrics["k_err_rel_aligned"], continued.metrics["k_err_rel_aligned"])
     assert errors[0] > 0.1 and errors[1] < 0.01, errors
+
+
+def capsule(tmp_path, **settings):
+    """The capsule (0, 15 and 30 degrees) on its mesh kept in tests/data/capsule_mesh."""
+    if not (tmp_path / "cache").exists():
+        shutil.copytree(DATA / "capsule_mesh", tmp_path / "cache")
+    folder = tmp_path / "capsule"
+    if not folder.exists():
+        write_capsule(folder, "skeleton", "npz")
+    problem = build_problem("animation", {"path": str(folder), "cache_dir": str(tmp_path / "cache"),
+                                          "tet_edge_length": 0.12, "grid": [2, 2, 3],
+                                          "newton_rtol": 1e-9, **settings})
+    assert problem.tet.from_cache, "the capsule's mesh options changed: see tests/problems/" \
+        "test_rigged_body.py (tests/data/capsule_mesh)"
+    return problem
+
+
+def test_the_continuation_setting_is_true_false_or_auto():
+    assert [continuation_setting(v) for v in (True, False, "auto", "true", "False")] == \
+        [True, False, "auto", True, False]
+    for bad in ("maybe", 1, None, [True]):
+        with pytest.raises(FitConfigError, match="continuation=.* must be true .*, false .* or "
+                                               "auto"):
+            continuation_setting(bad)
+
+
+def test_auto_considers_only_bodies_fitted_to_their_own_simulations(tmp_path):
+    """A rig target (not the model's equilibria) is one plain run without a fold check; a
+    problem with a truth but no frames (spring1d) too; a synthetic body is considered."""
+    spring = build_problem("spring1d", {"n": 8})
+    assert spring.field_true is not None and not continuation_applies(spring)
+    assert not continuation_applies(capsule(tmp_path))                   # target=rig
+    assert continuation_applies(capsule(tmp_path, target="synthetic"))
+
+
+def test_auto_splits_a_synthetic_body_only_where_a_frame_is_near_a_fold(tmp_path):
+    """The capsule's 30-degree frame compresses its inner side most: a threshold above its
+    smallest volume ratio puts it in the second stage (the first stage gets
+    FIRST_STAGE_ITER_FACTOR x max_iter iterations), one below every ratio is one run."""
+    problem = capsule(tmp_path, target="synthetic")
+    with torch.no_grad(), problem.independent_simulation():
+        ratios = problem.min_volume_ratio(problem.simulate(problem.field(problem.theta0)))
+    assert problem.frame_numbers() == [0, 1, 2] and ratios[2] < ratios[1] < 1, ratios
+    folding = float(0.5 * (ratios[1] + ratios[2]))
+    one_iteration = {**LM, "max_iter": 1}
+    split = fit_continued(problem, one_iteration, run_dir=tmp_path / "split", min_volume=folding)
+    assert split.first_stage is not None and split.iterations <= 1
+    assert 1 <= split.first_stage.iterations <= FIRST_STAGE_ITER_FACTOR
+    stage = json.loads((tmp_path / "split" / FIRST_STAGE_DIR / "result.json").read_text())
+    assert stage["config"]["problem"]["frames"] == [0, 1]
+    assert stage["config"]["solver"]["max_iter"] == FIRST_STAGE_ITER_FACTOR
+    below_all = 0.5 * float(ratios.min())
+    whole = fit_continued(capsule(tmp_path, target="synthetic"), one_iteration,
+                          run_dir=tmp_path / "whole", min_volume=below_all)
+    assert whole.first_stage is None and not (tmp_path / "whole" / FIRST_STAGE_DIR).exists()
