@@ -43,7 +43,7 @@ from torchfit.config import FitConfig, register_configs  # noqa: E402
 from torchfit.linalg import set_threads  # noqa: E402
 from torchfit.problems import build_problem  # noqa: E402
 from torchfit.reporting.results import write_json  # noqa: E402
-from torchfit.run import FitOptions, fit, fit_continued  # noqa: E402
+from torchfit.run import FitOptions, distributed, fit, fit_continued  # noqa: E402
 from torchfit.run.continuation import FIRST_STAGE_DIR  # noqa: E402
 from torchfit.run.solver import solver_config  # noqa: E402
 
@@ -81,6 +81,10 @@ def main(cfg: DictConfig) -> float:
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN
     try:
         problem, solver, options, config = prepare(cfg)
+        if config["resume"]:            # warm starts saved by as many processes as now
+            distributed.check_resume(run_dir, distributed.world_size())
+        if distributed.launched():      # torchrun: rank 0 fits, the others simulate frames
+            distributed.lead(problem, config, multirun)
         if config["continuation"]:
             result = fit_continued(problem, solver, run_dir=run_dir,
                                    resume=bool(config["resume"]), options=options,
@@ -136,5 +140,19 @@ def main(cfg: DictConfig) -> float:
     return result.value(str(config["objective_metric"]))
 
 
+def build_for_rank(config: dict[str, Any]) -> Any:
+    """A torchrun worker's problem: the one rank 0 built, from rank 0's settings."""
+    threads = config.get("threads")
+    if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0:
+        set_threads(threads)
+    return build_problem(str(config["problem"].get("name")), dict(config["problem"]))
+
+
 if __name__ == "__main__":
-    run_hydra_app(main, lambda: _started, guard=GUARD)
+    if distributed.launched() and distributed.rank() > 0:
+        sys.exit(distributed.serve(build_for_rank))     # no Hydra, no files: rank 0 writes
+    try:
+        run_hydra_app(main, lambda: _started, guard=GUARD)
+    finally:
+        if distributed.launched():
+            distributed.stop()
