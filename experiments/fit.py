@@ -70,7 +70,10 @@ def prepare(cfg: DictConfig) -> tuple[Any, Any, FitOptions, dict[str, Any]]:
 
 def resume_command(run_dir: Path) -> str:
     """The command that continues the run in ``run_dir``."""
-    return f"python experiments/fit.py hydra.run.dir={run_dir} resume=true (and the same overrides)"
+    launcher = f"torchrun --nproc_per_node={distributed.world_size()}" if distributed.launched() \
+        else "python"
+    return f"{launcher} experiments/fit.py hydra.run.dir={run_dir} resume=true (and the same " \
+           "overrides)"
 
 
 @hydra.main(config_path="../conf", config_name="fit", version_base="1.3")

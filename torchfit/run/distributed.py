@@ -57,6 +57,15 @@ SIMULATE, JACOBIAN, INDEPENDENT_ON, INDEPENDENT_OFF, STATE, RESTORE, STOP = rang
 #: solvers whose dense-Jacobian path runs distributed
 SOLVERS = ("levenberg_marquardt", "gauss_newton")
 _OK, _SIMULATION_FAILED, _FAILED = 0, 1, 2
+_SHARED = False     # rank 0 has handed the settings to the workers (they serve commands)
+#: rank 0 is inside a command's exchange: stopped there (SIGTERM, a lost worker), it sends no
+#: STOP (the workers are inside the same exchange; torchrun ends them when rank 0 exits)
+_EXCHANGING = False
+
+
+def _exchange(started: bool) -> None:
+    global _EXCHANGING
+    _EXCHANGING = started
 
 
 def rank() -> int:
@@ -149,6 +158,8 @@ class _Channel:
 
     def command(self, code: int, *values: int) -> list[int]:
         header = torch.zeros(4, dtype=torch.int64)
+        if self.rank == 0 and code in (SIMULATE, JACOBIAN, STATE, RESTORE):
+            _exchange(True)
         if self.rank == 0:
             header[0] = code
             header[1:1 + len(values)] = torch.as_tensor(values, dtype=torch.int64)
@@ -183,6 +194,7 @@ class _Channel:
         everyone = [torch.zeros_like(mine) for _ in range(self.size)]
         dist.all_gather(everyone, mine)
         if self.rank == 0:
+            _exchange(False)
             for row in everyone[1:]:
                 COUNTERS.factorizations += int(row[1])
                 COUNTERS.solves += int(row[2])
@@ -209,7 +221,9 @@ class _Channel:
             dist.gather(padded.cpu(), dst=0)
             return None
         parts = [torch.empty_like(padded.cpu()) for _ in range(self.size)]
+        _exchange(True)
         dist.gather(padded.cpu(), parts, dst=0)
+        _exchange(False)
         pieces = [local] + [parts[r][:stop - start].to(local)
                             for r, (start, stop) in enumerate(self.blocks) if r > 0]
         return torch.cat(pieces, 0)
@@ -240,6 +254,7 @@ class _SplitEquilibrium:
         split.channel.command(STATE)
         gathered: list[Any] = [None] * split.channel.size
         dist.gather_object(split.inner.equilibrium.warm_start_state(), gathered, dst=0)
+        _exchange(False)
         if not any(gathered):
             return {}
         return {"world_size": split.channel.size,
@@ -253,6 +268,7 @@ class _SplitEquilibrium:
         parts = list(state["ranks"]) if state else [{}] * split.channel.size
         received: list[Any] = [None]
         dist.scatter_object_list(received, parts, src=0)
+        _exchange(False)
         split.inner.equilibrium.restore_warm_start_state(received[0], device)
 
 
@@ -342,7 +358,6 @@ def split_frames(problem: Any) -> FrameSplit:
     return split
 
 
-_SHARED = False     # rank 0 has handed the settings to the workers (they serve commands)
 
 
 def lead(problem: Any, config: dict[str, Any], multirun: bool = False) -> None:
@@ -365,7 +380,7 @@ def stop() -> None:
     global _SHARED
     try:
         start_group()
-        if _SHARED:
+        if _SHARED and not _EXCHANGING:
             _Channel([(0, 0)]).command(STOP)
         else:
             dist.broadcast_object_list([None], src=0)
