@@ -96,3 +96,16 @@ def test_two_ranks_give_the_one_process_iterates_and_resume_exactly(tmp_path):
     resumed = _torchrun(tmp_path / "resumed", *settings, "solver.max_iter=3", "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert torch.equal(_theta(tmp_path / "one"), _theta(tmp_path / "resumed"))
+
+
+@pytest.mark.slow
+def test_torchrun_refuses_what_does_not_run_distributed_and_writes_nothing(tmp_path):
+    proc = _torchrun(tmp_path / "run", "problem=spring1d", "threads=1")
+    assert proc.returncode != 0
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert lines == ["error: problem spring1d / solver gauss_newton does not run distributed "
+                     "yet (torchrun runs a quasistatic rigged body with levenberg_marquardt or "
+                     "gauss_newton on the dense Jacobian, n_params <= "
+                     "solver.dense_jacobian_max_params); run it as one process"]
+    assert "exitcode: 2" in proc.stderr           # rank 0's refusal; the worker left quietly
+    assert not (tmp_path / "run").exists()
