@@ -45,7 +45,7 @@ from torchfit.linalg import set_threads  # noqa: E402
 from torchfit.problems import build_problem  # noqa: E402
 from torchfit.problems.body_mesh import use_run_mesh  # noqa: E402
 from torchfit.reporting.results import write_json  # noqa: E402
-from torchfit.run import FitOptions, fit, fit_continued  # noqa: E402
+from torchfit.run import FitOptions, distributed, fit, fit_continued  # noqa: E402
 from torchfit.run.continuation import (FIRST_STAGE_DIR, continuation_applies,  # noqa: E402
                                        continuation_setting, first_stage_iterations)
 from torchfit.run.solver import solver_config  # noqa: E402
@@ -79,7 +79,10 @@ def prepare(cfg: DictConfig, run_dir: Path | None = None
 
 def resume_command(run_dir: Path) -> str:
     """The command that continues the run in ``run_dir``."""
-    return f"python experiments/fit.py hydra.run.dir={run_dir} resume=true (and the same overrides)"
+    launcher = f"torchrun --nproc_per_node={distributed.world_size()}" if distributed.launched() \
+        else "python"
+    return f"{launcher} experiments/fit.py hydra.run.dir={run_dir} resume=true (and the same " \
+           "overrides)"
 
 
 @hydra.main(config_path="../conf", config_name="fit", version_base="1.3")
@@ -90,8 +93,14 @@ def main(cfg: DictConfig) -> float:
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN
     try:
         problem, solver, options, config = prepare(cfg, run_dir)
+        if config["resume"]:            # warm starts saved by as many processes as now
+            distributed.check_resume(run_dir, distributed.world_size())
         continuation = continuation_setting(config["continuation"])
-        if continuation is True or (continuation == "auto" and continuation_applies(problem)):
+        continuing = continuation is True or (continuation == "auto"
+                                              and continuation_applies(problem))
+        if distributed.launched():      # torchrun: rank 0 fits, the others simulate frames
+            distributed.lead(problem, {**config, "continuation": continuing}, multirun)
+        if continuing:
             result = fit_continued(problem, solver, run_dir=run_dir,
                                    resume=bool(config["resume"]), options=options,
                                    config=config, init=config["init"],
@@ -147,5 +156,19 @@ def main(cfg: DictConfig) -> float:
     return result.value(str(config["objective_metric"]))
 
 
+def build_for_rank(config: dict[str, Any]) -> Any:
+    """A torchrun worker's problem: the one rank 0 built, from rank 0's settings."""
+    threads = config.get("threads")
+    if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0:
+        set_threads(threads)
+    return build_problem(str(config["problem"].get("name")), dict(config["problem"]))
+
+
 if __name__ == "__main__":
-    run_hydra_app(main, lambda: _started, guard=GUARD)
+    if distributed.launched() and distributed.rank() > 0:
+        sys.exit(distributed.serve(build_for_rank))     # no Hydra, no files: rank 0 writes
+    try:
+        run_hydra_app(main, lambda: _started, guard=GUARD)
+    finally:
+        if distributed.launched():
+            distributed.stop()

@@ -1,0 +1,111 @@
+"""torchfit.run.distributed: frames over torchrun ranks give the one-process fit."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from helpers.capsule_animation import write_capsule
+from helpers.fit_app import REPO, run_fit_app
+from torchfit.problems import build_problem
+from torchfit.run import FitConfigError
+from torchfit.run.distributed import check_resume, check_supported, partition
+
+TORCHRUN = Path(sys.executable).with_name("torchrun")
+
+
+def test_partition_is_contiguous_balanced_and_in_frame_order():
+    assert partition(5, 2) == [(0, 3), (3, 5)]
+    assert partition(48, 2) == [(0, 24), (24, 48)]
+    assert partition(2, 3) == [(0, 1), (1, 2), (2, 2)]
+    for frames, ranks in ((48, 5), (7, 3), (11, 4), (3, 1)):
+        blocks = partition(frames, ranks)
+        sizes = [stop - start for start, stop in blocks]
+        assert max(sizes) - min(sizes) <= 1 and sum(sizes) == frames
+        assert [b[0] for b in blocks[1:]] == [b[1] for b in blocks[:-1]]   # contiguous
+        assert sizes == sorted(sizes, reverse=True)       # the larger blocks first
+    with pytest.raises(ValueError):
+        partition(4, 0)
+
+
+def test_what_does_not_run_distributed_is_refused_in_one_line():
+    chain = build_problem("spring1d", {})
+    with pytest.raises(FitConfigError, match="problem spring1d / solver gauss_newton does not "
+                                             "run distributed yet") as info:
+        check_supported(chain, {"solver": {"name": "gauss_newton",
+                                           "dense_jacobian_max_params": 1000}}, 2)
+    assert "\n" not in str(info.value)
+
+
+def test_a_resume_with_another_number_of_processes_is_refused(tmp_path):
+    state = {"world_size": 2, "blocks": [[0, 2], [2, 3]], "ranks": [{"a": 1}, {"a": 2}]}
+    torch.save({"simulation_state": state}, tmp_path / "checkpoint.pt")
+    check_resume(tmp_path, 2)
+    with pytest.raises(FitConfigError, match="written by 2 process.*--nproc_per_node=2"):
+        check_resume(tmp_path, 1)
+    torch.save({"simulation_state": {"anchor": 0}}, tmp_path / "checkpoint.pt")
+    with pytest.raises(FitConfigError, match="written by 1 process"):
+        check_resume(tmp_path, 3)
+    torch.save({"simulation_state": {}}, tmp_path / "checkpoint.pt")   # linear: nothing saved
+    check_resume(tmp_path, 3)
+
+
+def _torchrun(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    return subprocess.run([str(TORCHRUN), "--standalone", "--nproc_per_node=2",
+                           "experiments/fit.py", f"hydra.run.dir={run_dir}", *overrides],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+
+
+def _theta(run: Path) -> torch.Tensor:
+    return torch.load(run / "params.pt", weights_only=False)["theta"]
+
+
+@pytest.mark.slow
+def test_two_ranks_give_the_one_process_iterates_and_resume_exactly(tmp_path):
+    """Three frames of a capsule split 2 + 1: theta, iterations, stop reason and the
+    whole-job counters equal to the one-process run's (bit for bit: Newton is per frame,
+    every frame sees the same operations); a 2-rank run stopped after 2 iterations and
+    resumed to 3 ends there too; a one-process resume of it is refused."""
+    folder = write_capsule(tmp_path / "capsule", "skeleton", "npz")
+    settings = ["problem=animation", f"problem.path={folder}",
+                f"problem.cache_dir={tmp_path / 'cache'}", "problem.tet_edge_length=0.12",
+                "problem.grid=[2,2,3]", "solver=levenberg_marquardt", "threads=1"]
+    one = run_fit_app(tmp_path / "one", *settings, "solver.max_iter=3")
+    assert one.returncode == 0, one.stderr[-3000:]
+    two = _torchrun(tmp_path / "two", *settings, "solver.max_iter=3")
+    assert two.returncode == 0, two.stderr[-3000:]
+    first = json.loads((tmp_path / "one" / "result.json").read_text())
+    second = json.loads((tmp_path / "two" / "result.json").read_text())
+    assert torch.equal(_theta(tmp_path / "one"), _theta(tmp_path / "two"))
+    for key in ("iterations", "stop_reason", "factorizations", "solves", "surface_err_mean"):
+        assert first[key] == second[key], key
+    checkpoint = torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True)
+    assert checkpoint["simulation_state"]["blocks"] == [[0, 2], [2, 3]]
+
+    part = _torchrun(tmp_path / "resumed", *settings, "solver.max_iter=2")
+    assert part.returncode == 0, part.stderr[-3000:]
+    refused = run_fit_app(tmp_path / "resumed", *settings, "solver.max_iter=3", "resume=true")
+    assert refused.returncode == 2
+    assert "error: cannot resume" in refused.stderr and "--nproc_per_node=2" in refused.stderr
+    resumed = _torchrun(tmp_path / "resumed", *settings, "solver.max_iter=3", "resume=true")
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert torch.equal(_theta(tmp_path / "one"), _theta(tmp_path / "resumed"))
+
+
+@pytest.mark.slow
+def test_torchrun_refuses_what_does_not_run_distributed_and_writes_nothing(tmp_path):
+    proc = _torchrun(tmp_path / "run", "problem=spring1d", "threads=1")
+    assert proc.returncode != 0
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert lines == ["error: problem spring1d / solver gauss_newton does not run distributed "
+                     "yet (torchrun runs a quasistatic rigged body with levenberg_marquardt or "
+                     "gauss_newton on the dense Jacobian, n_params <= "
+                     "solver.dense_jacobian_max_params); run it as one process"]
+    assert "exitcode: 2" in proc.stderr           # rank 0's refusal; the worker left quietly
+    assert not (tmp_path / "run").exists()
