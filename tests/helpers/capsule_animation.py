@@ -37,18 +37,20 @@ def bone_transforms(angles=ANGLES) -> np.ndarray:
     return T
 
 
-def write_capsule(folder: Path, mode: str = "skeleton", frames_as: str = "npz") -> Path:
-    """Write the capsule animation; ``mode`` skeleton | driven, ``frames_as`` npz | obj."""
+def write_capsule(folder: Path, mode: str = "skeleton", frames_as: str = "npz",
+                  angles=ANGLES) -> Path:
+    """Write the capsule animation; ``mode`` skeleton | driven, ``frames_as`` npz | obj,
+    ``angles`` the bend of each frame (degrees)."""
     mesh = capsule()
     rest = np.asarray(mesh.vertices)
     faces = np.asarray(mesh.faces)
     heads = np.array([[0, 0, -HALF], [0, 0, 0.0]])
     tails = np.array([[0, 0, 0.0], [0, 0, HALF]])
-    transforms = bone_transforms()
+    transforms = bone_transforms(angles)
     weights = distance_weights(segment_distances(rest, heads, tails), 1.5 * RADIUS)
     lower = np.clip(-rest[:, 2] / HALF, 0, 1) * np.clip(rest[:, 0] / RADIUS, 0, 1) ** 2
-    bulge = np.zeros((len(ANGLES), len(rest), 3))
-    bulge[:, :, 0] = 0.004 * (np.asarray(ANGLES) / ANGLES[-1])[:, None] * lower[None]
+    bulge = np.zeros((len(angles), len(rest), 3))
+    bulge[:, :, 0] = 0.004 * (np.asarray(angles) / max(angles))[:, None] * lower[None]
     frames = blend(rest + 0 * bulge[0], weights, transforms) + bulge
     if mode == "skeleton":
         skeleton = Skeleton(heads, tails, transforms, 0.4 * RADIUS, None, ["lower", "upper"])

@@ -46,6 +46,7 @@ from .body_report import (BODY_METRICS, body_metrics, frame_report, inverted_cou
                           min_volume_ratios, region_summary, surface_distances, volume_change)
 from .config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
                      resolve_backend, setting_error)
+from .repeated_poses import distinct_poses
 from .rigged_body_config import Layout, RiggedBodyConfig, Target, Truth
 
 
@@ -158,6 +159,8 @@ class RiggedBody(InverseProblem):
         self.dirichlet_positions = torch.as_tensor(drive.positions, dtype=self.dtype,
                                                    device=self.device)
         self.start_positions = torch.as_tensor(drive.start, dtype=self.dtype, device=self.device)
+        # frames repeating a pose share one simulation (repeated_poses.py)
+        self.repeated_poses = distinct_poses(self.dirichlet_positions)
         # warm starts (the last solution, at the solver's next point) keep going rather than
         # fall back to the animated pose: near full bend that cold start needs far more
         # Newton iterations (folds and inverted elements at the inner elbow)
@@ -270,8 +273,12 @@ class RiggedBody(InverseProblem):
         if E.shape != (self.model.n_cells,):
             raise ProblemConfigError(f"Young's modulus must have shape ({self.model.n_cells},) "
                                      f"(one per tetrahedron), got {tuple(E.shape)}")
-        return self.quasistatic(E, self.dirichlet_positions.to(E),
-                                x_init=self.start_positions.to(E))
+        if self.repeated_poses is None:
+            return self.quasistatic(E, self.dirichlet_positions.to(E),
+                                    x_init=self.start_positions.to(E))
+        poses, pose_of_frame = self.repeated_poses
+        return self.quasistatic(E, self.dirichlet_positions[poses].to(E),
+                                x_init=self.start_positions[poses].to(E))[pose_of_frame]
 
     def independent_simulation(self) -> ContextManager[None]:
         """Cold starts from the animated pose that seed no warm start (the synthetic
@@ -306,9 +313,10 @@ class RiggedBody(InverseProblem):
         directions = self.parameterization.jacobian(theta.detach())          # (n_cells, n)
         # the embedding applied to each frame's columns as soon as they are solved: the
         # (F, V, 3, n) derivative of every vertex is never formed
-        observed = self.quasistatic.jacobian(E, self.dirichlet_positions.to(E), directions,
-                                             x_init=self.start_positions.to(E),
-                                             observe=self._observation_matrix(E))
+        poses, pose_of_frame = self.repeated_poses or (slice(None), slice(None))
+        observed = self.quasistatic.jacobian(E, self.dirichlet_positions[poses].to(E),
+                                             directions, x_init=self.start_positions[poses].to(E),
+                                             observe=self._observation_matrix(E))[pose_of_frame]
         return observed.reshape(-1, observed.shape[-1])                 # (F n_obs 3, n)
 
     def _observation_matrix(self, like: Tensor) -> Tensor:
