@@ -51,6 +51,7 @@ from .config import (Backend, ProblemConfigError, check_newton_settings, require
 from .held_out import NO_VALIDATION, problem_on_frames, split_frames, validation_problem
 from .model_comparison import simulate_with_model
 from .modulus_bounds import check_bounds, modulus_bounds, region_report, theta_bounds
+from .repeated_poses import distinct_poses
 from .rigged_body_config import Layout, RiggedBodyConfig, Target, Truth
 
 
@@ -178,6 +179,8 @@ class RiggedBody(InverseProblem):
         self.dirichlet_positions = torch.as_tensor(drive.positions, dtype=self.dtype,
                                                    device=self.device)
         self.start_positions = torch.as_tensor(drive.start, dtype=self.dtype, device=self.device)
+        # frames repeating a pose share one simulation (repeated_poses.py)
+        self.repeated_poses = distinct_poses(self.dirichlet_positions)
         # warm starts (the last solution, at the solver's next point) keep going rather than
         # fall back to the animated pose: near full bend that cold start needs far more
         # Newton iterations (folds and inverted elements at the inner elbow)
@@ -294,12 +297,17 @@ class RiggedBody(InverseProblem):
         if E.shape != (self.model.n_cells,):
             raise ProblemConfigError(f"Young's modulus must have shape ({self.model.n_cells},) "
                                      f"(one per tetrahedron), got {tuple(E.shape)}")
+        if self.repeated_poses is None:
+            poses, pose_of_frame = None, None
+        else:       # each distinct pose once, then every frame from its pose
+            poses, pose_of_frame = self.repeated_poses
+        drive = self.dirichlet_positions if poses is None else self.dirichlet_positions[poses]
+        start = self.start_positions if poses is None else self.start_positions[poses]
         with contextlib.nullcontext() if getattr(self, "_simulated", False) else \
-                first_simulation(self.n_frames, self.model.n_cells, self.cfg.model.value):
-            x = self.quasistatic(E, self.dirichlet_positions.to(E),
-                                 x_init=self.start_positions.to(E))
+                first_simulation(len(drive), self.model.n_cells, self.cfg.model.value):
+            x = self.quasistatic(E, drive.to(E), x_init=start.to(E))
         self._simulated = True
-        return x
+        return x if pose_of_frame is None else x[pose_of_frame]
 
     def independent_simulation(self) -> ContextManager[None]:
         """Cold starts from the animated pose that seed no warm start (the synthetic
@@ -334,9 +342,10 @@ class RiggedBody(InverseProblem):
         directions = self.parameterization.jacobian(theta.detach())          # (n_cells, n)
         # the embedding applied to each frame's columns as soon as they are solved: the
         # (F, V, 3, n) derivative of every vertex is never formed
-        observed = self.quasistatic.jacobian(E, self.dirichlet_positions.to(E), directions,
-                                             x_init=self.start_positions.to(E),
-                                             observe=self._observation_matrix(E))
+        poses, pose_of_frame = self.repeated_poses or (slice(None), slice(None))
+        observed = self.quasistatic.jacobian(E, self.dirichlet_positions[poses].to(E),
+                                             directions, x_init=self.start_positions[poses].to(E),
+                                             observe=self._observation_matrix(E))[pose_of_frame]
         return observed.reshape(-1, observed.shape[-1])                 # (F n_obs 3, n)
 
     def _observation_matrix(self, like: Tensor) -> Tensor:
@@ -379,13 +388,8 @@ class RiggedBody(InverseProblem):
         return volume_change(_positions(x), self.mesh.points, self.mesh.cells[self.joint_cells])
 
     def inverted_tets(self, x: Tensor) -> np.ndarray:
-        """Tetrahedra turned inside out (signed volume <= 0) per frame ``(F,)``.
-
-        Where a frame's equilibrium has inverted tetrahedra (the inner elbow folding at full
-        bend), Newton can reach several equilibria depending on where it starts, so that
-        frame's simulation is not a unique function of the material: see
-        docs/problems/arm3d.md, "Several equilibria near full bend".
-        """
+        """Tetrahedra turned inside out (signed volume <= 0) per frame ``(F,)``: such a
+        frame has several equilibria (docs/problems/arm3d.md, "Several equilibria")."""
         return inverted_counts(_positions(x), self.mesh.cells)
 
     def min_volume_ratio(self, x: Tensor) -> np.ndarray:

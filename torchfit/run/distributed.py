@@ -349,15 +349,16 @@ class FrameSplit:
 
 
 def split_frames(problem: Any) -> FrameSplit:
-    """Replace ``problem.quasistatic`` by its frame split (every rank, same problem)."""
+    """Replace ``problem.quasistatic`` by its frame split (every rank, same problem). Every
+    frame is simulated by its rank: frames that repeat a pose are not shared across the
+    split (``repeated_poses`` off), so the split sees all ``n_frames``."""
+    problem.repeated_poses = None
     blocks = partition(int(problem.n_frames), dist.get_world_size())
     split = FrameSplit(problem, _Channel(blocks))
     problem.quasistatic = split
     if split.channel.rank == 0:
         problem.forward_jacobian = split.forward_jacobian
     return split
-
-
 
 
 def lead(problem: Any, config: dict[str, Any], multirun: bool = False) -> None:

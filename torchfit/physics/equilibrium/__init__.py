@@ -12,7 +12,8 @@ is never unrolled) and gives explicit products and whole Jacobians without autog
 from .equilibrium import Equilibrium
 from .linearization import EquilibriumLinearization
 from .model import EquilibriumModel
-from .newton import NewtonConvergenceError, NewtonOptions
+from .newton import NewtonConvergenceError, NewtonOptions, TrialBudgetExceeded
 
 __all__ = ["Equilibrium", "EquilibriumLinearization", "EquilibriumModel",
-           "NewtonConvergenceError", "NewtonOptions"]
+           "NewtonConvergenceError", "NewtonOptions",
+           "TrialBudgetExceeded"]

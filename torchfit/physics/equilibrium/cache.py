@@ -117,6 +117,10 @@ class SolutionCache:
         is alive."""
         self._anchor = weakref.ref(solution)
 
+    def is_anchor(self, solution: Solution | None) -> bool:
+        """Whether ``solution`` is the (live) anchor."""
+        return solution is not None and self._anchor is not None and self._anchor() is solution
+
     def seed_solutions(self) -> tuple[list[Solution], int]:
         """What :meth:`warm_source` reads: the anchor (while alive) and the most recently
         used solution (once each, the anchor first), and the anchor's index (``-1``: none)."""

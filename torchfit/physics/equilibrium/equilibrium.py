@@ -211,7 +211,12 @@ class Equilibrium:
             return cached
         try:
             source = None if self.model.linear else self.cache.warm_source(fixed_values)
-            sol = self.solver.solve(params, fixed_values, x_init, source)
+            budget, warm_x = None, None
+            if self.cache.is_anchor(source):    # a solver's trial point
+                budget = self.newton.trial_budget(source.newton_iterations)
+                if self.newton.trial_predictor and self.extensions.has_param_derivative:
+                    warm_x = self.predicted_start(source, params)
+            sol = self.solver.solve(params, fixed_values, x_init, source, budget, warm_x)
         except torch.cuda.OutOfMemoryError as err:
             # one line naming the size and what to lower, not a traceback from the allocator
             raise gpu_memory_error(
@@ -224,6 +229,13 @@ class Equilibrium:
         self.last_newton_iterations = sol.newton_iterations
         self.last_warm_started = sol.warm_started
         return sol
+
+    def predicted_start(self, anchor: Solution, params: Tensor) -> Tensor:
+        """The first-order predictor ``x_anchor + (dx*/dparams)(params - params_anchor)``
+        ``(F, n_dofs)`` at the anchor's Dirichlet values: one solve per stored factor of
+        the anchor, no factorisation."""
+        step = (params - anchor.params).reshape(-1, 1)
+        return anchor.x + solution_jacobian(self, anchor, step)[..., 0]
 
     def param_derivative(self, solution: Solution) -> Any:
         """The model's ``param_derivative`` at ``solution`` (built once, kept with it);

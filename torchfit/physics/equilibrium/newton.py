@@ -5,7 +5,10 @@ fixed_values)``: a linear model in one factorisation and one solve (plus
 ``linear_refinement`` steps of iterative refinement with the same factor); a non-linear one
 by Newton with a backtracking line search on ``||R||`` per frame, from a warm start (an
 earlier solution, at most ``warm_max_iter`` iterations, judged against the cold start's
-reference residual) and else, or when that fails, from the cold start. The factors kept
+reference residual) and else, or when that fails, from the cold start. A *trial* (a warm
+start from the anchor, a solver's accepted point) has a budget instead of the cold-start
+fallback (:attr:`NewtonOptions.trial_factor`): past it Newton stops with
+:class:`TrialBudgetExceeded`, which solvers treat as a failed trial. The factors kept
 with the solution are always those of the exact tangent at ``x*``.
 
 Tangent choice (models with a projected, PSD tangent): a frame uses the projected tangent
@@ -59,6 +62,17 @@ class NewtonConvergenceError(SimulationError):
     """Newton did not bring a frame to equilibrium; the message names frame and residual."""
 
 
+class TrialBudgetExceeded(SimulationError):
+    """A trial solve (warm-started from the anchor) did not converge within its budget
+    (:attr:`NewtonOptions.trial_factor`); ``budget`` is its per-frame iteration limit. A
+    solver sees a failed trial (Levenberg-Marquardt rejects the step, Gauss-Newton
+    shortens it)."""
+
+    def __init__(self, message: str, budget: int) -> None:
+        super().__init__(message)
+        self.budget = int(budget)
+
+
 @dataclasses.dataclass
 class NewtonOptions:
     """Newton settings (residual norms are per frame, in force units)."""
@@ -84,6 +98,25 @@ class NewtonOptions:
     # along the negative curvature) instead finishes at that equilibrium with the exact
     # tangent and a line search on ||R|| alone.
     stall_iter: int = 10
+    # Trial budget: a solve warm-started from the anchor (a solver's trial point, see
+    # cache.py) may spend at most max(trial_min_iter * frames, trial_factor * the anchor's
+    # Newton iterations summed over its frames) frame-iterations (one factorisation each;
+    # within warm_max_iter per frame); past it, or where that warm start fails, it raises
+    # TrialBudgetExceeded instead of going on to the cold start (the long walk of a step
+    # that is then usually rejected). 0 disables it.
+    trial_factor: float = 2.5
+    trial_min_iter: int = 5
+    # Start such a trial from the first-order predictor x_anchor + (dx/dparams) dparams
+    # (one solve per stored factor of the anchor) instead of x_anchor.
+    trial_predictor: bool = False
+
+    def trial_budget(self, anchor_iterations: list[int]) -> int | None:
+        """The budget in frame-iterations of a trial whose anchor took
+        ``anchor_iterations`` per frame (``None``: no budget)."""
+        if self.trial_factor <= 0:
+            return None
+        return max(int(self.trial_min_iter) * len(anchor_iterations),
+                   math.ceil(self.trial_factor * sum(anchor_iterations)))
 
 
 class NewtonSolver:
@@ -108,9 +141,13 @@ class NewtonSolver:
 
     def solve(self, params: Tensor, fixed_values: Tensor,
               x_init: Tensor | Callable[[], Tensor] | None,
-              warm_source: Solution | None = None) -> Solution:
+              warm_source: Solution | None = None, budget: int | None = None,
+              warm_x: Tensor | None = None) -> Solution:
         """The solution at ``(params, fixed_values)`` (detached inputs), from
-        ``warm_source`` first where given (non-linear models only), else from ``x_init``."""
+        ``warm_source`` first where given (non-linear models only; from ``warm_x`` instead
+        of its positions where given), else from ``x_init``. With ``budget`` (a trial:
+        ``warm_source`` is the anchor) the warm start may take at most that many
+        iterations and its failure raises :class:`TrialBudgetExceeded` (no cold start)."""
         n_frames = fixed_values.shape[0]
         if self.model.linear:
             # Any start gives the solution in one step: skip a start that must be computed.
@@ -130,14 +167,20 @@ class NewtonSolver:
                                           "check that all stiffnesses are positive and finite")
             return Solution(params, fixed_values, x, factors, [1] * n_frames)
         if warm_source is not None:
+            start = warm_source.x if warm_x is None else warm_x
             try:
-                sol = self.iterate(params, fixed_values, warm_source.x.detach().clone(),
+                sol = self.iterate(params, fixed_values, start.detach().clone(),
                                    warm_source.reference, max_iter=min(self.options.warm_max_iter,
-                                                                       self.options.max_iter))
+                                                                       self.options.max_iter),
+                                   budget=budget)
                 sol.warm_started = True
                 return sol
-            except (NewtonConvergenceError, SingularMatrixError):
-                pass   # the cold start below decides (and reports a failure)
+            except (NewtonConvergenceError, SingularMatrixError) as err:
+                if budget is not None:
+                    raise TrialBudgetExceeded(
+                        f"trial simulation failed within its budget of {budget} Newton "
+                        f"frame-iterations: {err}", budget) from None
+                # else the cold start below decides (and reports a failure)
         return self.iterate(params, fixed_values, self.cold_start(params, fixed_values, x_init))
 
     def linearized_start(self, params: Tensor, fixed_values: Tensor, x_ref: Tensor) -> Tensor:
@@ -180,9 +223,12 @@ class NewtonSolver:
         return self.reduction.full(x_free, fixed_values)
 
     def iterate(self, params: Tensor, fixed_values: Tensor, x: Tensor,
-                reference: Tensor | None = None, max_iter: int | None = None) -> Solution:
+                reference: Tensor | None = None, max_iter: int | None = None,
+                budget: int | None = None) -> Solution:
         """Newton from the full start ``x`` ``(F, n_dofs)``; convergence is judged against
-        ``reference`` (the cold start's residual norms; those of ``x`` without it)."""
+        ``reference`` (the cold start's residual norms; those of ``x`` without it). With
+        ``budget``, an iteration that would take the frame-iterations (factorisations)
+        past it raises :class:`TrialBudgetExceeded` instead."""
         opts = self.options
         max_iter = opts.max_iter if max_iter is None else max_iter
         n_frames = x.shape[0]
@@ -239,6 +285,10 @@ class NewtonSolver:
                     stalled = True
                     break
             frames = torch.nonzero(active).reshape(-1)
+            if budget is not None and sum(iterations) + frames.numel() > budget:
+                raise TrialBudgetExceeded(
+                    f"trial simulation stopped after {sum(iterations)} Newton frame-iterations "
+                    f"(budget {budget}: newton trial_factor x the accepted point's)", budget)
             use_exact = exact[frames]
             contributions = None
             if bool(use_exact.any()):
