@@ -44,6 +44,7 @@ from ..reporting.simulation import comparison_picture, write_frames
 from .directory import check_writable
 from .lock import hold
 from .options import FitConfigError
+from .start import read_params
 
 progress = logging.getLogger(PROGRESS_LOGGER)
 
@@ -133,16 +134,8 @@ def read_fitted_run(path: str | Path) -> FittedRun:
     if not params.is_file():
         raise FitConfigError(f"run={path}: no {PARAMS_FILE} there; give the directory of a "
                              "finished fit (it holds params.pt)")
-    try:
-        with open(params, "rb") as f:
-            saved = torch.load(f, map_location="cpu", weights_only=True)
-        theta = saved["theta"]
-        if not isinstance(theta, Tensor):
-            raise TypeError("its theta is not a tensor")
-    except Exception as e:  # noqa: BLE001  (truncated, foreign or corrupt file)
-        first = (str(e).strip().splitlines() or [type(e).__name__])[0][:120]
-        raise FitConfigError(f"run={params} is not a torchfit {PARAMS_FILE} ({first}); give "
-                             "the directory of a finished fit") from None
+    saved = read_params(params, f"run={params}")
+    theta = saved["theta"]
     field = saved.get("field") if isinstance(saved.get("field"), Tensor) else None
     return FittedRun(directory, theta.detach(), field, saved.get("field_name"),
                      saved.get("transform"), _fitted_settings(directory),

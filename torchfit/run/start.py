@@ -40,16 +40,8 @@ def initial_theta(problem: InverseProblem, init: Tensor | str | Path | None = No
         if not path.is_file():
             raise FitConfigError(f"{where}: no such file; give the directory of a finished run "
                                  f"(it holds {PARAMS_FILE}) or the {PARAMS_FILE} itself")
-        try:
-            with open(path, "rb") as f:
-                saved = torch.load(f, map_location="cpu", weights_only=True)
-            theta = saved["theta"]
-            if not isinstance(theta, Tensor):
-                raise TypeError("its theta is not a tensor")
-        except Exception as e:  # noqa: BLE001  (truncated, foreign or corrupt file)
-            first = (str(e).strip().splitlines() or [type(e).__name__])[0][:120]
-            raise FitConfigError(f"{where} is not a torchfit {PARAMS_FILE} ({first}); give the "
-                                 "directory of a finished run") from None
+        saved = read_params(path, where)
+        theta = saved["theta"]
         name = problem.parameterization.name
         for key, ours in (("field_name", problem.field_name),
                           ("transform", problem.parameterization.transform)):
@@ -74,6 +66,21 @@ def initial_theta(problem: InverseProblem, init: Tensor | str | Path | None = No
         raise FitConfigError(f"{where}: parameter {bad} is {float(theta[bad])}; a start must "
                              "be finite")
     return theta.to(dtype=problem.theta0.dtype, device=problem.theta0.device).clone()
+
+
+def read_params(path: Path, where: str) -> dict:
+    """The content of a ``params.pt`` (``theta`` a tensor checked); :class:`FitConfigError`
+    naming ``where`` for a truncated, foreign or corrupt file."""
+    try:
+        with open(path, "rb") as f:
+            saved = torch.load(f, map_location="cpu", weights_only=True)
+        if not isinstance(saved["theta"], Tensor):
+            raise TypeError("its theta is not a tensor")
+    except Exception as e:  # noqa: BLE001  (truncated, foreign or corrupt file)
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0][:120]
+        raise FitConfigError(f"{where} is not a torchfit {PARAMS_FILE} ({first}); give the "
+                             "directory of a finished run") from None
+    return saved
 
 
 def digest(theta: Tensor) -> str:
