@@ -197,8 +197,9 @@ def test_difference_preconditioner_same_damped_step_in_fewer_cgls_iterations():
     cfg = LevenbergMarquardtConfig(cg_max_iter=2000, cg_rtol=1e-8, preconditioner="difference")
     laplacian = GraphLaplacian(problem.parameterization.difference_operator(), theta)
     precondition = _preconditioner(lin, laplacian, cfg, torch.Generator().manual_seed(0))
-    plain = _damped_solve(lin, gradient, damping, residual, theta, cfg)
-    pre = _damped_solve(lin, gradient, damping, residual, theta, cfg, precondition)
+    project = residual.projector(theta)          # the gauge (no bounds here)
+    plain = _damped_solve(lin, gradient, damping, project, cfg)
+    pre = _damped_solve(lin, gradient, damping, project, cfg, precondition)
     assert plain.stop_reason == pre.stop_reason == "tolerance"
     assert pre.iterations < 0.7 * plain.iterations, (pre.iterations, plain.iterations)  # 879 vs 1497
     # the same minimiser: equal linear residuals; steps equal up to the conditioning of
