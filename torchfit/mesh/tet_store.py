@@ -51,6 +51,9 @@ class StoredMesh:
     options: dict
     build_seconds: float
     path: Path
+    #: the body's frame the run's grid was laid in, ``(origin (3,), axes (3, 3))``, or
+    #: ``None`` (not recorded): a new animation of the body keeps the fitted grid
+    frame: tuple[np.ndarray, np.ndarray] | None = None
 
     def matches(self, vertices: np.ndarray, faces: np.ndarray, options: TetOptions) -> bool:
         """Whether this mesh was built from the rest surface ``vertices``, ``faces`` with
@@ -85,7 +88,8 @@ class StoredMesh:
 
 def write_run_mesh(path: str | Path, tet: TetMesh, options: TetOptions,
                    surface_vertices: np.ndarray, surface_faces: np.ndarray,
-                   regions: np.ndarray | None = None) -> Path:
+                   regions: np.ndarray | None = None,
+                   frame: tuple[np.ndarray, np.ndarray] | None = None) -> Path:
     """Write ``mesh.npz`` (module docstring) atomically; returns its path."""
 
     path = Path(path)
@@ -98,6 +102,9 @@ def write_run_mesh(path: str | Path, tet: TetMesh, options: TetOptions,
               "surface_vertices": np.asarray(surface_vertices, dtype=np.float64),
               "surface_faces": np.asarray(surface_faces, dtype=np.int64),
               "meta": np.array(json.dumps(meta, sort_keys=True))}
+    if frame is not None:
+        arrays["frame_origin"] = np.asarray(frame[0], dtype=np.float64)
+        arrays["frame_axes"] = np.asarray(frame[1], dtype=np.float64)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.0.tmp")   # a stale one is removed
     # by the run that next holds the directory (reporting.results.remove_stale_temporaries)
     # an .npz with fixed time stamps: the same mesh gives the same bytes
@@ -128,6 +135,8 @@ def read_run_mesh(path: str | Path) -> StoredMesh:
                 raise ValueError(f"format {meta.get('format')!r}, expected {_FORMAT!r}")
             arrays = {k: np.array(data[k]) for k in ("points", "cells", "regions",
                                                      "surface_vertices", "surface_faces")}
+            frame = (np.array(data["frame_origin"]), np.array(data["frame_axes"])) \
+                if "frame_axes" in data.files else None
     except Exception as e:  # noqa: BLE001  (a truncated, foreign or corrupt file)
         first = (str(e).strip().splitlines() or [type(e).__name__])[0][:160]
         raise MeshError(f"{path} is not a torchfit run mesh ({first})") from None
@@ -136,7 +145,7 @@ def read_run_mesh(path: str | Path) -> StoredMesh:
                         f"cells {arrays['cells'].shape})")
     return StoredMesh(**arrays, key=str(meta["key"]), version=str(meta["version"]),
                       options=dict(meta["options"]), build_seconds=float(meta["build_seconds"]),
-                      path=path)
+                      path=path, frame=frame)
 
 
 #: meshes of runs this process registered, by cache key
@@ -185,6 +194,16 @@ def kept_mesh(vertices: np.ndarray, faces: np.ndarray, options: TetOptions) -> T
     for stored in _REGISTERED.values():
         if stored.matches(vertices, faces, options):
             return stored.tet_mesh(time.perf_counter() - start)
+    return None
+
+
+def kept_frame(vertices: np.ndarray, faces: np.ndarray, options: TetOptions
+               ) -> tuple[np.ndarray, np.ndarray] | None:
+    """The body frame recorded with the run mesh registered for this surface and options
+    (:func:`kept_mesh`), or ``None``."""
+    for stored in ([_REQUIRED[-1]] if _REQUIRED else list(_REGISTERED.values())):
+        if stored.frame is not None and stored.matches(vertices, faces, options):
+            return stored.frame
     return None
 
 

@@ -86,10 +86,12 @@ def grid_counts(extents: Sequence[float], budget: int, minimum: int = MIN_NODES
 
 
 def body_grid(points: np.ndarray, cells: np.ndarray, displacement: np.ndarray | None,
-              budget: int, explicit: Sequence[int] | None = None) -> BodyGrid:
-    """The grid of a tetrahedral body: its principal frame, the box of ``points`` in it,
-    and ``explicit`` counts or counts from the ``budget``."""
-    origin, axes = principal_frame(points, cells, displacement)
+              budget: int, explicit: Sequence[int] | None = None,
+              frame: tuple[np.ndarray, np.ndarray] | None = None) -> BodyGrid:
+    """The grid of a tetrahedral body: its principal frame (or the given ``frame``, the
+    fitted run's: a round body's frame follows its animation's motion), the box of
+    ``points`` in it, and ``explicit`` counts or counts from the ``budget``."""
+    origin, axes = principal_frame(points, cells, displacement) if frame is None else frame
     body = (np.asarray(points, dtype=np.float64) - origin) @ axes.T
     lower, upper = body.min(axis=0), body.max(axis=0)
     if explicit is not None:

@@ -29,8 +29,10 @@ def keep_run_mesh(run_dir: Path, problem: object) -> Path | None:
     if not isinstance(tet, TetMesh) or path.exists() or path.is_symlink():
         return None
     animation = getattr(problem, "animation")
+    grid = getattr(problem, "grid", None)
     return write_run_mesh(path, tet, getattr(problem, "tet_options"), animation.rest_vertices,
-                          animation.faces, getattr(problem, "tet_regions", None))
+                          animation.faces, getattr(problem, "tet_regions", None),
+                          None if grid is None else (grid.origin, grid.axes))
 
 
 def use_run_mesh(run_dir: str | Path) -> StoredMesh | None:

@@ -35,6 +35,7 @@ from ..mesh.animation_format import Animation, AnimationError
 from ..mesh.animation_readers import read_animation
 from ..mesh.embedding import Embedding, dof_matrix, embed_points
 from ..mesh.rig import joint_cells, skeleton_drive, surface_drive
+from ..mesh.tet_store import kept_frame
 from ..mesh.tetrahedralize import TetMesh
 from ..params import Parameterization, per_element, per_region
 from ..physics import NewtonOptions
@@ -192,7 +193,8 @@ class RiggedBody(InverseProblem):
                                                  warm_start=cfg.warm_start)
         self.tet_regions, self.region_names = self.regions(cfg)
         self.full_bend_frame = self.reference_frame()
-        self.grid = body_grid(points, cells, self.motion, cfg.grid_nodes, cfg.grid)
+        self.grid = body_grid(points, cells, self.motion, cfg.grid_nodes, cfg.grid, kept_frame(
+            animation.rest_vertices, animation.faces, self.tet_options))   # a run's own
         self.grid_shape = self.grid.shape
         self.view_axes = view_axes(animation.rest_vertices, animation.frames, self.grid.axes[2])
         self.joint_cells = self.joint_region(cfg)
