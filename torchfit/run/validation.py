@@ -159,6 +159,7 @@ class ValidationTracker:
                                    "field_name": self.problem.field_name}
         if self.problem.parameterization.transform is not None:
             payload["transform"] = self.problem.parameterization.transform
+        payload["meaning"] = dict(self.problem.parameter_meaning())     # as params.pt's
         return save_torch(run_dir / BEST_PARAMS_FILE, payload)
 
 
