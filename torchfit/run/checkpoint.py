@@ -155,8 +155,9 @@ def read_checkpoint(run_dir: Path, problem: InverseProblem, solver: Solver,
 
 def check_fresh_start(run_dir: Path) -> None:
     """Raise :class:`~.options.FitConfigError` where a run without ``resume`` would overwrite
-    the run of ``run_dir`` (its ``checkpoint.pt``): resume it where the checkpoint can be
-    read, else start again elsewhere (what :func:`read_checkpoint` says too)."""
+    the run of ``run_dir`` (its ``checkpoint.pt``, or without one the files of
+    :func:`run_files`): resume it where the checkpoint can be read, else start again
+    elsewhere (what :func:`read_checkpoint` says too)."""
     path = run_dir / CHECKPOINT_FILE
     if not os.path.lexists(path):
         found = run_files(run_dir)
