@@ -58,24 +58,34 @@ def test_warm_start_comes_from_the_point_derivatives_were_taken_at(derivative_ta
 
 def test_an_independent_solve_starts_cold_and_seeds_no_warm_start():
     """A solve inside ``independent()`` (a synthetic target, a baseline) neither starts from
-    an earlier solution nor becomes the start of a later one; found again at the same
-    parameters outside it, it is the solver's point and seeds as before."""
-    eq = Equilibrium(DoubleWell(), torch.tensor([0]), newton=NewtonOptions(rtol=1e-12))
+    an earlier solution nor becomes or displaces the start of a later one: the solver's
+    next solve is bit for bit what it is without the independent block (so a resumed run,
+    whose baseline is simulated at another moment, starts where the uninterrupted one
+    did). Found again at the same parameters outside it, it is the solver's point and seeds
+    as before."""
+    def solver_sequence(with_independent_block):
+        eq = Equilibrium(DoubleWell(), torch.tensor([0]), newton=NewtonOptions(rtol=1e-12))
+        eq(torch.tensor([-1.0], dtype=torch.float64), fixed, left)     # the only well: -1.32
+        if with_independent_block:
+            with eq.independent():
+                cold = eq(torch.tensor([0.05], dtype=torch.float64), fixed, start)
+                assert not eq.last_warm_started and float(cold[0, 1]) > 0.9  # start's well
+                far = eq(torch.tensor([-0.9], dtype=torch.float64), fixed, left)
+                assert float(far[0, 1]) < -1.2
+                eq(torch.tensor([-1.0], dtype=torch.float64), fixed, left)   # a cached one
+        near = eq(torch.tensor([0.1], dtype=torch.float64), fixed, start)
+        return eq, near, list(eq.last_newton_iterations), eq.last_warm_started
+
     fixed = torch.zeros(1, 1, dtype=torch.float64)
     start = torch.tensor([[0.0, 1.2]], dtype=torch.float64)
     left = -start
-    eq(torch.tensor([-1.0], dtype=torch.float64), fixed, left)         # the only well: -1.32
-    with eq.independent():
-        cold = eq(torch.tensor([0.05], dtype=torch.float64), fixed, start)
-        assert not eq.last_warm_started and float(cold[0, 1]) > 0.9   # the start's well
-        far = eq(torch.tensor([-0.9], dtype=torch.float64), fixed, left)
-        assert float(far[0, 1]) < -1.2
-    near = eq(torch.tensor([0.1], dtype=torch.float64), fixed, start)
-    # the most recent solution (a = -0.9) came from independent(): not a start, so this one
-    # starts cold, in the +1 well (a warm start from it would end near -0.95)
-    assert not eq.last_warm_started and float(near[0, 1]) > 0.9
-    iterations = eq.last_newton_iterations
+    eq, near, iterations, warm = solver_sequence(True)
+    _, alone, alone_iterations, alone_warm = solver_sequence(False)
+    # from the seed a = -1 (not from a = -0.9, the most recent, nor cold from the start)
+    assert warm and alone_warm and float(near[0, 1]) < -0.9
+    assert torch.equal(near, alone) and iterations == alone_iterations
     again = eq(torch.tensor([-0.9], dtype=torch.float64), fixed, left)    # cached: promoted
-    assert eq.last_newton_iterations is iterations and float(again[0, 1]) < -1.2
+    assert float(again[0, 1]) < -1.2
     eq(torch.tensor([0.0], dtype=torch.float64), fixed, start)
-    assert eq.last_warm_started                                  # from a = -0.9 now
+    assert eq.last_warm_started                      # from a = -0.9 now: the solver's seed
+    assert float(eq(torch.tensor([0.0], dtype=torch.float64), fixed, start)[0, 1]) < -1.0

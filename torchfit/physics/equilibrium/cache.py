@@ -9,12 +9,14 @@ between never forces a refactorisation.
 
 Warm start (:meth:`SolutionCache.warm_source`): a new point with the same Dirichlet values
 starts from the solution derivatives were last taken at (the *anchor*, a solver's
-linearisation point) while it is alive, else from the most recently used one, unless that
-came from :meth:`SolutionCache.independent` (a simulation beside the solver's sequence:
-cold starts, never a seed).
+linearisation point) while it is alive, else from the most recently used solution that may
+seed (the *seed*). A solution from :meth:`SolutionCache.independent` (a simulation beside
+the solver's sequence: a synthetic target, a report's homogeneous baseline) starts cold and
+is never a seed, nor does it displace one: when such a simulation happens (at the first
+iteration, or first after a resume) does not change where the next solve starts.
 
 What a warm start reads is the cache's *seed state* (:meth:`SolutionCache.seed_solutions`:
-the anchor and the most recently used solution, with which is the anchor); a run's
+the anchor and the seed, with which is the anchor); a run's
 checkpoint keeps it (:meth:`~.equilibrium.Equilibrium.warm_start_state`) so that a resumed
 process's next solve starts where the uninterrupted one's did.
 """
@@ -63,6 +65,9 @@ class SolutionCache:
         self._alive: weakref.WeakSet[Solution] = weakref.WeakSet()
         # The solution derivatives were last taken at (the first choice of a warm start).
         self._anchor: weakref.ref[Solution] | None = None
+        # The most recently used solution that may seed (held: an independent solve after
+        # it must not make the next warm start depend on the recency list's length).
+        self._seed: Solution | None = None
         self._independent = False     # inside independent(): cold starts, no seeds
 
     @property
@@ -80,6 +85,7 @@ class SolutionCache:
         for i, sol in enumerate(self._entries):
             if same(sol):
                 self._entries.append(self._entries.pop(i))  # most recently used last
+                self._note_seed(sol)
                 return sol
         for sol in list(self._alive):
             if same(sol):
@@ -91,8 +97,17 @@ class SolutionCache:
         """Keep ``sol`` as the most recently used solution (dropping the oldest)."""
         self._entries.append(sol)
         self._alive.add(sol)
+        self._note_seed(sol)
         while len(self._entries) > self.size:
             self._entries.pop(0)
+
+    def _note_seed(self, sol: Solution) -> None:
+        """A use of ``sol`` outside :meth:`independent` makes it the seed (a point a solver
+        asks for again is the solver's, even if an independent simulation found it first);
+        a use inside changes nothing."""
+        if not self._independent:
+            sol.seeds = True
+            self._seed = sol
 
     def contains(self, solution: Solution) -> bool:
         """Whether this very solution is among the recently used ones."""
@@ -122,27 +137,45 @@ class SolutionCache:
         return solution is not None and self._anchor is not None and self._anchor() is solution
 
     def seed_solutions(self) -> tuple[list[Solution], int]:
-        """What :meth:`warm_source` reads: the anchor (while alive) and the most recently
-        used solution (once each, the anchor first), and the anchor's index (``-1``: none)."""
+        """What :meth:`warm_source` reads: the anchor (while alive) and the seed (once each,
+        the anchor first), and the anchor's index (``-1``: none)."""
         anchor = self._anchor() if self._anchor is not None else None
         chosen = [] if anchor is None else [anchor]
-        chosen += [sol for sol in self._entries[-1:] if sol is not anchor]
+        if self._seed is not None and self._seed is not anchor:
+            chosen.append(self._seed)
         return chosen, 0 if anchor is not None else -1
+
+    def restore_seed_state(self, solutions: list[Solution], anchor: int) -> None:
+        """Put back what :meth:`seed_solutions` returned in another process: ``solutions``
+        (rebuilt, their ``seeds`` flags as saved) become the most recently used, the one at
+        index ``anchor`` (``-1``: none) the anchor, the last that seeds the seed."""
+        for sol in solutions:
+            if not self.contains(sol):
+                self._entries.append(sol)
+                self._alive.add(sol)
+        while len(self._entries) > self.size:
+            self._entries.pop(0)
+        seeds = [sol for sol in solutions if sol.seeds]
+        if seeds:
+            self._seed = seeds[-1]
+        if anchor >= 0:
+            self.anchor(solutions[anchor])
 
     def clear(self) -> None:
         self._entries.clear()
         self._alive = weakref.WeakSet()
         self._anchor = None
+        self._seed = None
 
     def warm_source(self, fixed_values: Tensor) -> Solution | None:
-        """The solution derivatives were last taken at, else the most recently used one
-        (unless it came from :meth:`independent`), if it has the same Dirichlet values;
+        """The solution derivatives were last taken at, else the seed (the most recently
+        used solution not from :meth:`independent`), if it has the same Dirichlet values;
         ``None`` inside :meth:`independent` or without warm starts."""
         if not self.warm_start or self._independent:
             return None
         anchor = self._anchor() if self._anchor is not None else None
-        recent = [sol for sol in self._entries[-1:] if sol.seeds]
-        for sol in ([anchor] if anchor is not None else []) + recent:
+        for sol in ([anchor] if anchor is not None else []) + \
+                ([self._seed] if self._seed is not None else []):
             if sol.fixed_values.shape == fixed_values.shape and sol.reference is not None \
                     and torch.equal(sol.fixed_values, fixed_values):
                 return sol

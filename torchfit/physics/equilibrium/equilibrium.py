@@ -205,9 +205,7 @@ class Equilibrium:
         params = params.detach()
         fixed_values = fixed_values.detach()
         cached = self.cache.lookup(params, fixed_values)
-        if cached is not None:
-            # a point a solver asks for again is the solver's: it may seed warm starts
-            cached.seeds = cached.seeds or not self.cache.is_independent
+        if cached is not None:      # (the cache made it the seed unless independent)
             return cached
         try:
             source = None if self.model.linear else self.cache.warm_source(fixed_values)
@@ -312,10 +310,8 @@ class Equilibrium:
                                None if reference is None else reference.to(device),
                                warm_started=bool(saved["warm_started"]),
                                seeds=bool(saved["seeds"]))
-                self.cache.remember(sol)
             restored.append(sol)
-        if int(state["anchor"]) >= 0:
-            self.cache.anchor(restored[int(state["anchor"])])
+        self.cache.restore_seed_state(restored, int(state["anchor"]))
 
     def clear_cache(self) -> None:
         self.cache.clear()
