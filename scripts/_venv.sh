@@ -2,7 +2,7 @@
 # environment and install torchfit with the pinned versions of constraints.txt.
 # Re-installs only when pyproject.toml or constraints.txt changed.
 # Variables: TORCHFIT_VENV (default <repo>/.venv), PYTHON (default: python3.11 or python3),
-# TORCHFIT_EXTRAS (default "dev,usd,gltf,pardiso" on x86-64, "dev,usd,gltf" elsewhere: MKL has no
+# TORCHFIT_EXTRAS (default "dev,usd,gltf,amg,pardiso" on x86-64, "dev,usd,gltf,amg" elsewhere: MKL has no
 # other wheels; usd (about 210 MB) and gltf so that CI runs the USD and glTF readers' tests).
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -20,8 +20,8 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 if [ -z "${TORCHFIT_EXTRAS:-}" ]; then
   case "$(uname -m)" in
-    x86_64|AMD64) TORCHFIT_EXTRAS="dev,usd,gltf,pardiso" ;;
-    *) TORCHFIT_EXTRAS="dev,usd,gltf" ;;
+    x86_64|AMD64) TORCHFIT_EXTRAS="dev,usd,gltf,amg,pardiso" ;;
+    *) TORCHFIT_EXTRAS="dev,usd,gltf,amg" ;;
   esac
 fi
 STAMP="$VENV/.torchfit-install"
