@@ -114,7 +114,9 @@ class Linearization:
 
         From the residual's ``jacobian`` callable when it has one (one pass of the
         simulator), else the stack of the ``n`` jvps of the unit vectors (``n``
-        forward-mode passes).
+        forward-mode passes). Under ``torchrun`` the callable returns the rows kept on their
+        ranks instead of a tensor (:mod:`torchfit.run.distributed_rows`): ``J @ x``,
+        ``J.T @ w`` and ``J.T @ J`` are then all the dense path may form.
         """
         if self._J is None:
             m, n = self.r.numel(), self.theta.numel()
@@ -142,7 +144,7 @@ class Linearization:
         product after :meth:`use_dense`."""
         if self.dense:
             assert self._J is not None
-            return self._J @ v.to(self._J)
+            return self._J @ v.to(self.r)
         return self._forward_jvp(v)
 
     def _forward_jvp(self, v: Tensor) -> Tensor:
@@ -158,7 +160,7 @@ class Linearization:
         matrix product after :meth:`use_dense`."""
         if self.dense:
             assert self._J is not None
-            return self._J.T @ w.to(self._J)
+            return self._J.T @ w.to(self.r)
         if self._products is not None:
             return self._products.vjp(w.to(self.r)).detach()
         (grad,) = torch.autograd.grad(self._y, self._theta_leaf, grad_outputs=w.to(self._y),

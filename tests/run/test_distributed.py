@@ -68,10 +68,12 @@ def _theta(run: Path) -> torch.Tensor:
 
 @pytest.mark.slow
 def test_two_ranks_give_the_one_process_iterates_and_resume_exactly(tmp_path):
-    """Three frames of a capsule split 2 + 1: theta, iterations, stop reason and the
-    whole-job counters equal to the one-process run's (bit for bit: Newton is per frame,
-    every frame sees the same operations); a 2-rank run stopped after 2 iterations and
-    resumed to 3 ends there too; a one-process resume of it is refused."""
+    """Three frames of a capsule split 2 + 1: iterations, stop reason and the whole-job
+    counters equal to the one-process run's, theta and the surface error to round-off
+    (1e-10 relative; measured 1.0e-13 after 3 iterations: ``J^T J`` and ``J^T r`` are
+    summed per rank, not in one product); a 2-rank run stopped after 2 iterations and
+    resumed to 3 ends at the uninterrupted 2-rank run's theta bit for bit (the sums have a
+    fixed order); a one-process resume of it is refused."""
     folder = write_capsule(tmp_path / "capsule", "skeleton", "npz")
     settings = ["problem=animation", f"problem.path={folder}",
                 f"problem.cache_dir={tmp_path / 'cache'}", "problem.tet_edge_length=0.12",
@@ -82,9 +84,12 @@ def test_two_ranks_give_the_one_process_iterates_and_resume_exactly(tmp_path):
     assert two.returncode == 0, two.stderr[-3000:]
     first = json.loads((tmp_path / "one" / "result.json").read_text())
     second = json.loads((tmp_path / "two" / "result.json").read_text())
-    assert torch.equal(_theta(tmp_path / "one"), _theta(tmp_path / "two"))
-    for key in ("iterations", "stop_reason", "factorizations", "solves", "surface_err_mean"):
+    one_theta, two_theta = _theta(tmp_path / "one"), _theta(tmp_path / "two")
+    assert float((one_theta - two_theta).abs().max()) <= 1e-10 * float(one_theta.abs().max())
+    for key in ("iterations", "stop_reason", "factorizations", "solves"):
         assert first[key] == second[key], key
+    assert abs(first["surface_err_mean"] - second["surface_err_mean"]) <= \
+        1e-10 * first["surface_err_mean"]
     checkpoint = torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True)
     assert checkpoint["simulation_state"]["blocks"] == [[0, 2], [2, 3]]
 
@@ -95,7 +100,7 @@ def test_two_ranks_give_the_one_process_iterates_and_resume_exactly(tmp_path):
     assert "error: cannot resume" in refused.stderr and "--nproc_per_node=2" in refused.stderr
     resumed = _torchrun(tmp_path / "resumed", *settings, "solver.max_iter=3", "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert torch.equal(_theta(tmp_path / "one"), _theta(tmp_path / "resumed"))
+    assert torch.equal(two_theta, _theta(tmp_path / "resumed"))
 
 
 @pytest.mark.slow

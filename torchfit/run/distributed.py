@@ -11,16 +11,18 @@ Leader and workers: rank 0 runs the whole fit (:func:`torchfit.fit`, the solver,
 output: it alone writes the run directory); ranks 1.. only serve (:func:`serve`). Each
 simulation the problem asks for on rank 0 (``simulate``, ``forward_jacobian``, a cold
 ``independent`` block, the warm-start state for a checkpoint or a resume) is broadcast as
-a command, every rank computes its frames, and the blocks are gathered to rank 0 in frame
-order. So the solver sees exactly the residual, ``r`` and the dense ``J`` it sees in one
-process (all gathered: for the arm ``J`` is ``F * n_obs * 3 x n`` doubles, about 220 MB,
-and the normal equations are then formed on rank 0 as in one process). The iterates are
-those of one process bit for bit where every frame's equilibrium does not depend on which
-other frames share its batch (Newton is per frame; measured: docs/run/distributed.md).
-What rank 0 alone runs (pictures, the model comparison's other materials) is unchanged
-and may simulate any time: a worker is idle until the next command. Counters of
-factorisations and solves of the other ranks are added to rank 0's (the result's totals
-are the whole job's).
+a command (the collectives: :mod:`.distributed_channel`), every rank computes its frames,
+and the positions are gathered to rank 0 in frame order. The Jacobian's rows stay where
+they were computed (:mod:`.distributed_rows`): rank 0's ``forward_jacobian`` returns a
+handle on which the dense path's products run on every rank (``J^T J`` and ``J^T w``
+summed in rank order on rank 0, ``J x`` gathered), so no rank holds more than its own
+frames' rows (the arm: 110 MB per rank of 2 instead of 220 MB gathered on rank 0). The
+iterates are those of one process to round-off (the partial sums; measured:
+docs/run/distributed.md), and bit-reproducible for a given number of processes. What
+rank 0 alone runs (pictures, the model comparison's other materials) is unchanged and may
+simulate any time: a worker is idle until the next command. Counters of factorisations
+and solves of the other ranks are added to rank 0's (the result's totals are the whole
+job's).
 
 Checkpoints: rank 0's ``checkpoint.pt`` holds every rank's warm-start state (gathered,
 ``{"world_size", "blocks", "ranks"}``), scattered back on a resume; a resume must use the
@@ -49,25 +51,15 @@ import torch
 import torch.distributed as dist
 from torch import Tensor
 
-from ..errors import SimulationError
-from ..linalg.counters import COUNTERS
+from .distributed_channel import (FULL, INDEPENDENT_OFF, INDEPENDENT_ON, JACOBIAN, MATVEC,
+                                  RESTORE, ROW_COMMANDS, SIMULATE, STATE, STOP, Channel,
+                                  exchange, exchanging)
+from .distributed_rows import DistributedRows, RowStore, local_product
 from .options import FitConfigError
 
-SIMULATE, JACOBIAN, INDEPENDENT_ON, INDEPENDENT_OFF, STATE, RESTORE, STOP = range(7)
 #: solvers whose dense-Jacobian path runs distributed
 SOLVERS = ("levenberg_marquardt", "gauss_newton")
-_OK, _SIMULATION_FAILED, _FAILED = 0, 1, 2
 _SHARED = False     # rank 0 has handed the settings to the workers (they serve commands)
-#: rank 0 is inside a command's exchange: stopped there (SIGTERM, a lost worker), it sends no
-#: STOP (the workers are inside the same exchange; torchrun ends them when rank 0 exits)
-_EXCHANGING = False
-
-
-def _exchange(started: bool) -> None:
-    global _EXCHANGING
-    _EXCHANGING = started
-
-
 def rank() -> int:
     """This process's rank under torchrun (0 outside it)."""
     return int(os.environ.get("RANK", "0"))
@@ -148,87 +140,6 @@ def check_resume(run_dir: Path, n_ranks: int) -> None:
                              f"{' (or as one process)' if saved == 1 else ''}")
 
 
-class _Channel:
-    """The collectives of the protocol (rank 0 commands, every rank answers)."""
-
-    def __init__(self, blocks: list[tuple[int, int]]) -> None:
-        self.rank, self.size = dist.get_rank(), dist.get_world_size()
-        self.blocks = blocks
-        self.longest = max(stop - start for start, stop in blocks)
-
-    def command(self, code: int, *values: int) -> list[int]:
-        header = torch.zeros(4, dtype=torch.int64)
-        if self.rank == 0 and code in (SIMULATE, JACOBIAN, STATE, RESTORE):
-            _exchange(True)
-        if self.rank == 0:
-            header[0] = code
-            header[1:1 + len(values)] = torch.as_tensor(values, dtype=torch.int64)
-        dist.broadcast(header, 0)
-        return [int(v) for v in header]
-
-    def share(self, tensor: Tensor | None, shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
-        """``tensor`` of rank 0 on every rank (float64 over the wire)."""
-        buffer = tensor.detach().to("cpu", torch.float64).contiguous() if self.rank == 0 \
-            else torch.empty(shape, dtype=torch.float64)
-        dist.broadcast(buffer, 0)
-        return buffer.to(dtype)
-
-    def collect(self, compute: Callable[[], Tensor]) -> Tensor | None:
-        """Run ``compute`` (this rank's frames, frame-major first axis), then on rank 0 the
-        blocks of every rank concatenated in frame order. A :class:`SimulationError` on any
-        rank is raised on rank 0 (the workers go on serving); another error ends that
-        worker after rank 0 has been told."""
-        before = COUNTERS.snapshot()
-        local: Tensor | None = None
-        error: BaseException | None = None
-        status = _OK
-        try:
-            local = compute()
-        except SimulationError as err:
-            error, status = err, _SIMULATION_FAILED
-        except Exception as err:  # noqa: BLE001  (reported to rank 0, then raised)
-            error, status = err, _FAILED
-        spent = COUNTERS.snapshot() - before
-        mine = torch.tensor([status, spent.factorizations, spent.solves, spent.rhs_columns],
-                            dtype=torch.int64)
-        everyone = [torch.zeros_like(mine) for _ in range(self.size)]
-        dist.all_gather(everyone, mine)
-        if self.rank == 0:
-            _exchange(False)
-            for row in everyone[1:]:
-                COUNTERS.factorizations += int(row[1])
-                COUNTERS.solves += int(row[2])
-                COUNTERS.rhs_columns += int(row[3])
-        failed = [(r, int(row[0])) for r, row in enumerate(everyone) if int(row[0]) != _OK]
-        if failed:
-            if self.rank != 0 and error is not None and status == _FAILED:
-                raise error
-            if self.rank == 0:
-                if error is not None and status == _FAILED:
-                    raise error
-                worst = max(failed, key=lambda item: item[1])
-                if worst[1] == _FAILED:
-                    raise RuntimeError(f"rank {worst[0]} of {self.size} failed (its error line "
-                                       "is above)")
-                if isinstance(error, SimulationError):
-                    raise error
-                raise SimulationError(f"the simulation of rank {worst[0]}'s frames failed")
-            return None
-        assert local is not None
-        padded = local.new_zeros((self.longest,) + tuple(local.shape[1:]))
-        padded[:local.shape[0]] = local.detach()
-        if self.rank != 0:
-            dist.gather(padded.cpu(), dst=0)
-            return None
-        parts = [torch.empty_like(padded.cpu()) for _ in range(self.size)]
-        _exchange(True)
-        dist.gather(padded.cpu(), parts, dst=0)
-        _exchange(False)
-        pieces = [local] + [parts[r][:stop - start].to(local)
-                            for r, (start, stop) in enumerate(self.blocks) if r > 0]
-        return torch.cat(pieces, 0)
-
-
 class _SplitEquilibrium:
     """``quasistatic.equilibrium`` as rank 0's problem sees it: cold blocks, warm-start
     state and its restore reach every rank; anything else is this rank's."""
@@ -254,7 +165,7 @@ class _SplitEquilibrium:
         split.channel.command(STATE)
         gathered: list[Any] = [None] * split.channel.size
         dist.gather_object(split.inner.equilibrium.warm_start_state(), gathered, dst=0)
-        _exchange(False)
+        exchange(False)
         if not any(gathered):
             return {}
         return {"world_size": split.channel.size,
@@ -268,7 +179,7 @@ class _SplitEquilibrium:
         parts = list(state["ranks"]) if state else [{}] * split.channel.size
         received: list[Any] = [None]
         dist.scatter_object_list(received, parts, src=0)
-        _exchange(False)
+        exchange(False)
         split.inner.equilibrium.restore_warm_start_state(received[0], device)
 
 
@@ -288,7 +199,7 @@ class FrameSplit:
     inside a command) makes calls simulate this rank's block only.
     """
 
-    def __init__(self, problem: Any, channel: _Channel) -> None:
+    def __init__(self, problem: Any, channel: Channel) -> None:
         self.problem = problem
         self.inner = problem.quasistatic
         self.channel = channel
@@ -297,6 +208,7 @@ class FrameSplit:
         self.equilibrium = _SplitEquilibrium(self)
         self._local = False
         self._forward_jacobian = type(problem).forward_jacobian
+        self.rows = RowStore()
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.inner, name)
@@ -334,18 +246,61 @@ class FrameSplit:
                                    x_init=self._mine(x_init), observe=observe)
 
     def local_forward_jacobian(self, theta: Tensor) -> Tensor:
-        """This rank's rows of ``d forward / d theta``, ``(F_rank, n_obs 3, n)``."""
+        """This rank's rows of ``d forward / d theta``, ``(F_rank n_obs 3, n)``."""
         with self.local():
             J = self._forward_jacobian(self.problem, theta)
-        return J.reshape(self.frames.stop - self.frames.start, -1, J.shape[-1])
-
-    def forward_jacobian(self, theta: Tensor) -> Tensor:
-        """Rank 0: every frame's rows, ``(F n_obs 3, n)``, as one process gives them."""
-        self.channel.command(JACOBIAN)
-        self.channel.share(theta, tuple(theta.shape), theta.dtype)
-        J = self.channel.collect(lambda: self.local_forward_jacobian(theta))
-        assert J is not None
         return J.reshape(-1, J.shape[-1])
+
+    def store_jacobian(self, theta: Tensor, ident: int) -> Tensor:
+        """Every rank: compute and keep this rank's rows as Jacobian ``ident``
+        (:class:`.distributed_rows.RowStore`); returns their shape ``(2,)`` (int64)."""
+        rows = self.local_forward_jacobian(theta)
+        self.rows.add(rows, ident)
+        return torch.tensor(rows.shape, dtype=torch.int64)
+
+    def forward_jacobian(self, theta: Tensor) -> DistributedRows:
+        """Rank 0: every frame's rows, ``(F n_obs 3, n)``, kept where they were computed
+        (:class:`.distributed_rows.DistributedRows`: the products the dense path needs)."""
+        ident = self.rows.next_id
+        self.channel.command(JACOBIAN, ident)
+        self.channel.share(theta, tuple(theta.shape), theta.dtype)
+        shape = self.channel.run(lambda: self.store_jacobian(theta, ident))
+        assert shape is not None
+        return DistributedRows(ident, (int(self.problem.data.numel()), int(shape[1])),
+                               self.problem.dtype, torch.device("cpu"), self.row_product)
+
+    def row_range(self, m: int) -> tuple[int, int]:
+        """This rank's rows ``[start, stop)`` of a frame-major vector of ``m`` values."""
+        per_frame = m // int(self.problem.n_frames)
+        return self.frames.start * per_frame, self.frames.stop * per_frame
+
+    def row_product(self, code: int, ident: int, operand: Tensor | None) -> Tensor:
+        """Rank 0: the product ``code`` of Jacobian ``ident`` with ``operand`` on every rank,
+        reduced (module :mod:`.distributed_rows`)."""
+        columns = 0 if operand is None else (1 if operand.dim() == 1 else 1 + operand.shape[1])
+        length = 0 if operand is None else operand.shape[0]
+        self.channel.command(code, ident, columns, length)
+        if operand is not None:
+            operand = self.channel.share(operand, tuple(operand.shape), self.problem.dtype)
+        return self.answer_rows(code, ident, operand)
+
+    def answer_rows(self, code: int, ident: int, operand: Tensor | None) -> Tensor | None:
+        """Every rank: this rank's part of a row product, gathered (``J x``, the rows) or
+        summed (``J^T w``, ``J^T J``) on rank 0."""
+        rows = self.rows.get(ident)
+        m = int(self.problem.data.numel())
+
+        def part() -> Tensor:
+            out = local_product(code, rows, operand, self.row_range(m))
+            if code in (MATVEC, FULL):      # frame-major, for the gather in frame order
+                return out.reshape((self.frames.stop - self.frames.start, -1)
+                                   + tuple(out.shape[1:]))
+            return out
+
+        if code in (MATVEC, FULL):
+            out = self.channel.collect(part)
+            return None if out is None else out.reshape((m,) + tuple(out.shape[2:]))
+        return self.channel.total(part)
 
 
 def split_frames(problem: Any) -> FrameSplit:
@@ -354,7 +309,7 @@ def split_frames(problem: Any) -> FrameSplit:
     split (``repeated_poses`` off), so the split sees all ``n_frames``."""
     problem.repeated_poses = None
     blocks = partition(int(problem.n_frames), dist.get_world_size())
-    split = FrameSplit(problem, _Channel(blocks))
+    split = FrameSplit(problem, Channel(blocks))
     problem.quasistatic = split
     if split.channel.rank == 0:
         problem.forward_jacobian = split.forward_jacobian
@@ -381,8 +336,8 @@ def stop() -> None:
     global _SHARED
     try:
         start_group()
-        if _SHARED and not _EXCHANGING:
-            _Channel([(0, 0)]).command(STOP)
+        if _SHARED and not exchanging():
+            Channel([(0, 0)]).command(STOP)
         else:
             dist.broadcast_object_list([None], src=0)
     except Exception:  # noqa: BLE001  (a worker already gone: torchrun reports it)
@@ -416,7 +371,8 @@ def serve(build: Callable[[dict[str, Any]], Any]) -> int:
     blocks: list[contextlib.ExitStack] = []
     while True:
         try:
-            code = channel.command(0)[0]
+            header = channel.command(0)
+            code = header[0]
         except Exception as err:  # noqa: BLE001  (rank 0 gone)
             print(f"error: rank {rank}: rank 0 stopped answering ({str(err).splitlines()[0]})",
                   file=sys.stderr, flush=True)
@@ -425,15 +381,16 @@ def serve(build: Callable[[dict[str, Any]], Any]) -> int:
             dist.destroy_process_group()
             return 0
         try:
-            _answer(code, split, blocks)
+            _answer(header, split, blocks)
         except Exception as err:  # noqa: BLE001
             print(f"error: rank {rank}: {str(err).splitlines()[0] if str(err) else err!r}",
                   file=sys.stderr, flush=True)
             return 1
 
 
-def _answer(code: int, split: FrameSplit, blocks: list[contextlib.ExitStack]) -> None:
+def _answer(header: list[int], split: FrameSplit, blocks: list[contextlib.ExitStack]) -> None:
     problem, channel = split.problem, split.channel
+    code = header[0]
     if code == SIMULATE:
         n_cells = int(problem.model.n_cells)
         E = channel.share(None, (n_cells,), problem.dtype)
@@ -443,7 +400,12 @@ def _answer(code: int, split: FrameSplit, blocks: list[contextlib.ExitStack]) ->
             channel.collect(lambda: split(E, positions, starts))
     elif code == JACOBIAN:
         theta = channel.share(None, (int(problem.parameterization.n_params),), problem.dtype)
-        channel.collect(lambda: split.local_forward_jacobian(theta))
+        channel.run(lambda: split.store_jacobian(theta, header[1]))
+    elif code in ROW_COMMANDS:
+        _, ident, columns, length = header
+        operand = None if columns == 0 else channel.share(
+            None, (length,) if columns == 1 else (length, columns - 1), problem.dtype)
+        split.answer_rows(code, ident, operand)
     elif code == INDEPENDENT_ON:
         stack = contextlib.ExitStack()
         stack.enter_context(split.inner.equilibrium.independent())

@@ -215,12 +215,28 @@ def assess(sensitivity: Tensor, singular_values: Tensor | None, data: Tensor,
                            flags.numpy(), values, rank, spread, rigid, gauge)
 
 
-def from_jacobian(J: Tensor, theta: Tensor, data: Tensor, transform: str = "exp",
+def from_jacobian(J: Any, theta: Tensor, data: Tensor, transform: str = "exp",
                   **kwargs: Any) -> Identifiability:
-    """:func:`assess` of a dense Jacobian ``J`` ``(m, n)`` at ``theta``."""
+    """:func:`assess` of a dense Jacobian ``J`` ``(m, n)`` at ``theta``; rows kept on the
+    ranks of a distributed run (no tensor, :mod:`.distributed_rows`) go through :func:`from_gram`."""
+    if not isinstance(J, Tensor):
+        return from_gram(J.T @ J, theta, data, transform, **kwargs)
     scaled = J.detach() * parameter_scale(theta, transform).to(J)[None, :]
     values = torch.linalg.svdvals(scaled) if scaled.numel() else scaled.new_zeros(0)
     return assess(torch.linalg.vector_norm(scaled, dim=0), values, data, **kwargs)
+
+
+def from_gram(gram: Tensor, theta: Tensor, data: Tensor, transform: str = "exp",
+              **kwargs: Any) -> Identifiability:
+    """:func:`assess` from ``J^T J`` ``(n, n)``: the column norms are the square roots of
+    the scaled diagonal, the singular values those of its eigenvalues (clamped at 0; the
+    smallest lose half their digits to the squaring, far below the report's thresholds)."""
+    scale = parameter_scale(theta, transform).to(gram)
+    scaled = gram * scale[:, None] * scale[None, :]
+    scaled = 0.5 * (scaled + scaled.T)
+    values = torch.linalg.eigvalsh(scaled).clamp_min(0).sqrt().flip(0) if scaled.numel() \
+        else scaled.new_zeros(0)
+    return assess(scaled.diagonal().clamp_min(0).sqrt(), values, data, **kwargs)
 
 
 # -- from a run ------------------------------------------------------------------------------

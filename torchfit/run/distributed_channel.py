@@ -1,0 +1,150 @@
+"""The collectives of a distributed fit (:mod:`.distributed`): rank 0 commands, every rank answers.
+
+A command is a broadcast header of four int64 (the code and up to three values). An answer
+is this rank's part, computed under :meth:`Channel.run`, which tells every rank how each
+part went (a :class:`~torchfit.errors.SimulationError` anywhere is raised on rank 0 as a
+failed simulation; another error ends the rank that had it) and adds the workers'
+factorisation and solve counts to rank 0's; :meth:`Channel.collect` then gathers frame
+blocks to rank 0 in frame order, :meth:`Channel.total` sums equal-shaped parts there in
+rank order. :func:`exchanging` says whether rank 0 is inside an exchange (stopped there, it
+must not send the workers a stop: they wait in the same exchange).
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+import torch.distributed as dist
+from torch import Tensor
+
+from ..errors import SimulationError
+from ..linalg.counters import COUNTERS
+
+#: the commands: simulate / Jacobian / cold block on, off / warm-start state / restore / stop
+SIMULATE, JACOBIAN, INDEPENDENT_ON, INDEPENDENT_OFF, STATE, RESTORE, STOP = range(7)
+#: products with a Jacobian kept on the ranks (:mod:`.distributed_rows`)
+MATVEC, RMATVEC, GRAM, FULL = 20, 21, 22, 23
+ROW_COMMANDS = (MATVEC, RMATVEC, GRAM, FULL)
+#: codes whose answer is an exchange (every rank computes, rank 0 receives)
+COMMANDS_WITH_EXCHANGE = (SIMULATE, JACOBIAN, STATE, RESTORE) + ROW_COMMANDS
+_OK, _SIMULATION_FAILED, _FAILED = 0, 1, 2
+_EXCHANGING = False
+
+
+def exchange(started: bool) -> None:
+    """Rank 0 enters (``True``) or leaves an exchange."""
+    global _EXCHANGING
+    _EXCHANGING = started
+
+
+def exchanging() -> bool:
+    return _EXCHANGING
+
+
+class Channel:
+    """The collectives of the protocol (rank 0 commands, every rank answers)."""
+
+    def __init__(self, blocks: list[tuple[int, int]]) -> None:
+        self.rank, self.size = dist.get_rank(), dist.get_world_size()
+        self.blocks = blocks
+        self.longest = max(stop - start for start, stop in blocks)
+
+    def command(self, code: int, *values: int) -> list[int]:
+        header = torch.zeros(4, dtype=torch.int64)
+        if self.rank == 0 and code in COMMANDS_WITH_EXCHANGE:
+            exchange(True)
+        if self.rank == 0:
+            header[0] = code
+            header[1:1 + len(values)] = torch.as_tensor(values, dtype=torch.int64)
+        dist.broadcast(header, 0)
+        return [int(v) for v in header]
+
+    def share(self, tensor: Tensor | None, shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
+        """``tensor`` of rank 0 on every rank (float64 over the wire)."""
+        buffer = tensor.detach().to("cpu", torch.float64).contiguous() if self.rank == 0 \
+            else torch.empty(shape, dtype=torch.float64)
+        dist.broadcast(buffer, 0)
+        return buffer.to(dtype)
+
+    def run(self, compute: Callable[[], Tensor]) -> Tensor | None:
+        """Run ``compute`` (this rank's part) and tell every rank how it went. A
+        :class:`SimulationError` on any rank is raised on rank 0 (the workers go on
+        serving); another error ends that worker after rank 0 has been told. Returns the
+        local result, or ``None`` on a worker where some rank failed."""
+        before = COUNTERS.snapshot()
+        local: Tensor | None = None
+        error: BaseException | None = None
+        status = _OK
+        try:
+            local = compute()
+        except SimulationError as err:
+            error, status = err, _SIMULATION_FAILED
+        except Exception as err:  # noqa: BLE001  (reported to rank 0, then raised)
+            error, status = err, _FAILED
+        spent = COUNTERS.snapshot() - before
+        mine = torch.tensor([status, spent.factorizations, spent.solves, spent.rhs_columns],
+                            dtype=torch.int64)
+        everyone = [torch.zeros_like(mine) for _ in range(self.size)]
+        dist.all_gather(everyone, mine)
+        if self.rank == 0:
+            exchange(False)
+            for row in everyone[1:]:
+                COUNTERS.factorizations += int(row[1])
+                COUNTERS.solves += int(row[2])
+                COUNTERS.rhs_columns += int(row[3])
+        failed = [(r, int(row[0])) for r, row in enumerate(everyone) if int(row[0]) != _OK]
+        if failed:
+            if self.rank != 0 and error is not None and status == _FAILED:
+                raise error
+            if self.rank == 0:
+                if error is not None and status == _FAILED:
+                    raise error
+                worst = max(failed, key=lambda item: item[1])
+                if worst[1] == _FAILED:
+                    raise RuntimeError(f"rank {worst[0]} of {self.size} failed (its error line "
+                                       "is above)")
+                if isinstance(error, SimulationError):
+                    raise error
+                raise SimulationError(f"the simulation of rank {worst[0]}'s frames failed")
+            return None
+        assert local is not None
+        return local
+
+    def collect(self, compute: Callable[[], Tensor]) -> Tensor | None:
+        """:meth:`run` ``compute`` (this rank's frames, frame-major first axis), then on rank 0
+        the blocks of every rank concatenated in frame order (``None`` elsewhere)."""
+        local = self.run(compute)
+        if local is None:
+            return None
+        padded = local.new_zeros((self.longest,) + tuple(local.shape[1:]))
+        padded[:local.shape[0]] = local.detach()
+        if self.rank != 0:
+            dist.gather(padded.cpu(), dst=0)
+            return None
+        parts = [torch.empty_like(padded.cpu()) for _ in range(self.size)]
+        exchange(True)
+        dist.gather(padded.cpu(), parts, dst=0)
+        exchange(False)
+        pieces = [local] + [parts[r][:stop - start].to(local)
+                            for r, (start, stop) in enumerate(self.blocks) if r > 0]
+        return torch.cat(pieces, 0)
+
+    def total(self, compute: Callable[[], Tensor]) -> Tensor | None:
+        """:meth:`run` ``compute`` (the same shape on every rank), then on rank 0 the sum of
+        every rank's result, added in rank order (a fixed order: bit-reproducible for a
+        given number of processes); ``None`` elsewhere."""
+        local = self.run(compute)
+        if local is None:
+            return None
+        local = local.detach().cpu().contiguous()
+        if self.rank != 0:
+            dist.gather(local, dst=0)
+            return None
+        parts = [torch.empty_like(local) for _ in range(self.size)]
+        exchange(True)
+        dist.gather(local, parts, dst=0)
+        exchange(False)
+        result = parts[0].clone()
+        for part in parts[1:]:
+            result += part
+        return result
