@@ -99,7 +99,8 @@ def main(cfg: DictConfig) -> float:
         continuing = continuation is True or (continuation == "auto"
                                               and continuation_applies(problem))
         if distributed.launched():      # torchrun: rank 0 fits, the others simulate frames
-            distributed.lead(problem, {**config, "continuation": continuing}, multirun)
+            distributed.lead(problem, {**config, "continuation": continuing,
+                                       "run_dir": str(run_dir)}, multirun)
         if continuing:
             result = fit_continued(problem, solver, run_dir=run_dir,
                                    resume=bool(config["resume"]), options=options,
@@ -157,10 +158,13 @@ def main(cfg: DictConfig) -> float:
 
 
 def build_for_rank(config: dict[str, Any]) -> Any:
-    """A torchrun worker's problem: the one rank 0 built, from rank 0's settings."""
+    """A torchrun worker's problem: the one rank 0 built, from rank 0's settings; a resume
+    builds it on the run directory's mesh as rank 0 does, where this rank can read it."""
     threads = config.get("threads")
     if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0:
         set_threads(threads)
+    if config.get("resume") and config.get("run_dir") and Path(config["run_dir"]).is_dir():
+        use_run_mesh(Path(config["run_dir"]))
     return build_problem(str(config["problem"].get("name")), dict(config["problem"]))
 
 

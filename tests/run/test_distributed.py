@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -14,7 +15,8 @@ from helpers.capsule_animation import write_capsule
 from helpers.fit_app import REPO, run_fit_app
 from torchfit.problems import build_problem
 from torchfit.run import FitConfigError
-from torchfit.run.distributed import check_resume, check_supported, partition
+from torchfit.run.distributed import (check_resume, check_same_inputs, check_supported,
+                                      partition)
 
 TORCHRUN = Path(sys.executable).with_name("torchrun")
 
@@ -55,6 +57,15 @@ def test_a_resume_with_another_number_of_processes_is_refused(tmp_path):
     check_resume(tmp_path, 3)
 
 
+def test_a_rank_on_other_inputs_is_refused_in_one_line():
+    mine = {"tet mesh": "a1", "animation": "b1"}
+    check_same_inputs(mine, [None, dict(mine), dict(mine)])
+    with pytest.raises(FitConfigError, match="rank 2 built its problem on another tet mesh "
+                                             "than rank 0") as info:
+        check_same_inputs(mine, [None, dict(mine), {"tet mesh": "a2", "animation": "b1"}])
+    assert "\n" not in str(info.value)
+
+
 def _torchrun(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
     return subprocess.run([str(TORCHRUN), "--standalone", "--nproc_per_node=2",
@@ -73,7 +84,8 @@ def test_two_ranks_give_the_one_process_iterates_and_resume_exactly(tmp_path):
     (1e-10 relative; measured 1.0e-13 after 3 iterations: ``J^T J`` and ``J^T r`` are
     summed per rank, not in one product); a 2-rank run stopped after 2 iterations and
     resumed to 3 ends at the uninterrupted 2-rank run's theta bit for bit (the sums have a
-    fixed order); a one-process resume of it is refused."""
+    fixed order), with the mesh cache gone (every rank builds on the run's mesh.npz); a
+    one-process resume of it is refused."""
     folder = write_capsule(tmp_path / "capsule", "skeleton", "npz")
     settings = ["problem=animation", f"problem.path={folder}",
                 f"problem.cache_dir={tmp_path / 'cache'}", "problem.tet_edge_length=0.12",
@@ -98,6 +110,7 @@ def test_two_ranks_give_the_one_process_iterates_and_resume_exactly(tmp_path):
     refused = run_fit_app(tmp_path / "resumed", *settings, "solver.max_iter=3", "resume=true")
     assert refused.returncode == 2
     assert "error: cannot resume" in refused.stderr and "--nproc_per_node=2" in refused.stderr
+    shutil.rmtree(tmp_path / "cache")       # every rank resumes on the run's mesh.npz
     resumed = _torchrun(tmp_path / "resumed", *settings, "solver.max_iter=3", "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert torch.equal(two_theta, _theta(tmp_path / "resumed"))

@@ -8,9 +8,17 @@ wait (``docs/linalg/threads.md``).
 :func:`set_threads` sets both for the whole process (a sweep job with ``threads=1``).
 A library loaded later (MKL, when the ``pardiso`` backend is first used) gets the same
 limit through :func:`apply_requested_threads`.
+
+``torch.set_num_threads`` also switches MKL's *dynamic* threading off (so that OpenMP
+threads are not recreated between MKL and non-MKL regions), and MKL then runs even a tiny
+vector function (``torch.sqrt`` of 384 doubles goes to MKL's VML) on every thread: on a
+loaded machine that took 24-32 ms instead of 2 us. :func:`set_threads` switches it back on
+in torch's own MKL (``MKL_Set_Dynamic(1)``), so MKL picks fewer threads for small calls;
+figures in ``docs/linalg/threads.md`` (``scripts/bench_threads.py``).
 """
 from __future__ import annotations
 
+import ctypes
 import os
 
 import torch
@@ -33,8 +41,24 @@ def set_threads(n: int) -> None:
     global _REQUESTED
     _load_blas()
     torch.set_num_threads(int(n))
+    mkl_dynamic(True)
     threadpool_limits(limits=int(n))
     _REQUESTED = int(n)
+
+
+def mkl_dynamic(on: bool) -> bool:
+    """Switch the dynamic threading of the MKL inside torch's CPU library on or off (module
+    docstring); ``False`` where that library exports no MKL (another BLAS build)."""
+    try:
+        library = ctypes.CDLL(os.path.join(os.path.dirname(torch.__file__), "lib",
+                                           "libtorch_cpu.so"))
+        set_dynamic = library.MKL_Set_Dynamic     # the C interface (int by value)
+    except (OSError, AttributeError):
+        return False
+    set_dynamic.argtypes = [ctypes.c_int]
+    set_dynamic.restype = None
+    set_dynamic(1 if on else 0)
+    return True
 
 
 def requested_threads() -> int | None:

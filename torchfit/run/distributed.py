@@ -327,7 +327,25 @@ def lead(problem: Any, config: dict[str, Any], multirun: bool = False) -> None:
     check_supported(problem, config, dist.get_world_size())
     dist.broadcast_object_list([config], src=0)
     _SHARED = True
+    digests: list[Any] = [None] * dist.get_world_size()
+    dist.gather_object(problem.input_digests(), digests, dst=0)
+    check_same_inputs(problem.input_digests(), digests)
     split_frames(problem)
+
+
+def check_same_inputs(mine: dict[str, str], ranks: list[Any]) -> None:
+    """Every rank built its problem on the same inputs (the tet mesh, the animation: their
+    digests) as rank 0, or one line naming the first rank and input that differ (a worker
+    on another node whose cache entry is missing tetrahedralises the surface again, and
+    pytetwild's mesh differs from run to run)."""
+    for rank, theirs in enumerate(ranks):
+        if theirs is None or theirs == mine:
+            continue
+        differs = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
+        raise FitConfigError(f"rank {rank} built its problem on another {', '.join(differs)} "
+                             "than rank 0; give every rank the same inputs (problem.cache_dir "
+                             "on a disk every node reads, or resume where the run directory's "
+                             "mesh.npz is readable by every rank)")
 
 
 def stop() -> None:
@@ -362,11 +380,12 @@ def serve(build: Callable[[dict[str, Any]], Any]) -> int:
         return 0
     try:
         problem = build(config)
-        split = split_frames(problem)
     except Exception as err:  # noqa: BLE001
         print(f"error: rank {rank}: building the problem failed: {err}", file=sys.stderr,
               flush=True)
         return 1
+    dist.gather_object(problem.input_digests(), dst=0)       # rank 0 compares them
+    split = split_frames(problem)
     channel = split.channel
     blocks: list[contextlib.ExitStack] = []
     while True:
