@@ -5,7 +5,8 @@ Builds a capsule bent far at its joint (two bones; frames 0 to ``--max-angle`` d
 a rotation of the upper half), fits it with the problem ``animation`` and the solver
 ``levenberg_marquardt`` once per variant, and prints per iteration: accepted, factorisations,
 solves and wall seconds; then the mean of accepted and rejected iterations, as JSON
-(``--out``). ``--problem arm3d`` fits the arm instead (its own frames and mesh settings).
+(``--out``). ``--problem arm3d`` (or ``arm3d_short``) fits the arm instead (its own frames and
+mesh settings).
 
     python scripts/trial_cost.py --out /tmp/trial_cost.json
 """
@@ -78,7 +79,7 @@ def run(problem_name: str, settings: dict, variant: dict, max_iter: int) -> dict
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--problem", default="capsule", choices=["capsule", "arm3d"])
+    parser.add_argument("--problem", default="capsule", choices=["capsule", "arm3d", "arm3d_short"])
     parser.add_argument("--max-angle", type=float, default=150.0)
     parser.add_argument("--frames", type=int, default=6)
     parser.add_argument("--max-iter", type=int, default=10)
@@ -95,7 +96,10 @@ def main() -> None:
                     "tet_edge_length": 0.08, "grid": [2, 2, 3], "cache_dir": str(cache)}
         name = "animation"
     else:
-        settings, name = {}, "arm3d"
+        # arm3d_short is conf/problem/arm3d_short.yaml: the arm with these overrides
+        settings = {"tet_edge_length": 0.06, "frames": [0, 3, 6, 9, 11]} \
+            if args.problem == "arm3d_short" else {}
+        name = "arm3d"
     out = []
     for token in args.variants.split(","):
         variant = {"trial_factor": float(token.rstrip("p")), "trial_predictor": token.endswith("p")}

@@ -33,16 +33,20 @@ def _load_blas() -> None:
 
 
 def set_threads(n: int) -> None:
-    """Use ``n`` CPU threads in this process: ``torch.set_num_threads(n)`` and
+    """Use ``n`` CPU threads in this process: ``torch.set_num_threads(n)``,
     ``threadpoolctl.threadpool_limits(n)`` for every BLAS and OpenMP library loaded
-    (numpy's and scipy's OpenBLAS included), kept until the process ends."""
+    (numpy's and scipy's OpenBLAS included), and MKL's dynamic threading back on (module
+    docstring); kept until the process ends."""
     if n < 1:
         raise ValueError(f"thread count must be >= 1, got {n}")
     global _REQUESTED
     _load_blas()
     torch.set_num_threads(int(n))
-    mkl_dynamic(True)
     threadpool_limits(limits=int(n))
+    # torch applies the count again (MKL dynamic off included) at a thread's first parallel
+    # region: make that happen now in this thread, then switch dynamic threading back on
+    torch.get_num_threads()
+    mkl_dynamic(True)
     _REQUESTED = int(n)
 
 
