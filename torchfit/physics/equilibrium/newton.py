@@ -103,9 +103,9 @@ class NewtonOptions:
     # Newton iterations summed over its frames) frame-iterations (one factorisation each;
     # within warm_max_iter per frame); past it, or where that warm start fails, it raises
     # TrialBudgetExceeded instead of going on to the cold start (the long walk of a step
-    # that is then usually rejected). 0 disables it: the default, because with a budget a
-    # resumed body run with validation frames did not repeat the uninterrupted run's
-    # iterates (tests/run/test_resume_warm_start.py; 2026-11-26, not yet explained).
+    # that is then usually rejected). 0 disables it: the default, because a budget also
+    # cuts accepted steps and the short arm's fit ended worse, while without one a rejected
+    # step costs under 2x an accepted iteration (docs/physics/equilibrium.md).
     trial_factor: float = 0.0
     trial_min_iter: int = 5
     # Start such a trial from the first-order predictor x_anchor + (dx/dparams) dparams
