@@ -13,6 +13,7 @@ import torch
 
 from helpers.capsule_animation import write_capsule
 from helpers.fit_app import REPO, run_fit_app
+from helpers.repeating_animation import POSES, write_tube
 from torchfit.problems import build_problem
 from torchfit.run import FitConfigError
 from torchfit.run.distributed import (check_resume, check_same_inputs, check_supported,
@@ -114,6 +115,30 @@ def test_two_ranks_give_the_one_process_iterates_and_resume_exactly(tmp_path):
     resumed = _torchrun(tmp_path / "resumed", *settings, "solver.max_iter=3", "resume=true")
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert torch.equal(two_theta, _theta(tmp_path / "resumed"))
+
+
+@pytest.mark.slow
+def test_repeated_poses_are_split_over_the_ranks_once(tmp_path):
+    """A tube whose 8 frames are 5 poses: the 2 ranks simulate 3 + 2 poses (each once in
+    the whole job: the counters equal one process's, which simulates the 5 poses), and
+    ``J^T J`` weights a pose's rows by its frames: the iterates of one process to round-off."""
+    folder = write_tube(tmp_path / "tube")
+    settings = ["problem=animation", f"problem.path={folder}",
+                f"problem.cache_dir={tmp_path / 'cache'}", "problem.tet_edge_length=0.3",
+                "problem.grid=[2,2,2]", "solver=levenberg_marquardt", "solver.max_iter=3",
+                "threads=1"]
+    one = run_fit_app(tmp_path / "one", *settings)
+    assert one.returncode == 0, one.stderr[-3000:]
+    two = _torchrun(tmp_path / "two", *settings)
+    assert two.returncode == 0, two.stderr[-3000:]
+    first = json.loads((tmp_path / "one" / "result.json").read_text())
+    second = json.loads((tmp_path / "two" / "result.json").read_text())
+    for key in ("iterations", "stop_reason", "factorizations", "solves"):
+        assert first[key] == second[key], key
+    one_theta, two_theta = _theta(tmp_path / "one"), _theta(tmp_path / "two")
+    assert float((one_theta - two_theta).abs().max()) <= 1e-10 * float(one_theta.abs().max())
+    checkpoint = torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True)
+    assert checkpoint["simulation_state"]["blocks"] == [[0, 3], [3, len(POSES)]]
 
 
 @pytest.mark.slow

@@ -1,4 +1,4 @@
-"""What a run reports of a body fitted to an animation: pure functions on arrays.
+"""What a run reports of a body fitted to an animation: pure functions on arrays (and its description).
 
 Positions are ``(F, n, 3)`` arrays of the tetrahedron vertices in every frame, ``cells``
 ``(m, 4)`` positively oriented at rest, ``rest_points`` ``(n, 3)``; volumes are signed
@@ -8,12 +8,15 @@ noise-free targets, ``(F, V)`` tensors.
 from __future__ import annotations
 
 import math
+import os
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from ..mesh import signed_volumes
+from ..physics.elasticity import get_material
 
 #: a value within this relative distance of a bound is on it (region_summary's bounds)
 ON_BOUND_RTOL = 1e-6
@@ -105,3 +108,25 @@ def fraction_on_bounds(values, bounds: tuple[float, float] | None) -> dict[str, 
     low, high = bounds
     return {"at_lower": float((values <= low * (1 + ON_BOUND_RTOL)).mean()),
             "at_upper": float((values >= high * (1 - ON_BOUND_RTOL)).mean())}
+
+
+def describe_body(problem: Any, bounds: Any) -> dict[str, Any]:
+    """The sizes, mesh, rig and settings a rigged body adds to ``describe()`` (result.json);
+    ``bounds``: its modulus bounds (:func:`.modulus_bounds.modulus_bounds`)."""
+    out = {"model": get_material(problem.cfg.model.value).name, "nu": problem.model.nu,
+           "animation": str(problem.animation.path), "n_frames": problem.n_frames,
+           "n_tets": problem.model.n_cells, "n_vertices": problem.model.n_vertices,
+           "n_surface_vertices": problem.animation.n_vertices,
+           "n_dirichlet": int(len(problem.dirichlet_vertices)),
+           "n_free_dofs": 3 * (problem.model.n_vertices - len(problem.dirichlet_vertices)),
+           "tet_cache_hit": bool(problem.tet.from_cache), "tet_key": problem.tet.key,
+           "tetrahedralize_s": float(problem.tet.build_seconds),
+           "backend": problem.backend, "full_bend_frame": problem.full_bend_frame,
+           "joint_tets": int(len(problem.joint_cells)), "grid": problem.grid.describe(),
+           "E_bounds": bounds,
+           "surface_err_mean_homogeneous": problem.homogeneous_surface_error()}
+    if problem.rig_report is not None:     # the rig check's largest skinning distance
+        out["rig_skinning_error"] = problem.rig_report.skinning_error
+    if os.environ.get("TORCHFIT_CACHE_DIR"):
+        out["cache_dir"] = os.environ["TORCHFIT_CACHE_DIR"]
+    return out

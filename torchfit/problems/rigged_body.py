@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import os
 import warnings
 from typing import Any, ContextManager
 
@@ -39,14 +38,14 @@ from ..mesh.tet_store import kept_frame
 from ..mesh.tetrahedralize import TetMesh
 from ..params import Parameterization, per_element, per_region
 from ..physics import NewtonOptions
-from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity, get_material
+from ..physics.elasticity import QuasistaticElasticity, SimplicialElasticity
 from ..steps import count, step
 from .base import InverseProblem, array_digest
 from .body_grid import block_nodes, blocks_field, body_grid, grid_parameterization
 from .body_motion import most_deformed_frame, most_strained_cells, view_axes
 from .body_setup import animation_summary, check_rig, first_simulation, tet_mesh, tet_options
-from .body_report import (BODY_METRICS, body_metrics, frame_report, inverted_counts,
-                          min_volume_ratios, surface_distances, volume_change)
+from .body_report import (BODY_METRICS, body_metrics, describe_body, frame_report,
+                          inverted_counts, min_volume_ratios, surface_distances, volume_change)
 from .config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
                      resolve_backend, setting_error)
 from .held_out import NO_VALIDATION, problem_on_frames, split_frames, validation_problem
@@ -299,17 +298,18 @@ class RiggedBody(InverseProblem):
         if E.shape != (self.model.n_cells,):
             raise ProblemConfigError(f"Young's modulus must have shape ({self.model.n_cells},) "
                                      f"(one per tetrahedron), got {tuple(E.shape)}")
-        if self.repeated_poses is None:
-            poses, pose_of_frame = None, None
-        else:       # each distinct pose once, then every frame from its pose
-            poses, pose_of_frame = self.repeated_poses
-        drive = self.dirichlet_positions if poses is None else self.dirichlet_positions[poses]
-        start = self.start_positions if poses is None else self.start_positions[poses]
+        poses = self.simulated_poses()      # each distinct pose once, then every frame
+        drive, start = self.dirichlet_positions[poses], self.start_positions[poses]
         with contextlib.nullcontext() if getattr(self, "_simulated", False) else \
                 first_simulation(len(drive), self.model.n_cells, self.cfg.model.value):
             x = self.quasistatic(E, drive.to(E), x_init=start.to(E))
         self._simulated = True
-        return x if pose_of_frame is None else x[pose_of_frame]
+        return x if self.repeated_poses is None else x[self.repeated_poses[1]]
+
+    def simulated_poses(self) -> Tensor | slice:
+        """The frames simulated (the first of each distinct pose, ``repeated_poses.py``):
+        an index ``(P,)``, or every frame."""
+        return slice(None) if self.repeated_poses is None else self.repeated_poses[0]
 
     def independent_simulation(self) -> ContextManager[None]:
         """Cold starts from the animated pose that seed no warm start (the synthetic
@@ -338,17 +338,23 @@ class RiggedBody(InverseProblem):
         return (x[..., corners, :] * weights[..., None]).sum(-2).reshape(-1)
 
     def forward_jacobian(self, theta: Tensor) -> Tensor:
-        """``d observe(simulate(map(theta))) / d theta`` ``(m, n_params)``: every parameter
-        direction as a right-hand side of the one factorisation per frame."""
+        """``d observe(simulate(map(theta))) / d theta`` ``(m, n_params)``: every frame's
+        rows of :meth:`pose_jacobian`."""
+        observed = self.pose_jacobian(theta)
+        if self.repeated_poses is not None:
+            observed = observed[self.repeated_poses[1]]
+        return observed.reshape(-1, observed.shape[-1])                 # (F n_obs 3, n)
+
+    def pose_jacobian(self, theta: Tensor) -> Tensor:
+        """``(P, n_obs 3, n_params)`` of each simulated pose (:meth:`simulated_poses`): every
+        parameter direction a right-hand side of the pose's one factorisation, the embedding
+        applied to its columns as soon as they are solved (no ``(F, V, 3, n)``)."""
         E = self.parameterization(theta.detach())
         directions = self.parameterization.jacobian(theta.detach())          # (n_cells, n)
-        # the embedding applied to each frame's columns as soon as they are solved: the
-        # (F, V, 3, n) derivative of every vertex is never formed
-        poses, pose_of_frame = self.repeated_poses or (slice(None), slice(None))
-        observed = self.quasistatic.jacobian(E, self.dirichlet_positions[poses].to(E),
-                                             directions, x_init=self.start_positions[poses].to(E),
-                                             observe=self._observation_matrix(E))[pose_of_frame]
-        return observed.reshape(-1, observed.shape[-1])                 # (F n_obs 3, n)
+        poses = self.simulated_poses()
+        return self.quasistatic.jacobian(E, self.dirichlet_positions[poses].to(E), directions,
+                                         x_init=self.start_positions[poses].to(E),
+                                         observe=self._observation_matrix(E))
 
     def _observation_matrix(self, like: Tensor) -> Tensor:
         """The observed rows of the embedding on the flat dofs, sparse
@@ -475,24 +481,7 @@ class RiggedBody(InverseProblem):
         return theta_bounds(self.cfg, self.parameterization.n_params, self.theta0)
 
     def describe(self) -> dict[str, Any]:
-        out = super().describe()
-        out.update({"model": get_material(self.cfg.model.value).name, "nu": self.model.nu,
-                    "animation": str(self.animation.path), "n_frames": self.n_frames,
-                    "n_tets": self.model.n_cells, "n_vertices": self.model.n_vertices,
-                    "n_surface_vertices": self.animation.n_vertices,
-                    "n_dirichlet": int(len(self.dirichlet_vertices)),
-                    "n_free_dofs": 3 * (self.model.n_vertices - len(self.dirichlet_vertices)),
-                    "tet_cache_hit": bool(self.tet.from_cache), "tet_key": self.tet.key,
-                    "tetrahedralize_s": float(self.tet.build_seconds),
-                    "backend": self.backend, "full_bend_frame": self.full_bend_frame,
-                    "joint_tets": int(len(self.joint_cells)), "grid": self.grid.describe(),
-                    "E_bounds": modulus_bounds(self.cfg),
-                    "surface_err_mean_homogeneous": self.homogeneous_surface_error()})
-        if self.rig_report is not None:     # the rig check's largest skinning distance
-            out["rig_skinning_error"] = self.rig_report.skinning_error
-        if os.environ.get("TORCHFIT_CACHE_DIR"):
-            out["cache_dir"] = os.environ["TORCHFIT_CACHE_DIR"]
-        return out
+        return {**super().describe(), **describe_body(self, modulus_bounds(self.cfg))}
 
 
 def _positions(x: Tensor) -> np.ndarray:

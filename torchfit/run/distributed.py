@@ -1,11 +1,13 @@
 """One fit over several processes (``torchrun``): the frames of a rigged body split over ranks.
 
 Launched under ``torchrun`` (``WORLD_SIZE > 1``), every process builds the same problem from
-the same settings (mesh, rig, data: cheap and identical), then the frames are split by a
-static balanced partition (:func:`partition`: contiguous blocks in frame order, the first
-``F mod W`` ranks one frame more) and each rank simulates only its block: its Newton
-solves, factorisations and warm starts stay on it (:class:`FrameSplit` replaces the
-problem's ``quasistatic``).
+the same settings (mesh, rig, data: cheap and identical), then the distinct poses it
+simulates (``repeated_poses.py``: the arm's 48 frames are 23 poses; every frame where none
+repeats) are split by a static balanced partition (:func:`partition`: contiguous blocks in
+pose order, the first ``P mod W`` ranks one more) and each rank simulates only its block:
+its Newton solves, factorisations and warm starts stay on it (:class:`FrameSplit` replaces
+the problem's ``quasistatic``), and a pose that several frames repeat is simulated once in
+the whole job.
 
 Leader and workers: rank 0 runs the whole fit (:func:`torchfit.fit`, the solver, every
 output: it alone writes the run directory); ranks 1.. only serve (:func:`serve`). Each
@@ -52,8 +54,8 @@ import torch.distributed as dist
 from torch import Tensor
 
 from .distributed_channel import (FULL, INDEPENDENT_OFF, INDEPENDENT_ON, JACOBIAN, MATVEC,
-                                  RESTORE, ROW_COMMANDS, SIMULATE, STATE, STOP, Channel,
-                                  exchange, exchanging)
+                                  RESTORE, RMATVEC, ROW_COMMANDS, SIMULATE, STATE, STOP,
+                                  Channel, exchange, exchanging)
 from .distributed_rows import DistributedRows, RowStore, local_product
 from .options import FitConfigError
 
@@ -113,10 +115,12 @@ def check_supported(problem: Any, config: dict[str, Any], n_ranks: int) -> None:
                              f"(torchrun runs a quasistatic rigged body with {' or '.join(SOLVERS)}"
                              f" on the dense Jacobian, n_params <= "
                              "solver.dense_jacobian_max_params); run it as one process")
-    if problem.n_frames < n_ranks:
-        raise FitConfigError(f"problem {name} has {problem.n_frames} frames, fewer than the "
-                             f"{n_ranks} processes; start at most "
-                             f"--nproc_per_node={problem.n_frames}")
+    poses = problem.simulated_poses()
+    units = int(problem.n_frames) if isinstance(poses, slice) else len(poses)
+    if units < n_ranks:
+        raise FitConfigError(f"problem {name} simulates {units} distinct pose(s) "
+                             f"({problem.n_frames} frames), fewer than the {n_ranks} "
+                             f"processes; start at most --nproc_per_node={units}")
     if config.get("continuation"):
         raise FitConfigError("continuation=true does not run distributed yet; run it as one "
                              "process")
@@ -204,11 +208,17 @@ class FrameSplit:
         self.inner = problem.quasistatic
         self.channel = channel
         start, stop = channel.blocks[channel.rank]
-        self.frames = slice(start, stop)
+        self.frames = slice(start, stop)        # of the simulated poses
         self.equilibrium = _SplitEquilibrium(self)
         self._local = False
-        self._forward_jacobian = type(problem).forward_jacobian
         self.rows = RowStore()
+        poses = problem.simulated_poses()
+        n_frames = int(problem.n_frames)
+        self.poses = torch.arange(n_frames) if isinstance(poses, slice) else poses.cpu()
+        self.pose_of_frame = torch.arange(n_frames) if problem.repeated_poses is None \
+            else problem.repeated_poses[1].cpu()
+        # how many frames each of this rank's poses stands for (J^T J weights its rows)
+        self.counts = torch.bincount(self.pose_of_frame, minlength=len(self.poses))[self.frames]
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.inner, name)
@@ -224,10 +234,16 @@ class FrameSplit:
     def _mine(self, value: Tensor | None) -> Tensor | None:
         if value is None:
             return None
-        if value.shape[0] != self.problem.n_frames:
-            raise RuntimeError(f"a distributed simulation takes all {self.problem.n_frames} "
-                               f"frames, got {value.shape[0]}")
+        if value.shape[0] != len(self.poses):
+            raise RuntimeError(f"a distributed simulation takes all {len(self.poses)} "
+                               f"simulated poses, got {value.shape[0]}")
         return value[self.frames]
+
+    def pose_inputs(self, like: Tensor) -> tuple[Tensor, Tensor]:
+        """The drive and start positions of every simulated pose (what rank 0 passes)."""
+        poses = self.problem.simulated_poses()
+        return (self.problem.dirichlet_positions[poses].to(like),
+                self.problem.start_positions[poses].to(like))
 
     def __call__(self, E: Tensor, positions: Tensor, x_init: Tensor | None = None) -> Tensor:
         if self._local:
@@ -245,16 +261,13 @@ class FrameSplit:
         return self.inner.jacobian(E, self._mine(positions), directions,
                                    x_init=self._mine(x_init), observe=observe)
 
-    def local_forward_jacobian(self, theta: Tensor) -> Tensor:
-        """This rank's rows of ``d forward / d theta``, ``(F_rank n_obs 3, n)``."""
-        with self.local():
-            J = self._forward_jacobian(self.problem, theta)
-        return J.reshape(-1, J.shape[-1])
-
     def store_jacobian(self, theta: Tensor, ident: int) -> Tensor:
-        """Every rank: compute and keep this rank's rows as Jacobian ``ident``
-        (:class:`.distributed_rows.RowStore`); returns their shape ``(2,)`` (int64)."""
-        rows = self.local_forward_jacobian(theta)
+        """Every rank: compute and keep the rows of this rank's poses
+        (``(P_rank n_obs 3, n)``) as Jacobian ``ident`` (:class:`.distributed_rows.RowStore`);
+        returns their shape ``(2,)`` (int64)."""
+        with self.local():
+            rows = type(self.problem).pose_jacobian(self.problem, theta)
+        rows = rows.reshape(-1, rows.shape[-1])
         self.rows.add(rows, ident)
         return torch.tensor(rows.shape, dtype=torch.int64)
 
@@ -269,46 +282,62 @@ class FrameSplit:
         return DistributedRows(ident, (int(self.problem.data.numel()), int(shape[1])),
                                self.problem.dtype, torch.device("cpu"), self.row_product)
 
-    def row_range(self, m: int) -> tuple[int, int]:
-        """This rank's rows ``[start, stop)`` of a frame-major vector of ``m`` values."""
-        per_frame = m // int(self.problem.n_frames)
-        return self.frames.start * per_frame, self.frames.stop * per_frame
+    def per_frame(self) -> int:
+        """Rows of one frame (and of one pose): ``n_obs 3``."""
+        return int(self.problem.data.numel()) // int(self.problem.n_frames)
 
     def row_product(self, code: int, ident: int, operand: Tensor | None) -> Tensor:
         """Rank 0: the product ``code`` of Jacobian ``ident`` with ``operand`` on every rank,
-        reduced (module :mod:`.distributed_rows`)."""
+        reduced (module :mod:`.distributed_rows`). The frames of a repeated pose share its
+        rows: ``w`` is summed per pose before ``J^T w``, ``J x`` expanded to every frame."""
+        if code == RMATVEC:
+            assert operand is not None
+            by_frame = operand.reshape((len(self.pose_of_frame), self.per_frame())
+                                       + tuple(operand.shape[1:]))
+            by_pose = by_frame.new_zeros((len(self.poses),) + tuple(by_frame.shape[1:]))
+            by_pose.index_add_(0, self.pose_of_frame.to(by_frame.device), by_frame)
+            operand = by_pose.reshape((-1,) + tuple(operand.shape[1:]))
         columns = 0 if operand is None else (1 if operand.dim() == 1 else 1 + operand.shape[1])
         length = 0 if operand is None else operand.shape[0]
         self.channel.command(code, ident, columns, length)
         if operand is not None:
             operand = self.channel.share(operand, tuple(operand.shape), self.problem.dtype)
-        return self.answer_rows(code, ident, operand)
+        out = self.answer_rows(code, ident, operand)
+        assert out is not None
+        if code in (MATVEC, FULL):          # (P, n_obs 3, ...) -> every frame's rows
+            out = out[self.pose_of_frame.to(out.device)]
+            out = out.reshape((-1,) + tuple(out.shape[2:]))
+        return out
 
     def answer_rows(self, code: int, ident: int, operand: Tensor | None) -> Tensor | None:
-        """Every rank: this rank's part of a row product, gathered (``J x``, the rows) or
-        summed (``J^T w``, ``J^T J``) on rank 0."""
+        """Every rank: this rank's part of a row product, gathered by pose (``J x``, the
+        rows) or summed (``J^T w``, ``J^T J``: each pose's rows weighted by its frames) on
+        rank 0."""
         rows = self.rows.get(ident)
-        m = int(self.problem.data.numel())
+        per_frame = self.per_frame()
+        mine = (self.frames.start * per_frame, self.frames.stop * per_frame)
+        weights = None if bool((self.counts == 1).all()) else \
+            self.counts.to(rows).repeat_interleave(per_frame)
 
         def part() -> Tensor:
-            out = local_product(code, rows, operand, self.row_range(m))
-            if code in (MATVEC, FULL):      # frame-major, for the gather in frame order
-                return out.reshape((self.frames.stop - self.frames.start, -1)
+            out = local_product(code, rows, operand, mine, weights)
+            if code in (MATVEC, FULL):      # pose-major, for the gather in pose order
+                return out.reshape((self.frames.stop - self.frames.start, per_frame)
                                    + tuple(out.shape[1:]))
             return out
 
         if code in (MATVEC, FULL):
-            out = self.channel.collect(part)
-            return None if out is None else out.reshape((m,) + tuple(out.shape[2:]))
+            return self.channel.collect(part)
         return self.channel.total(part)
 
 
 def split_frames(problem: Any) -> FrameSplit:
-    """Replace ``problem.quasistatic`` by its frame split (every rank, same problem). Every
-    frame is simulated by its rank: frames that repeat a pose are not shared across the
-    split (``repeated_poses`` off), so the split sees all ``n_frames``."""
-    problem.repeated_poses = None
-    blocks = partition(int(problem.n_frames), dist.get_world_size())
+    """Replace ``problem.quasistatic`` by its split (every rank, same problem): the distinct
+    poses the problem simulates (every frame where none repeats) are partitioned over the
+    ranks, so a pose that several frames repeat is simulated once in the whole job."""
+    poses = problem.simulated_poses()
+    count = int(problem.n_frames) if isinstance(poses, slice) else len(poses)
+    blocks = partition(count, dist.get_world_size())
     split = FrameSplit(problem, Channel(blocks))
     problem.quasistatic = split
     if split.channel.rank == 0:
@@ -413,8 +442,7 @@ def _answer(header: list[int], split: FrameSplit, blocks: list[contextlib.ExitSt
     if code == SIMULATE:
         n_cells = int(problem.model.n_cells)
         E = channel.share(None, (n_cells,), problem.dtype)
-        positions = problem.dirichlet_positions.to(E)
-        starts = problem.start_positions.to(E)
+        positions, starts = split.pose_inputs(E)
         with split.local(), torch.no_grad():
             channel.collect(lambda: split(E, positions, starts))
     elif code == JACOBIAN:

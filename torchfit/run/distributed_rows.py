@@ -1,7 +1,9 @@
 """A dense Jacobian whose row blocks stay on their ranks: the products the dense path needs.
 
 Under ``torchrun`` (:mod:`.distributed`) every rank computes the rows of ``J = d forward /
-d theta`` of its own frames, ``(F_rank n_obs 3, n)``, and keeps them (:class:`RowStore`:
+d theta`` of its own poses, ``(P_rank n_obs 3, n)`` (the frames that repeat a pose share its
+rows: ``J^T J`` weights them by their frame count, ``J^T w`` takes ``w`` summed per pose,
+``J x`` is expanded to every frame on rank 0), and keeps them (:class:`RowStore`:
 the two most recent Jacobians, by id). Rank 0's :class:`DistributedRows` stands for the
 whole ``(m, n)`` matrix where the solvers expect a dense ``J``
 (:class:`~torchfit.residual.Linearization`, ``DenseNormalEquations``, the identifiability
@@ -54,9 +56,10 @@ class RowStore:
 
 
 def local_product(code: int, rows: Tensor, operand: Tensor | None,
-                  row_range: tuple[int, int]) -> Tensor:
+                  row_range: tuple[int, int], weights: Tensor | None = None) -> Tensor:
     """This rank's part of a product: ``J_k x`` (its rows), ``J_k^T w_k`` (``w_k``: its
-    rows ``row_range`` of ``w``), ``J_k^T J_k`` or the rows themselves."""
+    rows ``row_range`` of ``w``), ``J_k^T W J_k`` (``weights``: per row, how many frames
+    share it; ``None``: one each) or the rows themselves."""
     if code == MATVEC:
         assert operand is not None
         return rows @ operand.to(rows)
@@ -65,7 +68,7 @@ def local_product(code: int, rows: Tensor, operand: Tensor | None,
         start, stop = row_range
         return rows.T @ operand[start:stop].to(rows)
     if code == GRAM:
-        return rows.T @ rows
+        return rows.T @ (rows if weights is None else rows * weights[:, None])
     if code == FULL:
         return rows
     raise ValueError(f"unknown row command {code}")

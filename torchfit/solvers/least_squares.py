@@ -134,14 +134,15 @@ class DenseNormalEquations:
     def __init__(self, lin: Any, project: Callable[[Tensor], Tensor] | None) -> None:
         self.lin = lin
         self.J = lin.jacobian()
-        self.P = projector_matrix(project, lin.theta.to(lin.r))
+        self.P = projector_matrix(project, lin.theta.to(dtype=self.J.dtype, device=self.J.device))
         gram = self.J.T @ self.J
         if self.P is not None:
             gram = self.P @ gram @ self.P
         self.gram = 0.5 * (gram + gram.T)
 
     def solve(self, b: Tensor, shift: float, rmatvec_b: Tensor | None = None) -> CGLSResult:
-        rhs = self.J.T @ b if rmatvec_b is None else rmatvec_b.to(self.lin.r)
+        rhs = self.J.T @ b if rmatvec_b is None else \
+            rmatvec_b.to(dtype=self.J.dtype, device=self.J.device)
         if self.P is not None:
             rhs = self.P @ rhs
         n = rhs.numel()
