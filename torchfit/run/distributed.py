@@ -35,7 +35,9 @@ continues from the last checkpoint. Collectives time out after
 pictures or simulates the model comparison alone).
 
 Supported: quasistatic rigged bodies (``problem=arm3d``, ``arm3d_short``, ``animation``)
-with Gauss-Newton or Levenberg-Marquardt on the dense Jacobian; the rest is refused
+with Gauss-Newton or Levenberg-Marquardt, on the dense Jacobian (:mod:`.distributed_rows`)
+or matrix-free (``n_params`` above ``solver.dense_jacobian_max_params``: ``J v`` and
+``J^T w`` by autograd through :mod:`.distributed_graph`); the rest is refused
 (:func:`check_supported`).
 """
 from __future__ import annotations
@@ -53,13 +55,14 @@ import torch
 import torch.distributed as dist
 from torch import Tensor
 
-from .distributed_channel import (FULL, INDEPENDENT_OFF, INDEPENDENT_ON, JACOBIAN, MATVEC,
-                                  RESTORE, RMATVEC, ROW_COMMANDS, SIMULATE, STATE, STOP,
-                                  Channel, exchange, exchanging)
+from . import distributed_graph
+from .distributed_channel import (FULL, GRAPH_COMMANDS, INDEPENDENT_OFF, INDEPENDENT_ON,
+                                  JACOBIAN, MATVEC, RESTORE, RMATVEC, ROW_COMMANDS, SIMULATE,
+                                  STATE, STOP, Channel, exchange, exchanging)
 from .distributed_rows import DistributedRows, RowStore, local_product
 from .options import FitConfigError
 
-#: solvers whose dense-Jacobian path runs distributed
+#: solvers that run distributed (dense Jacobian or matrix-free)
 SOLVERS = ("levenberg_marquardt", "gauss_newton")
 _SHARED = False     # rank 0 has handed the settings to the workers (they serve commands)
 def rank() -> int:
@@ -106,15 +109,12 @@ def check_supported(problem: Any, config: dict[str, Any], n_ranks: int) -> None:
     from ..problems.rigged_body import RiggedBody
     solver = str(config.get("solver", {}).get("name"))
     name = getattr(problem, "name", type(problem).__name__)
-    dense = int(config.get("solver", {}).get("dense_jacobian_max_params", 0))
-    n = int(problem.parameterization.n_params)
     supported = isinstance(problem, RiggedBody) and not getattr(problem, "dynamic", False) \
-        and solver in SOLVERS and 0 < n <= dense
+        and solver in SOLVERS
     if not supported:
         raise FitConfigError(f"problem {name} / solver {solver} does not run distributed yet "
-                             f"(torchrun runs a quasistatic rigged body with {' or '.join(SOLVERS)}"
-                             f" on the dense Jacobian, n_params <= "
-                             "solver.dense_jacobian_max_params); run it as one process")
+                             f"(torchrun runs a quasistatic rigged body with "
+                             f"{' or '.join(SOLVERS)}); run it as one process")
     poses = problem.simulated_poses()
     units = int(problem.n_frames) if isinstance(poses, slice) else len(poses)
     if units < n_ranks:
@@ -212,6 +212,10 @@ class FrameSplit:
         self.equilibrium = _SplitEquilibrium(self)
         self._local = False
         self.rows = RowStore()
+        self.graphs = distributed_graph.GraphStore()
+        # rank 0's: the solvers take J v, J^T w by autograd (no dense J), so a simulation
+        # with a graph is an autograd node (:mod:`.distributed_graph`); else the graph is cut
+        self.matrix_free = False
         poses = problem.simulated_poses()
         n_frames = int(problem.n_frames)
         self.poses = torch.arange(n_frames) if isinstance(poses, slice) else poses.cpu()
@@ -248,6 +252,9 @@ class FrameSplit:
     def __call__(self, E: Tensor, positions: Tensor, x_init: Tensor | None = None) -> Tensor:
         if self._local:
             return self.inner(E, self._mine(positions), x_init=self._mine(x_init))
+        if self.matrix_free and distributed_graph.needs_graph(E):   # products by autograd
+            keep = torch.is_grad_enabled() and E.requires_grad
+            return distributed_graph.DistributedSimulation.apply(E, self, keep)
         self.channel.command(SIMULATE)
         self.channel.share(E, tuple(E.shape), E.dtype)
         with self.local():
@@ -359,7 +366,10 @@ def lead(problem: Any, config: dict[str, Any], multirun: bool = False) -> None:
     digests: list[Any] = [None] * dist.get_world_size()
     dist.gather_object(problem.input_digests(), digests, dst=0)
     check_same_inputs(problem.input_digests(), digests)
-    split_frames(problem)
+    split = split_frames(problem)
+    solver = config.get("solver", {})
+    split.matrix_free = not 0 < int(problem.parameterization.n_params) <= \
+        int(solver.get("dense_jacobian_max_params", 0))
 
 
 def check_same_inputs(mine: dict[str, str], ranks: list[Any]) -> None:
@@ -448,6 +458,8 @@ def _answer(header: list[int], split: FrameSplit, blocks: list[contextlib.ExitSt
     elif code == JACOBIAN:
         theta = channel.share(None, (int(problem.parameterization.n_params),), problem.dtype)
         channel.run(lambda: split.store_jacobian(theta, header[1]))
+    elif code in GRAPH_COMMANDS:
+        distributed_graph.answer(header, split)
     elif code in ROW_COMMANDS:
         _, ident, columns, length = header
         operand = None if columns == 0 else channel.share(

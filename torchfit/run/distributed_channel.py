@@ -25,8 +25,11 @@ SIMULATE, JACOBIAN, INDEPENDENT_ON, INDEPENDENT_OFF, STATE, RESTORE, STOP = rang
 #: products with a Jacobian kept on the ranks (:mod:`.distributed_rows`)
 MATVEC, RMATVEC, GRAM, FULL = 20, 21, 22, 23
 ROW_COMMANDS = (MATVEC, RMATVEC, GRAM, FULL)
+#: a simulation autograd differentiates, its backward and jvp (:mod:`.distributed_graph`)
+SIMULATE_GRAPH, GRAPH_VJP, GRAPH_JVP = 30, 31, 32
+GRAPH_COMMANDS = (SIMULATE_GRAPH, GRAPH_VJP, GRAPH_JVP)
 #: codes whose answer is an exchange (every rank computes, rank 0 receives)
-COMMANDS_WITH_EXCHANGE = (SIMULATE, JACOBIAN, STATE, RESTORE) + ROW_COMMANDS
+COMMANDS_WITH_EXCHANGE = (SIMULATE, JACOBIAN, STATE, RESTORE) + ROW_COMMANDS + GRAPH_COMMANDS
 _OK, _SIMULATION_FAILED, _FAILED = 0, 1, 2
 _EXCHANGING = False
 
