@@ -28,6 +28,11 @@ the analysis, so there every factor gets its own analysis (the host structure is
 built once per pattern). :func:`default_backend` picks it for 3-D problems on the CPU
 where it is installed.
 
+``amg`` (CPU, optional extra ``torchfit[amg]``): CG preconditioned by pyamg's
+smoothed-aggregation AMG (:mod:`.amg`), the hierarchy built once per matrix; non-SPD
+matrices fall back to ``pardiso`` (else ``scipy``). :func:`default_backend` picks it for
+3-D problems above :data:`AMG_MIN_DOFS` free dofs when asked for a size.
+
 Every factorisation and every solve is counted in :mod:`torchfit.linalg.counters`.
 Measured speeds and the alternatives rejected: ``docs/linalg/backends.md``.
 """
@@ -50,6 +55,7 @@ from .counters import COUNTERS
 from .errors import SingularMatrixError, cpu_only
 from .pardiso import (REAL_NONSYMMETRIC, REAL_SYMMETRIC_INDEFINITE, SINGULAR_CODES, PardisoError,
                       PardisoHandle, PardisoStructure, load_pardiso, pardiso_available)
+from .amg import AmgBackend, amg_available
 from .ldl import LdlBackend
 from .pattern import SparsePattern
 
@@ -403,12 +409,19 @@ class PardisoBackend:
         return PardisoFactor(handle, mnum, a, symmetric, values.dtype, report)
 
 
-def default_backend(dim: int, device: torch.device | str = "cpu") -> str:
+#: free dofs above which :func:`default_backend` picks ``amg`` for a 3-D problem on the CPU
+#: (measured crossover: ``docs/linalg/amg.md``)
+AMG_MIN_DOFS = 400_000
+
+
+def default_backend(dim: int, device: torch.device | str = "cpu",
+                    n_dofs: int | None = None) -> str:
     """The backend a new problem should use: ``'pardiso'`` for 3-D problems on the CPU
     when MKL PARDISO is installed (several times faster than SuperLU there), else
-    ``'scipy'``; on CUDA ``'cudss'`` where nvmath-python and cuDSS import
-    (``torchfit[cuda]``), else ``'cg'``; ``'cg'`` on any other device. (Existing problems
-    keep their own defaults.)"""
+    ``'scipy'``; but ``'amg'`` (pyamg installed) for a 3-D CPU problem of more than
+    :data:`AMG_MIN_DOFS` free dofs (``n_dofs``, when the caller knows it); on CUDA
+    ``'cudss'`` where nvmath-python and cuDSS import (``torchfit[cuda]``), else ``'cg'``;
+    ``'cg'`` on any other device. (Existing problems keep their own defaults.)"""
     kind = torch.device(device).type
     if kind == "cuda":
         from .cudss import cudss_available
@@ -416,14 +429,16 @@ def default_backend(dim: int, device: torch.device | str = "cpu") -> str:
         return "cudss" if cudss_available() else "cg"
     if kind != "cpu":
         return "cg"
+    if int(dim) == 3 and n_dofs is not None and n_dofs > AMG_MIN_DOFS and amg_available():
+        return "amg"
     if int(dim) == 3 and pardiso_available():
         return "pardiso"
     return "scipy"
 
 
 def get_backend(name: str | Backend) -> Backend:
-    """``'scipy'``, ``'banded'``, ``'ldl'``, ``'pardiso'``, ``'cudss'`` or ``'cg'`` (or an
-    object with ``factorize``).
+    """``'scipy'``, ``'banded'``, ``'ldl'``, ``'pardiso'``, ``'amg'``, ``'cudss'`` or ``'cg'``
+    (or an object with ``factorize``).
 
     ``'pardiso'`` without its extra raises :class:`~.pardiso.PardisoUnavailableError`,
     ``'cudss'`` without CUDA or ``torchfit[cuda]`` :class:`~.cudss.CudssUnavailableError`.
@@ -440,6 +455,8 @@ def get_backend(name: str | Backend) -> Backend:
         return PardisoBackend()
     if name == "cg":
         return CGBackend()
+    if name == "amg":
+        return AmgBackend(fallback=PardisoBackend() if pardiso_available() else ScipyBackend())
     if name == "cudss":
         from .cudss import CudssBackend
 
@@ -447,5 +464,5 @@ def get_backend(name: str | Backend) -> Backend:
     raise ValueError(f"unknown linear-solve backend {name!r}; choose 'scipy' (CPU direct), "
                      "'banded' (CPU banded Cholesky, SPD), 'ldl' (CPU sparse LDL^T, "
                      "SPD, qdldl), 'pardiso' (CPU, MKL PARDISO, "
-                     "optional extra), 'cudss' (CUDA sparse direct, optional extra "
+                     "optional extra), 'amg' (CPU, AMG-preconditioned CG, pyamg), 'cudss' (CUDA sparse direct, optional extra "
                      "torchfit[cuda]) or 'cg' (torch CG, CPU or CUDA)")
