@@ -192,6 +192,11 @@ def test_auto_picks_amg_above_the_threshold_only(monkeypatch):
     assert default_backend(3, "cpu") == direct                 # size unknown: unchanged
     assert default_backend(2, "cpu", 10**7) == "scipy"        # 2-D: unchanged
     assert default_backend(3, torch.device("meta"), 10**7) == "cg"
+    # a Jacobian's many columns per factor keep the direct backend at any size
+    monkeypatch.setattr(backends_module, "AMG_MAX_SOLVES", 4)
+    assert default_backend(3, "cpu", 10**7, solves_per_factor=4) == "amg"
+    assert default_backend(3, "cpu", 10**7, solves_per_factor=192) == direct
+    assert resolve_backend(Backend.auto, torch.device("cpu"), 3, 5000, 192) == direct
     assert resolve_backend(Backend.auto, torch.device("cpu"), 3, 5000) == "amg"
     assert resolve_backend(Backend.auto, torch.device("cpu"), 3, 500) == direct
     assert resolve_backend(Backend.pardiso, torch.device("cpu"), 3, 5000) == "pardiso"

@@ -5,8 +5,8 @@ algebraic-multigrid preconditioned CG (``docs/linalg/amg.md`` has the measured
 crossover). This backend keeps the :class:`~.backends.Factor` contract:
 
 * **"factorisation"** (counted as one in :mod:`.counters`): pyamg's smoothed-aggregation
-  hierarchy of the matrix (``smoothed_aggregation_solver``, no candidate improvement),
-  built once per matrix and reused by every solve with it (forward, adjoint, ``J v``,
+  hierarchy of the matrix (``smoothed_aggregation_solver`` with :data:`HIERARCHY`'s
+  options; its coarsest level factorised here too), built once per matrix and reused by every solve with it (forward, adjoint, ``J v``,
   blocks of right-hand sides). The near-nullspace is, in this order of preference, the
   modes registered for the pattern with :meth:`AmgBackend.set_near_nullspace` (the
   elastic equilibria register the 6 rigid-body modes of the free dofs, built from the
@@ -15,7 +15,9 @@ crossover). This backend keeps the :class:`~.backends.Factor` contract:
 * **solve** (counted as one per call, as every backend): preconditioned CG in float64
   (one V-cycle per iteration), every column of a block iterated together, each to
   ``||b - A x|| <= rtol ||b||`` (default ``rtol = 1e-10``, torch-fem's default too). The
-  matrix is symmetric, so ``transpose=True`` is the same solve.
+  matrix is symmetric, so ``transpose=True`` is the same solve. A factor is not
+  ``refinable``: the refinement step a linear equilibrium makes after a direct solve
+  would be one more full solve here, and is skipped.
 * **fallback** to a direct backend (``pardiso`` where installed, else ``scipy``), with
   the contract of ``banded``'s: a nonsymmetric matrix, a diagonal that is not positive
   or a hierarchy pyamg cannot build go to the direct backend at factorisation time; a
@@ -52,6 +54,7 @@ AMG_EXTRA = "pip install 'torchfit[amg]' (pyamg)"
 HIERARCHY: dict[str, Any] = {
     "improve_candidates": None,
     "max_coarse": 500,
+    "coarse_solver": "splu",
     "presmoother": ("gauss_seidel", {"sweep": "forward"}),
     "postsmoother": ("gauss_seidel", {"sweep": "backward"}),
 }
@@ -266,6 +269,9 @@ class AmgBackend:
                     matrix, B=self.near_nullspace(pattern), **self.hierarchy_options)
         except (ValueError, np.linalg.LinAlgError, RuntimeError):
             return self._direct(pattern, values, symmetric)
+        # the coarsest level's factorisation is made on its first use: make it here
+        coarsest = hierarchy.levels[-1].A
+        hierarchy.coarse_solver(coarsest, np.zeros(coarsest.shape[0]))
         COUNTERS.factorizations += 1
         return AmgFactor(matrix, hierarchy, self.rtol, self.max_iter, values.dtype,
                          lambda: self._direct(pattern, values, symmetric))

@@ -31,7 +31,7 @@ where it is installed.
 ``amg`` (CPU, optional extra ``torchfit[amg]``): CG preconditioned by pyamg's
 smoothed-aggregation AMG (:mod:`.amg`), the hierarchy built once per matrix; non-SPD
 matrices fall back to ``pardiso`` (else ``scipy``). :func:`default_backend` picks it for
-3-D problems above :data:`AMG_MIN_DOFS` free dofs when asked for a size.
+3-D problems above :data:`AMG_MIN_DOFS` free dofs with few solves per factorisation.
 
 Every factorisation and every solve is counted in :mod:`torchfit.linalg.counters`.
 Measured speeds and the alternatives rejected: ``docs/linalg/backends.md``.
@@ -410,18 +410,24 @@ class PardisoBackend:
 
 
 #: free dofs above which :func:`default_backend` picks ``amg`` for a 3-D problem on the CPU
-#: (measured crossover: ``docs/linalg/amg.md``)
-AMG_MIN_DOFS = 400_000
+#: that makes few solves per factorisation (measured crossover: ``docs/linalg/amg.md``)
+AMG_MIN_DOFS = 20_000
+#: the most solves (right-hand-side columns) per factorisation for which ``amg`` is picked
+#: (a forward solve and its adjoint: 2; a dense Jacobian: one per parameter, 192 on the arm)
+AMG_MAX_SOLVES = 4
 
 
-def default_backend(dim: int, device: torch.device | str = "cpu",
-                    n_dofs: int | None = None) -> str:
+def default_backend(dim: int, device: torch.device | str = "cpu", n_dofs: int | None = None,
+                    solves_per_factor: int = 1) -> str:
     """The backend a new problem should use: ``'pardiso'`` for 3-D problems on the CPU
     when MKL PARDISO is installed (several times faster than SuperLU there), else
     ``'scipy'``; but ``'amg'`` (pyamg installed) for a 3-D CPU problem of more than
-    :data:`AMG_MIN_DOFS` free dofs (``n_dofs``, when the caller knows it); on CUDA
-    ``'cudss'`` where nvmath-python and cuDSS import (``torchfit[cuda]``), else ``'cg'``;
-    ``'cg'`` on any other device. (Existing problems keep their own defaults.)"""
+    :data:`AMG_MIN_DOFS` free dofs (``n_dofs``, when the caller knows it) whose use makes at
+    most :data:`AMG_MAX_SOLVES` solves per factorisation (``solves_per_factor``: a
+    simulation and its gradient, not a Jacobian's many columns, where the factor's cheap
+    solves win at every size measured); on CUDA ``'cudss'`` where nvmath-python and cuDSS
+    import (``torchfit[cuda]``), else ``'cg'``; ``'cg'`` on any other device. (Existing
+    problems keep their own defaults.)"""
     kind = torch.device(device).type
     if kind == "cuda":
         from .cudss import cudss_available
@@ -429,7 +435,8 @@ def default_backend(dim: int, device: torch.device | str = "cpu",
         return "cudss" if cudss_available() else "cg"
     if kind != "cpu":
         return "cg"
-    if int(dim) == 3 and n_dofs is not None and n_dofs > AMG_MIN_DOFS and amg_available():
+    if int(dim) == 3 and n_dofs is not None and n_dofs > AMG_MIN_DOFS \
+            and solves_per_factor <= AMG_MAX_SOLVES and amg_available():
         return "amg"
     if int(dim) == 3 and pardiso_available():
         return "pardiso"

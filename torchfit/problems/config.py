@@ -65,8 +65,8 @@ class Backend(Choice):
     extra ``torchfit[amg]``; direct fallback otherwise), ``cudss`` (CUDA sparse direct,
     the optional extra ``torchfit[cuda]``), ``cg`` (torch Jacobi-CG, any device); ``auto``
     lets the problem choose (3-D: pardiso where installed, else scipy, and amg above
-    ``AMG_MIN_DOFS`` free dofs where the problem knows its size; on CUDA cudss where
-    installed, else cg)."""
+    ``AMG_MIN_DOFS`` free dofs for a use with few solves per factorisation; on CUDA cudss
+    where installed, else cg)."""
 
     scipy = "scipy"
     ldl = "ldl"
@@ -162,16 +162,18 @@ def check_device(key: str, value: Any) -> torch.device:
 
 
 def resolve_backend(choice: Backend, device: torch.device, dim: int,
-                    n_dofs: int | None = None) -> str:
+                    n_dofs: int | None = None, solves_per_factor: int = 1) -> str:
     """The backend name of a ``backend`` setting: ``auto`` is
     :func:`torchfit.linalg.backends.default_backend` (3-D CPU: ``pardiso`` where installed,
-    else ``scipy``, and ``amg`` above its size threshold when ``n_dofs`` is given; CUDA:
-    ``cudss`` where installed, else ``cg``)."""
+    else ``scipy``, and ``amg`` above its size threshold when ``n_dofs`` is given and the
+    use makes few ``solves_per_factor``; CUDA: ``cudss`` where installed, else ``cg``).
+    The rigged bodies give no size: their fits solve a Jacobian column per parameter
+    (192 on the arm) with every factor, where PARDISO wins at every size measured."""
     if choice != Backend.auto:
         return choice.value
     from ..linalg.backends import default_backend
 
-    return default_backend(dim, device, n_dofs)
+    return default_backend(dim, device, n_dofs, solves_per_factor)
 
 
 def dtype_of(choice: DType | str) -> torch.dtype:

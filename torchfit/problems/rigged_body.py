@@ -187,7 +187,7 @@ class RiggedBody(InverseProblem):
         # Newton iterations (folds and inverted elements at the inner elbow)
         newton = NewtonOptions(max_iter=cfg.newton_max_iter, rtol=cfg.newton_rtol,
                                atol=cfg.newton_atol, warm_max_iter=cfg.newton_max_iter)
-        self.backend = resolve_backend(cfg.backend, self.device, 3, self.model.n_dofs)
+        self.backend = resolve_backend(cfg.backend, self.device, 3)
         self.quasistatic = QuasistaticElasticity(self.model, dirichlet, backend=self.backend,
                                                  newton=newton, start="rest",
                                                  warm_start=cfg.warm_start)
