@@ -223,3 +223,16 @@ def test_missing_pyamg_is_one_line_naming_the_extra(monkeypatch):
     assert "\n" not in str(info.value) and "torchfit[amg]" in str(info.value)
     monkeypatch.setattr(backends_module, "AMG_MIN_DOFS", 10)
     assert default_backend(3, "cpu", 10**6) != "amg"
+
+
+def test_problem_backend_amg_without_pyamg_is_refused_in_one_line(monkeypatch):
+    from torchfit.problems import config as problem_config
+
+    monkeypatch.setattr(problem_config, "amg_available", lambda: False)
+    with pytest.raises(problem_config.ProblemConfigError) as info:
+        problem_config.validate_config(problem_config.ProblemConfig(backend="amg"))
+    message = str(info.value)
+    assert "\n" not in message and "problem.backend" in message
+    assert "torchfit[amg]" in message
+    problem_config.validate_config(problem_config.ProblemConfig(backend="pardiso"
+                                   if problem_config.pardiso_available() else "scipy"))

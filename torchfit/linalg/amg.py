@@ -6,8 +6,8 @@ crossover). This backend keeps the :class:`~.backends.Factor` contract:
 
 * **"factorisation"** (counted as one in :mod:`.counters`): pyamg's smoothed-aggregation
   hierarchy of the matrix (``smoothed_aggregation_solver`` with :data:`HIERARCHY`'s
-  options; its coarsest level factorised here too), built once per matrix and reused by every solve with it (forward, adjoint, ``J v``,
-  blocks of right-hand sides). The near-nullspace is, in this order of preference, the
+  options; its coarsest level factorised here too), built once per matrix and reused by
+  every solve with it (forward, adjoint, ``J v``, blocks of right-hand sides). The near-nullspace is, in this order of preference, the
   modes registered for the pattern with :meth:`AmgBackend.set_near_nullspace` (the
   elastic equilibria register the 6 rigid-body modes of the free dofs, built from the
   rest positions), the 3 translations where the pattern is made of full 3x3 blocks
@@ -116,7 +116,7 @@ def pcg(matrix: sp.csr_matrix, preconditioner: Callable[[np.ndarray], np.ndarray
     rz = np.zeros(rhs.shape[1])
     iterations = 0
     while active.size and iterations < max_iter:
-        z = np.stack([preconditioner(r[:, j]) for j in active], axis=1)
+        z = np.stack([preconditioner(np.ascontiguousarray(r[:, j])) for j in active], axis=1)
         rz_new = np.einsum("ij,ij->j", r[:, active], z)
         if iterations == 0:
             p[:, active] = z
