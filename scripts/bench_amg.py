@@ -85,7 +85,8 @@ def bench_backend(name: str, pattern: Any, values: torch.Tensor, modes: np.ndarr
     entry: dict[str, Any] = {
         "factorize_s": t_factor, "solve_1_s": t_one, "solve_block_s": t_block,
         "block_columns": int(rhs.shape[1]), "solve_per_column_s": t_block / rhs.shape[1],
-        "factorize_first_s": factor_times[0], "factorize_all_s": factor_times, "solve_1_all_s": one_times,
+        "factorize_first_s": factor_times[0], "factorize_all_s": factor_times,
+        "solve_1_all_s": one_times,
         "counts": counts.as_dict()}
     # torchfit's linear forward: a direct solve is followed by one refinement solve, an
     # amg solve (already at its tolerance) is not; the backward is one more solve

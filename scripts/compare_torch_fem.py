@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""torchfit against torch-fem on the same linear-elastic tet box: answers first, then time.
+"""torchfit against torch-fem on the same elastic tet box: answers first, then time.
 
 The problem (built here, handed to torch-fem as an ``.npz``): ``box_tetrahedra(n, n, m)``
 (6 tetrahedra per cube, the box ``1 x 1 x m/n``), Young's modulus ``exp(0.5 N(0, 1))``
@@ -19,7 +19,11 @@ run above 100k tetrahedra). Checked first: the relative differences of the displ
 and of the gradients (torch-fem's default against torchfit pardiso, and amg against
 pardiso). Prints a table and JSON (``--out``).
 
-    python scripts/compare_torch_fem.py --boxes 9x9x10 16x16x26 25x25x80 \\
+``--material stable_neo_hookean``: torchfit's stable neo-Hookean energy, handed to
+torch-fem as a ``Hyperelastic3D`` energy function (stress and tangent by its autograd),
+both Newton solves to ``rtol = 1e-10``, ``atol = 1e-12``.
+
+    python scripts/compare_torch_fem.py --boxes 7x7x17 13x13x40 25x25x80 \\
         --torch-fem-python /work/tfem-venv/bin/python --out compare.json
 """
 from __future__ import annotations
@@ -58,19 +62,47 @@ def make_problem(box: str, seed: int) -> dict[str, np.ndarray]:
 
 
 # -- torch-fem (runs in its own venv: imports nothing of torchfit) ---------------------------
+def stable_neo_hookean_psi(F: Any, params: Any) -> Any:
+    """torchfit's ``stable_neo_hookean`` energy density (Smith, de Goes and Kim 2018, with
+    their rest-consistent Lame parameters) for torch-fem's ``Hyperelastic3D``;
+    ``params = (mu, lam)``."""
+    import torch
+
+    mu_s = 4.0 / 3.0 * params[0]
+    lam_s = params[1] + 5.0 / 6.0 * params[0]
+    alpha = 1.0 + 0.75 * mu_s / lam_s
+    I_C = (F * F).sum()
+    J = (F[0, 0] * (F[1, 1] * F[2, 2] - F[1, 2] * F[2, 1])
+         - F[0, 1] * (F[1, 0] * F[2, 2] - F[1, 2] * F[2, 0])
+         + F[0, 2] * (F[1, 0] * F[2, 1] - F[1, 1] * F[2, 0]))     # functorch-safe det
+    rest = 0.5 * lam_s * (1.0 - alpha) ** 2 - 0.5 * mu_s * np.log(4.0)
+    return (0.5 * mu_s * (I_C - 3.0) + 0.5 * lam_s * (J - alpha) ** 2
+            - 0.5 * mu_s * torch.log(I_C + 1.0) - rest)
+
+
 def torch_fem_worker(problem_path: str, out_path: str, repeats: int) -> None:
     import torch
     from torchfem import Solid
-    from torchfem.materials import IsotropicElasticity3D
+    from torchfem.materials import Hyperelastic3D, IsotropicElasticity3D
 
     torch.set_default_dtype(torch.float64)
     data = np.load(problem_path)
     nodes = torch.from_numpy(data["points"])
     elements = torch.from_numpy(data["cells"])
     weights = torch.from_numpy(data["weights"])
+    material = str(data["material"])
+    # Newton to torchfit's tolerances where it iterates (torch-fem's default: 1e-8 / 1e-6)
+    newton = {} if material == "linear" else {"rtol": 1e-10, "atol": 1e-12}
 
     def model(E: torch.Tensor) -> Any:
-        solid = Solid(nodes, elements, IsotropicElasticity3D(E, 0.3))
+        if material == "linear":
+            law = IsotropicElasticity3D(E, 0.3)
+        else:
+            nu = 0.3
+            params = torch.stack([E / (2.0 * (1.0 + nu)),
+                                  E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))], dim=1)
+            law = Hyperelastic3D(stable_neo_hookean_psi, params)
+        solid = Solid(nodes, elements, law)
         bottom, top = torch.from_numpy(data["bottom"]), torch.from_numpy(data["top"])
         solid.constraints[bottom, :] = True
         solid.constraints[top, :] = True
@@ -80,14 +112,14 @@ def torch_fem_worker(problem_path: str, out_path: str, repeats: int) -> None:
     def forward() -> torch.Tensor:
         solid = model(torch.from_numpy(data["E"]))
         start = time.perf_counter()
-        u = solid.solve()[0]
+        u = solid.solve(**newton)[0]
         return u, time.perf_counter() - start
 
     def forward_backward() -> tuple[torch.Tensor, torch.Tensor, float]:
         E = torch.from_numpy(data["E"]).clone().requires_grad_(True)
         solid = model(E)
         start = time.perf_counter()
-        u = solid.solve(differentiable_parameters=E)[0]
+        u = solid.solve(differentiable_parameters=E, **newton)[0]
         (grad,) = torch.autograd.grad((weights * u).sum(), E)
         return u.detach(), grad, time.perf_counter() - start
 
@@ -117,14 +149,15 @@ def run_torch_fem(python: str, problem: dict[str, np.ndarray], repeats: int) -> 
 
 
 # -- torchfit ---------------------------------------------------------------------------------
-def run_torchfit(backend: str, problem: dict[str, np.ndarray], repeats: int) -> dict[str, Any]:
+def run_torchfit(backend: str, problem: dict[str, np.ndarray], repeats: int,
+                 material: str = "linear") -> dict[str, Any]:
     import torch
 
     from torchfit.linalg import counting
     from torchfit.physics.elasticity import QuasistaticElasticity, SimplicialElasticity
 
     points = torch.from_numpy(problem["points"])
-    model = SimplicialElasticity(points, torch.from_numpy(problem["cells"]), "linear", nu=0.3)
+    model = SimplicialElasticity(points, torch.from_numpy(problem["cells"]), material, nu=0.3)
     bottom, top = problem["bottom"], problem["top"]
     qs = QuasistaticElasticity(model, np.concatenate([bottom, top]), backend=backend)
     moved = points[top] + torch.from_numpy(problem["top_move"])
@@ -161,6 +194,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--torch-fem-python", default="/work/tfem-venv/bin/python")
     parser.add_argument("--backends", nargs="+", default=["pardiso", "amg"])
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--material", choices=["linear", "stable_neo_hookean"],
+                        default="linear", help="stable_neo_hookean: torchfit's energy "
+                        "handed to torch-fem's Hyperelastic3D, Newton to 1e-10 / 1e-12")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--torch-fem-worker", nargs=2, metavar=("PROBLEM", "OUT"),
@@ -173,16 +209,17 @@ def main(argv: list[str] | None = None) -> int:
     sys.path[:0] = [str(ROOT), str(ROOT / "scripts")]
     from benchtools import machine_info
 
-    report: dict[str, Any] = {"machine": machine_info(), "boxes": {}}
+    report: dict[str, Any] = {"machine": machine_info(), "material": args.material, "boxes": {}}
     print(f"{'box':>10s} {'tets':>8s} {'solver':>14s} {'forward':>9s} {'fwd+bwd':>9s} "
           f"{'ratio fb':>9s} {'rel du':>8s} {'rel dgrad':>9s}")
     for box in args.boxes:
         problem = make_problem(box, args.seed)
+        problem["material"] = np.array(args.material)
         n_tets = len(problem["cells"])
         repeats = args.repeats if n_tets <= 100_000 else 1
         results = {"torch-fem": run_torch_fem(args.torch_fem_python, problem, repeats)}
         for backend in args.backends:
-            results[backend] = run_torchfit(backend, problem, repeats)
+            results[backend] = run_torchfit(backend, problem, repeats, args.material)
         reference = results[args.backends[0]]
         base = float(results["torch-fem"]["forward_backward_s"].min())
         entry: dict[str, Any] = {"tets": n_tets, "dofs": 3 * len(problem["points"]),

@@ -7,11 +7,12 @@ crossover). This backend keeps the :class:`~.backends.Factor` contract:
 * **"factorisation"** (counted as one in :mod:`.counters`): pyamg's smoothed-aggregation
   hierarchy of the matrix (``smoothed_aggregation_solver`` with :data:`HIERARCHY`'s
   options; its coarsest level factorised here too), built once per matrix and reused by
-  every solve with it (forward, adjoint, ``J v``, blocks of right-hand sides). The near-nullspace is, in this order of preference, the
-  modes registered for the pattern with :meth:`AmgBackend.set_near_nullspace` (the
-  elastic equilibria register the 6 rigid-body modes of the free dofs, built from the
-  rest positions), the 3 translations where the pattern is made of full 3x3 blocks
-  (3 dofs per node, interleaved), else the constant vector.
+  every solve with it (forward, adjoint, ``J v``, blocks of right-hand sides). The
+  near-nullspace is, in this order of preference, the modes registered for the pattern
+  with :meth:`AmgBackend.set_near_nullspace` (the elastic equilibria register the 6
+  rigid-body modes of the free dofs, built from the rest positions), the 3 translations
+  where the pattern is made of full 3x3 blocks (3 dofs per node, interleaved), else the
+  constant vector.
 * **solve** (counted as one per call, as every backend): preconditioned CG in float64
   (one V-cycle per iteration), every column of a block iterated together, each to
   ``||b - A x|| <= rtol ||b||`` (default ``rtol = 1e-10``, torch-fem's default too). The
