@@ -1,4 +1,5 @@
 """Sparse linear algebra: patterns, factorisation backends and their reuse, Krylov, counters."""
+from .amg import AmgBackend, AmgUnavailableError, amg_available
 from .backends import (BandedBackend, Backend, CGBackend, Factor, PardisoBackend, ScipyBackend,
                        SingularMatrixError, default_backend, get_backend)
 from .cg import CGLSResult, batched_cg, cgls
@@ -11,10 +12,10 @@ from .pattern import FreeMatrixLayout, SparsePattern, coo_to_csr
 from .threads import blas_threads, set_threads
 
 __all__ = [
-    "BackendDeviceError", "Backend", "BandedBackend", "CGBackend", "CGLSResult", "COUNTERS",
-    "CudssBackend", "CudssUnavailableError", "Factor", "FreeMatrixLayout", "GpuMemoryError",
+    "AmgBackend", "AmgUnavailableError", "BackendDeviceError", "Backend", "BandedBackend",
+    "CGBackend", "CGLSResult", "COUNTERS", "CudssBackend", "CudssUnavailableError", "Factor", "FreeMatrixLayout", "GpuMemoryError",
     "LdlBackend", "PardisoBackend", "PardisoError", "PardisoUnavailableError", "ScipyBackend",
     "SingularMatrixError", "SparsePattern", "batched_cg", "blas_threads", "cgls", "coo_to_csr",
-    "counting", "cudss_available", "default_backend", "get_backend", "pardiso_available",
-    "set_threads",
+    "amg_available", "counting", "cudss_available", "default_backend", "get_backend",
+    "pardiso_available", "set_threads",
 ]

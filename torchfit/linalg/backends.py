@@ -28,6 +28,11 @@ the analysis, so there every factor gets its own analysis (the host structure is
 built once per pattern). :func:`default_backend` picks it for 3-D problems on the CPU
 where it is installed.
 
+``amg`` (CPU, optional extra ``torchfit[amg]``): CG preconditioned by pyamg's
+smoothed-aggregation AMG (:mod:`.amg`), the hierarchy built once per matrix; non-SPD
+matrices fall back to ``pardiso`` (else ``scipy``). :func:`default_backend` picks it for
+3-D problems above :data:`AMG_MIN_DOFS` free dofs with few solves per factorisation.
+
 Every factorisation and every solve is counted in :mod:`torchfit.linalg.counters`.
 Measured speeds and the alternatives rejected: ``docs/linalg/backends.md``.
 """
@@ -50,6 +55,7 @@ from .counters import COUNTERS
 from .errors import SingularMatrixError, cpu_only
 from .pardiso import (REAL_NONSYMMETRIC, REAL_SYMMETRIC_INDEFINITE, SINGULAR_CODES, PardisoError,
                       PardisoHandle, PardisoStructure, load_pardiso, pardiso_available)
+from .amg import AmgBackend, amg_available
 from .ldl import LdlBackend
 from .pattern import SparsePattern
 
@@ -403,12 +409,25 @@ class PardisoBackend:
         return PardisoFactor(handle, mnum, a, symmetric, values.dtype, report)
 
 
-def default_backend(dim: int, device: torch.device | str = "cpu") -> str:
+#: free dofs above which :func:`default_backend` picks ``amg`` for a 3-D problem on the CPU
+#: that makes few solves per factorisation (measured crossover: ``docs/linalg/amg.md``)
+AMG_MIN_DOFS = 20_000
+#: the most solves (right-hand-side columns) per factorisation for which ``amg`` is picked
+#: (a forward solve and its adjoint: 2; a dense Jacobian: one per parameter, 192 on the arm)
+AMG_MAX_SOLVES = 4
+
+
+def default_backend(dim: int, device: torch.device | str = "cpu", n_dofs: int | None = None,
+                    solves_per_factor: int = 1) -> str:
     """The backend a new problem should use: ``'pardiso'`` for 3-D problems on the CPU
     when MKL PARDISO is installed (several times faster than SuperLU there), else
-    ``'scipy'``; on CUDA ``'cudss'`` where nvmath-python and cuDSS import
-    (``torchfit[cuda]``), else ``'cg'``; ``'cg'`` on any other device. (Existing problems
-    keep their own defaults.)"""
+    ``'scipy'``; but ``'amg'`` (pyamg installed) for a 3-D CPU problem of more than
+    :data:`AMG_MIN_DOFS` free dofs (``n_dofs``, when the caller knows it) whose use makes at
+    most :data:`AMG_MAX_SOLVES` solves per factorisation (``solves_per_factor``: a
+    simulation and its gradient, not a Jacobian's many columns, where the factor's cheap
+    solves win at every size measured); on CUDA ``'cudss'`` where nvmath-python and cuDSS
+    import (``torchfit[cuda]``), else ``'cg'``; ``'cg'`` on any other device. (Existing
+    problems keep their own defaults.)"""
     kind = torch.device(device).type
     if kind == "cuda":
         from .cudss import cudss_available
@@ -416,14 +435,17 @@ def default_backend(dim: int, device: torch.device | str = "cpu") -> str:
         return "cudss" if cudss_available() else "cg"
     if kind != "cpu":
         return "cg"
+    if int(dim) == 3 and n_dofs is not None and n_dofs > AMG_MIN_DOFS \
+            and solves_per_factor <= AMG_MAX_SOLVES and amg_available():
+        return "amg"
     if int(dim) == 3 and pardiso_available():
         return "pardiso"
     return "scipy"
 
 
 def get_backend(name: str | Backend) -> Backend:
-    """``'scipy'``, ``'banded'``, ``'ldl'``, ``'pardiso'``, ``'cudss'`` or ``'cg'`` (or an
-    object with ``factorize``).
+    """``'scipy'``, ``'banded'``, ``'ldl'``, ``'pardiso'``, ``'amg'``, ``'cudss'`` or ``'cg'``
+    (or an object with ``factorize``).
 
     ``'pardiso'`` without its extra raises :class:`~.pardiso.PardisoUnavailableError`,
     ``'cudss'`` without CUDA or ``torchfit[cuda]`` :class:`~.cudss.CudssUnavailableError`.
@@ -440,6 +462,8 @@ def get_backend(name: str | Backend) -> Backend:
         return PardisoBackend()
     if name == "cg":
         return CGBackend()
+    if name == "amg":
+        return AmgBackend(fallback=PardisoBackend() if pardiso_available() else ScipyBackend())
     if name == "cudss":
         from .cudss import CudssBackend
 
@@ -447,5 +471,5 @@ def get_backend(name: str | Backend) -> Backend:
     raise ValueError(f"unknown linear-solve backend {name!r}; choose 'scipy' (CPU direct), "
                      "'banded' (CPU banded Cholesky, SPD), 'ldl' (CPU sparse LDL^T, "
                      "SPD, qdldl), 'pardiso' (CPU, MKL PARDISO, "
-                     "optional extra), 'cudss' (CUDA sparse direct, optional extra "
+                     "optional extra), 'amg' (CPU, AMG-preconditioned CG, pyamg), 'cudss' (CUDA sparse direct, optional extra "
                      "torchfit[cuda]) or 'cg' (torch CG, CPU or CUDA)")

@@ -23,7 +23,8 @@ import torch
 
 from .. import settings
 from ..errors import ConfigurationError
-from ..linalg import cudss_available, pardiso_available
+from ..linalg import amg_available, cudss_available, pardiso_available
+from ..linalg.amg import AMG_EXTRA
 from ..linalg.cudss import CUDA_EXTRA
 from ..linalg.pardiso import PARDISO_EXTRA
 from ..settings import Choice, check_values, convert_choices, make_settings
@@ -60,14 +61,18 @@ class Backend(Choice):
     """Linear-solve backend: ``scipy`` (CPU direct, SuperLU), ``ldl`` (CPU sparse
     ``L D L^T`` with the analysis reused, SPD; SuperLU otherwise), ``banded`` (CPU banded
     Cholesky), ``pardiso`` (CPU, MKL PARDISO, the optional extra ``torchfit[pardiso]``),
-    ``cudss`` (CUDA sparse direct, the optional extra ``torchfit[cuda]``), ``cg`` (torch
-    Jacobi-CG, any device); ``auto`` lets the problem choose (3-D: pardiso where
-    installed, else scipy; on CUDA cudss where installed, else cg)."""
+    ``amg`` (CPU, CG preconditioned by pyamg's smoothed-aggregation AMG, SPD, the optional
+    extra ``torchfit[amg]``; direct fallback otherwise), ``cudss`` (CUDA sparse direct,
+    the optional extra ``torchfit[cuda]``), ``cg`` (torch Jacobi-CG, any device); ``auto``
+    lets the problem choose (3-D: pardiso where installed, else scipy, and amg above
+    ``AMG_MIN_DOFS`` free dofs for a use with few solves per factorisation; on CUDA cudss
+    where installed, else cg)."""
 
     scipy = "scipy"
     ldl = "ldl"
     banded = "banded"
     pardiso = "pardiso"
+    amg = "amg"
     cudss = "cudss"
     cg = "cg"
     auto = "auto"
@@ -81,7 +86,7 @@ class DType(Choice):
 
 
 #: Backends that factorise on the CPU (a problem on another device needs ``cg``).
-_CPU_BACKENDS = (Backend.scipy, Backend.ldl, Backend.banded, Backend.pardiso)
+_CPU_BACKENDS = (Backend.scipy, Backend.ldl, Backend.banded, Backend.pardiso, Backend.amg)
 #: Device names understood by :func:`resolve_device` (``cuda:N`` picks a GPU).
 _DEVICE_CHOICES = ("cpu", "cuda", "cuda:N", "mps")
 _DEVICE = re.compile(r"^(cpu|cuda|mps)(?::(\d+))?$")
@@ -102,7 +107,8 @@ class ProblemConfig:
     seed: int = 0                       # of the noise
     transform: Transform = Transform.exp    # exp (field = exp(theta)) | identity
     backend: Backend = Backend.scipy    # linear solves: scipy (CPU direct) | ldl | banded |
-                                        # pardiso | cudss | cg (torch) | auto (see Backend)
+                                        # pardiso | amg | cudss | cg (torch) | auto
+                                        # (see Backend)
     device: str = "cpu"                 # cpu | cuda | cuda:N | mps
     dtype: DType = DType.float64        # float64 | float32 (every tensor of the problem)
 
@@ -155,15 +161,19 @@ def check_device(key: str, value: Any) -> torch.device:
     return torch.device(name)
 
 
-def resolve_backend(choice: Backend, device: torch.device, dim: int) -> str:
+def resolve_backend(choice: Backend, device: torch.device, dim: int,
+                    n_dofs: int | None = None, solves_per_factor: int = 1) -> str:
     """The backend name of a ``backend`` setting: ``auto`` is
     :func:`torchfit.linalg.backends.default_backend` (3-D CPU: ``pardiso`` where installed,
-    else ``scipy``; CUDA: ``cudss`` where installed, else ``cg``)."""
+    else ``scipy``, and ``amg`` above its size threshold when ``n_dofs`` is given and the
+    use makes few ``solves_per_factor``; CUDA: ``cudss`` where installed, else ``cg``).
+    The rigged bodies give no size: their fits solve a Jacobian column per parameter
+    (192 on the arm) with every factor, where PARDISO wins at every size measured."""
     if choice != Backend.auto:
         return choice.value
     from ..linalg.backends import default_backend
 
-    return default_backend(dim, device)
+    return default_backend(dim, device, n_dofs, solves_per_factor)
 
 
 def dtype_of(choice: DType | str) -> torch.dtype:
@@ -177,7 +187,7 @@ def validate_config(cfg: ProblemConfig) -> None:
     Choice settings are members of their enum; every numeric setting is a number of the
     declared type and finite (recursively in lists: ``inf`` is as wrong as ``nan``);
     ``noise >= 0``; the device exists here; the direct backends run on the CPU only;
-    ``pardiso`` is installed.
+    ``pardiso`` and ``amg`` are installed where chosen.
     """
     check_values(cfg, "problem", ProblemConfigError)
     require_setting(cfg.noise >= 0, cfg, "noise", "must be >= 0 (the standard deviation "
@@ -195,6 +205,9 @@ def validate_config(cfg: ProblemConfig) -> None:
     require_setting(cfg.backend != Backend.pardiso or pardiso_available(), cfg, "backend",
                     f"needs MKL PARDISO, which is not installed here: {PARDISO_EXTRA} "
                     "(x86-64 only, about 700 MB), or use problem.backend=scipy")
+    require_setting(cfg.backend != Backend.amg or amg_available(), cfg, "backend",
+                    f"needs pyamg, which is not installed here: {AMG_EXTRA}, or use "
+                    "problem.backend=pardiso or scipy")
 
 
 def make_config(config_class: type[ProblemConfig], cfg: Any = None,

@@ -271,6 +271,22 @@ class SimplicialElasticity:
         K = self.element_stiffness(x, E, projected)
         return K.reshape(K.shape[0], -1)
 
+    def near_nullspace(self) -> Tensor:
+        """Rigid-body modes at the rest positions, ``(n_dofs, 3)`` in 2-D (2 translations,
+        1 rotation) or ``(n_dofs, 6)`` in 3-D (3 + 3): the near-nullspace an AMG
+        preconditioner (the ``amg`` backend) aggregates with."""
+        points = self.rest.points.detach().cpu().to(torch.float64)
+        points = points - points.mean(dim=0)          # rotations about the centroid
+        n, d = points.shape
+        rotations = [(0, 1), (1, 2), (2, 0)] if d == 3 else [(0, 1)]
+        modes = torch.zeros(n, d, d + len(rotations), dtype=torch.float64)
+        for axis in range(d):
+            modes[:, axis, axis] = 1.0
+        for k, (a, b) in enumerate(rotations):      # rotation in the (a, b) plane
+            modes[:, a, d + k] = -points[:, b]
+            modes[:, b, d + k] = points[:, a]
+        return modes.reshape(n * d, -1)
+
     def param_derivative(self, x: Tensor, E: Tensor) -> ElasticParamDerivative:
         """``dR/dE`` at ``x`` (``R`` is linear in ``E`` at fixed ``nu``)."""
         self.check_modulus(E)

@@ -52,6 +52,11 @@ class DirichletReduction:
         self.free_pattern, self.free_slots = model.tangent_pattern.submatrix(
             self.free_dofs, self.free_dofs)
         self.extensions = ModelExtensions.of(model)
+        # an AMG backend aggregates with the model's near-nullspace (rigid-body modes)
+        modes, register = (getattr(model, "near_nullspace", None),
+                           getattr(self.backend, "set_near_nullspace", None))
+        if callable(modes) and callable(register):
+            register(self.free_pattern, modes()[self.free_dofs])
 
     @property
     def n_fixed(self) -> int:

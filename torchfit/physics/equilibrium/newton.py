@@ -160,7 +160,9 @@ class NewtonSolver:
             residual = reduction.free_residual(x, params)
             factors = reduction.factorize(x, params)
             x = reduction.full(x_free - reduction.solve(factors, residual), fixed_values)
-            for _ in range(self.linear_refinement):
+            # an iterative factor (amg) already solves to its tolerance: no refinement
+            refine = self.linear_refinement if getattr(factors[0], "refinable", True) else 0
+            for _ in range(refine):
                 x_free = x[:, reduction.free_dofs.to(x.device)]
                 correction = reduction.solve(factors, reduction.free_residual(x, params))
                 x = reduction.full(x_free - correction, fixed_values)
