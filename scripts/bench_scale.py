@@ -112,6 +112,12 @@ def lm_iteration(problem, theta0, state, config) -> dict[str, Any]:
             "damping_init": config.damping_init, "max_step": config.max_step}
 
 
+def normal_seconds(jacobian) -> float:
+    """Seconds of ``J^T J`` (what rank 0 forms from the gathered ``J``)."""
+    from benchtools import timed
+    return timed(lambda: jacobian.T @ jacobian)[0]
+
+
 def measure(problem, job: dict[str, Any], n_ranks: int) -> dict[str, Any]:
     """Simulate, Jacobian, LM accepted and rejected on ``problem`` (rank 0's view)."""
     import torch
@@ -138,14 +144,15 @@ def measure(problem, job: dict[str, Any], n_ranks: int) -> dict[str, Any]:
                        "newton_iterations_rank0": newton, "loadavg": load}
     state = problem.simulation_state()
     load = loadavg()
-    t, J, counts = timed(lambda: problem.forward_jacobian(theta0))
-    t_normal, _, _ = timed(lambda: J.T @ J)
-    out["jacobian"] = {"s": t, "counts": counts, "shape": list(J.shape),
-                       "MB": J.numel() * J.element_size() / 1e6,
+    t, jacobian, counts = timed(lambda: problem.forward_jacobian(theta0))
+    shape = tuple(jacobian.shape)
+    t_normal = normal_seconds(jacobian)
+    out["jacobian"] = {"s": t, "counts": counts, "shape": list(shape),
+                       "MB": jacobian.numel() * jacobian.element_size() / 1e6,
                        "per_frame_column_s": t / (n_sim * n_params), "loadavg": load,
                        "JtJ_s": t_normal,
-                       "JtJ_flops_per_s": J.shape[0] * J.shape[1] ** 2 / max(t_normal, 1e-9)}
-    del J
+                       "JtJ_flops_per_s": shape[0] * shape[1] ** 2 / max(t_normal, 1e-9)}
+    del jacobian
     accepted = LevenbergMarquardtConfig(max_iter=1, max_step=1.0)
     load = loadavg()
     out["lm_accepted"] = {**lm_iteration(problem, theta0, state, accepted), "loadavg": load}
@@ -329,15 +336,16 @@ def table_lines(cases: list[dict[str, Any]], model: dict[str, Any]) -> list[str]
         setup = c["setup"]
         cold = setup.get("cold_build_s", float("nan"))
         cached = setup.get("cached_build_s", setup.get("rank0_build_s", float("nan")))
-        rej = c.get("lm_rejected")
+        rej, sim, jac = c.get("lm_rejected"), c["simulate"], c["jacobian"]
+        rss = c.get("peak_rss_MB_any_process") or c["peak_rss_MB_rank0"]
         lines.append(
-            f"{c['label']:5} {c['n_tets']:<8} {c['ranks']:5} {c['n_frames']:3}({c['n_simulated_frames']:2})"
-            f"      {cold:7.1f}/{cached:6.1f}    {c['simulate']['s']:7.1f} ({c['simulate']['per_simulated_frame_s']:.2f})"
-            f"   {c['simulate']['counts']['factorizations']:5}  {c['jacobian']['s']:7.1f} ({c['jacobian']['per_frame_column_s']:.2e})"
-            f"       {c['lm_accepted']['s']:7.1f}  "
+            f"{c['label']:5} {c['n_tets']:<8} {c['ranks']:5} "
+            f"{c['n_frames']:3}({c['n_simulated_frames']:2})      {cold:7.1f}/{cached:6.1f}"
+            f"    {sim['s']:7.1f} ({sim['per_simulated_frame_s']:.2f})   "
+            f"{sim['counts']['factorizations']:5}  {jac['s']:7.1f} "
+            f"({jac['per_frame_column_s']:.2e})       {c['lm_accepted']['s']:7.1f}  "
             + (f"{rej['s']:7.1f} ({rej['accepted']})" if rej else "   -          ")
-            + f"   {c.get('peak_rss_MB_any_process') or c['peak_rss_MB_rank0']:8.0f}   "
-            f"{c['simulate']['loadavg'][0]:.1f}")
+            + f"   {rss:8.0f}   {sim['loadavg'][0]:.1f}")
     for row in model.get("check", []):
         lines.append(f"check {row['label']} {row['ranks']} proc {row['kind']}: predicted "
                      f"{row['predicted_s']:.1f} s, measured {row['measured_s']:.1f} s, "
@@ -345,7 +353,56 @@ def table_lines(cases: list[dict[str, Any]], model: dict[str, Any]) -> list[str]
     for row in model.get("prediction", []):
         lines.append(f"predict {row['design']:13} {row['bandwidth_gbit']:>5} Gbit/s "
                      f"{row['ranks']:3} ranks: {row['seconds']:9.1f} s (compute "
-                     f"{row['compute_s']:.1f}, JtJ {row['normal_s']:.1f}, comm {row['comm_s']:.1f})")
+                     f"{row['compute_s']:.1f}, JtJ {row['normal_s']:.1f}, "
+                     f"comm {row['comm_s']:.1f})")
+    return lines
+
+
+def markdown_lines(report: dict[str, Any]) -> list[str]:
+    """The measured table, the model's check and its prediction as Markdown (docs)."""
+    lines = ["| size | tets | procs | frames (simulated) | set-up cold / cached s | "
+             "simulate s (per sim. frame) | factorisations (Newton its, rank 0) | "
+             "Jacobian s (per frame and column) | LM accepted s | LM rejected s | "
+             "peak RSS MB | load |", "|" + " --- |" * 12]
+    for c in report["cases"]:
+        if c.get("failed"):
+            lines.append(f"| {c['label']} | | {c['ranks']} | failed | | | | | | | | |")
+            continue
+        setup, sim, jac = c["setup"], c["simulate"], c["jacobian"]
+        cold = setup.get("cold_build_s")
+        cached = setup.get("cached_build_s", setup.get("rank0_build_s"))
+        rej = c.get("lm_rejected")
+        rej_text = (f"{rej['s']:.1f} ({'accepted' if rej['accepted'] else 'rejected'}, "
+                    f"{rej['counts']['factorizations']} fact.)" if rej else "-")
+        lines.append(
+            f"| {c['label']} | {c['n_tets']:,} | {c['ranks']} | {c['n_frames']} "
+            f"({c['n_simulated_frames']}) | {'-' if cold is None else f'{cold:.1f}'} / "
+            f"{cached:.1f} | {sim['s']:.1f} ({sim['per_simulated_frame_s']:.2f}) | "
+            f"{sim['counts']['factorizations']} ({sum(sim['newton_iterations_rank0'])}) | "
+            f"{jac['s']:.1f} ({jac['per_frame_column_s']:.2e}) | "
+            f"{c['lm_accepted']['s']:.1f} ({c['lm_accepted']['counts']['factorizations']} "
+            f"fact.) | {rej_text} | "
+            f"{c.get('peak_rss_MB_any_process') or c['peak_rss_MB_rank0']:.0f} | "
+            f"{sim['loadavg'][0]:.1f} |")
+    model = report.get("model", {})
+    if model.get("check"):
+        lines += ["", "| size | procs | iteration | simulated frames | predicted s | "
+                  "measured s | measured / predicted | load |", "|" + " --- |" * 8]
+        for row in model["check"]:
+            lines.append(f"| {row['label']} | {row['ranks']} | {row['kind'][3:]} | "
+                         f"{row['n_simulated_frames']} | {row['predicted_s']:.1f} | "
+                         f"{row['measured_s']:.1f} | {row['measured_over_predicted']:.2f} | "
+                         f"{row['loadavg'][0]:.1f} |")
+    if model.get("prediction"):
+        lines += ["", "| design | link Gbit/s | ranks | frames per rank | compute s | "
+                  "J^T J s | communication s (MB into rank 0) | iteration s | "
+                  "J on rank 0 GB |", "|" + " --- |" * 9]
+        for row in model["prediction"]:
+            lines.append(f"| {row['design']} | {row['bandwidth_gbit']:g} | {row['ranks']} | "
+                         f"{row['frames_per_rank']} | {row['compute_s']:.0f} | "
+                         f"{row['normal_s']:.1f} | {row['comm_s']:.1f} "
+                         f"({row['comm_bytes_rank0_in'] / 1e6:.0f}) | {row['seconds']:.0f} | "
+                         f"{row['J_bytes_rank0'] / 1e9:.1f} |")
     return lines
 
 
@@ -378,6 +435,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bandwidths-gbit", type=float, nargs="+", default=[10.0, 1.0])
     parser.add_argument("--model-only", type=Path, default=None,
                         help="recompute the model and table from an earlier --out")
+    parser.add_argument("--markdown", action="store_true",
+                        help="print the tables as Markdown to stderr (for docs/run/scale.md)")
+    parser.add_argument("--merge", type=Path, nargs="*", default=[],
+                        help="with --model-only: add the cases of these earlier --out files")
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--child-out", type=Path, default=None, help=argparse.SUPPRESS)
@@ -398,6 +459,8 @@ def main(argv: list[str] | None = None) -> int:
     from benchtools import emit_report, machine_info
     if args.model_only is not None:
         report = json.loads(args.model_only.read_text())
+        for path in args.merge:
+            report["cases"] += json.loads(path.read_text())["cases"]
         report["model"] = model_report(report["cases"], args)
     else:
         cache = args.cache_dir or tempfile.mkdtemp(prefix="torchfit-scale-")
@@ -417,7 +480,9 @@ def main(argv: list[str] | None = None) -> int:
         report = {"benchmark": "scale", "machine": machine_info(), "cache_dir": cache,
                   "cases": cases}
         report["model"] = model_report(cases, args)
-    print("\n".join(table_lines(report["cases"], report["model"])), file=sys.stderr)
+    lines = markdown_lines(report) if args.markdown else table_lines(report["cases"],
+                                                                      report["model"])
+    print("\n".join(lines), file=sys.stderr)
     emit_report(report, args.out)
     return 0
 
