@@ -124,7 +124,8 @@ def fake_case(label: str, ranks: int, n_tets: int, per_frame: float, column: flo
                          "counts": {"factorizations": 100}, "loadavg": [2.0, 2.0, 2.0]},
             "jacobian": {"s": column * frames * 192, "per_frame_column_s": column,
                          "JtJ_flops_per_s": 1e10},
-            "lm_accepted": {"s": lm_s, "accepted": True, "loadavg": [2.0, 2.0, 2.0]},
+            "lm_accepted": {"s": lm_s, "accepted": True, "loadavg": [2.0, 2.0, 2.0],
+                            "counts": {"factorizations": 2 * frames}},
             "gather_probe": {"bytes_per_s": 1e9} if ranks > 1 else None,
             "peak_rss_MB_rank0": 900.0, "peak_rss_MB_any_process": 950.0}
 
@@ -155,6 +156,11 @@ def test_model_report_fits_and_checks():
                and r["ranks"] == 64 and r["bandwidth_gbit"] == 1.0)
     assert row["frames_per_rank"] == 8
     assert row["trial_per_frame_s"] == pytest.approx(30.0)        # 1 s x 300k / 10k
+    # warm trial: seconds per factorisation (23 / 100 at 10k) x 2 factorisations per frame
+    assert model["laws"]["factorization"]["b"] == pytest.approx(1.0)
+    assert model["laws"]["trial_warm"]["factorizations_per_frame"] == pytest.approx(2.0)
+    assert one["predicted_warm_s"] == pytest.approx(23 * (0.46 + 0.192) + normal)
+    assert row["warm_seconds"] < row["seconds"]
     lines = bench_scale.table_lines(cases, model)
     assert len(lines) == 1 + 3 + 3 + 12 and lines[-1].startswith("predict allreduce_JtJ")
 
