@@ -288,7 +288,8 @@ def model_report(cases: list[dict[str, Any]], args: argparse.Namespace) -> dict[
     cost per factorisation (``factorization`` law) times the factorisations per simulated
     frame of the measured accepted LM iterations (a trial starts from the last equilibrium;
     the Jacobian makes no factorisation, so every one of the iteration's is the trial's)."""
-    single = [c for c in cases if not c.get("failed") and c["ranks"] == 1]
+    single = [c for c in cases if not c.get("failed") and c["ranks"] == 1
+              and (not getattr(args, "fit_labels", None) or c["label"] in args.fit_labels)]
     if not single:
         return {"note": "no one-process case measured: no model"}
     tets = [c["n_tets"] for c in single]
@@ -348,7 +349,8 @@ def model_report(cases: list[dict[str, Any]], args: argparse.Namespace) -> dict[
             design=cold["design"])
         table.append({**cold, "warm_seconds": warm["seconds"],
                       "warm_compute_s": warm["compute_s"]})
-    return {"laws": laws, "JtJ_flops_per_s": flops, "check": check,
+    return {"laws": laws, "fitted_to": [c["label"] for c in single],
+            "JtJ_flops_per_s": flops, "check": check,
             "target": {"n_tets": args.target_tets, "n_frames": args.target_frames,
                        "n_params": args.target_params, "n_obs": args.target_obs,
                        "n_vertices": int(n_vertices)},
@@ -473,6 +475,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bandwidths-gbit", type=float, nargs="+", default=[10.0, 1.0])
     parser.add_argument("--model-only", type=Path, default=None,
                         help="recompute the model and table from an earlier --out")
+    parser.add_argument("--fit-labels", nargs="*", default=[],
+                        help="fit the laws to these sizes' one-process runs only (the same "
+                             "frames at every size; default: every one-process run)")
     parser.add_argument("--markdown", action="store_true",
                         help="print the tables as Markdown to stderr (for docs/run/scale.md)")
     parser.add_argument("--merge", type=Path, nargs="*", default=[],
