@@ -118,8 +118,16 @@ def normal_seconds(jacobian) -> float:
     return timed(lambda: jacobian.T @ jacobian)[0]
 
 
-def measure(problem, job: dict[str, Any], n_ranks: int) -> dict[str, Any]:
-    """Simulate, Jacobian, LM accepted and rejected on ``problem`` (rank 0's view)."""
+def save_partial(job: dict[str, Any], out: dict[str, Any]) -> None:
+    """What is measured so far, in the child's output (a killed run leaves it)."""
+    if job.get("partial_path"):
+        Path(job["partial_path"]).write_text(json.dumps({**out, "partial": True}))
+
+
+def measure(problem, job: dict[str, Any], n_ranks: int,
+            known: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Simulate, Jacobian, LM accepted and rejected on ``problem`` (rank 0's view); after
+    each, what is known so far (``known`` and the figures) is saved (:func:`save_partial`)."""
     import torch
     from benchtools import timed
     from torchfit.solvers import LevenbergMarquardtConfig
@@ -132,7 +140,7 @@ def measure(problem, job: dict[str, Any], n_ranks: int) -> dict[str, Any]:
         "n_frames": int(problem.n_frames),
         "n_simulated_frames": n_sim, "n_params": n_params,
         "n_obs": int(problem.data.numel()) // (3 * int(problem.n_frames)),
-        "backend": str(problem.backend), "ranks": n_ranks}
+        "backend": str(problem.backend), "ranks": n_ranks, **(known or {})}
     theta0 = problem.theta0.detach().clone()
     # nothing simulated yet may answer from the cache (describe() simulates the baseline)
     problem.quasistatic.equilibrium.clear_cache()
@@ -142,6 +150,7 @@ def measure(problem, job: dict[str, Any], n_ranks: int) -> dict[str, Any]:
     newton = [int(i) for i in problem.quasistatic.last_newton_iterations]
     out["simulate"] = {"s": t, "counts": counts, "per_simulated_frame_s": t / n_sim,
                        "newton_iterations_rank0": newton, "loadavg": load}
+    save_partial(job, out)
     state = problem.simulation_state()
     load = loadavg()
     t, jacobian, counts = timed(lambda: problem.forward_jacobian(theta0))
@@ -153,9 +162,11 @@ def measure(problem, job: dict[str, Any], n_ranks: int) -> dict[str, Any]:
                        "JtJ_s": t_normal,
                        "JtJ_flops_per_s": shape[0] * shape[1] ** 2 / max(t_normal, 1e-9)}
     del jacobian
+    save_partial(job, out)
     accepted = LevenbergMarquardtConfig(max_iter=1, max_step=1.0)
     load = loadavg()
     out["lm_accepted"] = {**lm_iteration(problem, theta0, state, accepted), "loadavg": load}
+    save_partial(job, out)
     if job.get("rejected", True):
         rejected = dataclasses.replace(accepted, damping_init=job["rejected_damping"],
                                        max_step=job["rejected_max_step"])
@@ -182,8 +193,7 @@ def run_single(job: dict[str, Any]) -> dict[str, Any]:
     setup["cached_build_s"] = time.perf_counter() - start
     setup["cold_build_s"] = (first_s if not setup["first_tet_cache_hit"] else
                              setup["cached_build_s"] + setup["tetrahedralize_s"])
-    out = measure(problem, job, 1)
-    out["setup"] = setup
+    out = measure(problem, job, 1, {"setup": setup})
     out["peak_rss_MB_rank0"] = maxrss_mb(resource.RUSAGE_SELF)
     return out
 
@@ -216,11 +226,9 @@ def run_distributed(job: dict[str, Any]) -> dict[str, Any] | None:
         start = time.perf_counter()
         distributed.lead(problem, config)
         setup["lead_s"] = time.perf_counter() - start
-        out = measure(problem, job, size)
+        out = measure(problem, job, size, {"setup": setup, "gather_probe": probe})
     finally:
         distributed.stop()
-    out["setup"] = setup
-    out["gather_probe"] = probe
     out["peak_rss_MB_rank0"] = maxrss_mb(resource.RUSAGE_SELF)
     return out
 
@@ -258,11 +266,14 @@ def run_job(job: dict[str, Any], n_ranks: int, python: str) -> dict[str, Any]:
         start = time.perf_counter()
         proc = subprocess.run(wrapper, cwd=REPO, capture_output=True, text=True)
         wall = time.perf_counter() - start
-        if proc.returncode != 0 or not out_path.is_file():
+        partial = proc.returncode != 0 and out_path.is_file()
+        if proc.returncode != 0 and not partial:
             return {"label": job["label"], "ranks": n_ranks, "failed": True,
                     "returncode": proc.returncode, "stderr_tail": proc.stderr[-2000:],
                     "wall_s": wall}
         out = json.loads(out_path.read_text())
+        if partial:
+            out.update({"returncode": proc.returncode, "stderr_tail": proc.stderr[-2000:]})
         rss = [line for line in proc.stdout.splitlines() if line.startswith("peak_rss_MB ")]
         out["peak_rss_MB_any_process"] = float(rss[-1].split()[1]) if rss else None
         out.update({"label": job["label"], "tet_edge_length": job["tet_edge_length"],
@@ -288,7 +299,8 @@ def model_report(cases: list[dict[str, Any]], args: argparse.Namespace) -> dict[
     cost per factorisation (``factorization`` law) times the factorisations per simulated
     frame of the measured accepted LM iterations (a trial starts from the last equilibrium;
     the Jacobian makes no factorisation, so every one of the iteration's is the trial's)."""
-    single = [c for c in cases if not c.get("failed") and c["ranks"] == 1
+    single = [c for c in cases if not c.get("failed") and not c.get("partial")
+              and c["ranks"] == 1
               and (not getattr(args, "fit_labels", None) or c["label"] in args.fit_labels)]
     if not single:
         return {"note": "no one-process case measured: no model"}
@@ -309,7 +321,7 @@ def model_report(cases: list[dict[str, Any]], args: argparse.Namespace) -> dict[
     flops = min(c["jacobian"]["JtJ_flops_per_s"] for c in single)
     check = []
     for case in cases:
-        if case.get("failed"):
+        if case.get("failed") or "jacobian" not in case:
             continue
         bandwidth = (case.get("gather_probe") or {}).get("bytes_per_s") or 1e9
         n_frames = case["n_frames"] if case["ranks"] > 1 else case["n_simulated_frames"]
@@ -357,6 +369,24 @@ def model_report(cases: list[dict[str, Any]], args: argparse.Namespace) -> dict[
             "prediction": table}
 
 
+def partial_text(c: dict[str, Any]) -> str:
+    """What a killed run measured before it stopped."""
+    parts = [f"partial (exit {c.get('returncode')}):"]
+    sim = c.get("simulate")
+    if sim:
+        parts.append(f"simulate {sim['s']:.1f} s ({sim['per_simulated_frame_s']:.2f} s per "
+                     f"simulated frame, {sim['counts']['factorizations']} factorisations, "
+                     f"load {sim['loadavg'][0]:.1f})")
+    if c.get("jacobian"):
+        parts.append(f"Jacobian {c['jacobian']['s']:.1f} s "
+                     f"({c['jacobian']['per_frame_column_s']:.2e} s per frame and column)")
+    if c.get("lm_accepted"):
+        parts.append(f"LM iteration {c['lm_accepted']['s']:.1f} s "
+                     f"({c['lm_accepted']['counts']['factorizations']} factorisations, "
+                     f"{'accepted' if c['lm_accepted']['accepted'] else 'rejected'})")
+    return parts[0] + " " + "; ".join(parts[1:])
+
+
 def table_lines(cases: list[dict[str, Any]], model: dict[str, Any]) -> list[str]:
     head = ("size  tets     procs frames(sim) setup cold/cached s  simulate s (/frame)  "
             "fact.  Jacobian s (/frame/col)  LM acc s  LM rej s (acc?)  peak RSS MB  load")
@@ -364,6 +394,9 @@ def table_lines(cases: list[dict[str, Any]], model: dict[str, Any]) -> list[str]
     for c in cases:
         if c.get("failed"):
             lines.append(f"{c['label']:5} {'':8} {c['ranks']:5} FAILED rc={c['returncode']}")
+            continue
+        if c.get("partial"):
+            lines.append(f"{c['label']:5} {c['n_tets']:<8} {c['ranks']:5} {partial_text(c)}")
             continue
         setup = c["setup"]
         cold = setup.get("cold_build_s", float("nan"))
@@ -402,6 +435,10 @@ def markdown_lines(report: dict[str, Any]) -> list[str]:
     for c in report["cases"]:
         if c.get("failed"):
             lines.append(f"| {c['label']} | | {c['ranks']} | failed | | | | | | | | |")
+            continue
+        if c.get("partial"):
+            lines.append(f"| {c['label']} | {c['n_tets']:,} | {c['ranks']} | {c['n_frames']} "
+                         f"({c['n_simulated_frames']}) | {partial_text(c)} |")
             continue
         setup, sim, jac = c["setup"], c["simulate"], c["jacobian"]
         cold = setup.get("cold_build_s")
@@ -492,7 +529,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.rss_of is not None:
         return rss_wrapper(args.rss_of)
     if args.child is not None:
-        job = json.loads(args.child.read_text())
+        job = {**json.loads(args.child.read_text()), "partial_path": str(args.child_out)}
         result = run_distributed(job) if int(os.environ.get("WORLD_SIZE", "1")) > 1 \
             else run_single(job)
         if result is not None:

@@ -121,7 +121,8 @@ def fake_case(label: str, ranks: int, n_tets: int, per_frame: float, column: flo
             "n_frames": 48, "n_simulated_frames": frames, "n_params": 192, "n_obs": 1922,
             "setup": {"cold_build_s": 10.0, "cached_build_s": 1.0},
             "simulate": {"s": per_frame * frames, "per_simulated_frame_s": per_frame,
-                         "counts": {"factorizations": 100}, "loadavg": [2.0, 2.0, 2.0]},
+                         "counts": {"factorizations": 100}, "loadavg": [2.0, 2.0, 2.0],
+                         "newton_iterations_rank0": [4] * frames},
             "jacobian": {"s": column * frames * 192, "per_frame_column_s": column,
                          "JtJ_flops_per_s": 1e10},
             "lm_accepted": {"s": lm_s, "accepted": True, "loadavg": [2.0, 2.0, 2.0],
@@ -201,3 +202,21 @@ def test_bench_scale_two_ranks_json(tmp_path):
     assert two["jacobian"]["counts"] == one["jacobian"]["counts"]
     assert {"lm_accepted", "lm_rejected"} <= set(two)
     assert math.isfinite(report["model"]["check"][-1]["measured_over_predicted"])
+
+
+def test_a_killed_runs_figures_are_listed_not_fitted():
+    whole = fake_case("10k", 1, 10_000, 1.0, 1e-3, 30.0)
+    killed = {key: value for key, value in fake_case("160k", 1, 160_000, 50.0, 5e-2, 0.0)
+              .items() if key not in ("jacobian", "lm_accepted", "peak_rss_MB_rank0")}
+    killed.update({"partial": True, "returncode": -9})
+    namespace = type("Args", (), {"target_tets": 300_000, "target_frames": 500,
+                                  "target_ranks": [8], "target_params": 192,
+                                  "target_obs": 10_000, "tets_per_vertex": 4.0,
+                                  "bandwidths_gbit": [10.0], "fit_labels": []})()
+    model = bench_scale.model_report([whole, killed], namespace)
+    assert model["fitted_to"] == ["10k"] and model["laws"]["trial"]["b_assumed"]
+    assert [row["label"] for row in model["check"]] == ["10k"]
+    lines = bench_scale.table_lines([whole, killed], model)
+    assert "partial (exit -9): simulate 1150.0 s (50.00 s per simulated frame" in lines[2]
+    markdown = bench_scale.markdown_lines({"cases": [whole, killed], "model": model})
+    assert markdown[3].startswith("| 160k | 160,000 | 1 | 48 (23) | partial (exit -9)")
