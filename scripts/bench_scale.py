@@ -113,7 +113,8 @@ def lm_iteration(problem, theta0, state, config) -> dict[str, Any]:
 
 
 def normal_seconds(jacobian) -> float:
-    """Seconds of ``J^T J`` (what rank 0 forms from the gathered ``J``)."""
+    """Seconds of ``J^T J`` (one process's product; under torchrun the ranks' partial
+    products summed on rank 0, :mod:`torchfit.run.distributed_rows`)."""
     from benchtools import timed
     return timed(lambda: jacobian.T @ jacobian)[0]
 
@@ -157,7 +158,8 @@ def measure(problem, job: dict[str, Any], n_ranks: int,
     shape = tuple(jacobian.shape)
     t_normal = normal_seconds(jacobian)
     out["jacobian"] = {"s": t, "counts": counts, "shape": list(shape),
-                       "MB": jacobian.numel() * jacobian.element_size() / 1e6,
+                       # the whole J's size (under torchrun its rows stay on the ranks)
+                       "MB": shape[0] * shape[1] * problem.theta0.element_size() / 1e6,
                        "per_frame_column_s": t / (n_sim * n_params), "loadavg": load,
                        "JtJ_s": t_normal,
                        "JtJ_flops_per_s": shape[0] * shape[1] ** 2 / max(t_normal, 1e-9)}
