@@ -117,26 +117,33 @@ def test_two_ranks_give_the_one_process_iterates_and_resume_exactly(tmp_path):
     assert torch.equal(two_theta, _theta(tmp_path / "resumed"))
 
 
-@pytest.mark.slow
-def test_repeated_poses_are_split_over_the_ranks_once(tmp_path):
-    """A tube whose 8 frames are 5 poses: the 2 ranks simulate 3 + 2 poses (each once in
-    the whole job: the counters equal one process's, which simulates the 5 poses), and
-    ``J^T J`` weights a pose's rows by its frames: the iterates of one process to round-off."""
+def _tube_on_one_and_two_ranks(tmp_path: Path, *overrides: str, counted: tuple[str, ...] = (
+        "iterations", "stop_reason", "factorizations", "solves")) -> tuple[dict, dict, float]:
+    """The repeating tube fitted by one process and by 2 ranks: both results, ``counted``
+    checked equal, and theta's largest difference relative to its size."""
     folder = write_tube(tmp_path / "tube")
     settings = ["problem=animation", f"problem.path={folder}",
                 f"problem.cache_dir={tmp_path / 'cache'}", "problem.tet_edge_length=0.3",
-                "problem.grid=[2,2,2]", "solver=levenberg_marquardt", "solver.max_iter=3",
-                "threads=1"]
+                "problem.grid=[2,2,2]", "solver=levenberg_marquardt", "threads=1", *overrides]
     one = run_fit_app(tmp_path / "one", *settings)
     assert one.returncode == 0, one.stderr[-3000:]
     two = _torchrun(tmp_path / "two", *settings)
     assert two.returncode == 0, two.stderr[-3000:]
     first = json.loads((tmp_path / "one" / "result.json").read_text())
     second = json.loads((tmp_path / "two" / "result.json").read_text())
-    for key in ("iterations", "stop_reason", "factorizations", "solves"):
+    for key in counted:
         assert first[key] == second[key], key
     one_theta, two_theta = _theta(tmp_path / "one"), _theta(tmp_path / "two")
-    assert float((one_theta - two_theta).abs().max()) <= 1e-10 * float(one_theta.abs().max())
+    return first, second, float((one_theta - two_theta).abs().max() / one_theta.abs().max())
+
+
+@pytest.mark.slow
+def test_repeated_poses_are_split_over_the_ranks_once(tmp_path):
+    """A tube whose 8 frames are 5 poses: the 2 ranks simulate 3 + 2 poses (each once in
+    the whole job: the counters equal one process's, which simulates the 5 poses), and
+    ``J^T J`` weights a pose's rows by its frames: the iterates of one process to round-off."""
+    _, _, difference = _tube_on_one_and_two_ranks(tmp_path, "solver.max_iter=3")
+    assert difference <= 1e-10
     checkpoint = torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True)
     assert checkpoint["simulation_state"]["blocks"] == [[0, 3], [3, len(POSES)]]
 
@@ -145,25 +152,18 @@ def test_repeated_poses_are_split_over_the_ranks_once(tmp_path):
 def test_the_matrix_free_path_gives_the_one_process_iterates(tmp_path):
     """``solver.dense_jacobian_max_params=0``: LM's CGLS takes ``J v`` and ``J^T w`` by
     autograd through the distributed simulation (each rank's graph; backward summed, jvp
-    gathered): the one-process iterates and the same counters. Tolerance 1e-6 relative:
+    gathered): the one-process iterates and factorisations. Tolerance 1e-6 relative:
     CGLS carries the per-rank sums' round-off through its inner iterations (measured
-    2.1e-8 and under 1e-8 on two meshes after 2 LM iterations)."""
-    folder = write_tube(tmp_path / "tube")
-    settings = ["problem=animation", f"problem.path={folder}",
-                f"problem.cache_dir={tmp_path / 'cache'}", "problem.tet_edge_length=0.3",
-                "problem.grid=[2,2,2]", "solver=levenberg_marquardt", "solver.max_iter=2",
-                "solver.dense_jacobian_max_params=0", "threads=1"]
-    one = run_fit_app(tmp_path / "one", *settings)
-    assert one.returncode == 0, one.stderr[-3000:]
-    two = _torchrun(tmp_path / "two", *settings)
-    assert two.returncode == 0, two.stderr[-3000:]
-    first = json.loads((tmp_path / "one" / "result.json").read_text())
-    second = json.loads((tmp_path / "two" / "result.json").read_text())
+    2.1e-8, 3.0e-9 and under 1e-8 on three meshes after 2 LM iterations), and its
+    relative stopping test may then stop one inner iteration apart (8 against 7 on one
+    mesh: 10 solves more for the 5 poses), so the inner iterations may differ by one."""
+    first, second, difference = _tube_on_one_and_two_ranks(
+        tmp_path, "solver.max_iter=2", "solver.dense_jacobian_max_params=0",
+        counted=("iterations", "stop_reason", "factorizations"))
     assert "dense_jacobian" not in first["history"][-1]       # the matrix-free path
-    for key in ("iterations", "stop_reason", "factorizations", "solves"):
-        assert first[key] == second[key], key
-    one_theta, two_theta = _theta(tmp_path / "one"), _theta(tmp_path / "two")
-    assert float((one_theta - two_theta).abs().max()) <= 1e-6 * float(one_theta.abs().max())
+    assert difference <= 1e-6
+    for a, b in zip(first["history"], second["history"]):
+        assert abs(a["cg_iterations"] - b["cg_iterations"]) <= 1
 
 
 @pytest.mark.slow
