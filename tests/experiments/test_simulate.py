@@ -80,7 +80,10 @@ def test_simulate_reproduces_the_init_route_on_another_animation(fitted):
     assert not (root / "empty-cache" / "tetmesh").exists()      # nothing tetrahedralised
     ours, theirs = np.load(out / "frames.npz"), np.load(route / "frames.npz")
     scale = np.abs(theirs["positions"]).max()
-    assert np.abs(ours["positions"] - theirs["positions"]).max() <= 1e-8 * scale
+    # simulate runs on torch's default threads, where PARDISO's factorisation is not
+    # bit-reproducible, so the two routes' Newton solves end apart within Newton's
+    # tolerance: measured up to 2.4e-8 of the scale (CI, 2026-11-26), hence 1e-7
+    assert np.abs(ours["positions"] - theirs["positions"]).max() <= 1e-7 * scale
     result = json.loads((out / "result.json").read_text())
     compared = json.loads((route / "model_comparison.json").read_text())
     np.testing.assert_allclose(result["per_frame"]["surface_err_mean"],
