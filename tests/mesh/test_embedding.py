@@ -113,6 +113,33 @@ def test_inside_and_outside_points(capsule):
     np.testing.assert_allclose(moved, x @ A.T + b, rtol=0, atol=1e-12)
 
 
+def test_a_point_nearest_an_edge_or_corner_gets_the_same_tetrahedron_when_rotated():
+    # outside a box, beyond its edges and corners: as near to two or three boundary faces,
+    # whose owners extrapolate differently; the lowest-numbered tied face wins, so the
+    # mesh and its rotated copy embed every point in the same tetrahedron
+    mesh = box_tetrahedra(3, 2, 4, (1.0, 0.7, 1.3))
+    rng = np.random.default_rng(3)
+    corner = mesh.points.max(axis=0)
+    along_edge = np.stack([corner[0] + 0.02 * rng.random(20), corner[1] + 0.02 * rng.random(20),
+                           rng.random(20) * corner[2]], axis=1)
+    beyond_corner = corner + 0.03 * rng.random((5, 3))
+    x = np.vstack([along_edge, beyond_corner, -0.02 * rng.random((5, 3))])
+    faces, owners = boundary_faces(mesh.cells)
+    tri = mesh.points[faces]
+    close = trimesh.triangles.closest_point(np.tile(tri, (len(x), 1, 1)),
+                                            np.repeat(x, len(faces), axis=0))
+    dist = np.linalg.norm(close.reshape(len(x), -1, 3) - x[:, None], axis=2)
+    tied = dist <= dist.min(axis=1, keepdims=True) * (1 + 1e-9)
+    assert (tied.sum(axis=1) >= 2).all()             # every point is a tie
+    lowest = np.argmax(tied, axis=1)                 # first True: the lowest face index
+    rotation = np.linalg.qr(np.random.default_rng(4).normal(size=(3, 3)))[0]
+    plain = embed_points(x, mesh.points, mesh.cells)
+    turned = embed_points(x @ rotation.T, mesh.points @ rotation.T, mesh.cells)
+    np.testing.assert_array_equal(plain.cells, owners[lowest])
+    np.testing.assert_array_equal(turned.cells, plain.cells)
+    np.testing.assert_allclose(turned.weights, plain.weights, rtol=0, atol=1e-12)
+
+
 def test_apply_under_vmap_autograd_and_forward_mode(capsule):
     surface, points, cells = capsule
     embedding = embed_points(surface.vertices, points, cells)

@@ -166,12 +166,17 @@ def test_two_restrained_patches_fit_normally(patch_runs):
     assert result.iterations >= 1
     # measured on one tetrahedralisation (pytetwild's varies from run to run): misfit
     # 1.86e-2 -> 9.96e-3 in three iterations (1.86x), surface error 2.17x lower, all 12 grid
-    # nodes determined, rank 5 of J diag(u)
+    # nodes determined, rank 5 of J diag(u) (8 on another mesh: the rank is the mesh's, the
+    # gauge is not)
     assert result.history[0]["misfit"] > 1.3 * result.metrics["misfit"]
     assert result.metrics["surface_err_reduction"] > 1.3
     report = json.loads((run / "identifiability.json").read_text())
     assert report["determined"] is True and report["rigid_deviation"] > 0.01
-    assert report["gauge"] is True and 1 <= report["effective_rank"] <= 7
+    # prescribed displacements only: scaling the whole field changes nothing, so the scale
+    # direction's singular value is round-off and the rank is at most n - 1
+    values = report["singular_values"]
+    assert report["gauge"] is True and 1 <= report["effective_rank"] <= len(values) - 1
+    assert values[-1] < 1e-6 * values[0], values
     assert report["n_determined"] >= 1 and report["source"].startswith("dense")
     fraction = report["regions"]["body"]["fraction_determined"]
     assert 0.0 < fraction <= 1.0

@@ -160,6 +160,30 @@ def boundary_faces(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return faces[single], owners[single]
 
 
+def _first_tied_face(boundary: trimesh.Trimesh, x: np.ndarray, found: np.ndarray,
+                     distance: np.ndarray) -> np.ndarray:
+    """``(n,)`` the lowest-numbered boundary face as near to each point ``x`` ``(n, 3)`` as
+    the nearest one ``found``, ``distance`` away (relative ``1e-9``).
+
+    A point nearest to an edge or a corner of the boundary is as near to every face there,
+    and the owners of those faces extrapolate it differently: which one the search returns
+    depends on round-off, so a rotated copy of the same mesh could embed it elsewhere (by
+    1e-6 of the body on the capsule). The lowest index among the faces that share a vertex
+    with the one found (any tie lies there) does not depend on the orientation.
+    """
+    faces = np.asarray(boundary.faces, dtype=np.int64)
+    around = np.asarray(boundary.vertex_faces, dtype=np.int64)[faces[found]]   # (n, 3, d)
+    candidates = around.reshape(len(found), -1)
+    valid = candidates >= 0
+    rows, cols = np.nonzero(valid)
+    near = trimesh.triangles.closest_point(boundary.vertices[faces[candidates[rows, cols]]],
+                                           x[rows])
+    gap = np.full(candidates.shape, np.inf)
+    gap[rows, cols] = np.linalg.norm(x[rows] - near, axis=1)
+    tied = (gap <= distance[:, None] * (1 + 1e-9)) | (candidates == found[:, None])
+    return np.where(tied, candidates, np.iinfo(np.int64).max).min(axis=1)
+
+
 def _barycentric(x: np.ndarray, origin: np.ndarray, inverse: np.ndarray) -> np.ndarray:
     """``(..., 4)`` barycentric coordinates of ``x`` ``(..., 3)`` in tetrahedra given by their
     first vertex ``(..., 3)`` and inverse edge matrices ``(..., 3, 3)``."""
@@ -254,8 +278,10 @@ def embed_points(points: np.ndarray, tet_points: np.ndarray, tet_cells: np.ndarr
         faces, owners = boundary_faces(C)
         boundary = trimesh.Trimesh(P, faces, process=False)
         closest, _, triangle = trimesh.proximity.closest_point(boundary, x[outside])
-        cell[outside] = owners[np.asarray(triangle, dtype=np.int64)]
         distance[outside] = np.linalg.norm(x[outside] - closest, axis=1)
+        triangle = _first_tied_face(boundary, x[outside], np.asarray(triangle, np.int64),
+                                    distance[outside])
+        cell[outside] = owners[triangle]
     if max_distance is not None and outside.size:
         far = distance > max_distance
         if far.any():
