@@ -17,7 +17,7 @@ from torchfit.linalg.amg import HIERARCHY, translation_modes  # noqa: E402
 from torchfit.problems.config import Backend, resolve_backend  # noqa: E402
 
 from helpers.grid_matrices import grid_laplacian  # noqa: E402
-from helpers.tetbox import clamped_box  # noqa: E402
+from helpers.tetbox import clamped_box, forward_backward_jvp, twisted_box  # noqa: E402
 
 
 def multilevel(backend):
@@ -38,20 +38,6 @@ def box_stiffness(backend: str = "scipy"):
     values = eq.reduction.free_values(model.tangent_values(model.rest.points.reshape(1, -1),
                                                            E))[0]
     return model, qs, eq, values
-
-
-def box_equilibrium(backend: str, material: str = "linear"):
-    """The clamped box with its top face twisted and lifted in 2 frames."""
-    model, qs, bottom, top = clamped_box((3, 2, 4), (0.6, 0.4, 1.0), material, backend)
-    X = model.rest.points
-    frames = []
-    for twist, lift in ((0.3, 0.1), (-0.2, -0.15)):
-        c, s = np.cos(twist), np.sin(twist)
-        R = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
-        moved = (X[top] - torch.tensor([0.3, 0.2, 0.0], dtype=torch.float64)) @ R.T \
-            + torch.tensor([0.3, 0.2, lift], dtype=torch.float64)
-        frames.append(torch.cat([X[bottom], moved]))
-    return qs, torch.stack(frames)
 
 
 def test_amg_solves_match_superlu_and_count_one_factorisation_k_solves():
@@ -156,26 +142,12 @@ def test_elastic_box_gradients_and_jvp_match_superlu(material):
     SuperLU's to the CG tolerance; the same factorisations, and the same solves less the
     refinement step of the linear forward solve (skipped after an iterative solve);
     corotated: Newton with a hierarchy per tangent."""
-    import torch.autograd.forward_ad as fwAD
-
     results = {}
     for name in ("scipy", "amg"):
-        qs, positions = box_equilibrium(name, material)
+        qs, positions = twisted_box(material, name)
         if name == "amg":
             multilevel(qs.equilibrium.backend)
-        E = torch.exp(0.3 * torch.randn(qs.model.n_cells, dtype=torch.float64,
-                                        generator=torch.Generator().manual_seed(9)))
-        w = torch.randn(2, qs.model.n_vertices, 3, dtype=torch.float64,
-                        generator=torch.Generator().manual_seed(10))
-        v = torch.randn(qs.model.n_cells, dtype=torch.float64,
-                        generator=torch.Generator().manual_seed(11))
-        E_leaf = E.clone().requires_grad_(True)
-        with counting() as count:
-            x = qs(E_leaf, positions)
-            (grad,) = torch.autograd.grad(x, E_leaf, w)
-            with fwAD.dual_level():
-                tangent = fwAD.unpack_dual(qs(fwAD.make_dual(E, v), positions)).tangent
-        results[name] = (x.detach(), grad, tangent, count.as_dict())
+        results[name] = forward_backward_jvp(qs, positions)
     (x_s, grad_s, tan_s, count_s), (x_a, grad_a, tan_a, count_a) = results.values()
     assert float((x_a - x_s).abs().max()) < 1e-10
     assert float((grad_a - grad_s).norm() / grad_s.norm()) < 1e-8

@@ -190,48 +190,18 @@ def test_float32_values_give_float32_solutions(backend):
                              np.ones(40)) < 1e-6
 
 
-def box_equilibrium(material: str, backend: str):
-    from helpers.tetbox import clamped_box
-
-    model, qs, bottom, top = clamped_box((3, 2, 4), (0.6, 0.4, 1.0), material, backend)
-    X = model.rest.points
-    frames = []
-    for twist, lift in ((0.3, 0.1), (-0.2, -0.15)):
-        c, s = np.cos(twist), np.sin(twist)
-        R = torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
-        moved = (X[top] - torch.tensor([0.3, 0.2, 0.0], dtype=torch.float64)) @ R.T \
-            + torch.tensor([0.3, 0.2, lift], dtype=torch.float64)
-        frames.append(torch.cat([X[bottom], moved]))
-    return qs, torch.stack(frames)
-
-
 @pytest.mark.parametrize("material", ["linear", "corotated"])
 def test_equilibrium_agrees_with_superlu_forward_backward_and_jvp(backend, material):
-    import torch.autograd.forward_ad as fwAD
-    results = {}
-    g = torch.Generator().manual_seed(8)
-    for name in ("scipy", "pardiso"):
-        qs, positions = box_equilibrium(material, name)
-        E = torch.exp(0.3 * torch.randn(qs.model.n_cells, dtype=torch.float64,
-                                        generator=torch.Generator().manual_seed(9)))
-        w = torch.randn(2, qs.model.n_vertices, 3, dtype=torch.float64,
-                        generator=torch.Generator().manual_seed(10))
-        v = torch.randn(qs.model.n_cells, dtype=torch.float64,
-                        generator=torch.Generator().manual_seed(11))
-        E_leaf = E.clone().requires_grad_(True)
-        with counting() as count:
-            x = qs(E_leaf, positions)
-            (grad,) = torch.autograd.grad(x, E_leaf, w)
-            with fwAD.dual_level():
-                tangent = fwAD.unpack_dual(qs(fwAD.make_dual(E, v), positions)).tangent
-        results[name] = (x.detach(), grad, tangent, count.as_dict())
+    from helpers.tetbox import forward_backward_jvp, twisted_box
+
+    results = {name: forward_backward_jvp(*twisted_box(material, name))
+               for name in ("scipy", "pardiso")}
     x_s, grad_s, tan_s, count_s = results["scipy"]
     x_p, grad_p, tan_p, count_p = results["pardiso"]
     assert float((x_p - x_s).abs().max()) < 1e-11
     assert float((grad_p - grad_s).norm() / grad_s.norm()) < 1e-9
     assert float((tan_p - tan_s).norm() / tan_s.norm()) < 1e-9
     assert count_p == count_s      # the same factorisations and solves, counted alike
-    del g
 
 
 def test_default_backend_is_pardiso_for_3d_cpu_problems_only(backend):
