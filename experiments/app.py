@@ -160,6 +160,18 @@ def check_top_level(config: dict, schema: type) -> None:
                                  f"{hint}: the known ones are {', '.join(known)}")
 
 
+def checked_config(cfg: Any, schema: type, throw_on_missing: bool = True) -> dict:
+    """The composed settings ``cfg`` (a ``DictConfig``) as plain containers (interpolations
+    resolved, enums as their names), refused by :func:`check_top_level` against ``schema``."""
+    from omegaconf import OmegaConf
+
+    config = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=throw_on_missing,
+                                    enum_to_str=True)
+    assert isinstance(config, dict)
+    check_top_level(config, schema)
+    return config
+
+
 def refuse(message: BaseException | str, run_dir: Path, guard: RunDirGuard) -> NoReturn:
     from torchfit.run.lock import release_all
 

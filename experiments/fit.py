@@ -30,7 +30,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:       # this checkout's experiments/ (and torchfit), installed or not
     sys.path.insert(0, str(REPO))
 
-from experiments.app import (BAD_INPUT, RunDirGuard, Terminated, check_top_level, no_space,
+from experiments.app import (BAD_INPUT, RunDirGuard, Terminated, checked_config, no_space,
                              no_space_line, one_line, refuse, run_hydra_app)
 
 import hydra  # noqa: E402
@@ -60,9 +60,7 @@ def prepare(cfg: DictConfig, run_dir: Path | None = None
             ) -> tuple[Any, Any, FitOptions, dict[str, Any]]:
     """Problem, solver config, options and the plain config; raises on bad input. A resume
     builds a body on the mesh its run keeps (``mesh.npz``): no mesh cache needed."""
-    config = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True, enum_to_str=True)
-    assert isinstance(config, dict)
-    check_top_level(config, FitConfig)
+    config = checked_config(cfg, FitConfig)
     solver = solver_config(dict(config["solver"]))
     continuation_setting(config["continuation"])        # checked before the (long) build
     first_stage_iterations(solver, config["continuation_first_max_iter"])

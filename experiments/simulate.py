@@ -26,7 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:       # this checkout's experiments/ (and torchfit), installed or not
     sys.path.insert(0, str(REPO))
 
-from experiments.app import (BAD_INPUT, RunDirGuard, Terminated, check_top_level, one_line,
+from experiments.app import (BAD_INPUT, RunDirGuard, Terminated, checked_config, one_line,
                              refuse, run_hydra_app)
 
 import hydra  # noqa: E402
@@ -66,10 +66,7 @@ def main(cfg: DictConfig) -> None:
     _started = True
     run_dir = Path(HydraConfig.get().runtime.output_dir).resolve()
     try:
-        config = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=False,
-                                        enum_to_str=True)
-        assert isinstance(config, dict)
-        check_top_level(config, SimulateConfig)
+        config = checked_config(cfg, SimulateConfig, throw_on_missing=False)
         result = simulate(str(cfg.run), problem_overrides(cfg), run_dir,
                           threads=int(config["threads"]), progress_lines=bool(config["progress"]))
     except KeyboardInterrupt as interrupt:     # Ctrl-C, or SIGTERM (app.Terminated)

@@ -19,11 +19,11 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:       # this checkout's experiments/ (and torchfit), installed or not
     sys.path.insert(0, str(REPO))
 
-from experiments.app import BAD_INPUT, RunDirGuard, check_top_level, refuse, run_hydra_app
+from experiments.app import BAD_INPUT, RunDirGuard, checked_config, refuse, run_hydra_app
 
 import hydra  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
-from omegaconf import DictConfig, OmegaConf  # noqa: E402
+from omegaconf import DictConfig  # noqa: E402
 
 from torchfit.config import VerifyConfig, register_configs  # noqa: E402
 from torchfit.linalg import set_threads  # noqa: E402
@@ -41,10 +41,7 @@ def main(cfg: DictConfig) -> None:
     _started = True
     run_dir = Path(HydraConfig.get().runtime.output_dir).resolve()
     try:
-        config = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True,
-                                        enum_to_str=True)
-        assert isinstance(config, dict)
-        check_top_level(config, VerifyConfig)
+        config = checked_config(cfg, VerifyConfig)
         options = VerifyOptions(**{f.name: config[f.name]
                                    for f in dataclasses.fields(VerifyOptions) if f.name in config})
         options.check()
