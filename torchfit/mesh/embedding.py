@@ -4,9 +4,10 @@ Every point gets one tetrahedron and four weights; its position in any deformed 
 the tetrahedral mesh is the weighted sum of that tetrahedron's four vertices. Points in a
 tetrahedron use their barycentric coordinates there (all ``>= -tol``); points outside the
 mesh (a surface vertex a little outside fTetWild's envelope) use the *extrapolated*
-barycentric coordinates in the tetrahedron that owns the nearest boundary face, so the
-rest positions are reproduced exactly and any affine motion of that tetrahedron moves the
-point by the same affine map.
+barycentric coordinates in the tetrahedron that owns the nearest boundary face (of faces
+equally near, the lowest-numbered: the choice does not depend on the mesh's orientation),
+so the rest positions are reproduced exactly and any affine motion of that tetrahedron
+moves the point by the same affine map.
 
 Conventions: points ``(n, 3)`` float64, tetrahedral mesh ``tet_points`` ``(V, 3)`` float64
 and ``tet_cells`` ``(m, 4)`` int64, positively oriented; lengths in the mesh's unit.
@@ -201,7 +202,8 @@ def embed_points(points: np.ndarray, tet_points: np.ndarray, tet_cells: np.ndarr
     farther from its centroid than its farthest vertex). A point in no tetrahedron (by more
     than ``tol`` in barycentric terms) is outside the mesh: it gets the tetrahedron owning
     the nearest boundary face (``trimesh.proximity.closest_point`` on
-    :func:`boundary_faces`) and its extrapolated barycentric coordinates there.
+    :func:`boundary_faces`; a tie goes to the lowest-numbered face) and its extrapolated
+    barycentric coordinates there.
 
     Args:
         points: ``(n, 3)`` points to embed.
