@@ -21,9 +21,12 @@ fresh process (a ``torchrun --standalone --nproc_per_node=R`` job for ``R > 1``)
   ``theta0``, rejected by the gain ratio (the JSON says whether it was);
 * ``peak_rss_MB``: the process's maximum resident set (every rank's largest under torchrun).
 
-The arm's 48 frames hold 23 distinct poses; one process simulates each once
-(problems/repeated_poses.py), the torchrun split every frame: each figure carries
-``n_simulated_frames``. ``--frames label=0,4,8`` fits a subset of the frames at a size.
+The arm's 48 frames hold 23 distinct poses, simulated once each (problems/repeated_poses.py);
+under torchrun the ranks split the poses (12 + 11) and keep their rows of ``J``, rank 0
+sums ``J^T J`` (run/distributed_rows.py). Each figure carries ``n_simulated_frames`` and
+``split``; cases measured before the pose split (no ``split``) are checked as they ran:
+every frame split over the ranks, ``J`` gathered on rank 0. ``--frames label=0,4,8`` fits
+a subset of the frames at a size.
 
 Then the model (scripts/scale_model.py): per-frame costs fitted as power laws in the
 tetrahedron count, checked against the measured LM iterations (1 and 2 processes), and its
@@ -141,7 +144,9 @@ def measure(problem, job: dict[str, Any], n_ranks: int,
         "n_frames": int(problem.n_frames),
         "n_simulated_frames": n_sim, "n_params": n_params,
         "n_obs": int(problem.data.numel()) // (3 * int(problem.n_frames)),
-        "backend": str(problem.backend), "ranks": n_ranks, **(known or {})}
+        "backend": str(problem.backend), "ranks": n_ranks,
+        # the ranks split the distinct poses and keep their rows of J (run/distributed_rows)
+        "split": "poses", **(known or {})}
     theta0 = problem.theta0.detach().clone()
     # nothing simulated yet may answer from the cache (describe() simulates the baseline)
     problem.quasistatic.equilibrium.clear_cache()
@@ -326,12 +331,17 @@ def model_report(cases: list[dict[str, Any]], args: argparse.Namespace) -> dict[
         if case.get("failed") or "jacobian" not in case:
             continue
         bandwidth = (case.get("gather_probe") or {}).get("bytes_per_s") or 1e9
-        n_frames = case["n_frames"] if case["ranks"] > 1 else case["n_simulated_frames"]
+        # cases measured before the pose split (no "split"): the ranks simulated every frame
+        # and rank 0 gathered J
+        poses = case.get("split") == "poses"
+        n_frames = case["n_simulated_frames"] if poses or case["ranks"] == 1 \
+            else case["n_frames"]
+        design = "allreduce_JtJ" if poses else "gather_J"
         predicted = {trial: scale_model.predict_iteration(
             n_tets=case["n_tets"], n_frames=n_frames, n_ranks=case["ranks"],
             n_params=case["n_params"], n_obs=case["n_obs"], n_vertices=case["n_vertices"],
             trial_law=laws[trial], column_law=laws["column"], flops_per_s=flops,
-            bandwidth_bytes_per_s=bandwidth, design="gather_J")
+            bandwidth_bytes_per_s=bandwidth, design=design)
             for trial in ("trial", "trial_warm")}
         for kind in ("lm_accepted", "lm_rejected"):
             if kind not in case:
@@ -339,6 +349,7 @@ def model_report(cases: list[dict[str, Any]], args: argparse.Namespace) -> dict[
             measured = case[kind]["s"]
             cold, warm = predicted["trial"]["seconds"], predicted["trial_warm"]["seconds"]
             check.append({"label": case["label"], "ranks": case["ranks"], "kind": kind,
+                          "design": design,
                           "accepted": case[kind]["accepted"],
                           "n_simulated_frames": n_frames,
                           "predicted_s": cold, "measured_s": measured,

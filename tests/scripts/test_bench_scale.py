@@ -166,6 +166,26 @@ def test_model_report_fits_and_checks():
     assert len(lines) == 1 + 3 + 3 + 12 and lines[-1].startswith("predict allreduce_JtJ")
 
 
+def test_a_case_of_the_pose_split_is_checked_with_its_poses_and_the_summed_gram():
+    # two ranks share the 23 distinct poses (12 + 11) and sum their J^T J on rank 0
+    split = {**fake_case("10k", 2, 10_000, 1.0, 1e-3, 20.0), "n_simulated_frames": 23,
+             "split": "poses"}
+    cases = [fake_case("10k", 1, 10_000, 1.0, 1e-3, 30.0),
+             fake_case("40k", 1, 40_000, 4.0, 4e-3, 120.0), split]
+    namespace = type("Args", (), {"target_tets": 300_000, "target_frames": 500,
+                                  "target_ranks": [8], "target_params": 192,
+                                  "target_obs": 10_000, "tets_per_vertex": 4.0,
+                                  "bandwidths_gbit": [10.0]})()
+    two = bench_scale.model_report(cases, namespace)["check"][-1]
+    assert two["design"] == "allreduce_JtJ" and two["n_simulated_frames"] == 23
+    assert two["parts"]["frames_per_rank"] == 12
+    assert two["parts"]["compute_s"] == pytest.approx(12 * 1.192)
+    assert two["parts"]["normal_s"] == pytest.approx(12 * 1922 * 3 * 192 ** 2 / 1e10)
+    # the gram and J^T r all-reduced (half each way), half of the residual gathered
+    summed = 2 * 0.5 * (192 ** 2 + 192) * 8 + 0.5 * 23 * 1922 * 3 * 8
+    assert two["parts"]["comm_s"] == pytest.approx(summed / 1e9)
+
+
 @pytest.mark.slow
 def test_bench_scale_one_process_json(tmp_path):
     report = run_bench(tmp_path / "scale.json", "--sizes", "tiny:0.12:0.006", "--frames",
