@@ -16,22 +16,26 @@ from helpers.fit_app import REPO, run_fit_app
 from helpers.repeating_animation import POSES, write_tube
 from torchfit.problems import build_problem
 from torchfit.run import FitConfigError
-from torchfit.run.distributed import (check_resume, check_same_inputs, check_supported,
-                                      partition)
+from torchfit.run.distributed import (check_resume, check_same_inputs, check_state,
+                                      check_supported, partition)
 
 TORCHRUN = Path(sys.executable).with_name("torchrun")
 
 
-def test_partition_is_contiguous_balanced_and_in_frame_order():
-    assert partition(5, 2) == [(0, 3), (3, 5)]
-    assert partition(48, 2) == [(0, 24), (24, 48)]
-    assert partition(2, 3) == [(0, 1), (1, 2), (2, 2)]
-    for frames, ranks in ((48, 5), (7, 3), (11, 4), (3, 1)):
-        blocks = partition(frames, ranks)
-        sizes = [stop - start for start, stop in blocks]
-        assert max(sizes) - min(sizes) <= 1 and sum(sizes) == frames
-        assert [b[0] for b in blocks[1:]] == [b[1] for b in blocks[:-1]]   # contiguous
-        assert sizes == sorted(sizes, reverse=True)       # the larger blocks first
+def test_partition_interleaves_the_poses_balanced():
+    assert partition(5, 2) == [[0, 2, 4], [1, 3]]
+    assert partition(23, 2)[1] == list(range(1, 23, 2))     # the arm: 12 + 11 poses
+    assert partition(2, 3) == [[0], [1], []]
+    for poses, ranks in ((48, 5), (7, 3), (11, 4), (3, 1)):
+        blocks = partition(poses, ranks)
+        sizes = [len(block) for block in blocks]
+        assert max(sizes) - min(sizes) <= 1 and sizes == sorted(sizes, reverse=True)
+        assert sorted(sum(blocks, [])) == list(range(poses))       # each pose once
+        # a run of neighbouring poses (alike in cost) is shared out evenly
+        for start in range(0, poses - ranks + 1):
+            window = range(start, start + ranks)
+            assert sorted(r for r, b in enumerate(blocks) for p in b if p in window) == \
+                list(range(ranks))
     with pytest.raises(ValueError):
         partition(4, 0)
 
@@ -56,6 +60,17 @@ def test_a_resume_with_another_number_of_processes_is_refused(tmp_path):
         check_resume(tmp_path, 3)
     torch.save({"simulation_state": {}}, tmp_path / "checkpoint.pt")   # linear: nothing saved
     check_resume(tmp_path, 3)
+
+
+def test_warm_starts_shared_out_otherwise_are_refused_in_one_line():
+    # a 2-rank checkpoint written with contiguous blocks (before the interleaved partition)
+    old = {"world_size": 2, "blocks": [[0, 2], [2, 3]], "ranks": [{}, {}]}
+    with pytest.raises(FitConfigError, match="shared over the ranks in another way") as info:
+        check_state(old, partition(3, 2))
+    assert "\n" not in str(info.value)
+    with pytest.raises(FitConfigError, match="--nproc_per_node=2"):
+        check_state(old, partition(3, 3))
+    check_state({**old, "blocks": [[0, 2], [1]]}, partition(3, 2))      # the same split
 
 
 def test_a_rank_on_other_inputs_is_refused_in_one_line():
@@ -104,7 +119,7 @@ def test_two_ranks_give_the_one_process_iterates_and_resume_exactly(tmp_path):
     assert abs(first["surface_err_mean"] - second["surface_err_mean"]) <= \
         1e-10 * first["surface_err_mean"]
     checkpoint = torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True)
-    assert checkpoint["simulation_state"]["blocks"] == [[0, 2], [2, 3]]
+    assert checkpoint["simulation_state"]["blocks"] == [[0, 2], [1]]     # interleaved
 
     part = _torchrun(tmp_path / "resumed", *settings, "solver.max_iter=2")
     assert part.returncode == 0, part.stderr[-3000:]
@@ -139,13 +154,14 @@ def _tube_on_one_and_two_ranks(tmp_path: Path, *overrides: str, counted: tuple[s
 
 @pytest.mark.slow
 def test_repeated_poses_are_split_over_the_ranks_once(tmp_path):
-    """A tube whose 8 frames are 5 poses: the 2 ranks simulate 3 + 2 poses (each once in
+    """A tube whose 8 frames are 5 poses: the 2 ranks simulate poses 0, 2, 4 and 1, 3 (each once in
     the whole job: the counters equal one process's, which simulates the 5 poses), and
     ``J^T J`` weights a pose's rows by its frames: the iterates of one process to round-off."""
     _, _, difference = _tube_on_one_and_two_ranks(tmp_path, "solver.max_iter=3")
     assert difference <= 1e-10
     checkpoint = torch.load(tmp_path / "two" / "checkpoint.pt", weights_only=True)
-    assert checkpoint["simulation_state"]["blocks"] == [[0, 3], [3, len(POSES)]]
+    assert checkpoint["simulation_state"]["blocks"] == [[0, 2, 4], [1, 3]]
+    assert len(POSES) == 5
 
 
 @pytest.mark.slow

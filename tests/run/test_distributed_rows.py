@@ -14,22 +14,29 @@ from torchfit.run.identifiability import from_gram, from_jacobian
 from torchfit.solvers.least_squares import DenseNormalEquations
 
 FRAMES, PER_FRAME, N = 5, 6, 4
-BLOCKS = [(0, 3), (3, 5)]                  # frames of rank 0 and rank 1
+BLOCKS = [[0, 2, 4], [1, 3]]              # frames of rank 0 and rank 1 (interleaved)
+
+
+def row_index(block):
+    return (torch.tensor(block)[:, None] * PER_FRAME + torch.arange(PER_FRAME)).reshape(-1)
 
 
 def emulated(J: torch.Tensor) -> DistributedRows:
     stores = []
-    for start, stop in BLOCKS:
+    for block in BLOCKS:
         store = RowStore()
-        store.add(J[start * PER_FRAME:stop * PER_FRAME].clone(), 7)
+        store.add(J[row_index(block)].clone(), 7)
         stores.append(store)
 
     def exchange(code, ident, operand):
-        parts = [local_product(code, store.get(ident), operand,
-                               (start * PER_FRAME, stop * PER_FRAME))
-                 for store, (start, stop) in zip(stores, BLOCKS)]
-        if code in (MATVEC, FULL):
-            return torch.cat(parts, 0)
+        parts = [local_product(code, store.get(ident), operand, row_index(block))
+                 for store, block in zip(stores, BLOCKS)]
+        if code in (MATVEC, FULL):      # each rank's rows back in their places
+            out = torch.empty((FRAMES * PER_FRAME,) + tuple(parts[0].shape[1:]),
+                              dtype=parts[0].dtype)
+            for part, block in zip(parts, BLOCKS):
+                out[row_index(block)] = part
+            return out
         total = parts[0].clone()
         for part in parts[1:]:
             total += part

@@ -47,10 +47,11 @@ def exchanging() -> bool:
 class Channel:
     """The collectives of the protocol (rank 0 commands, every rank answers)."""
 
-    def __init__(self, blocks: list[tuple[int, int]]) -> None:
+    def __init__(self, blocks: list[list[int]]) -> None:
+        """``blocks``: per rank, the indices of its frames (poses) in the whole."""
         self.rank, self.size = dist.get_rank(), dist.get_world_size()
         self.blocks = blocks
-        self.longest = max(stop - start for start, stop in blocks)
+        self.longest = max(len(block) for block in blocks)
 
     def command(self, code: int, *values: int) -> list[int]:
         header = torch.zeros(4, dtype=torch.int64)
@@ -115,7 +116,7 @@ class Channel:
 
     def collect(self, compute: Callable[[], Tensor]) -> Tensor | None:
         """:meth:`run` ``compute`` (this rank's frames, frame-major first axis), then on rank 0
-        the blocks of every rank concatenated in frame order (``None`` elsewhere)."""
+        every rank's frames put in their places, in frame order (``None`` elsewhere)."""
         local = self.run(compute)
         if local is None:
             return None
@@ -128,9 +129,11 @@ class Channel:
         exchange(True)
         dist.gather(padded.cpu(), parts, dst=0)
         exchange(False)
-        pieces = [local] + [parts[r][:stop - start].to(local)
-                            for r, (start, stop) in enumerate(self.blocks) if r > 0]
-        return torch.cat(pieces, 0)
+        out = local.new_empty((sum(len(b) for b in self.blocks),) + tuple(local.shape[1:]))
+        for r, block in enumerate(self.blocks):
+            out[torch.as_tensor(block, dtype=torch.int64, device=out.device)] = \
+                local if r == 0 else parts[r][:len(block)].to(local)
+        return out
 
     def total(self, compute: Callable[[], Tensor]) -> Tensor | None:
         """:meth:`run` ``compute`` (the same shape on every rank), then on rank 0 the sum of

@@ -56,17 +56,16 @@ class RowStore:
 
 
 def local_product(code: int, rows: Tensor, operand: Tensor | None,
-                  row_range: tuple[int, int], weights: Tensor | None = None) -> Tensor:
+                  row_index: Tensor, weights: Tensor | None = None) -> Tensor:
     """This rank's part of a product: ``J_k x`` (its rows), ``J_k^T w_k`` (``w_k``: its
-    rows ``row_range`` of ``w``), ``J_k^T W J_k`` (``weights``: per row, how many frames
+    rows ``row_index`` (int64) of ``w``), ``J_k^T W J_k`` (``weights``: per row, how many frames
     share it; ``None``: one each) or the rows themselves."""
     if code == MATVEC:
         assert operand is not None
         return rows @ operand.to(rows)
     if code == RMATVEC:
         assert operand is not None
-        start, stop = row_range
-        return rows.T @ operand[start:stop].to(rows)
+        return rows.T @ operand[row_index.to(operand.device)].to(rows)
     if code == GRAM:
         return rows.T @ (rows if weights is None else rows * weights[:, None])
     if code == FULL:
