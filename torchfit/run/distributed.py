@@ -206,8 +206,8 @@ class FrameSplit:
     """A rigged body's ``quasistatic`` whose frames are split over the ranks.
 
     On rank 0 (the problem the fit uses) a call simulates every frame: it broadcasts the
-    command, simulates its own block and gathers the others. :meth:`local` (every rank,
-    inside a command) makes calls simulate this rank's block only.
+    command, simulates its own poses and gathers the others. :meth:`local` (every rank,
+    inside a command) makes calls simulate this rank's poses only.
     """
 
     def __init__(self, problem: Any, channel: Channel) -> None:
