@@ -43,7 +43,7 @@ matplotlib.use("Agg")   # pictures are files and TensorBoard images; never a win
 from torchfit.config import FitConfig, register_configs  # noqa: E402
 from torchfit.linalg import set_threads  # noqa: E402
 from torchfit.problems import build_problem  # noqa: E402
-from torchfit.problems.body_mesh import use_run_mesh  # noqa: E402
+from torchfit.problems.body.run_mesh import use_run_mesh  # noqa: E402
 from torchfit.reporting.results import write_json  # noqa: E402
 from torchfit.run import FitOptions, distributed, fit, fit_continued  # noqa: E402
 from torchfit.run.continuation import (FIRST_STAGE_DIR, continuation_applies,  # noqa: E402

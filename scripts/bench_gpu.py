@@ -54,7 +54,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from benchtools import emit_report, loadavg, machine_info  # noqa: E402
 from torchfit.linalg import counting  # noqa: E402
-from torchfit.linalg.backends import default_backend  # noqa: E402
+from torchfit.linalg.backends.choice import default_backend  # noqa: E402
 from torchfit.mesh import box_tetrahedra  # noqa: E402
 from torchfit.physics import NewtonOptions  # noqa: E402
 from torchfit.physics.elasticity import QuasistaticElasticity, SimplicialElasticity  # noqa: E402

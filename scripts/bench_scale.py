@@ -21,9 +21,9 @@ fresh process (a ``torchrun --standalone --nproc_per_node=R`` job for ``R > 1``)
   ``theta0``, rejected by the gain ratio (the JSON says whether it was);
 * ``peak_rss_MB``: the process's maximum resident set (every rank's largest under torchrun).
 
-The arm's 48 frames hold 23 distinct poses, simulated once each (problems/repeated_poses.py);
+The arm's 48 frames hold 23 distinct poses, simulated once each (problems/body/repeated_poses.py);
 under torchrun the ranks split the poses (12 + 11) and keep their rows of ``J``, rank 0
-sums ``J^T J`` (run/distributed_rows.py). Each figure carries ``n_simulated_frames`` and
+sums ``J^T J`` (run/distributed/rows.py). Each figure carries ``n_simulated_frames`` and
 ``split``; cases measured before the pose split (no ``split``) are checked as they ran:
 every frame split over the ranks, ``J`` gathered on rank 0. ``--frames label=0,4,8`` fits
 a subset of the frames at a size.
@@ -117,7 +117,7 @@ def lm_iteration(problem, theta0, state, config) -> dict[str, Any]:
 
 def normal_seconds(jacobian) -> float:
     """Seconds of ``J^T J`` (one process's product; under torchrun the ranks' partial
-    products summed on rank 0, :mod:`torchfit.run.distributed_rows`)."""
+    products summed on rank 0, :mod:`torchfit.run.distributed.rows`)."""
     from benchtools import timed
     return timed(lambda: jacobian.T @ jacobian)[0]
 
@@ -206,7 +206,7 @@ def run_single(job: dict[str, Any]) -> dict[str, Any]:
 
 
 def run_distributed(job: dict[str, Any]) -> dict[str, Any] | None:
-    """Under torchrun: rank 0 leads (:func:`torchfit.run.distributed.lead`) and measures,
+    """Under torchrun: rank 0 leads (:func:`torchfit.run.distributed.ranks.lead`) and measures,
     the others serve; a gather bandwidth probe first. Returns rank 0's figures."""
     import torch
     import torch.distributed as dist

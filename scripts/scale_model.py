@@ -16,7 +16,7 @@ communication designs:
 * ``gather_J`` (until 2026-11-26): the workers send rank 0 their rows of the dense Jacobian,
   ``F n_obs 3 n`` doubles in all, and the trial's vertex positions, ``F n_vertices 3``
   doubles; rank 0 forms ``J^T J`` (``F n_obs 3 n^2`` flops) alone.
-* ``allreduce_JtJ`` (since 2026-11-26, ``torchfit.run.distributed_rows``, which gathers the
+* ``allreduce_JtJ`` (since 2026-11-26, ``torchfit.run.distributed.rows``, which gathers the
   partial sums to rank 0 and adds them in rank order: ``(R - 1) n^2`` doubles into rank 0,
   18.6 MB at 64 ranks and n = 192): every rank forms its own ``J_k^T J_k`` and
   ``J_k^T r_k`` and a ring all-reduce sums them, ``2 (R - 1) / R (n^2 + n)`` doubles sent

@@ -30,8 +30,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from torchfit.mesh import ArmShape, arm_animation, write_animation  # noqa: E402
-from torchfit.mesh.procedural_arm import corrective_shapes  # noqa: E402
+from torchfit.mesh import write_animation  # noqa: E402
+from torchfit.problems.body.procedural_arm import ArmShape, arm_animation  # noqa: E402
+from torchfit.problems.body.procedural_arm import corrective_shapes  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -56,8 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.float32_rest:
         data["rest_vertices"] = data["rest_vertices"].astype(np.float32).astype(np.float64)
     shapes, shape_weights = corrective_shapes(shape, data["rest_vertices"], data["angles"])
-    for option, module, function in ((args.usd, "usd_writer", "write_skinned_usd"),
-                                     (args.gltf, "gltf_writer", "write_skinned_gltf")):
+    for option, module, function in ((args.usd, "formats.usd.writer", "write_skinned_usd"),
+                                     (args.gltf, "formats.gltf.writer", "write_skinned_gltf")):
         if option is not None:
             import importlib
 

@@ -115,7 +115,7 @@ class Linearization:
         From the residual's ``jacobian`` callable when it has one (one pass of the
         simulator), else the stack of the ``n`` jvps of the unit vectors (``n``
         forward-mode passes). Under ``torchrun`` the callable returns the rows kept on their
-        ranks instead of a tensor (:mod:`torchfit.run.distributed_rows`): ``J @ x``,
+        ranks instead of a tensor (:mod:`torchfit.run.distributed.rows`): ``J @ x``,
         ``J.T @ w`` and ``J.T @ J`` are then all the dense path may form.
         """
         if self._J is None:

@@ -16,7 +16,7 @@ import torch
 
 from helpers.capsule_animation import write_capsule
 from helpers.fit_app import REPO, run_fit_app
-from torchfit.mesh.animation_format import load_animation, write_animation
+from torchfit.mesh.formats.folder import load_animation, write_animation
 from torchfit.problems import build_problem
 from torchfit.run import FitOptions, fit
 from torchfit.run.options import FitConfigError

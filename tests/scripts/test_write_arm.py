@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from torchfit.mesh import ArmShape, arm_animation, load_animation
-from torchfit.mesh.animation_readers import read_animation
+from torchfit.mesh import load_animation
+from torchfit.problems.body.procedural_arm import ArmShape, arm_animation
+from torchfit.mesh.formats.readers import read_animation
 
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "write_arm.py"
 

@@ -15,7 +15,7 @@ from torchfit.solvers import (SOLVERS, GaussNewton, GaussNewtonConfig, Levenberg
                               gauss_newton, levenberg_marquardt)
 from torchfit.solvers.gauss_newton import GaussNewtonPreconditioner
 from torchfit.solvers.levenberg_marquardt import DampingUpdate, LevenbergMarquardtPreconditioner
-from torchfit.solvers.split_bregman_settings import DataBregman, InnerSolver
+from torchfit.solvers.split_bregman.settings import DataBregman, InnerSolver
 
 from helpers.solver_resume import check_resume, fresh, roundtrip, run_with_snapshots
 

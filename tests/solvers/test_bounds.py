@@ -13,7 +13,7 @@ from torchfit.solvers import (GaussNewton, GaussNewtonConfig, LevenbergMarquardt
                               LevenbergMarquardtConfig, ResidualFunction, Solver, SolverConfig,
                               SolverConfigError, SplitBregmanConfig)
 from torchfit.solvers.bounds import ThetaBounds, box_scale
-from torchfit.solvers.split_bregman import SplitBregman
+from torchfit.solvers.split_bregman.solver import SplitBregman
 
 torch.set_default_dtype(torch.float64)
 

@@ -3,7 +3,7 @@
 The drive of a tetrahedral mesh says which of its vertices are prescribed, where, and where
 Newton starts.
 
-Convention (the animation format's, :mod:`.animation_format`): a bone is a rest-pose
+Convention (the animation format's, :mod:`.formats.folder`): a bone is a rest-pose
 segment ``head -> tail``; its pose in frame ``f`` is a ``3 x 4`` matrix ``[A | t]`` acting on
 column vectors, ``x' = A x + t`` with ``x`` a *rest-pose* position (world coordinates, not
 bone-local). Rigid bones have ``A`` a rotation; any invertible ``A`` (affine) is allowed.

@@ -37,7 +37,7 @@ import math
 
 import numpy as np
 
-from .animation_format import UNITS, Animation, AnimationError
+from .formats.folder import UNITS, Animation, AnimationError
 
 #: a frame whose size differs from the rest's by more than this factor is refused
 SCALE_FACTOR = math.sqrt(10.0)

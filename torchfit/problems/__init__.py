@@ -4,14 +4,14 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from .arm3d import Arm3D, Arm3DConfig
+from .body.arm3d import Arm3D, Arm3DConfig
 from .base import (BodyProblem, FieldImageProblem, FramedProblem, InverseProblem, MeshProblem,
                    MotionProblem)
 from .config import ProblemConfig, ProblemConfigError, make_config
 from .membrane2d import DynamicMembrane2D, Membrane2D, Membrane2DConfig
 from .poisson2d import Poisson2D, Poisson2DConfig
-from .rigged_body import RiggedBody
-from .rigged_body_config import RiggedBodyConfig
+from .body.problem import RiggedBody
+from .body.config import RiggedBodyConfig
 from .spring1d import DynamicSpring1D, Spring1D, Spring1DConfig
 
 

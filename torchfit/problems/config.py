@@ -24,9 +24,9 @@ import torch
 from .. import settings
 from ..errors import ConfigurationError
 from ..linalg import amg_available, cudss_available, pardiso_available
-from ..linalg.amg import AMG_EXTRA
-from ..linalg.cudss import CUDA_EXTRA
-from ..linalg.pardiso import PARDISO_EXTRA
+from ..linalg.backends.amg import AMG_EXTRA
+from ..linalg.backends.cudss import CUDA_EXTRA
+from ..linalg.backends.pardiso_mkl import PARDISO_EXTRA
 from ..settings import Choice, check_values, convert_choices, make_settings
 
 
@@ -164,14 +164,14 @@ def check_device(key: str, value: Any) -> torch.device:
 def resolve_backend(choice: Backend, device: torch.device, dim: int,
                     n_dofs: int | None = None, solves_per_factor: int = 1) -> str:
     """The backend name of a ``backend`` setting: ``auto`` is
-    :func:`torchfit.linalg.backends.default_backend` (3-D CPU: ``pardiso`` where installed,
+    :func:`torchfit.linalg.backends.choice.default_backend` (3-D CPU: ``pardiso`` where installed,
     else ``scipy``, and ``amg`` above its size threshold when ``n_dofs`` is given and the
     use makes few ``solves_per_factor``; CUDA: ``cudss`` where installed, else ``cg``).
     The rigged bodies give no size: their fits solve a Jacobian column per parameter
     (192 on the arm) with every factor, where PARDISO wins at every size measured."""
     if choice != Backend.auto:
         return choice.value
-    from ..linalg.backends import default_backend
+    from ..linalg.backends.choice import default_backend
 
     return default_backend(dim, device, n_dofs, solves_per_factor)
 

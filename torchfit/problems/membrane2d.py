@@ -45,7 +45,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..mesh import ipam_mask, normalized_points, rectangle_triangles
+from ..mesh import normalized_points, rectangle_triangles
+from .font import ipam_mask
 from ..params import Parameterization, per_element
 from ..physics import NewtonOptions
 from ..physics.dynamics import DynamicSystem, KeyedMotion

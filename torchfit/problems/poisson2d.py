@@ -70,7 +70,7 @@ def blocks_field(centres: np.ndarray) -> np.ndarray:
 
 def ipam_field(centres: np.ndarray) -> np.ndarray:
     """The ``ipam`` truth: ``5`` on the ink of the word IPAM, ``1`` elsewhere."""
-    from ..mesh import ipam_mask
+    from .font import ipam_mask
 
     return np.where(ipam_mask(centres), 5.0, 1.0)
 

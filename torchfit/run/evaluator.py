@@ -30,7 +30,7 @@ from typing import Any, Callable
 import torch
 from torch import Tensor
 
-from ..linalg.counters import COUNTERS, counting
+from ..linalg.counters import counting
 from ..problems import InverseProblem
 from ..records import IterationRecord
 from ..reporting.evaluation import Evaluation
@@ -77,14 +77,11 @@ class Evaluator:
         problem = self.validation
         assert problem is not None
         start = time.perf_counter()
-        with torch.no_grad(), counting() as cost:
+        with torch.no_grad(), counting(isolated=True) as cost:    # not the solver's work
             state = problem.simulate(problem.simulation_input(theta)).detach()
             metrics = validation_metrics(problem.metrics(theta, state))
-        done = cost.as_dict()
-        for key in ("factorizations", "solves", "rhs_columns"):   # not the solver's work
-            setattr(COUNTERS, key, getattr(COUNTERS, key) - done[key])
-        self.validation_cost["factorizations"] += done["factorizations"]
-        self.validation_cost["solves"] += done["solves"]
+        self.validation_cost["factorizations"] += cost.factorizations
+        self.validation_cost["solves"] += cost.solves
         self.validation_cost["seconds"] += time.perf_counter() - start
         self.validation_simulations += 1
         return metrics

@@ -33,7 +33,7 @@ from ..reporting.results import (CHECKPOINT_FILE, PARAMS_FILE, RESULT_FILE,
                                  remove_stale_temporaries)
 from ..residual import warm_up_autograd
 from ..solvers import Solver, SolverConfig
-from ..problems.body_mesh import keep_run_mesh
+from ..problems.body.run_mesh import keep_run_mesh
 from .checkpoint import (Checkpointer, check_fresh_start, checkpointed_solve,
                          finished_outputs_readable, finished_result, read_checkpoint)
 from .directory import check_writable

@@ -218,7 +218,7 @@ def assess(sensitivity: Tensor, singular_values: Tensor | None, data: Tensor,
 def from_jacobian(J: Any, theta: Tensor, data: Tensor, transform: str = "exp",
                   **kwargs: Any) -> Identifiability:
     """:func:`assess` of a dense Jacobian ``J`` ``(m, n)`` at ``theta``; rows kept on the
-    ranks of a distributed run (no tensor, :mod:`.distributed_rows`) go through :func:`from_gram`."""
+    ranks of a distributed run (no tensor, :mod:`.distributed.rows`) go through :func:`from_gram`."""
     if not isinstance(J, Tensor):
         return from_gram(J.T @ J, theta, data, transform, **kwargs)
     scaled = J.detach() * parameter_scale(theta, transform).to(J)[None, :]

@@ -37,7 +37,7 @@ from torch import Tensor
 from ..errors import ConfigurationError
 from ..linalg import set_threads
 from ..problems import PROBLEMS, RiggedBody, build_problem
-from ..problems.body_mesh import RUN_MESH_FILE, fitted_mesh, read_run_mesh
+from ..problems.body.run_mesh import RUN_MESH_FILE, fitted_mesh, read_run_mesh
 from ..reporting.progress import PROGRESS_LOGGER, ensure_progress_visible
 from ..reporting.results import CHECKPOINT_FILE, PARAMS_FILE, RESULT_FILE, write_json
 from ..reporting.simulation import comparison_picture, write_frames

@@ -1,7 +1,7 @@
 """Validation of a run on frames held out of its fit: the chosen iteration, early stopping.
 
 A problem with frames held out (a body's ``problem.validation_frames`` or
-``problem.validation_every``, :mod:`torchfit.problems.held_out`) gives the run a second
+``problem.validation_every``, :mod:`torchfit.problems.body.held_out`) gives the run a second
 problem on those frames (:meth:`~torchfit.problems.InverseProblem.validation_problem`). The
 run's evaluator (:mod:`.evaluator`) simulates it at every recorded iteration, beside the
 fitted frames' simulation (counted in ``Evaluator.validation_simulations``): its metrics

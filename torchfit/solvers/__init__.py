@@ -22,8 +22,8 @@ from .base import Need, Needs, Solver, SolverConfig, SolverConfigError
 from .gauss_newton import GaussNewton, GaussNewtonConfig, gauss_newton
 from .levenberg_marquardt import LevenbergMarquardt, LevenbergMarquardtConfig, levenberg_marquardt
 from .registry import SOLVERS, SolverEntry, build
-from .split_bregman import SplitBregman, split_bregman
-from .split_bregman_settings import SplitBregmanConfig
+from .split_bregman.solver import SplitBregman, split_bregman
+from .split_bregman.settings import SplitBregmanConfig
 from .total_variation import GroupTV
 
 __all__ = ["Callback", "GaussNewton", "GaussNewtonConfig", "GroupTV", "IterationRecord",

@@ -32,7 +32,7 @@ from typing import Any, ClassVar, Iterable, NamedTuple, Optional
 from torch import Tensor
 
 from ..errors import ConfigurationError
-from ..linalg import COUNTERS
+from ..linalg import SolveCounters, counting
 from ..records import Callback, IterationRecord, SolveResult, StopReason
 from ..settings import check_values
 
@@ -99,19 +99,23 @@ class SolverConfig:
 
 # -- run clock and records -----------------------------------------------------------------
 class RunClock:
-    """Wall time and counters since the start of a run, continuing from saved offsets."""
+    """Wall time and counters since the start of a run, continuing from saved offsets.
 
-    def __init__(self, wall_time: float = 0.0, factorizations: int = 0, solves: int = 0) -> None:
+    ``spent`` is the counting scope of the solve (:func:`torchfit.linalg.counting`): what the
+    solver, its simulations and its callbacks factorise and solve in it."""
+
+    def __init__(self, spent: SolveCounters, wall_time: float = 0.0, factorizations: int = 0,
+                 solves: int = 0) -> None:
         self.start = time.perf_counter()
-        self.counters0 = COUNTERS.snapshot()
+        self.spent, self.base = spent, spent.snapshot()   # a resume's re-linearisation: before
         self.offsets = (float(wall_time), int(factorizations), int(solves))
 
     def elapsed(self) -> float:
         return self.offsets[0] + time.perf_counter() - self.start
 
     def counts(self) -> tuple[int, int]:
-        delta = COUNTERS - self.counters0
-        return self.offsets[1] + delta.factorizations, self.offsets[2] + delta.solves
+        spent = self.spent - self.base
+        return self.offsets[1] + spent.factorizations, self.offsets[2] + spent.solves
 
     def state_dict(self) -> dict[str, Any]:
         factorizations, solves = self.counts()
@@ -235,7 +239,11 @@ class Solver(abc.ABC):
         not counted in the records' counters), emits nothing for the saved iteration and
         continues with ``iteration + 1``; ``theta0`` is then ignored.
         """
-        callbacks = list(callbacks)
+        with counting() as spent:
+            return self._solve(residual, theta0, list(callbacks), state, spent)
+
+    def _solve(self, residual: Any, theta0: Tensor, callbacks: list[Callback],
+               state: dict[str, Any] | None, spent: SolveCounters) -> SolveResult:
         self.residual = residual
         history: list[IterationRecord] = []
         if self.bounds is not None:
@@ -243,7 +251,7 @@ class Solver(abc.ABC):
             self.bounds.check_start(theta0 if state is None else state["theta"])
         if state is None:
             self.iteration = 0
-            self.clock = RunClock()
+            self.clock = RunClock(spent)
             self._started = True
             record = self.start(theta0)
             history.append(record)
@@ -252,7 +260,8 @@ class Solver(abc.ABC):
         else:
             self.load_state_dict(state)
             self.resume()
-            self.clock = RunClock(state["wall_time"], state["factorizations"], state["solves"])
+            self.clock = RunClock(spent, state["wall_time"], state["factorizations"],
+                                  state["solves"])
             self._started = True
         while True:
             stop = self.stop_rule()

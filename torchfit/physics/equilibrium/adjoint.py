@@ -17,6 +17,7 @@ from typing import Any, Protocol
 import torch
 from torch import Tensor
 
+from ...linalg.counters import active_scopes, within
 from .cache import Solution, SolutionCache
 from .dirichlet import DirichletReduction
 from .model import ModelExtensions
@@ -50,6 +51,9 @@ class EquilibriumFunction(torch.autograd.Function):
         params, fixed_values, _, eq = inputs
         ctx.eq = eq
         ctx.solution = eq.solution(params, fixed_values, None)  # cache hit: no new work
+        # autograd runs a CUDA backward on a thread of its own, outside the caller's
+        # counting scopes: there its solves are counted where the forward was
+        ctx.scopes = active_scopes()
         ctx.set_materialize_grads(False)
 
     @staticmethod
@@ -57,49 +61,60 @@ class EquilibriumFunction(torch.autograd.Function):
     def backward(ctx: Any, grad_x: Tensor | None) -> tuple:  # type: ignore[override]
         if grad_x is None:
             return None, None, None, None
-        eq: SolvedEquilibrium = ctx.eq
-        sol: Solution = ctx.solution
-        need_params, need_fixed = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-        if eq.extensions.has_param_derivative and need_params and not need_fixed:
-            return params_vjp(eq, sol, grad_x), None, None, None
-        free = eq.reduction.free_dofs.to(grad_x.device)
-        lam = eq.reduction.solve(sol.factors, grad_x[:, free], transpose=True)
-        with torch.enable_grad():
-            residual, leaves = residual_at_solution(eq, sol, need_params, need_fixed)
-            grads = torch.autograd.grad(residual, leaves, grad_outputs=-lam, allow_unused=True)
-        grads = [torch.zeros_like(t) if g is None else g for t, g in zip(leaves, grads)]
-        grad_params = grads.pop(0) if need_params else None
-        grad_fixed = None
-        if need_fixed:
-            # Dirichlet values move the fixed dofs directly and the free ones through R.
-            grad_fixed = grads.pop(0) + grad_x[:, eq.reduction.fixed_dofs.to(grad_x.device)]
-        return grad_params, grad_fixed, None, None
+        with within(active_scopes() or ctx.scopes):
+            return _backward(ctx, grad_x)
 
     @staticmethod
     def jvp(ctx: Any, d_params: Tensor | None, d_fixed: Tensor | None, *_: Any) -> Tensor:  # type: ignore[override]
-        eq: SolvedEquilibrium = ctx.eq
-        sol: Solution = ctx.solution
-        if eq.extensions.has_param_derivative and d_params is not None and d_fixed is None:
-            return params_jvp(eq, sol, d_params)
-        tangents = [d for d in (d_params, d_fixed) if d is not None]
-        # (dR/dparams) v + (dR/dfixed) d_fixed by the transpose-of-transpose trick:
-        # forward-mode AD cannot nest inside this jvp, and two reverse passes through
-        # the element-vectorised residual cost no solve.
-        with torch.enable_grad():
-            residual, leaves = residual_at_solution(eq, sol, d_params is not None,
-                                                    d_fixed is not None)
-            probe = torch.zeros_like(residual, requires_grad=True)
-            grads = torch.autograd.grad(residual, leaves, probe, create_graph=True,
-                                        allow_unused=True)
-            pairing = sum((g * d).sum() for g, d in zip(grads, tangents) if g is not None)
-            d_residual = None
-            if isinstance(pairing, Tensor) and pairing.requires_grad:
-                (d_residual,) = torch.autograd.grad(pairing, probe, allow_unused=True)
-        if d_residual is None:
-            d_residual = torch.zeros_like(residual)
-        dx_free = -eq.reduction.solve(sol.factors, d_residual.detach())
-        return eq.reduction.full(dx_free, torch.zeros_like(sol.fixed_values) if d_fixed is None
-                                 else d_fixed)
+        return _jvp(ctx, d_params, d_fixed)
+
+
+def _backward(ctx: Any, grad_x: Tensor) -> tuple:
+    """The vector-Jacobian product of :class:`EquilibriumFunction` (one transposed solve)."""
+    eq: SolvedEquilibrium = ctx.eq
+    sol: Solution = ctx.solution
+    need_params, need_fixed = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+    if eq.extensions.has_param_derivative and need_params and not need_fixed:
+        return params_vjp(eq, sol, grad_x), None, None, None
+    free = eq.reduction.free_dofs.to(grad_x.device)
+    lam = eq.reduction.solve(sol.factors, grad_x[:, free], transpose=True)
+    with torch.enable_grad():
+        residual, leaves = residual_at_solution(eq, sol, need_params, need_fixed)
+        grads = torch.autograd.grad(residual, leaves, grad_outputs=-lam, allow_unused=True)
+    grads = [torch.zeros_like(t) if g is None else g for t, g in zip(leaves, grads)]
+    grad_params = grads.pop(0) if need_params else None
+    grad_fixed = None
+    if need_fixed:
+        # Dirichlet values move the fixed dofs directly and the free ones through R.
+        grad_fixed = grads.pop(0) + grad_x[:, eq.reduction.fixed_dofs.to(grad_x.device)]
+    return grad_params, grad_fixed, None, None
+
+
+def _jvp(ctx: Any, d_params: Tensor | None, d_fixed: Tensor | None) -> Tensor:
+    """The Jacobian-vector product of :class:`EquilibriumFunction` (one solve)."""
+    eq: SolvedEquilibrium = ctx.eq
+    sol: Solution = ctx.solution
+    if eq.extensions.has_param_derivative and d_params is not None and d_fixed is None:
+        return params_jvp(eq, sol, d_params)
+    tangents = [d for d in (d_params, d_fixed) if d is not None]
+    # (dR/dparams) v + (dR/dfixed) d_fixed by the transpose-of-transpose trick:
+    # forward-mode AD cannot nest inside this jvp, and two reverse passes through
+    # the element-vectorised residual cost no solve.
+    with torch.enable_grad():
+        residual, leaves = residual_at_solution(eq, sol, d_params is not None,
+                                                d_fixed is not None)
+        probe = torch.zeros_like(residual, requires_grad=True)
+        grads = torch.autograd.grad(residual, leaves, probe, create_graph=True,
+                                    allow_unused=True)
+        pairing = sum((g * d).sum() for g, d in zip(grads, tangents) if g is not None)
+        d_residual = None
+        if isinstance(pairing, Tensor) and pairing.requires_grad:
+            (d_residual,) = torch.autograd.grad(pairing, probe, allow_unused=True)
+    if d_residual is None:
+        d_residual = torch.zeros_like(residual)
+    dx_free = -eq.reduction.solve(sol.factors, d_residual.detach())
+    return eq.reduction.full(dx_free, torch.zeros_like(sol.fixed_values) if d_fixed is None
+                             else d_fixed)
 
 
 def params_jvp(eq: SolvedEquilibrium, sol: Solution, d_params: Tensor) -> Tensor:

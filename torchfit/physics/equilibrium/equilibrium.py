@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from ...linalg import Backend, Factor
-from ...linalg.cudss import gpu_memory_error
+from ...linalg.backends.cudss import gpu_memory_error
 from .adjoint import EquilibriumFunction
 from .cache import Solution, SolutionCache
 from .dirichlet import DirichletReduction

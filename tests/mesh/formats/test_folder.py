@@ -1,0 +1,89 @@
+"""The animation folder format (torchfit.mesh.formats.folder): what the writer writes the
+loader reads back, frames selected by number, and one line naming the file, frame or vertex
+at fault for every bad input."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from helpers.capsule_animation import ANGLES, write_capsule
+from torchfit.mesh import AnimationError, MeshError, load_animation
+
+
+def edit_manifest(folder, change):
+    path = folder / "animation.yaml"
+    spec = yaml.safe_load(path.read_text())
+    change(spec)
+    path.write_text(yaml.safe_dump(spec))
+
+
+def expect_error(folder, match):
+    with pytest.raises(MeshError, match=match) as info:
+        load_animation(folder)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("mode,frames_as", [("skeleton", "npz"), ("driven", "obj")])
+def test_what_is_written_is_read_back(tmp_path, mode, frames_as):
+    folder = write_capsule(tmp_path / "capsule", mode, frames_as)
+    animation = load_animation(folder)
+    assert animation.n_frames == len(ANGLES) and animation.frames.shape[1:] == \
+        (animation.n_vertices, 3)
+    assert np.allclose(animation.frames[0], animation.rest_vertices, atol=1e-12)  # 0 degrees
+    if mode == "skeleton":
+        assert animation.driven is None and animation.skeleton.n_bones == 2
+        assert np.allclose(animation.skeleton.joints(), [[0.0, 0.0, 0.0]])
+    else:
+        assert animation.skeleton is None and 0 < animation.driven.indices.size < \
+            animation.n_vertices
+    selected = animation.select([2, 0])
+    assert np.array_equal(selected.frames, animation.frames[[2, 0]])
+    with pytest.raises(AnimationError, match="frame 5 does not exist"):
+        animation.select([5])
+
+
+def test_frame_with_another_vertex_count_names_the_file(tmp_path):
+    folder = write_capsule(tmp_path / "c", "skeleton", "obj")
+    import trimesh
+
+    trimesh.creation.icosphere(subdivisions=1).export(str(folder / "frames" / "pose2.obj"))
+    expect_error(folder, r"pose2\.obj: frame has 42 vertices but the rest surface has")
+
+
+def test_nan_coordinate_names_frame_and_vertex(tmp_path):
+    folder = write_capsule(tmp_path / "c", "skeleton", "npz")
+    frames = np.load(folder / "frames.npz")["frames"]
+    frames[2, 17, 1] = np.nan
+    np.savez(folder / "frames.npz", frames=frames)
+    expect_error(folder, r"frame 2 .*vertex 17 has a NaN or infinite coordinate")
+
+
+def test_missing_files_and_manifest_keys(tmp_path):
+    folder = write_capsule(tmp_path / "c", "skeleton", "npz")
+    expect_error(tmp_path / "nowhere", "no animation manifest at")
+    (folder / "rest.obj").rename(folder / "moved.obj")
+    expect_error(folder, r"rest surface file .*rest\.obj does not exist")
+    (folder / "moved.obj").rename(folder / "rest.obj")
+    edit_manifest(folder, lambda s: s.update(colour="red"))
+    expect_error(folder, r"unknown key 'colour' in the manifest")
+    edit_manifest(folder, lambda s: (s.pop("colour"), s.pop("frames")))
+    expect_error(folder, r"missing entry 'frames' in the manifest")
+
+
+def test_driven_sets_empty_or_everything(tmp_path):
+    folder = write_capsule(tmp_path / "c", "driven", "npz")
+    n = len(np.load(folder / "frames.npz")["frames"][0])
+    np.save(folder / "driven.npy", np.zeros(0, dtype=np.int64))
+    expect_error(folder, "the driven set is empty")
+    np.save(folder / "driven.npy", np.ones(n, dtype=bool))
+    expect_error(folder, "the driven set covers every vertex")
+
+
+def test_bone_transform_not_finite(tmp_path):
+    folder = write_capsule(tmp_path / "c", "skeleton", "npz")
+    with np.load(folder / "skeleton.npz") as data:
+        bones = {k: data[k] for k in data.files}
+    bones["transforms"][1, 0, 2, 3] = np.inf
+    np.savez(folder / "skeleton.npz", **bones)
+    expect_error(folder, "the transform of bone 0 in frame 1 is not finite")

@@ -1,0 +1,65 @@
+"""USD out (torchfit.mesh.formats.usd.writer): point caches of simulated frames and a TetMesh with
+the fitted field, opened back with usd-core. The skinned rig's writer is checked through the
+arm in tests/scripts/test_write_arm.py."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pxr")
+
+from pxr import Usd, UsdGeom  # noqa: E402
+
+from helpers.skinned_files import expected_tube, tube, write_tube_usd  # noqa: E402
+from torchfit.mesh.formats.usd.writer import write_point_cache_usd, write_tet_mesh_usd  # noqa: E402
+
+
+def test_point_cache_holds_one_time_sample_per_frame(tmp_path):
+    points, quads = tube(length=0.2, radius=0.02)
+    faces = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    frames = np.stack([points + [0.01 * f, 0, 0] for f in range(4)])
+    write_point_cache_usd(tmp_path / "sim.usda", faces, frames, times=[10, 11, 12, 14])
+    stage = Usd.Stage.Open(str(tmp_path / "sim.usda"))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Simulated"))
+    assert mesh.GetPointsAttr().GetTimeSamples() == [10.0, 11.0, 12.0, 14.0]
+    assert mesh.GetExtentAttr().GetTimeSamples() == [10.0, 11.0, 12.0, 14.0]
+    assert np.abs(np.array(mesh.GetPointsAttr().Get(14)) - frames[3]).max() < 1e-8
+    assert np.allclose(np.array(mesh.GetExtentAttr().Get(14)),
+                       [frames[3].min(0), frames[3].max(0)], atol=1e-7)
+    assert np.array(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3).tolist() == \
+        faces.tolist()
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+
+
+def test_point_cache_over_the_users_stage_in_its_units(tmp_path):
+    written = write_tube_usd(tmp_path / "user.usda")               # centimetres, Y up
+    rest, frames = expected_tube(written["points"], written["rig"])
+    faces = np.concatenate([written["quads"][:, [0, 1, 2]], written["quads"][:, [0, 2, 3]]])
+    out = tmp_path / "out" / "simulated.usda"
+    out.parent.mkdir()
+    write_point_cache_usd(out, faces, frames + 0.001, prim="/Root/Tube_simulated",
+                          times=[1, 2, 4], over=tmp_path / "user.usda")
+    stage = Usd.Stage.Open(str(out))
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 0.01
+    assert UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.y
+    assert stage.GetPrimAtPath("/Root/Tube").IsValid()             # the original, composed
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Root/Tube_simulated"))
+    assert np.abs(np.array(mesh.GetPointsAttr().Get(4)) * 0.01 - (frames[2] + 0.001)).max() \
+        < 1e-7                                                 # float32 centimetres
+    assert stage.GetRootLayer().subLayerPaths[0] == "../user.usda"
+
+
+def test_tet_mesh_holds_the_fitted_field(tmp_path):
+    points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1.0]])
+    cells = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
+    modulus = np.array([1.5e5, 4.0e5])
+    write_tet_mesh_usd(tmp_path / "body.usda", points, cells, {"E": modulus})
+    stage = Usd.Stage.Open(str(tmp_path / "body.usda"))
+    tet = UsdGeom.TetMesh(stage.GetPrimAtPath("/Body"))
+    assert np.array(tet.GetTetVertexIndicesAttr().Get()).tolist() == cells.tolist()
+    primvar = UsdGeom.PrimvarsAPI(tet.GetPrim()).GetPrimvar("torchfit:E")
+    assert primvar.GetInterpolation() == UsdGeom.Tokens.uniform
+    assert np.array(primvar.Get()).tolist() == modulus.tolist()
+    assert len(tet.GetSurfaceFaceVertexIndicesAttr().Get()) == 6   # two tets share a face
+    with pytest.raises(ValueError, match="field E has 3 values for 2 tetrahedra"):
+        write_tet_mesh_usd(tmp_path / "bad.usda", points, cells, {"E": [1, 2, 3]})

@@ -1,0 +1,71 @@
+"""torchfit.mesh.tetwild.store: a run's own mesh.npz, read back exactly, preferred over the cache,
+and required (any other surface or option refused, nothing tetrahedralised)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from torchfit.mesh import MeshError, box_tetrahedra
+from torchfit.mesh.tetwild.store import (read_run_mesh, register_run_mesh, requiring,
+                                     tetrahedralize_kept, write_run_mesh)
+from torchfit.mesh.tetwild.tetrahedralize import TetMesh, TetOptions, cache_key, pytetwild_version
+
+OPTIONS = TetOptions(edge_length_fac=0.3)
+
+
+def stored_box(path):
+    """A box's tetrahedra written as the mesh of a tube-like surface (a 3 x 1 x 1 box along
+    x), as if fTetWild had made them."""
+    surface = trimesh.creation.box(extents=(3.0, 1.0, 1.0))
+    vertices, faces = np.asarray(surface.vertices), np.asarray(surface.faces)
+    box = box_tetrahedra(3, 1, 1, (3.0, 1.0, 1.0))
+    key = cache_key(vertices, faces, OPTIONS, pytetwild_version())
+    tet = TetMesh(box.points, box.cells, key, False, 0.0, 1.5, None)
+    regions = np.arange(len(box.cells)) % 2
+    write_run_mesh(path, tet, OPTIONS, vertices, faces, regions)
+    return vertices, faces, box, regions
+
+
+def test_the_run_mesh_reads_back_bit_for_bit_and_writes_the_same_bytes(tmp_path):
+    vertices, faces, box, regions = stored_box(tmp_path / "mesh.npz")
+    stored = read_run_mesh(tmp_path / "mesh.npz")
+    np.testing.assert_array_equal(stored.points, box.points)
+    np.testing.assert_array_equal(stored.cells, box.cells)
+    np.testing.assert_array_equal(stored.regions, regions)
+    assert stored.build_seconds == 1.5 and stored.options == OPTIONS.as_dict()
+    stored_box(tmp_path / "again.npz")
+    assert (tmp_path / "again.npz").read_bytes() == (tmp_path / "mesh.npz").read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["again.npz", "mesh.npz"]
+
+
+def test_a_registered_mesh_comes_before_the_cache(tmp_path):
+    vertices, faces, box, _ = stored_box(tmp_path / "mesh.npz")
+    assert register_run_mesh(tmp_path / "nowhere") is None
+    register_run_mesh(tmp_path)
+    tet = tetrahedralize_kept(vertices, faces, OPTIONS, cache_dir=tmp_path / "cache")
+    np.testing.assert_array_equal(tet.cells, box.cells)
+    assert tet.from_cache and not (tmp_path / "cache").exists()
+
+
+def test_a_required_mesh_refuses_another_surface_or_option(tmp_path):
+    vertices, faces, box, _ = stored_box(tmp_path / "mesh.npz")
+    stored = read_run_mesh(tmp_path / "mesh.npz")
+    with requiring(stored):
+        assert tetrahedralize_kept(vertices, faces, OPTIONS).points is stored.points
+        with pytest.raises(MeshError, match=r"not the fitted body: its rest surface's vertices "
+                                            r"differ from the fitted body's \(by up to 0\.075\)"):
+            tetrahedralize_kept(1.05 * vertices, faces, OPTIONS, cache_dir=tmp_path / "c")
+        with pytest.raises(MeshError, match="rest surface has 7 vertices and 1 faces"):
+            tetrahedralize_kept(vertices[:7], faces[:1], OPTIONS, cache_dir=tmp_path / "c")
+        with pytest.raises(MeshError, match="edge_length_fac: 0.3 fitted, 0.2 now"):
+            tetrahedralize_kept(vertices, faces, TetOptions(edge_length_fac=0.2),
+                                cache_dir=tmp_path / "c")
+    assert not (tmp_path / "c").exists()
+
+
+def test_a_file_that_is_not_a_run_mesh_is_one_line(tmp_path):
+    (tmp_path / "mesh.npz").write_bytes(b"not a zip")
+    with pytest.raises(MeshError, match=r"mesh.npz is not a torchfit run mesh") as info:
+        read_run_mesh(tmp_path / "mesh.npz")
+    assert "\n" not in str(info.value)

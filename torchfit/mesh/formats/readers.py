@@ -1,0 +1,39 @@
+"""Which reader a ``problem.path`` takes: the folder format, a USD stage or a glTF file.
+
+:func:`read_animation` dispatches by the path's suffix: ``.usd``, ``.usda``, ``.usdc``,
+``.usdz`` to :mod:`.usd.reader` (the extra ``usd``), ``.gltf``, ``.glb`` to
+:mod:`.gltf.reader` (the extra ``gltf``), anything else (a folder, a manifest) to
+:func:`.animation_format.load_animation`. Every reader returns the same
+:class:`~.animation_format.Animation`; errors are one line
+(:class:`~.animation_format.AnimationError`).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from .folder import Animation, AnimationError, load_animation
+
+USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
+GLTF_SUFFIXES = (".gltf", ".glb")
+
+
+def read_animation(path: str | Path, prim: str = "", fps: float = 0.0) -> Animation:
+    """The animation at ``path``; ``prim`` picks the mesh of a USD stage (a prim path) or of
+    a glTF file (a node name), ``fps`` the sampling rate of a glTF animation (0: its
+    keyframes). Both are refused for the folder format, which has neither."""
+    suffix = Path(path).suffix.lower()
+    if suffix in USD_SUFFIXES:
+        from .usd.reader import load_usd
+
+        if fps:
+            raise AnimationError(f"{path}: problem.fps applies to glTF files only (a USD stage "
+                                 "has its time samples); leave it at 0")
+        return load_usd(path, prim)
+    if suffix in GLTF_SUFFIXES:
+        from .gltf.reader import load_gltf
+
+        return load_gltf(path, prim, fps)
+    if prim or fps:
+        raise AnimationError(f"{path}: problem.{'prim' if prim else 'fps'} applies to USD or "
+                             "glTF files only; leave it unset for an animation folder")
+    return load_animation(path)

@@ -1,0 +1,113 @@
+"""Settings of ``problem=animation`` (``arm3d`` extends them): choices, RiggedBodyConfig.
+
+Lengths in metres, ``noise`` too.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import List, Optional
+
+from ...settings import Choice
+from ..config import Backend, ProblemConfig
+
+
+class ElasticModel(Choice):
+    """Constitutive model of the body."""
+
+    linear = "linear"
+    corotated = "corotated"
+    stable_neo_hookean = "stable_neo_hookean"
+
+
+class Target(Choice):
+    """``rig``: the animated surface; ``synthetic``: simulated from a known field."""
+
+    rig = "rig"
+    synthetic = "synthetic"
+
+
+class Truth(Choice):
+    """The known field of ``target=synthetic``."""
+
+    regions = "regions"     # one value per region (E_regions)
+    blocks = "blocks"       # blocks of grid nodes (E_blocks), trilinear between nodes
+
+
+class Layout(Choice):
+    """Where the fitted parameters live."""
+
+    grid = "grid"           # nodes of a coarse regular grid, trilinear to tetrahedra
+    region = "region"       # one per region label
+    tet = "tet"             # one per tetrahedron
+
+
+@dataclasses.dataclass
+class RiggedBodyConfig(ProblemConfig):
+    """Settings of ``problem=animation`` (lengths in metres; ``noise`` in metres too)."""
+
+    name: str = "animation"
+    path: str = ""                         # folder holding animation.yaml, or .usd/.usda/.usdc/
+    #                                        .usdz (extra usd), or .glb/.gltf (extra gltf)
+    prim: str = ""                         # USD: the mesh's prim path; glTF: the skinned node's
+    #                                        name; "": the one skinned mesh (else point cache)
+    fps: float = 0.0                       # glTF: sample the animation at this rate; 0: at its
+    #                                        keyframes (every input time of its samplers)
+    frames: Optional[List[int]] = None     # a subset of the frames (numbers); null: all
+    # validation (problems/body/held_out.py, docs/run/validation.md): frames (numbers) held out of
+    # the fit and simulated at every recorded iteration, or every k-th distinct pose (0: none);
+    # frames repeating a validation pose (within this fraction of the diagonal) leave the fit
+    validation_frames: Optional[List[int]] = None
+    validation_every: int = 0
+    validation_repeat_tol: float = 1e-6
+    model: ElasticModel = ElasticModel.corotated   # linear | corotated | stable_neo_hookean
+    nu: float = 0.45                       # Poisson ratio, fixed
+    # rig (the animated surface) | synthetic (simulated from a known field)
+    target: Target = Target.rig
+    truth: Truth = Truth.blocks            # synthetic only: blocks | regions (needs labels)
+    # truth=regions: one modulus per label (arm: bone, muscle, fat; the bone core is attached to
+    # the rig, so its modulus is unobservable: it gets the muscle's value by default)
+    E_regions: List[float] = dataclasses.field(default_factory=lambda: [4.0, 4.0, 1.0])
+    # truth=blocks: background, stiff block, soft block
+    E_blocks: List[float] = dataclasses.field(default_factory=lambda: [1.0, 4.0, 0.4])
+    # grid (coarse nodes, trilinear) | region (one per label; needs labels) | tet
+    parameters: Layout = Layout.grid
+    # parameters=grid (and the blocks truth): a node grid along the body's principal axes
+    # a0, a1, a2 (increasing extent, the longest last; torchfit/problems/body/grid.py), with
+    # about grid_nodes nodes in all, counts proportional to the extents (at least 4 per axis:
+    # the arm gets 4 x 4 x 12); grid=[n0, n1, n2] gives the counts along a0, a1, a2 instead
+    grid_nodes: int = 192
+    grid: Optional[List[int]] = None
+    E0: float = 1.0                        # initial guess, constant (the homogeneous material)
+    # bounds on the fitted modulus, kept by the solver's steps (problems/body/bounds.py;
+    # the defaults and why: docs/problems/bounds.md). null: on for target=rig, off for synthetic
+    bounds: Optional[bool] = None
+    E_min: float = 0.01                    # lowest modulus: a factor of E0 (E_bounds_relative)
+    E_max: float = 100.0                   # highest modulus: a factor of E0 (E_bounds_relative)
+    E_bounds_relative: bool = True         # false: E_min, E_max are moduli (units of E0)
+    # auto (pardiso where installed, else scipy) | pardiso | scipy | cg
+    backend: Backend = Backend.auto
+    # tetrahedralisation (pytetwild): target edge length as a fraction of the bounding-box
+    # diagonal, envelope (fraction of the diagonal), quality (stop energy), optimisation
+    tet_edge_length: float = 0.05
+    tet_epsilon: float = 1e-3
+    # a target number of tetrahedra instead (null: the two above): the edge length from the
+    # body's volume and the envelope matched to it (on a finely tessellated surface the count
+    # follows tet_epsilon more than tet_edge_length); torchfit/mesh/tetwild/size.py
+    tet_count: Optional[int] = None
+    tet_stop_energy: float = 10.0
+    tet_optimize: bool = True
+    # before anything is built: every frame at the rest's scale (not 10x off), and, where the
+    # manifest gives skinning weights, the rest skinned with them reproduces the frames: the
+    # median distance per frame and bone at most rig_tolerance (a fraction of the rest's
+    # bounding-box diagonal); torchfit/mesh/rig_check.py
+    rig_check: bool = True
+    rig_tolerance: float = 0.05
+    # tet meshes (and the arm's animation): "" is $TORCHFIT_CACHE_DIR or ~/.cache/torchfit
+    cache_dir: str = ""
+    newton_rtol: float = 1e-10
+    newton_atol: float = 1e-12
+    newton_max_iter: int = 300
+    # Newton's start at a new parameter vector: an earlier solution (true; the solver's current
+    # point where it is known) or the animated pose (false, the definition in PROBLEMS.md; see
+    # docs/problems/arm3d.md, "Several equilibria near full bend", for when it matters)
+    warm_start: bool = True

@@ -1,0 +1,489 @@
+"""``problem=animation``: a rigged body whose Young's modulus is fitted to a user's animation.
+
+The data are an animation folder (:mod:`torchfit.mesh.formats.folder`). The rest surface is
+tetrahedralised by pytetwild (cached on disk by a hash of the surface and the options: the
+same input gives the same tetrahedra); the user's surface vertices are embedded in the
+tetrahedra by barycentric weights, so targets, errors and exports live on them; the rig
+prescribes the tetrahedron vertices it drives (:mod:`torchfit.mesh.rig`). Every frame is an
+independent quasistatic equilibrium (linear, corotated or stable neo-Hookean elasticity)
+started from the animated pose, ``(F, n_vertices, 3)``; ``observe`` is every user surface
+vertex but the driven ones in every frame, ``(F * n_obs * 3,)``.
+
+Targets: ``target=rig``, the animated surface (no material reproduces it exactly: the
+measure is how far fitting lowers the surface error below the homogeneous material's);
+``target=synthetic``, simulated from a known field (``truth=regions`` or ``blocks``).
+Parameters: ``grid`` (nodes along the body's principal axes, trilinear to tetrahedra:
+:mod:`.grid`), ``region`` or ``tet``. Every load is a prescribed displacement:
+scale-free. What the run reports of the body: :mod:`.report`, :mod:`.motion`.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import warnings
+from typing import Any, ContextManager
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+from torch import Tensor
+
+from ...memory import check_allocation
+from ...mesh import MeshError, SimplexMesh, element_adjacency
+from ...mesh.formats.folder import Animation, AnimationError
+from ...mesh.formats.readers import read_animation
+from ...mesh.embedding import Embedding, dof_matrix, embed_points
+from ...mesh.rig import joint_cells, skeleton_drive, surface_drive
+from ...mesh.tetwild.store import kept_frame
+from ...mesh.tetwild.tetrahedralize import TetMesh
+from ...params import Parameterization, per_element, per_region
+from ...physics import NewtonOptions
+from ...physics.elasticity import QuasistaticElasticity, SimplicialElasticity
+from ...steps import count, step
+from ..base import InverseProblem, array_digest
+from .grid import block_nodes, blocks_field, body_grid, grid_parameterization
+from .motion import most_deformed_frame, most_strained_cells, view_axes
+from .setup import animation_summary, check_rig, first_simulation, tet_mesh, tet_options
+from .report import (BODY_METRICS, body_metrics, describe_body, frame_report,
+                          inverted_counts, min_volume_ratios, surface_distances, volume_change)
+from ..config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
+                     resolve_backend, setting_error)
+from .held_out import NO_VALIDATION, problem_on_frames, split_frames, validation_problem
+from .model_comparison import simulate_with_model
+from .bounds import check_bounds, modulus_bounds, region_report, theta_bounds
+from .repeated_poses import distinct_poses
+from .config import Layout, RiggedBodyConfig, Target, Truth
+
+
+#: largest distance (fraction of the bounding-box diagonal) of a surface vertex outside the
+#: tetrahedra before the tetrahedralisation is judged not to match the surface
+_MAX_OUTSIDE = 0.02
+
+
+class RiggedBody(InverseProblem):
+    """Fit Young's modulus so that the simulated body follows a rigged animation."""
+
+    config_class = RiggedBodyConfig
+    name = "animation"
+    field_name = "E"
+    initial_setting = "E0"
+    dim = 3
+    scale_free = True
+    #: the problem wrote its animation folder itself (a run copies it as an example)
+    writes_animation = False
+    #: arm3d's fitted grid may start a fit of the same arm read as an animation folder
+    parameter_family = "rigged body"
+
+    # -- hooks of the template --------------------------------------------------------
+    def check(self, cfg: RiggedBodyConfig) -> None:
+        require_setting(-1.0 < cfg.nu < 0.5, cfg, "nu", "must lie in (-1, 0.5) (Poisson ratio "
+                        "of an isotropic material; 0.5 would be incompressible)")
+        require_setting(cfg.E0 > 0, cfg, "E0", "must be a positive Young's modulus")
+        require_setting(cfg.grid is None or (len(cfg.grid) == 3 and all(
+            int(n) >= 2 for n in cfg.grid)), cfg, "grid", "must list three node counts >= 2 "
+            "(along the body's principal axes, the longest last) or be null (grid_nodes)")
+        require_setting(cfg.grid_nodes >= 8, cfg, "grid_nodes", "must be at least 8 (2 per axis)")
+        for key in ("E_regions", "E_blocks"):
+            values = getattr(cfg, key)
+            require_setting(len(values) >= 1 and all(v > 0 for v in values), cfg, key,
+                            "must list positive Young's moduli")
+        require_setting(len(cfg.E_blocks) == 3, cfg, "E_blocks",
+                        "must list three moduli: background, stiff block, soft block")
+        for key in ("tet_edge_length", "tet_epsilon", "tet_stop_energy", "rig_tolerance"):
+            require_setting(getattr(cfg, key) > 0, cfg, key, "must be positive")
+        require_setting(cfg.tet_count is None or cfg.tet_count >= 1, cfg, "tet_count",
+                        "must be a positive number of tetrahedra (or null)")
+        require_setting(cfg.tet_edge_length <= 1, cfg, "tet_edge_length", "is a fraction of "
+                        "the bounding-box diagonal: must lie in (0, 1] (e.g. 0.05)")
+        check_newton_settings(cfg)
+        check_bounds(cfg)
+        require_setting(cfg.frames is None or len(cfg.frames) >= 1, cfg, "frames",
+                        "must list at least one frame (or be null for all)")
+        require_setting(cfg.frames is None or len(set(cfg.frames)) == len(cfg.frames), cfg,
+                        "frames", "lists a frame twice; list each frame once")
+        require_setting(cfg.fps >= 0, cfg, "fps", "must be >= 0 (glTF frames per second; 0: "
+                        "the animation's keyframes)")
+        require_setting(cfg.backend != Backend.banded, cfg, "backend", "banded suits thin 2-D "
+                        "sheets, not a 3-D body; use auto, pardiso, scipy or cg")
+        self.check_source(cfg)
+
+    def allocation(self, cfg: RiggedBodyConfig) -> list[tuple[str, float, str]]:
+        # a grid (the parameters, or the blocks truth): per node theta, its gradient, the
+        # search direction, the truth and the blocks' index grids (about 8 values)
+        if cfg.parameters != Layout.grid and not (cfg.target == Target.synthetic
+                                                  and cfg.truth == Truth.blocks):
+            return []
+        nodes = float(np.prod([float(n) for n in cfg.grid])) if cfg.grid else 1.5 * cfg.grid_nodes
+        setting = f"problem.grid={list(cfg.grid)}" if cfg.grid else \
+            f"problem.grid_nodes={cfg.grid_nodes}"
+        return [(setting, nodes * 8 * 8.0, f"{nodes:.3g} grid nodes")]
+
+    def check_source(self, cfg: RiggedBodyConfig) -> None:
+        require_setting(bool(cfg.path), cfg, "path", "must name the folder of your animation "
+                        "(holding animation.yaml; see README, 'Bring your own animation')")
+
+    def load(self, cfg: RiggedBodyConfig) -> Animation:
+        """The animation (``problem=arm3d`` makes and writes its own first)."""
+        try:
+            return read_animation(cfg.path, cfg.prim, cfg.fps)
+        except MeshError as err:
+            raise ProblemConfigError(f"problem.path={cfg.path}: {err}") from err
+
+    def build_model(self, cfg: RiggedBodyConfig) -> None:
+        with step(f"reading the animation {cfg.path or self.name}") as progress:
+            animation = self.load(cfg)
+            # every frame's motion (not the fitted subset's) settles the frame of a round body
+            self.motion = animation.frames - animation.rest_vertices
+            self.frame_split = split_frames(cfg, animation.rest_vertices, animation.frames)
+            fitted = cfg.frames if self.frame_split is None else self.frame_split.fitted
+            if fitted is not None:
+                try:
+                    animation = animation.select([int(f) for f in fitted])
+                except AnimationError as err:
+                    raise setting_error("frames", cfg.frames, str(err)) from err
+            progress.result = animation_summary(animation)
+        self.rig_report = check_rig(cfg, animation)
+        self.animation = animation
+        for text in animation.warnings:
+            warnings.warn(f"{animation.path}: rest surface: {text}", UserWarning, stacklevel=2)
+        self.n_frames = animation.n_frames
+        self.tet = self.tetrahedralize(cfg, animation)
+        # per frame: each tetrahedron's F, stress, derivatives (40 values), vertex (9 values)
+        cells, points = len(self.tet.cells), len(self.tet.points)
+        check_allocation(f"problem.tet_edge_length={cfg.tet_edge_length} with "
+                         f"{animation.n_frames} frames", animation.n_frames * (
+                             cells * 40 + points * 9) * 8.0,
+                         f"{cells} tetrahedra x {animation.n_frames} frames", ProblemConfigError)
+        points, cells = self.tet.points, self.tet.cells
+        self.mesh = SimplexMesh(points, cells)
+        self.model = SimplicialElasticity(torch.from_numpy(points), torch.from_numpy(cells),
+                                          cfg.model.value, nu=cfg.nu, dtype=self.dtype,
+                                          device=self.device)
+        diagonal = float(np.linalg.norm(points.max(0) - points.min(0)))
+        try:
+            with step(f"embedding {count(animation.n_vertices)} surface vertices in "
+                      f"{count(len(cells))} tetrahedra"):
+                self.embedding: Embedding = embed_points(animation.rest_vertices, points, cells,
+                                                         max_distance=_MAX_OUTSIDE * diagonal)
+            surface = (animation.rest_vertices, animation.faces, animation.frames)
+            with step(f"attaching the rig to {count(len(points))} tetrahedron vertices in "
+                      f"{count(animation.n_frames)} frames") as progress:
+                drive = skeleton_drive(points, cells, animation.skeleton, *surface) \
+                    if animation.skeleton is not None else \
+                    surface_drive(points, animation.driven, *surface)
+                progress.result = f"{count(len(drive.vertices))} driven (prescribed)"
+        except MeshError as err:
+            raise ProblemConfigError(f"{animation.path}: {err}") from err
+        dirichlet = drive.vertices
+        self.dirichlet_vertices = dirichlet
+        self.dirichlet_positions = torch.as_tensor(drive.positions, dtype=self.dtype,
+                                                   device=self.device)
+        self.start_positions = torch.as_tensor(drive.start, dtype=self.dtype, device=self.device)
+        # frames repeating a pose share one simulation (repeated_poses.py)
+        self.repeated_poses = distinct_poses(self.dirichlet_positions)
+        # warm starts (the last solution, at the solver's next point) keep going rather than
+        # fall back to the animated pose: near full bend that cold start needs far more
+        # Newton iterations (folds and inverted elements at the inner elbow)
+        newton = NewtonOptions(max_iter=cfg.newton_max_iter, rtol=cfg.newton_rtol,
+                               atol=cfg.newton_atol, warm_max_iter=cfg.newton_max_iter)
+        self.backend = resolve_backend(cfg.backend, self.device, 3)
+        self.quasistatic = QuasistaticElasticity(self.model, dirichlet, backend=self.backend,
+                                                 newton=newton, start="rest",
+                                                 warm_start=cfg.warm_start)
+        self.tet_regions, self.region_names = self.regions(cfg)
+        self.full_bend_frame = self.reference_frame()
+        self.grid = body_grid(points, cells, self.motion, cfg.grid_nodes, cfg.grid, kept_frame(
+            animation.rest_vertices, animation.faces, self.tet_options))   # a run's own
+        self.grid_shape = self.grid.shape
+        self.view_axes = view_axes(animation.rest_vertices, animation.frames, self.grid.axes[2])
+        self.joint_cells = self.joint_region(cfg)
+        self.other_models: dict[str, QuasistaticElasticity] = {}   # the model comparison's
+
+    def tetrahedralize(self, cfg: RiggedBodyConfig, animation: Animation) -> TetMesh:
+        """The rest surface's tet mesh, built in the body's frame (the same tetrahedra for
+        a rotated body; :func:`.body_setup.tet_mesh`); a run's own mesh (``mesh.npz``)
+        first."""
+        self.tet_options = tet_options(cfg)
+        return tet_mesh(cfg, animation, self.motion)
+
+    # -- regions and the joint ----------------------------------------------------------
+    def regions(self, cfg: RiggedBodyConfig) -> tuple[np.ndarray | None, list[str]]:
+        """Region label per tetrahedron (carried inward from the nearest labelled surface
+        vertex), or ``None`` when the animation has no labels."""
+        labels = self.animation.region_labels
+        if labels is None:
+            return None, []
+        _, nearest = cKDTree(self.animation.rest_vertices).query(self.mesh.centroids())
+        return labels[nearest], list(self.animation.region_names)
+
+    def joint_region(self, cfg: RiggedBodyConfig) -> np.ndarray:
+        """Tetrahedra whose volume change is reported (their name: :attr:`joint_label`): near
+        the rig's joints, else the most strained in the reference frame's animated pose."""
+        skeleton = self.animation.skeleton
+        if skeleton is not None and len(skeleton.joints()):
+            self.joint_label = "joint region"
+            return joint_cells(self.mesh.centroids(), skeleton)
+        self.joint_label = "most strained region"
+        pose = self.start_positions[self.full_bend_frame].cpu().numpy()
+        return most_strained_cells(self.mesh.points, self.mesh.cells, pose)
+
+    def reference_frame(self) -> int:
+        """The frame the pictures compare: the most deformed target surface
+        (:func:`.body_motion.most_deformed_frame`)."""
+        return most_deformed_frame(self.animation.rest_vertices, self.animation.frames)
+
+    # -- parameters, observation, truth ----------------------------------------------
+    def build_parameterization(self, cfg: RiggedBodyConfig) -> Parameterization:
+        centroids = self.mesh.centroids()
+        if cfg.parameters == Layout.grid:
+            return grid_parameterization(self.grid, centroids, cfg.transform.value, self.dtype)
+        if cfg.parameters == Layout.region:
+            if self.tet_regions is None:
+                raise setting_error("parameters", cfg.parameters.value,
+                                    "needs region labels: add a 'regions' entry to the "
+                                    "animation's manifest (or use grid or tet)")
+            return per_region(self.tet_regions, element_adjacency(self.mesh.cells),
+                              cfg.transform.value, name="Young's modulus", dtype=self.dtype)
+        return per_element(self.model.n_cells, element_adjacency(self.mesh.cells),
+                           cfg.transform.value, name="Young's modulus", dtype=self.dtype)
+
+    def build_observation(self, cfg: RiggedBodyConfig) -> None:
+        animation = self.animation
+        if animation.driven is not None:
+            observed = np.flatnonzero(~animation.driven.mask)
+        else:
+            observed = np.arange(animation.n_vertices)
+        self.observed_vertices = torch.as_tensor(observed)
+        self.observed_nodes = self.observed_vertices
+        self._observed_weights = torch.as_tensor(self.embedding.weights[observed],
+                                                 dtype=self.dtype, device=self.device)
+        self._observed_corners = torch.as_tensor(self.embedding_cells()[observed],
+                                                 device=self.device)
+
+    def embedding_cells(self) -> np.ndarray:
+        """Tetrahedron vertex indices ``(V_surface, 4)`` of each user surface vertex."""
+        return self.mesh.cells[self.embedding.cells]
+
+    def true_field(self, cfg: RiggedBodyConfig) -> Tensor | None:
+        if cfg.target == Target.rig:
+            return None
+        if cfg.truth == Truth.regions:
+            if self.tet_regions is None:
+                raise setting_error("truth", cfg.truth.value, "needs region labels in the "
+                                    "animation (use truth=blocks)")
+            n_regions = int(self.tet_regions.max()) + 1
+            require_setting(len(cfg.E_regions) == n_regions, cfg, "E_regions",
+                            f"must list one modulus per region ({n_regions}: "
+                            f"{', '.join(self.region_names)})")
+            values = torch.tensor(cfg.E_regions, dtype=self.dtype, device=self.device)
+            return values[torch.as_tensor(self.tet_regions, device=self.device)]
+        return self.blocks_field(cfg)
+
+    def block_nodes(self) -> np.ndarray:
+        """Label per grid node of the ``blocks`` truth (:func:`.body_grid.block_nodes`)."""
+        return block_nodes(self.grid_shape)
+
+    def blocks_field(self, cfg: RiggedBodyConfig) -> Tensor:
+        """The ``blocks`` truth per tetrahedron (:func:`.body_grid.blocks_field`)."""
+        return blocks_field(self.grid, self.mesh.centroids(), cfg.E_blocks, self.dtype,
+                            self.device)
+
+    def measured_data(self, cfg: RiggedBodyConfig) -> Tensor:
+        frames = torch.as_tensor(self.animation.frames, dtype=self.dtype, device=self.device)
+        return frames[:, self.observed_vertices.to(self.device), :].reshape(-1)
+
+    # -- the forward model --------------------------------------------------------------
+    def simulate(self, E: Tensor) -> Tensor:
+        """Tetrahedron vertex positions ``(F, n_vertices, 3)`` for ``E`` ``(n_tets,)``."""
+        if E.shape != (self.model.n_cells,):
+            raise ProblemConfigError(f"Young's modulus must have shape ({self.model.n_cells},) "
+                                     f"(one per tetrahedron), got {tuple(E.shape)}")
+        poses = self.simulated_poses()      # each distinct pose once, then every frame
+        drive, start = self.dirichlet_positions[poses], self.start_positions[poses]
+        with contextlib.nullcontext() if getattr(self, "_simulated", False) else \
+                first_simulation(len(drive), self.model.n_cells, self.cfg.model.value):
+            x = self.quasistatic(E, drive.to(E), x_init=start.to(E))
+        self._simulated = True
+        return x if self.repeated_poses is None else x[self.repeated_poses[1]]
+
+    def simulated_poses(self) -> Tensor | slice:
+        """The frames simulated (the first of each distinct pose, ``repeated_poses.py``):
+        an index ``(P,)``, or every frame."""
+        return slice(None) if self.repeated_poses is None else self.repeated_poses[0]
+
+    def independent_simulation(self) -> ContextManager[None]:
+        """Cold starts from the animated pose that seed no warm start (the synthetic
+        target, the homogeneous baseline): :meth:`Equilibrium.independent`."""
+        return self.quasistatic.equilibrium.independent()
+
+    def simulation_state(self) -> dict[str, Any]:
+        """The solutions Newton's next warm start reads (the anchor, the most recent one)."""
+        return self.quasistatic.equilibrium.warm_start_state()
+
+    def restore_simulation_state(self, state: dict[str, Any]) -> None:
+        self.quasistatic.equilibrium.restore_warm_start_state(state, self.device)
+
+    def simulation_accuracy(self) -> float | None:
+        """Newton's relative tolerance: 48 nonlinear frames are solved to it, not to round-off."""
+        return max(float(self.cfg.newton_rtol), torch.finfo(self.dtype).eps)
+
+    def surface(self, x: Tensor) -> Tensor:
+        """The user's surface vertices ``(..., V_surface, 3)`` of tet positions ``(..., n, 3)``."""
+        return self.embedding.apply(x)
+
+    def observe(self, x: Tensor) -> Tensor:
+        """The observed surface vertices of every frame, frame-major ``(F * n_obs * 3,)``."""
+        corners = self._observed_corners.to(x.device)
+        weights = self._observed_weights.to(x)
+        return (x[..., corners, :] * weights[..., None]).sum(-2).reshape(-1)
+
+    def forward_jacobian(self, theta: Tensor) -> Tensor:
+        """``d observe(simulate(map(theta))) / d theta`` ``(m, n_params)``: every frame's
+        rows of :meth:`pose_jacobian`."""
+        observed = self.pose_jacobian(theta)
+        if self.repeated_poses is not None:
+            observed = observed[self.repeated_poses[1]]
+        return observed.reshape(-1, observed.shape[-1])                 # (F n_obs 3, n)
+
+    def pose_jacobian(self, theta: Tensor) -> Tensor:
+        """``(P, n_obs 3, n_params)`` of each simulated pose (:meth:`simulated_poses`): every
+        parameter direction a right-hand side of the pose's one factorisation, the embedding
+        applied to its columns as soon as they are solved (no ``(F, V, 3, n)``)."""
+        E = self.parameterization(theta.detach())
+        directions = self.parameterization.jacobian(theta.detach())          # (n_cells, n)
+        poses = self.simulated_poses()
+        return self.quasistatic.jacobian(E, self.dirichlet_positions[poses].to(E), directions,
+                                         x_init=self.start_positions[poses].to(E),
+                                         observe=self._observation_matrix(E))
+
+    def _observation_matrix(self, like: Tensor) -> Tensor:
+        """The observed rows of the embedding on the flat dofs, sparse
+        ``(n_obs 3, n_vertices 3)`` (rows and columns point-major, as ``observe``; cached)."""
+        key = (like.dtype, like.device)
+        if getattr(self, "_observation_key", None) != key:
+            self._observation = dof_matrix(self._observed_corners.cpu(),
+                                           self._observed_weights.cpu(), self.model.n_vertices,
+                                           self.model.dim).to(like)
+            self._observation_key = key
+        return self._observation
+
+    # -- what the metrics and outputs report ---------------------------------------------
+    def clean_targets(self) -> Tensor:
+        """Noise-free targets ``(F, n_obs, 3)``: the animation, or the synthetic truth's."""
+        if self.x_true is not None:
+            return self.observe(self.x_true).reshape(self.n_frames, -1, 3)
+        return torch.as_tensor(self.animation.frames, dtype=self.dtype, device=self.device)[
+            :, self.observed_vertices.to(self.device)]
+
+    def clean_surface(self) -> Tensor:
+        """Noise-free target surface of every user vertex ``(F, V, 3)`` (observed or not)."""
+        if self.x_true is not None:
+            return self.surface(self.x_true)
+        return torch.as_tensor(self.animation.frames, dtype=self.dtype, device=self.device)
+
+    def surface_error_field(self, x: Tensor) -> Tensor:
+        """Distance of every user surface vertex to its noise-free target ``(F, V)``."""
+        with torch.no_grad():
+            return surface_distances(self.surface(x), self.clean_surface())
+
+    def surface_errors(self, x: Tensor) -> Tensor:
+        """Distance of every observed surface vertex to its noise-free target ``(F, n_obs)``."""
+        return surface_distances(self.observe(x).reshape(self.n_frames, -1, 3),
+                                 self.clean_targets())
+
+    def joint_volume_change(self, x: Tensor) -> np.ndarray:
+        """Relative volume change of the joint region per frame ``(F,)`` (``V / V_rest - 1``)."""
+        return volume_change(_positions(x), self.mesh.points, self.mesh.cells[self.joint_cells])
+
+    def inverted_tets(self, x: Tensor) -> np.ndarray:
+        """Tetrahedra turned inside out (signed volume <= 0) per frame ``(F,)``: such a
+        frame has several equilibria (docs/problems/arm3d.md, "Several equilibria")."""
+        return inverted_counts(_positions(x), self.mesh.cells)
+
+    def min_volume_ratio(self, x: Tensor) -> np.ndarray:
+        """Per frame ``(F,)``, the smallest volume of a tetrahedron relative to its rest
+        volume (``<= 0``: inverted). A frame near a fold has one far below 1 before any
+        tetrahedron inverts, so a change of material can fold it (see :meth:`inverted_tets`)."""
+        return min_volume_ratios(_positions(x), self.mesh.points, self.mesh.cells)
+
+    def metric_names(self) -> list[str]:
+        return super().metric_names() + list(BODY_METRICS)
+
+    def homogeneous_surface_error(self) -> float:
+        """Mean surface error of the homogeneous material (any constant: scale-free)."""
+        if not hasattr(self, "_homogeneous_error"):
+            with torch.no_grad(), self.independent_simulation():
+                x = self.simulate(self.field(self.theta0))
+                self._homogeneous_error = float(self.surface_errors(x).mean())
+        return self._homogeneous_error
+
+    def metrics(self, theta: Tensor, x: Tensor | None = None) -> dict[str, float]:
+        with torch.no_grad():
+            if x is None:
+                x = self.simulate(self.field(theta))
+            out = super().metrics(theta, x)
+            errors = self.surface_errors(x)
+        out.update(body_metrics(errors, self.homogeneous_surface_error(),
+                                self.joint_volume_change(x), self.inverted_tets(x),
+                                self.full_bend_frame))
+        return out
+
+    def frame_errors(self, x: Tensor) -> dict[str, np.ndarray]:
+        """Per frame: mean and max surface error (m), joint-region volume change."""
+        with torch.no_grad():
+            errors = self.surface_errors(x)
+        return frame_report(errors, self.joint_volume_change(x), self.inverted_tets(x))
+
+    def input_digests(self) -> dict[str, str]:
+        """The tet mesh (vertices and cells: a cache entry rebuilt into another mesh is
+        another mesh) and the animation's fitted surface (rest pose, faces, frames)."""
+        a = self.animation
+        return {"tet mesh": array_digest(self.mesh.points, self.mesh.cells),
+                "animation": array_digest(a.rest_vertices, a.faces, a.frames)}
+
+    def frame_names(self) -> list[str]:
+        return list(self.animation.frame_files)
+
+    def frame_numbers(self) -> list[int]:
+        """The animation's frame number of every fitted frame (``problem.frames``)."""
+        frames = self.cfg.frames if self.frame_split is None else self.frame_split.fitted
+        return [int(f) for f in frames] if frames is not None else list(range(self.n_frames))
+
+    def validation_problem(self) -> "RiggedBody | None":
+        """The same body on its validation frames (:func:`.held_out.validation_problem`)."""
+        return validation_problem(self)
+
+    def with_frames(self, numbers: list[int]) -> "RiggedBody":
+        """The same problem on some of its fitted frames, with this problem's targets
+        there, noise included (:func:`.held_out.problem_on_frames`)."""
+        return problem_on_frames(self, numbers)
+
+    def settings_for_frames(self, numbers: list[int]) -> RiggedBodyConfig:
+        """This problem's config with ``frames=numbers`` (for :meth:`with_frames`)."""
+        return dataclasses.replace(self.cfg, frames=list(numbers), **NO_VALIDATION)
+
+    def simulate_model(self, model: str, E: Tensor, frames: list[int] | None = None) -> Tensor:
+        """Positions ``(len(frames), n_vertices, 3)`` of the same body, rig and field with
+        another constitutive ``model`` (for the model comparison), no gradient
+        (:func:`.model_comparison.simulate_with_model`)."""
+        return simulate_with_model(self, model, E, frames)
+
+    def region_summary(self, field: Tensor) -> dict[str, dict[str, float]]:
+        """Mean, min, max and volume-weighted mean of ``field`` per region (all tetrahedra
+        as one region ``body`` when there are no labels); with bounds, the tetrahedra and
+        the parameters on each bound (:mod:`.bounds`)."""
+        return region_report(field, self.mesh.signed_volumes(), self.tet_regions,
+                             self.region_names, self.parameterization.basis,
+                             modulus_bounds(self.cfg))
+
+    def theta_bounds(self) -> tuple[Tensor, Tensor] | None:
+        """``problem.E_min`` / ``E_max`` on ``theta`` (:mod:`.bounds`)."""
+        return theta_bounds(self.cfg, self.parameterization.n_params, self.theta0)
+
+    def describe(self) -> dict[str, Any]:
+        return {**super().describe(), **describe_body(self, modulus_bounds(self.cfg))}
+
+
+def _positions(x: Tensor) -> np.ndarray:
+    """Tetrahedron vertex positions ``(F, n, 3)`` as a NumPy array."""
+    return x.detach().cpu().numpy()

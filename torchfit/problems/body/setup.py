@@ -1,0 +1,98 @@
+"""A rigged body's set-up as a person follows it: the rig checked first, every step on the console.
+
+:class:`~.rigged_body.RiggedBody` builds in steps (reading the animation, checking the rig,
+tetrahedralising, embedding, attaching the rig, the first simulation); each logs what it
+does, its counts and its time (:mod:`torchfit.steps`, logger ``torchfit.setup``), so the
+console shows the tet count, the number of driven vertices and where the tet cache is
+before the first iteration. The rig check (:mod:`torchfit.mesh.rig_check`) runs before
+anything is built or cached: a refused rig costs a second and writes nothing.
+"""
+from __future__ import annotations
+
+import contextlib
+import time
+from pathlib import Path
+from typing import Any, Iterator
+
+from ...mesh import MeshError
+from ...mesh.formats.folder import Animation, AnimationError
+from ...mesh.rig_check import RigReport, check_animation
+from ...mesh.tetwild.store import kept_mesh
+from ...mesh.tetwild.tetrahedralize import TetMesh, TetOptions, default_cache_dir
+from ...physics.equilibrium.newton import newton_progress
+from ...steps import count, step
+from .frame import tetrahedralize_in_frame
+from ..config import ProblemConfigError
+
+#: seconds between two progress lines of the first simulation (at most one per iteration)
+FIRST_SIMULATION_BEAT_S = 5.0
+
+
+def animation_summary(animation: Animation) -> str:
+    """``2,466 surface vertices, 48 frames, a skeleton of 2 bones (weights given)``."""
+    text = (f"{count(animation.n_vertices)} surface vertices, {count(animation.n_frames)} "
+            "frames, ")
+    skeleton = animation.skeleton
+    if skeleton is not None:
+        weights = "weights given" if skeleton.weights is not None else "weights from distance"
+        return text + f"a skeleton of {skeleton.n_bones} bones ({weights})"
+    return text + f"{count(animation.driven.mask.sum())} driven surface vertices"
+
+
+def check_rig(cfg: Any, animation: Animation) -> RigReport | None:
+    """The rig against the frames (``problem.rig_check``, ``problem.rig_tolerance``);
+    a failure is a :class:`ProblemConfigError` naming the frames, bones and likely cause."""
+    if not cfg.rig_check:
+        return None
+    with step("checking the rig against the frames") as progress:
+        try:
+            report = check_animation(animation, cfg.rig_tolerance)
+        except AnimationError as err:
+            raise ProblemConfigError(f"{err} (problem.rig_check=false fits it anyway; "
+                                     "problem.rig_tolerance sets the tolerance)") from err
+        progress.result = report.line().removeprefix("rig check: ")
+    return report
+
+
+@contextlib.contextmanager
+def first_simulation(n_frames: int, n_tets: int, model: str) -> Iterator[None]:
+    """Progress of a problem's first simulation: a start line, Newton's iterations and
+    converged frames every ``FIRST_SIMULATION_BEAT_S`` seconds, the time at the end."""
+    with step(f"first simulation of {count(n_frames)} frames ({count(n_tets)} tetrahedra, "
+              f"{model})") as progress:
+        last = [time.perf_counter()]
+
+        def report(iteration: int, converged: int, frames: int) -> None:
+            if time.perf_counter() - last[0] >= FIRST_SIMULATION_BEAT_S:
+                last[0] = time.perf_counter()
+                progress.beat(f"Newton iteration {iteration}, {converged} of {frames} frames "
+                              "converged")
+
+        with newton_progress(report):
+            yield
+        progress.result = f"{count(n_frames)} frames in equilibrium"
+
+
+def tet_options(cfg: Any) -> TetOptions:
+    """The tetrahedralisation options of the ``tet_*`` settings."""
+    return TetOptions(edge_length_fac=cfg.tet_edge_length, epsilon=cfg.tet_epsilon,
+                      stop_energy=cfg.tet_stop_energy, optimize=cfg.tet_optimize,
+                      count=cfg.tet_count)
+
+
+def tet_mesh(cfg: Any, animation: Animation, motion: Any = None) -> TetMesh:
+    """The rest surface tetrahedralised with the ``tet_*`` settings (``tet_count``: a
+    target count, :mod:`torchfit.mesh.tetwild.size`) in the body's principal frame
+    (:func:`.body_frame.tetrahedralize_in_frame`; ``motion`` ``(F, V, 3)`` settles a round
+    body's frame), cached in ``cache_dir``; a run's own mesh registered for this surface
+    (:mod:`torchfit.mesh.tetwild.store`) comes first."""
+    options = tet_options(cfg)
+    cache = Path(cfg.cache_dir).expanduser() / "tetmesh" if cfg.cache_dir else \
+        default_cache_dir()
+    try:
+        kept = kept_mesh(animation.rest_vertices, animation.faces, options)
+        # the surface's warnings were given once, with the animation's name
+        return kept if kept is not None else tetrahedralize_in_frame(
+            animation.rest_vertices, animation.faces, motion, options, cache)
+    except MeshError as err:
+        raise ProblemConfigError(f"{animation.path}: {err}") from err
