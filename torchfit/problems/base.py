@@ -162,7 +162,15 @@ class BodyProblem(Protocol):
     mesh: Any
     full_bend_frame: int
     tet_regions: Any
+    region_names: list[str]
+    observed_vertices: Tensor
     writes_animation: bool
+    #: what the joint region's volume change is called (``elbow`` on the arm)
+    joint_label: str
+    #: the pictures' camera, ``(right, up, depth)`` unit axes ``(3, 3)``, or ``None``
+    view_axes: Any
+    #: where the documentation explains a fold of this body (``None``: nowhere)
+    fold_docs: str | None
 
     def surface(self, x: Tensor) -> Tensor:
         ...
@@ -189,6 +197,39 @@ class BodyProblem(Protocol):
         ...
 
     def region_summary(self, field: Tensor) -> dict[str, Any]:
+        ...
+
+    def keep_mesh(self, run_dir: Any) -> Any:
+        ...
+
+
+@runtime_checkable
+class PosedProblem(Protocol):
+    """A problem whose frames are independent poses (a quasistatic rigged body): what a
+    distributed run needs to split them over ranks.
+
+    ``simulated_poses()`` the frames simulated (each distinct pose once: an index ``(P,)``,
+    or every frame); ``repeated_poses`` ``(first frames (P,), pose of each frame (F,))`` or
+    ``None``; ``pose_jacobian(theta)`` ``(P, rows, n_params)`` of the simulated poses;
+    ``plug(simulation, jacobian)`` the seam the run plugs its split into (the problem's
+    pose simulation, and where its ``forward_jacobian`` comes from); ``quasistatic`` the
+    pose simulation in use; ``input_digests()`` what every rank must share.
+    """
+
+    n_frames: int
+    repeated_poses: Any
+    quasistatic: Any
+
+    def simulated_poses(self) -> Any:
+        ...
+
+    def pose_jacobian(self, theta: Tensor) -> Tensor:
+        ...
+
+    def plug(self, simulation: Any, jacobian: Any = None) -> None:
+        ...
+
+    def input_digests(self) -> dict[str, str]:
         ...
 
 

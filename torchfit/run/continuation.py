@@ -106,7 +106,7 @@ def continuation_applies(problem: InverseProblem) -> bool:
     """Whether ``continuation=auto`` considers the continuation: a body fitted to an
     animation whose targets are simulated with its own model (it has a true field). Whether
     a frame is near a fold at the start is :func:`fit_continued`'s check."""
-    return isinstance(problem, BodyProblem) and getattr(problem, "field_true", None) is not None
+    return isinstance(problem, BodyProblem) and problem.field_true is not None
 
 
 def frames_near_fold(problem: InverseProblem, theta: Tensor, min_volume: float) -> list[int]:

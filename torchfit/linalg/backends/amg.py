@@ -2,7 +2,7 @@
 
 For large 3-D bodies a direct factorisation's fill grows faster than the cost of an
 algebraic-multigrid preconditioned CG (``docs/linalg/amg.md`` has the measured
-crossover). This backend keeps the :class:`~.backends.Factor` contract:
+crossover). This backend keeps the :class:`~.choice.Factor` contract:
 
 * **"factorisation"** (counted as one in :mod:`.counters`): pyamg's smoothed-aggregation
   hierarchy of the matrix (``smoothed_aggregation_solver`` with :data:`HIERARCHY`'s

@@ -59,7 +59,7 @@ def get_backend(name: str | Backend) -> Backend:
     """``'scipy'``, ``'banded'``, ``'ldl'``, ``'pardiso'``, ``'amg'``, ``'cudss'`` or ``'cg'``
     (or an object with ``factorize``).
 
-    ``'pardiso'`` without its extra raises :class:`~.pardiso.PardisoUnavailableError`,
+    ``'pardiso'`` without its extra raises :class:`~.pardiso_mkl.PardisoUnavailableError`,
     ``'cudss'`` without CUDA or ``torchfit[cuda]`` :class:`~.cudss.CudssUnavailableError`.
     """
     if not isinstance(name, str):

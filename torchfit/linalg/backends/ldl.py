@@ -130,7 +130,7 @@ _LDL_PLANS: "weakref.WeakKeyDictionary[SparsePattern, _LdlPlan]" = weakref.WeakK
 class LdlBackend:
     """Sparse ``L D L^T`` (qdldl) for SPD matrices; the rest goes to ``fallback`` (the
     pivoting SuperLU of the ``scipy`` backend, handed in by
-    :func:`~.backends.get_backend`). ``fallbacks`` counts the factorisations handed over.
+    :func:`~.choice.get_backend`). ``fallbacks`` counts the factorisations handed over.
     """
 
     fallback: Any

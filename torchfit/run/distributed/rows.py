@@ -76,7 +76,7 @@ def local_product(code: int, rows: Tensor, operand: Tensor | None,
 class DistributedRows:
     """Rank 0's handle of a Jacobian ``(m, n)`` whose rows stay on the ranks (module
     docstring). ``exchange(code, ident, operand)`` runs a product on every rank and returns
-    the reduced result on rank 0 (:meth:`.distributed.FrameSplit.row_product`)."""
+    the reduced result on rank 0 (:meth:`.ranks.FrameSplit.row_product`)."""
 
     def __init__(self, ident: int, shape: tuple[int, int], dtype: torch.dtype,
                  device: torch.device, exchange: Callable[[int, int, Tensor | None], Tensor]

@@ -83,7 +83,7 @@ class SplitBregman(Solver):
     ``lin``, ``norm``, ``Dtheta``, ``d``, ``b``, ``mu``, ``beta``, ``stage``), the stage's
     bookkeeping (``stage_iteration``, ``best``, ``spectral``, ``objectives``, ``misfits``,
     ``rejections``), the search over stages (``search``, a
-    :class:`~.split_bregman_stages.StageSearch`) and what the last record left to decide
+    :class:`~.stages.StageSearch`) and what the last record left to decide
     (``pending``, ``last``).
     """
 
