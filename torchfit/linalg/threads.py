@@ -14,7 +14,7 @@ threads are not recreated between MKL and non-MKL regions), and MKL then runs ev
 vector function (``torch.sqrt`` of 384 doubles goes to MKL's VML) on every thread: on a
 loaded machine that took 24-32 ms instead of 2 us. :func:`set_threads` switches it back on
 in torch's own MKL (``MKL_Set_Dynamic(1)``), so MKL picks fewer threads for small calls;
-figures in ``docs/linalg/threads.md`` (``scripts/bench_threads.py``).
+figures in ``docs/linalg/threads.md`` (``scripts/bench/threads.py``).
 """
 from __future__ import annotations
 

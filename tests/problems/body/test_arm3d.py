@@ -1,7 +1,7 @@
 """problem=arm3d (PROBLEMS.md): the procedural arm through the animation path.
 
 Fast tests use a coarse arm (about 1-2k tetrahedra) and a few frames; the acceptance runs of
-the issue at full size are in scripts/bench_arm3d.py and the README's figures.
+the issue at full size are in scripts/bench/arm3d.py and the README's figures.
 """
 from __future__ import annotations
 

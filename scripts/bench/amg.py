@@ -3,7 +3,7 @@
 
 Matrices: the linear-elastic stiffness (``nu = 0.3``, log-normal Young's modulus per
 tetrahedron) of ``box_tetrahedra(n, n, 3.2 n)``-like boxes with the ``z = 0`` face fixed,
-as ``SimplicialElasticity`` assembles it (``bench_factorization.tet3d``), e.g. ``7x7x17``
+as ``SimplicialElasticity`` assembles it (``factorization.tet3d``), e.g. ``7x7x17``
 (4,998 tets), ``13x13x40`` (40,560), ``18x18x52`` (101,088), ``25x25x80`` (300,000).
 
 For every box and backend (``pardiso``: MKL PARDISO, analysis + numeric factorisation;
@@ -21,7 +21,7 @@ more solve: the adjoint) and ``jacobian_192`` (factorisation + 192 columns at th
 block's per-column time: the arm's dense Jacobian per frame). Prints a table and JSON
 (and writes ``--out``).
 
-    python scripts/bench_amg.py --boxes 7x7x17 13x13x40 18x18x52 25x25x80 --out amg.json
+    python scripts/bench/amg.py --boxes 7x7x17 13x13x40 18x18x52 25x25x80 --out amg.json
 """
 from __future__ import annotations
 
@@ -35,12 +35,12 @@ from typing import Any
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-for path in (ROOT, ROOT / "scripts"):
+ROOT = Path(__file__).resolve().parents[2]
+for path in (ROOT, ROOT / "scripts" / "bench"):
     if str(path) not in sys.path:
         sys.path.insert(0, str(path))
 
-from bench_factorization import tet3d  # noqa: E402
+from factorization import tet3d  # noqa: E402
 from benchtools import emit_report, machine_info  # noqa: E402
 from torchfit.linalg import counting, get_backend  # noqa: E402
 from torchfit.mesh import box_tetrahedra  # noqa: E402

@@ -15,7 +15,7 @@ and ``k_err_rel_aligned`` of every iteration, and reports
   earlier machine), the time at which torchfit reached it and the ratio to the reference
   time (the acceptance asks for at most 0.5);
 * ``in_run_reference`` / ``in_run_target``: the same comparison against
-  ``scripts/scipy_reference.py`` (an independent numpy/scipy Gauss-Newton and split
+  ``scripts/bench/scipy_reference.py`` (an independent numpy/scipy Gauss-Newton and split
   Bregman with explicit adjoints and SuperLU) timed in this run on this machine: its final
   accuracy, the time it first reached it, and when torchfit reached that accuracy;
   ``in_run_at_issue_accuracy``: both timed in this run to the issue's accuracy
@@ -26,8 +26,8 @@ Wall time includes everything :func:`torchfit.fit` does after the problem is bui
 subtracted (it is not part of the solve). Prints JSON and writes a PNG of accuracy against
 time (``--png``). Example::
 
-    .venv/bin/python scripts/bench_time_to_accuracy.py --out t2a.json --png t2a.png
-    .venv/bin/python scripts/bench_time_to_accuracy.py --cases gn_dense sb_dense_noisy
+    .venv/bin/python scripts/bench/time_to_accuracy.py --out t2a.json --png t2a.png
+    .venv/bin/python scripts/bench/time_to_accuracy.py --cases gn_dense sb_dense_noisy
 """
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
@@ -52,7 +52,7 @@ from torchfit.problems import build_problem  # noqa: E402
 ACCURACY_METRIC, FALLBACK_METRIC = "k_err_rel_aligned", "k_err_rel"
 ACCURACIES = [1e-1, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7]
 
-# name -> the case of scripts/scipy_reference.py timed in the same run (and its settings):
+# name -> the case of scripts/bench/scipy_reference.py timed in the same run (and its settings):
 # the plain numpy/scipy Gauss-Newton with a CGLS cap of 1000 (with the cap of 200 it stops
 # at 3.3e-6 after 50 iterations; 1000 reaches the issue's 6.1e-7), split Bregman as is
 IN_RUN_REFERENCE: dict[str, tuple[str, dict[str, Any]]] = {
@@ -203,7 +203,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--png", type=Path, default=None)
     parser.add_argument("--no-reference", action="store_true",
-                        help="skip scripts/scipy_reference.py (the in-run reference)")
+                        help="skip scripts/bench/scipy_reference.py (the in-run reference)")
     args = parser.parse_args(argv)
     set_threads(args.threads)
     report: dict[str, Any] = {"benchmark": "time_to_accuracy", "machine": machine_info(),

@@ -1,4 +1,4 @@
-"""The cost model of scripts/bench_scale.py: one LM iteration from per-frame figures.
+"""The cost model of scripts/bench/scale.py: one LM iteration from per-frame figures.
 
 Pure functions (no torch, no simulation): fit power laws to per-frame costs measured at a
 few mesh sizes, then predict one Levenberg-Marquardt iteration of ``F`` frames of ``N``

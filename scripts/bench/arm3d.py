@@ -18,8 +18,8 @@ solves (:func:`torchfit.linalg.counting`):
 Timings are wall clock on the machine at hand (run with ``--threads`` equal to its cores);
 counts are exact. Prints JSON and writes it to ``--out``. Example::
 
-    .venv/bin/python scripts/bench_arm3d.py --out bench_arm3d.json
-    .venv/bin/python scripts/bench_arm3d.py --edge-lengths 0.06 --frames 6 --models linear
+    .venv/bin/python scripts/bench/arm3d.py --out bench_arm3d.json
+    .venv/bin/python scripts/bench/arm3d.py --edge-lengths 0.06 --frames 6 --models linear
 """
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from benchtools import emit_report, machine_info, timed  # noqa: E402
 

@@ -1,6 +1,6 @@
 """Benchmark the two dynamics integrators at the same trajectory accuracy (JSON report).
 
-    .venv/bin/python scripts/bench_dynamics.py --out bench_dynamics.json [--quick]
+    .venv/bin/python scripts/bench/dynamics.py --out bench_dynamics.json [--quick]
 
 For each problem (``spring1d`` dynamic: 64 springs over 6 s; ``membrane2d`` dynamic: the
 48 x 12 corotated sheet over 1.2 s) a reference trajectory is integrated with BDF2 at a
@@ -34,11 +34,11 @@ from typing import Any
 import torch
 import torch.autograd.forward_ad as fwAD
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from scripts.benchtools import emit_report, machine_info  # noqa: E402
+from benchtools import emit_report, machine_info  # noqa: E402
 from torchfit.linalg import counting  # noqa: E402
 from torchfit.physics.dynamics import make_integrator  # noqa: E402
 from torchfit.problems import build_problem  # noqa: E402

@@ -36,10 +36,10 @@ accuracy metric for the trace is measured and subtracted.
 
 Usage::
 
-    .venv/bin/python scripts/scipy_reference.py --selftest
-    .venv/bin/python scripts/scipy_reference.py --case gn_dense
-    .venv/bin/python scripts/scipy_reference.py --case sb_dense_noisy
-    .venv/bin/python scripts/scipy_reference.py --case sb_sparse
+    .venv/bin/python scripts/bench/scipy_reference.py --selftest
+    .venv/bin/python scripts/bench/scipy_reference.py --case gn_dense
+    .venv/bin/python scripts/bench/scipy_reference.py --case sb_dense_noisy
+    .venv/bin/python scripts/bench/scipy_reference.py --case sb_sparse
 """
 from __future__ import annotations
 
@@ -495,7 +495,7 @@ def split_bregman(case: Case, lam_rel: float = 5e-5, noise_factor: float = 1.0,
 # self-test and CLI
 
 
-VECTORS = Path(__file__).resolve().parents[1] / "tests" / "data" / "vectors"
+VECTORS = Path(__file__).resolve().parents[2] / "tests" / "data" / "vectors"
 
 
 def selftest(vectors: Path = VECTORS) -> dict:

@@ -1,6 +1,6 @@
-"""Smoke tests of the benchmark scripts: tiny sizes, run as a user runs them (subprocess).
+"""Smoke test of scripts/bench/spring1d.py: tiny sizes, run as a user runs it (subprocess).
 
-They check the JSON layout and the cost model the benchmarks report, which holds at any
+It checks the JSON layout and the cost model the benchmarks report, which holds at any
 size: backward and ``J v`` reuse the forward's factorisation (0 new ones, 1 solve each);
 one Gauss-Newton step with ``m`` CGLS iterations makes one factorisation per new
 parameter vector it evaluates and at most ``2m + 1 + t`` solves (``t`` trial points of
@@ -9,40 +9,16 @@ asserted (the machine may be busy).
 """
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
-from pathlib import Path
-
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
-
-
-def run_script(out: Path, name: str, *args: str, timeout: float = 120) -> dict:
-    # One thread: stable timings when the (2-core) machine is shared with other jobs.
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
-           "MKL_NUM_THREADS": "1"}
-    proc = subprocess.run([sys.executable, f"scripts/{name}.py", *args, "--out", str(out)],
-                          cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout)
-    assert proc.returncode == 0, f"stdout:\n{proc.stdout[-3000:]}\nstderr:\n{proc.stderr[-3000:]}"
-    report = json.loads(proc.stdout)
-    assert json.loads(out.read_text()) == report, "--out must hold the printed JSON"
-    return report
+from helpers.bench_scripts import run_bench_script
 
 
 @pytest.fixture(scope="module")
 def spring1d_report(tmp_path_factory) -> dict:
-    return run_script(tmp_path_factory.mktemp("bench") / "spring1d.json", "bench_spring1d",
-                      "--sizes", "100", "1000", "--repeats", "2", "--gn-repeats", "1",
-                      "--threads", "1")
-
-
-@pytest.fixture(scope="module")
-def factorization_report(tmp_path_factory) -> dict:
-    return run_script(tmp_path_factory.mktemp("bench") / "factorization.json",
-                      "bench_factorization", "--quick", "--threads", "1")
+    return run_bench_script("spring1d", tmp_path_factory.mktemp("bench") / "spring1d.json",
+                            "--sizes", "100", "1000", "--repeats", "2", "--gn-repeats", "1",
+                            "--threads", "1")
 
 
 def test_spring1d_layout(spring1d_report):
@@ -112,40 +88,3 @@ def test_spring1d_gn_step_cost(spring1d_report):
         assert near["counts"]["solves"] <= 2 * near["cg_iterations_m"] + 2
         assert all(res["count_checks"].values()), res["count_checks"]
     assert spring1d_report["acceptance"]["all_count_checks_pass_at_every_size"]
-
-
-def test_factorization_layout(factorization_report):
-    report = factorization_report
-    assert report["benchmark"] == "factorization"
-    assert {"torch", "torch_num_threads", "cpu_count"} <= set(report["machine"])
-    choice = report["torchfit_choice"]
-    assert set(report["matrices"]) == {"chain1d_n1000", "grid2d_N16", "tet3d_2x2x4"}
-    for name, mat in report["matrices"].items():
-        methods = mat["methods"]
-        for label in ("superlu_colamd_default", choice, "superlu_natural",
-                      "torchfit_ScipyBackend", "dense_scipy_cho_factor"):
-            entry = methods[label]
-            assert "error" not in entry, (name, label, entry)
-            assert entry["factor"]["median_s"] > 0
-            for c in (1, 2):
-                assert entry[f"solve_{c}rhs"]["median_s"] > 0
-            assert entry["fill_nnz"] >= mat["n"]
-            assert entry["backward_error"] < 1e-12, (name, label)
-        assert "factor_and_solve_1rhs" in methods["scipy_spsolve"]
-        cg = methods["torchfit_CGBackend"]
-        assert cg["solve_1rhs"]["converged"] and cg["solve_1rhs"]["iterations"] > 0
-        for label in ("cholmod_scikit_sparse", "pypardiso", "torch_sparse_spsolve",
-                      "torchfit_PardisoBackend"):
-            assert label in methods
-            assert "unavailable" in methods[label] or "error" not in methods[label]
-        pardiso = methods["torchfit_PardisoBackend"]
-        if "unavailable" not in pardiso:
-            assert pardiso["analyses"] == 1 and pardiso["backward_error"] < 1e-12
-            assert pardiso["analysis_plus_factor"]["median_s"] > 0
-        # Symmetric mode never fills more than the default COLAMD LU.
-        assert methods[choice]["fill_nnz"] <= methods["superlu_colamd_default"]["fill_nnz"]
-        assert methods["torchfit_ScipyBackend"]["fill_nnz"] == methods[choice]["fill_nnz"]
-        for key in ("best_by_factor_s", "best_by_factor_plus_1_solve_s",
-                    "best_by_factor_plus_10_solves_s"):
-            assert mat[key]["fastest"] in methods
-    assert "lapack_pttrf_tridiagonal" in report["matrices"]["chain1d_n1000"]["methods"]

@@ -8,7 +8,7 @@ solves and wall seconds; then the mean of accepted and rejected iterations, as J
 (``--out``). ``--problem arm3d`` (or ``arm3d_short``) fits the arm instead (its own frames and
 mesh settings).
 
-    python scripts/trial_cost.py --out /tmp/trial_cost.json
+    python scripts/bench/trial_cost.py --out /tmp/trial_cost.json
 """
 from __future__ import annotations
 

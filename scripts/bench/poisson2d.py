@@ -25,8 +25,8 @@ iterations, wall time and aligned error.
 Timings are wall clock; on a shared machine use ``--threads 1`` and read ``loadavg_*``.
 Prints JSON to stdout (and writes it to ``--out``). Example::
 
-    .venv/bin/python scripts/bench_poisson2d.py --threads 1 --out bench_poisson2d.json
-    .venv/bin/python scripts/bench_poisson2d.py --sizes 8 12 --gn-sizes 8 12 --repeats 2
+    .venv/bin/python scripts/bench/poisson2d.py --threads 1 --out bench_poisson2d.json
+    .venv/bin/python scripts/bench/poisson2d.py --sizes 8 12 --gn-sizes 8 12 --repeats 2
 """
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ from typing import Any
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 

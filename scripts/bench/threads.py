@@ -18,7 +18,7 @@ whole projected stable neo-Hookean tangent of a tet box of about 4,860 tetrahedr
 Each configuration is measured on an idle machine and under load: ``--load`` busy
 processes (default: one per core) spinning beside it. Prints JSON (``--out`` writes it).
 
-    python scripts/bench_threads.py --out /tmp/threads.json
+    python scripts/bench/threads.py --out /tmp/threads.json
 """
 from __future__ import annotations
 

@@ -26,8 +26,8 @@ Counts are exact; timings are wall clock, so on a shared machine run with
 ``--threads 1`` (torch's OpenMP threads stall when a core is taken by another job).
 Prints JSON to stdout (and writes it to ``--out``). Example::
 
-    .venv/bin/python scripts/bench_spring1d.py --out bench_spring1d.json
-    .venv/bin/python scripts/bench_spring1d.py --sizes 100 1000 --repeats 2
+    .venv/bin/python scripts/bench/spring1d.py --out bench_spring1d.json
+    .venv/bin/python scripts/bench/spring1d.py --sizes 100 1000 --repeats 2
 """
 from __future__ import annotations
 
@@ -45,7 +45,7 @@ from typing import Any, Callable
 import scipy.sparse.linalg as spla
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 

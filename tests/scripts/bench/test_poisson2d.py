@@ -1,4 +1,4 @@
-"""Smoke test of scripts/bench_poisson2d.py (tiny grids, run as a user runs it).
+"""Smoke test of scripts/bench/poisson2d.py (tiny grids, run as a user runs it).
 
 Checks the JSON layout and the cost model, which holds at any size: the forward makes
 one factorisation (both components share it), backward, ``J v`` and ``J^T w`` reuse it
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +24,7 @@ def report(tmp_path_factory) -> dict:
     out = tmp_path_factory.mktemp("bench") / "poisson2d.json"
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
            "MKL_NUM_THREADS": "1"}
-    proc = subprocess.run([sys.executable, "scripts/bench_poisson2d.py", "--sizes", "6", "10",
+    proc = subprocess.run([sys.executable, "scripts/bench/poisson2d.py", "--sizes", "6", "10",
                            "--gn-sizes", "8", "12", "--repeats", "2", "--threads", "1",
                            "--out", str(out)], cwd=REPO, env=env, capture_output=True,
                           text=True, timeout=300)

@@ -1,4 +1,4 @@
-"""Smoke test of scripts/bench_membrane2d.py (tiny sizes, as a user runs it)."""
+"""Smoke test of scripts/bench/membrane2d.py (tiny sizes, as a user runs it)."""
 from __future__ import annotations
 
 import json
@@ -7,14 +7,14 @@ import subprocess
 import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 
 
 def test_membrane2d_benchmark_layout(tmp_path):
     out = tmp_path / "membrane2d.json"
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
            "MKL_NUM_THREADS": "1"}
-    proc = subprocess.run([sys.executable, "scripts/bench_membrane2d.py", "--sizes", "8x2",
+    proc = subprocess.run([sys.executable, "scripts/bench/membrane2d.py", "--sizes", "8x2",
                            "16x4", "--repeats", "1", "--models", "linear", "corotated",
                            "--threads", "1", "--out", str(out)], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=300)

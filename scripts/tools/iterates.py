@@ -1,8 +1,8 @@
 """Record and compare the iterates of a fixed set of fits: the bit-for-bit check of a refactor.
 
-    .venv/bin/python scripts/iterates.py record before.json     # on the old tree
-    .venv/bin/python scripts/iterates.py record after.json      # on the new tree
-    .venv/bin/python scripts/iterates.py compare before.json after.json
+    .venv/bin/python scripts/tools/iterates.py record before.json     # on the old tree
+    .venv/bin/python scripts/tools/iterates.py record after.json      # on the new tree
+    .venv/bin/python scripts/tools/iterates.py compare before.json after.json
 
 Each run goes through the command line (``experiments/fit.py``), so the record does not
 depend on the package's internal layout. A record holds, per run, the fitted parameters as
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 # name -> overrides; chosen before the refactor of 2026-11-26 (issue 26) and kept fixed.
 RUNS: dict[str, list[str]] = {

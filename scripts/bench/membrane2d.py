@@ -21,8 +21,8 @@ solves counted exactly):
 Prints JSON (and writes it to ``--out``). Timings are wall clock on a possibly shared
 machine: run with ``--threads 1``. Example::
 
-    .venv/bin/python scripts/bench_membrane2d.py --threads 1 --out bench_membrane2d.json
-    .venv/bin/python scripts/bench_membrane2d.py --quick
+    .venv/bin/python scripts/bench/membrane2d.py --threads 1 --out bench_membrane2d.json
+    .venv/bin/python scripts/bench/membrane2d.py --quick
 """
 from __future__ import annotations
 
@@ -36,8 +36,8 @@ from typing import Any, Callable
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-for path in (ROOT, ROOT / "scripts"):
+ROOT = Path(__file__).resolve().parents[2]
+for path in (ROOT, ROOT / "scripts" / "bench"):
     if str(path) not in sys.path:
         sys.path.insert(0, str(path))
 

@@ -28,14 +28,14 @@ sums ``J^T J`` (run/distributed/rows.py). Each figure carries ``n_simulated_fram
 every frame split over the ranks, ``J`` gathered on rank 0. ``--frames label=0,4,8`` fits
 a subset of the frames at a size.
 
-Then the model (scripts/scale_model.py): per-frame costs fitted as power laws in the
+Then the model (scripts/tools/scale_model.py): per-frame costs fitted as power laws in the
 tetrahedron count, checked against the measured LM iterations (1 and 2 processes), and its
 prediction for ``--target-tets`` x ``--target-frames`` on ``--target-ranks`` at
 ``--bandwidths-gbit``. JSON to stdout and ``--out``; the table to stderr.
 
-    .venv/bin/python scripts/bench_scale.py --out /work/scratch/scale.json \
+    .venv/bin/python scripts/bench/scale.py --out /work/scratch/scale.json \
         --cache-dir /work/scratch/scale-cache
-    .venv/bin/python scripts/bench_scale.py --model-only /work/scratch/scale.json
+    .venv/bin/python scripts/bench/scale.py --model-only /work/scratch/scale.json
 """
 from __future__ import annotations
 
@@ -52,8 +52,9 @@ from pathlib import Path
 from typing import Any
 
 HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
+REPO = HERE.parents[1]
 sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(REPO / "scripts" / "tools"))
 sys.path.insert(0, str(REPO))
 
 import scale_model  # noqa: E402
@@ -214,7 +215,7 @@ def run_distributed(job: dict[str, Any]) -> dict[str, Any] | None:
     from torchfit.run import distributed
 
     set_threads(job["threads"])
-    distributed.start_group()
+    distributed.ranks.start_group()     # not re-exported by the package
     rank, size = dist.get_rank(), dist.get_world_size()
     probe = gather_bandwidth(torch, dist, rank, size)
     config = {"solver": {"name": "levenberg_marquardt", "dense_jacobian_max_params": 10 ** 6},
@@ -262,14 +263,14 @@ def run_job(job: dict[str, Any], n_ranks: int, python: str) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="bench-scale-") as tmp:
         job_path, out_path = Path(tmp) / "job.json", Path(tmp) / "out.json"
         job_path.write_text(json.dumps(job))
-        inner = [str(HERE / "bench_scale.py"), "--child", str(job_path), "--child-out",
+        inner = [str(HERE / "scale.py"), "--child", str(job_path), "--child-out",
                  str(out_path)]
         if n_ranks == 1:
             command = [python, *inner]
         else:
             command = [python, "-m", "torch.distributed.run", "--standalone",
                        f"--nproc_per_node={n_ranks}", *inner]
-        wrapper = [python, str(HERE / "bench_scale.py"), "--rss-of", *command]
+        wrapper = [python, str(HERE / "scale.py"), "--rss-of", *command]
         start = time.perf_counter()
         proc = subprocess.run(wrapper, cwd=REPO, capture_output=True, text=True)
         wall = time.perf_counter() - start

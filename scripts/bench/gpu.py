@@ -29,8 +29,8 @@ CPU; ``torch.cuda.max_memory_allocated`` per row on CUDA. Timings are wall clock
 
 Examples::
 
-    .venv/bin/python scripts/bench_gpu.py --tet-sizes 10 20 40 --setup-only --threads 1
-    .venv/bin/python scripts/bench_gpu.py --devices cuda --tet-sizes 60 --material corotated
+    .venv/bin/python scripts/bench/gpu.py --tet-sizes 10 20 40 --setup-only --threads 1
+    .venv/bin/python scripts/bench/gpu.py --devices cuda --tet-sizes 60 --material corotated
 """
 from __future__ import annotations
 
@@ -45,7 +45,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 try:        # a torchfit on PYTHONPATH (another checkout: before/after figures) is used as is
     import torchfit  # noqa: F401
 except ImportError:

@@ -23,7 +23,7 @@ pardiso). Prints a table and JSON (``--out``).
 torch-fem as a ``Hyperelastic3D`` energy function (stress and tangent by its autograd),
 both Newton solves to ``rtol = 1e-10``, ``atol = 1e-12``.
 
-    python scripts/compare_torch_fem.py --boxes 7x7x17 13x13x40 25x25x80 \\
+    python scripts/bench/compare_torch_fem.py --boxes 7x7x17 13x13x40 25x25x80 \\
         --torch-fem-python /work/tfem-venv/bin/python --out compare.json
 """
 from __future__ import annotations
@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 MOVE = np.array([0.02, 0.01, -0.03])     # top-face displacement per unit height
 
@@ -206,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
         torch_fem_worker(*args.torch_fem_worker, args.repeats)
         return 0
 
-    sys.path[:0] = [str(ROOT), str(ROOT / "scripts")]
+    sys.path[:0] = [str(ROOT), str(ROOT / "scripts" / "bench")]
     from benchtools import machine_info
 
     report: dict[str, Any] = {"machine": machine_info(), "material": args.material, "boxes": {}}
