@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Scale benchmark: the arm at several mesh sizes on 1 and 2 processes, and a cost model.
 
-Issue 30, item 5 (docs/run/scale.md). For every size (``--sizes label:edge:epsilon``:
+Issue 30, item 5 (docs/notes/scale.md). For every size (``--sizes label:edge:epsilon``:
 pytetwild's edge length and envelope, fractions of the bounding-box diagonal; the arm's
 count follows the envelope more than the edge) and every process count (``--ranks``), a
 fresh process (a ``torchrun --standalone --nproc_per_node=R`` job for ``R > 1``) builds
@@ -530,7 +530,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="fit the laws to these sizes' one-process runs only (the same "
                              "frames at every size; default: every one-process run)")
     parser.add_argument("--markdown", action="store_true",
-                        help="print the tables as Markdown to stderr (for docs/run/scale.md)")
+                        help="print the tables as Markdown to stderr (for docs/notes/scale.md)")
     parser.add_argument("--merge", type=Path, nargs="*", default=[],
                         help="with --model-only: add the cases of these earlier --out files")
     parser.add_argument("--out", type=Path, default=None)

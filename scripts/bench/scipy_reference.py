@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Independent numpy/scipy reference for the poisson2d fits of issue 13 (no torch).
 
-A plain implementation of PROBLEMS.md (the shared problem contract), "poisson2d", and of the
+A plain implementation of the problem definition of "poisson2d" (docs/problems.md), and of the
 two solvers the issue compares torchfit against:
 
 * :func:`gauss_newton`: Gauss-Newton on ``theta = log k``, inner CGLS on ``J d = -r``
@@ -13,7 +13,7 @@ two solvers the issue compares torchfit against:
 The forward model and the derivatives are explicit: with the edge-node incidence ``B``
 (one row ``e_q - e_p`` per grid edge ``pq``), the edge-cell averaging matrix ``E`` and
 edge weights ``w = E k``, the full graph Laplacian is ``L(w) = B^T diag(w) B`` and the
-scheme of PROBLEMS.md is ``(L x)_p = 0`` at every free node ``p``. Splitting the nodes
+scheme of docs/problems.md is ``(L x)_p = 0`` at every free node ``p``. Splitting the nodes
 into free ``f`` and Dirichlet ``d`` ones, ``A = L_ff`` (SPD) and
 
     A(k) x_f = -L_fd(k) x_d        (two right-hand sides, one per component).
@@ -499,8 +499,9 @@ VECTORS = Path(__file__).resolve().parents[2] / "tests" / "data" / "vectors"
 
 
 def selftest(vectors: Path = VECTORS) -> dict:
-    """Forward model against the independent test vector (the repository's vendored copy
-    of ``shared/vectors``); dot-product and Taylor tests, N = 16."""
+    """Forward model against the independent test vector (``tests/data/vectors``, from an
+    independent implementation of the problem definitions); dot-product and Taylor tests,
+    N = 16."""
     out = {}
     vec = np.load(Path(vectors) / "poisson2d_N16_blocks.npz")
     N = int(vec["N"])

@@ -2,7 +2,7 @@
 
 Pure functions (no torch, no simulation): fit power laws to per-frame costs measured at a
 few mesh sizes, then predict one Levenberg-Marquardt iteration of ``F`` frames of ``N``
-tetrahedra on ``R`` ranks (docs/run/scale.md states the formula)::
+tetrahedra on ``R`` ranks (docs/notes/scale.md states the formula)::
 
     T(N, F, R) = ceil(F_sim / R) * (c_trial(N) + n * c_col(N))     # every rank, in parallel
                + T_rank0                                           # serial on rank 0
