@@ -24,11 +24,12 @@ failing frames are skinned again under each alternative convention (``A`` transp
 transforms inverted, bone-local transforms ``A (x - head) + t``, translations scaled by a
 power of ten or an inch factor); the one that passes is named as the likely cause.
 
-Measured (2026-11-26, docs/mesh/rig_check.md): the arm's largest per-bone median is 0.2 % of
+Measured (2026-11-26, docs/notes/rig_check.md): the arm's largest per-bone median is 0.2 % of
 its diagonal; its transforms transposed give 4-60 % on every bent frame and the transposed
 variant gives back 0.2 %.
 
-Lengths in metres (the loader's). Nothing here solves anything (DESIGN.md, layer ``mesh``).
+Lengths in metres (the loader's). Nothing here solves anything (docs/architecture.md, layer
+``mesh``).
 """
 from __future__ import annotations
 

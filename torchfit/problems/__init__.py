@@ -1,4 +1,4 @@
-"""Canonical problems of PROBLEMS.md, one module each, and the registry used by the app."""
+"""Canonical problems of docs/problems.md, one module each, and the registry used by the app."""
 from __future__ import annotations
 
 import dataclasses

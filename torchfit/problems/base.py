@@ -1,7 +1,7 @@
 """The template every canonical problem follows: ``y = observe(simulate(map(theta)))``.
 
 A problem owns the mesh, the true field, the data (with seeded noise), the
-observation and the metrics of PROBLEMS.md. It contains no solver logic: solvers get
+observation and the metrics of docs/problems.md. It contains no solver logic: solvers get
 :meth:`InverseProblem.residual`, nothing else. Its settings are a
 :class:`~torchfit.problems.config.ProblemConfig`.
 
@@ -443,7 +443,7 @@ class InverseProblem:
         return self.parameterization.inverse(self.true_simulation_input())
 
     def metric_names(self) -> list[str]:
-        """Keys of PROBLEMS.md's metric table that :meth:`metrics` reports, in its order."""
+        """Keys of docs/problems.md's metric table that :meth:`metrics` reports, in its order."""
         names = ["misfit"]
         if self.x_true is not None:
             names += ["u_err_inf", "u_err_2"]
@@ -454,7 +454,7 @@ class InverseProblem:
         return names
 
     def metrics(self, theta: Tensor, x: Tensor | None = None) -> dict[str, float]:
-        """The metrics of PROBLEMS.md at ``theta`` (state errors on every node and frame)."""
+        """The metrics of docs/problems.md at ``theta`` (state errors on every node and frame)."""
         with torch.no_grad():
             field = self.field(theta)
             if x is None:

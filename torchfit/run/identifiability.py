@@ -25,7 +25,7 @@ After the solver stops, :func:`identify` says which parameters the data determin
     point's RMS noise distance ``1.1 sqrt(3) delta / sqrt(m)`` over the diagonal). Any
     material then moves the body the same way; a Jacobian that is not flat there comes from
     the drive of the prescribed vertices, not from the data
-    (docs/run/identifiability.md).
+    (docs/notes/identifiability.md).
 
 Where the Jacobian comes from (``source``): the dense Jacobian the solver made at its last
 accepted point (Levenberg-Marquardt and Gauss-Newton on the dense path: no extra work); else

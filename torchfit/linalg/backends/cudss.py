@@ -36,7 +36,7 @@ cuDSS plans much faster with its multithreading layer: nvmath-python loads it fr
 ``CUDSS_THREADING_LIB`` (``.../nvidia/cu13/lib/libcudss_mtlayer_gomp.so.0``) when set.
 
 ``tests/linalg/test_cudss.py`` runs it where CUDA and nvmath are present; its error
-paths are tested everywhere. Its history and costs: ``docs/linalg/gpu.md``.
+paths are tested everywhere. Its history and costs: ``docs/notes/gpu.md``.
 """
 from __future__ import annotations
 

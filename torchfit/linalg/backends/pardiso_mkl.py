@@ -6,7 +6,7 @@ PARDISO comes with the optional extra ``torchfit[pardiso]`` (``pypardiso`` and t
 ``mkl`` wheels: x86-64 only, about 700 MB). The shared library is found the way
 pypardiso finds it (``PYPARDISO_MKL_RT``, ``ctypes.util.find_library``, the
 environment's ``lib``); the calls are made here, with settings of our own (why not
-pypardiso's own solver: ``docs/linalg/pardiso.md``).
+pypardiso's own solver: ``docs/notes/pardiso.md``).
 
 PARDISO's phases: 11 symbolic analysis (fill-reducing METIS ordering, symbolic
 factorisation), 22 numeric factorisation, 33 solve (forward/backward substitution),

@@ -4,7 +4,7 @@ Settings (:class:`~.config.RiggedBodyConfig`): ``bounds`` (``null``: on for
 ``target=rig``, off for ``target=synthetic``), ``E_min``, ``E_max`` and
 ``E_bounds_relative`` (``true``: ``E_min`` and ``E_max`` are factors of ``E0``; ``false``:
 moduli in the units of ``E0``). The defaults, ``[E0 / 100, 100 E0]`` for rig targets, and
-why: ``docs/problems/bounds.md``.
+why: ``docs/notes/bounds.md``.
 
 The solvers enforce them (:mod:`torchfit.solvers.bounds`): the run hands them
 :meth:`~.base.InverseProblem.theta_bounds`, the bounds on ``theta`` (``log E_min``,

@@ -1,7 +1,7 @@
 """The rigged body's parameter grid along its principal axes, and its ``blocks`` truth.
 
 The grid follows the body, not the world: a rotated body and its rotated animation get the
-same grid in body coordinates, so the same fit (docs/problems/axes.md).
+same grid in body coordinates, so the same fit (docs/notes/axes.md).
 
 **Frame** (:func:`.frame.principal_frame` of the tetrahedra): origin at their volume
 centroid, axes ``a0``, ``a1``, ``a2`` of increasing extent (the longest last, so

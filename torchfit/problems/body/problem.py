@@ -149,7 +149,8 @@ class RiggedBody(InverseProblem):
 
     def check_source(self, cfg: RiggedBodyConfig) -> None:
         require_setting(bool(cfg.path), cfg, "path", "must name the folder of your animation "
-                        "(holding animation.yaml; see README, 'Bring your own animation')")
+                        "(holding animation.yaml), a USD stage or a glTF file; see "
+                        "docs/guide/formats.md")
 
     def load(self, cfg: RiggedBodyConfig) -> Animation:
         """The animation (``problem=arm3d`` makes and writes its own first)."""
@@ -418,7 +419,7 @@ class RiggedBody(InverseProblem):
 
     def inverted_tets(self, x: Tensor) -> np.ndarray:
         """Tetrahedra turned inside out (signed volume <= 0) per frame ``(F,)``: such a
-        frame has several equilibria (docs/problems/arm3d.md, "Several equilibria")."""
+        frame has several equilibria (docs/notes/arm3d.md, "Several equilibria")."""
         return inverted_counts(_positions(x), self.mesh.cells)
 
     def min_volume_ratio(self, x: Tensor) -> np.ndarray:

@@ -21,7 +21,7 @@ from ...physics.elasticity import get_material
 #: a value within this relative distance of a bound is on it (region_summary's bounds)
 ON_BOUND_RTOL = 1e-6
 
-#: the body metrics (PROBLEMS.md) after the generic ones, in this order
+#: the body metrics (docs/problems.md) after the generic ones, in this order
 BODY_METRICS = ("surface_err_mean", "surface_err_max", "surface_err_reduction",
                 "joint_volume_change", "inverted_tets")
 

@@ -20,7 +20,7 @@ handle on which the dense path's products run on every rank (``J^T J`` and ``J^T
 summed in rank order on rank 0, ``J x`` gathered), so no rank holds more than its own
 frames' rows (the arm: 110 MB per rank of 2 instead of 220 MB gathered on rank 0). The
 iterates are those of one process to round-off (the partial sums; measured:
-docs/run/distributed.md), and bit-reproducible for a given number of processes. What
+docs/notes/distributed.md), and bit-reproducible for a given number of processes. What
 rank 0 alone runs (pictures, the model comparison's other materials) is unchanged and may
 simulate any time: a worker is idle until the next command. Counters of factorisations
 and solves of the other ranks are added to rank 0's (the result's totals are the whole
@@ -89,7 +89,7 @@ def partition(n_poses: int, n_ranks: int) -> list[list[int]]:
     Interleaved, not contiguous: neighbouring poses of an animation cost alike (the arm's
     folded poses near full bend lie together), so contiguous blocks gave rank 0 of 2 the
     arm's whole bend: 144 of the cold simulation's 185 Newton iterations at 10k tetrahedra
-    and 331 of 373 at 36k (docs/run/distributed.md)."""
+    and 331 of 373 at 36k (docs/notes/distributed.md)."""
     if n_ranks < 1 or n_poses < 0:
         raise ValueError(f"cannot split {n_poses} poses over {n_ranks} ranks")
     return [list(range(rank, n_poses, n_ranks)) for rank in range(n_ranks)]

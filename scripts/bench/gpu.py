@@ -1,0 +1,227 @@
+#!/usr/bin/env python
+"""The same problems on the CPU and (where present) CUDA: set-up, forward, backward, one
+Gauss-Newton step, counted factorisations and solves, peak memory (issue 14). JSON.
+
+Rows (``--devices``, default ``cpu`` plus ``cuda`` when torch sees a GPU; backend
+``auto`` unless ``--backend``: pardiso/scipy on the CPU, cudss on CUDA where installed,
+else cg):
+
+* ``tetbox``, for every ``n`` of ``--tet-sizes`` (a box of ``n x n x n`` cubes, 6
+  tetrahedra each, :func:`torchfit.mesh.box_tetrahedra`, bottom face fixed, top face
+  pulled; ``--material``, default ``linear``; ``--frames`` frames):
+
+  - ``setup``: the mesh, the model (rest shape + CSR pattern with its scatter index,
+    built on the device by :meth:`~torchfit.linalg.SparsePattern.from_dense_blocks`),
+    the equilibrium (Dirichlet sub-pattern and its slots); each timed;
+  - ``pattern_host_numpy_s`` (``--compare-host-pattern``): the same pattern built as
+    before issue 14 (``np.unique`` of every (row, col) contribution on the host), for
+    comparison, on sizes up to ``--host-pattern-max`` tetrahedra;
+  - ``forward`` (from a cleared cache), ``backward`` (gradient w.r.t. the per-tet modulus:
+    one adjoint solve with the stored factor), with their counts, unless
+    ``--setup-only``.
+
+* ``poisson2d``, for every ``N`` of ``--poisson-sizes``: build, forward, backward, one
+  Gauss-Newton step from ``theta0`` (evaluated first, as in a running fit), counts.
+
+Memory: ``peak_rss_mb`` (the process's high-water mark so far, from ``resource``) on the
+CPU; ``torch.cuda.max_memory_allocated`` per row on CUDA. Timings are wall clock after
+``torch.cuda.synchronize`` on CUDA; on a shared CPU use ``--threads 1``.
+
+Examples::
+
+    .venv/bin/python scripts/bench/gpu.py --tet-sizes 10 20 40 --setup-only --threads 1
+    .venv/bin/python scripts/bench/gpu.py --devices cuda --tet-sizes 60 --material corotated
+"""
+from __future__ import annotations
+
+import argparse
+import gc
+import resource
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[2]
+try:        # a torchfit on PYTHONPATH (another checkout: before/after figures) is used as is
+    import torchfit  # noqa: F401
+except ImportError:
+    sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from benchtools import emit_report, loadavg, machine_info  # noqa: E402
+from torchfit.linalg import counting  # noqa: E402
+from torchfit.linalg.backends.choice import default_backend  # noqa: E402
+from torchfit.mesh import box_tetrahedra  # noqa: E402
+from torchfit.physics import NewtonOptions  # noqa: E402
+from torchfit.physics.elasticity import QuasistaticElasticity, SimplicialElasticity  # noqa: E402
+
+
+def sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def timed(fn: Callable[[], Any], device: torch.device) -> tuple[float, Any, dict[str, int]]:
+    """(seconds, result, counter delta) of one call, synchronised on CUDA."""
+    sync(device)
+    with counting() as delta:
+        start = time.perf_counter()
+        out = fn()
+        sync(device)
+        seconds = time.perf_counter() - start
+        counts = delta.as_dict()
+    return seconds, out, counts
+
+
+def peak_memory(device: torch.device) -> dict[str, float]:
+    out = {"peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+    if device.type == "cuda":
+        out["cuda_max_allocated_mb"] = torch.cuda.max_memory_allocated(device) / 2 ** 20
+    return out
+
+
+def reset_peak(device: torch.device) -> None:
+    gc.collect()
+    if device.type == "cuda":
+        torch.cuda.empty_cache()
+        torch.cuda.reset_peak_memory_stats(device)
+
+
+def host_pattern_seconds(cells: np.ndarray, n_vertices: int, d: int = 3) -> float:
+    """The pattern as it was built before issue 14: np.unique of every contribution."""
+    start = time.perf_counter()
+    dofs = (cells[:, :, None] * d + np.arange(d)).reshape(len(cells), -1)
+    k = dofs.shape[1]
+    rows = np.broadcast_to(dofs[:, :, None], (len(cells), k, k)).reshape(-1)
+    cols = np.broadcast_to(dofs[:, None, :], (len(cells), k, k)).reshape(-1)
+    n = n_vertices * d
+    unique_keys, scatter = np.unique(rows * n + cols, return_inverse=True)
+    crow = np.zeros(n + 1, dtype=np.int64)
+    np.add.at(crow, unique_keys // n + 1, 1)
+    np.cumsum(crow, out=crow)
+    del scatter
+    return time.perf_counter() - start
+
+
+def tetbox_row(n: int, device: torch.device, backend: str, material: str, frames: int,
+               setup_only: bool, compare_host: bool, host_max: int) -> dict[str, Any]:
+    reset_peak(device)
+    row: dict[str, Any] = {"problem": "tetbox", "n": n, "device": str(device),
+                           "material": material}
+    t_mesh, mesh, _ = timed(lambda: box_tetrahedra(n, n, n, (1.0, 1.0, 1.0)), device)
+    cells = torch.from_numpy(mesh.cells)
+    points = torch.from_numpy(mesh.points)
+    t_model, model, _ = timed(lambda: SimplicialElasticity(
+        points, cells, material, nu=0.3, device=device), device)
+    X = model.rest.points
+    bottom = torch.nonzero(X[:, 2] <= 1e-12).reshape(-1).cpu()
+    top = torch.nonzero(X[:, 2] >= 1.0 - 1e-12).reshape(-1).cpu()
+    backend_name = backend if backend != "auto" else default_backend(3, device)
+    t_eq, qs, _ = timed(lambda: QuasistaticElasticity(
+        model, torch.cat([bottom, top]), backend=backend_name,
+        newton=NewtonOptions(rtol=1e-10, atol=1e-12)), device)
+    row.update(tets=model.n_cells, vertices=model.n_vertices,
+               free_dofs=int(qs.equilibrium.free_dofs.numel()),
+               nnz_free=qs.equilibrium.free_pattern.nnz, backend=backend_name,
+               setup={"mesh_s": t_mesh, "model_s": t_model, "equilibrium_s": t_eq,
+                      "total_s": t_mesh + t_model + t_eq})
+    if compare_host and model.n_cells <= host_max:
+        row["setup"]["pattern_host_numpy_s"] = host_pattern_seconds(mesh.cells,
+                                                                    model.n_vertices)
+    if not setup_only:
+        shifts = torch.zeros(frames, 3, dtype=X.dtype, device=device)
+        shifts[:, 2] = -0.05 * (1 + torch.arange(frames, dtype=X.dtype, device=device)) / frames
+        shifts[:, 0] = 0.02
+        positions = [torch.cat([X[bottom.to(device)], X[top.to(device)] + s]) for s in shifts]
+        E = torch.ones(model.n_cells, dtype=X.dtype, device=device, requires_grad=True)
+        qs.clear_cache()
+        t_f, x, c_f = timed(lambda: qs(E, positions), device)
+        g = torch.randn(x.shape, dtype=x.dtype, generator=torch.Generator().manual_seed(0)).to(device)
+        t_b, (grad,), c_b = timed(lambda: torch.autograd.grad(x, E, g), device)
+        assert bool(torch.isfinite(grad).all())
+        row.update(frames=frames, forward={"seconds": t_f, "counts": c_f},
+                   backward={"seconds": t_b, "counts": c_b},
+                   newton_iterations=qs.last_newton_iterations)
+    row["memory"] = peak_memory(device)
+    return row
+
+
+def poisson_row(N: int, device: torch.device, backend: str) -> dict[str, Any]:
+    from torchfit.problems import build_problem
+    from torchfit.solvers.gauss_newton import GaussNewtonConfig, gauss_newton
+
+    reset_peak(device)
+    settings = {"N": N, "device": str(device), "backend": backend}
+    t_build, problem, _ = timed(lambda: build_problem("poisson2d", settings), device)
+    residual = problem.residual()
+    theta = problem.theta0.detach().clone().requires_grad_(True)
+    problem.equilibrium.clear_cache()
+    t_f, x, c_f = timed(lambda: problem.simulate(problem.parameterization(theta)), device)
+    g = torch.randn(x.shape, dtype=x.dtype, generator=torch.Generator().manual_seed(0)).to(x.device)
+    t_b, _, c_b = timed(lambda: torch.autograd.grad(x, theta, g), device)
+    problem.equilibrium.clear_cache()
+    residual.linearize(problem.theta0)
+    t_gn, result, c_gn = timed(lambda: gauss_newton(residual, problem.theta0,
+                                                    GaussNewtonConfig(max_iter=1)), device)
+    return {"problem": "poisson2d", "N": N, "device": str(device),
+            "backend": getattr(problem.equilibrium.backend, "name", backend),
+            "n_params": int(problem.theta0.numel()), "build_s": t_build,
+            "forward": {"seconds": t_f, "counts": c_f},
+            "backward": {"seconds": t_b, "counts": c_b},
+            "gn_step": {"seconds": t_gn, "counts": c_gn,
+                        "cg_iterations": int(result.history[-1].cg_iterations)},
+            "memory": peak_memory(device)}
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--devices", nargs="+", default=None)
+    parser.add_argument("--backend", default="auto")
+    parser.add_argument("--tet-sizes", type=int, nargs="*", default=[8, 16, 24])
+    parser.add_argument("--poisson-sizes", type=int, nargs="*", default=[64, 128])
+    parser.add_argument("--material", default="linear")
+    parser.add_argument("--frames", type=int, default=1)
+    parser.add_argument("--setup-only", action="store_true")
+    parser.add_argument("--compare-host-pattern", action="store_true")
+    parser.add_argument("--host-pattern-max", type=int, default=2_000_000,
+                        help="largest tet count for --compare-host-pattern")
+    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--out", type=Path, default=None)
+    args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    devices = args.devices or (["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])
+    import torchfit
+    report: dict[str, Any] = {"benchmark": "gpu", "machine": machine_info(),
+                              "torchfit": str(Path(torchfit.__file__).parent),
+                              "loadavg_start": loadavg(), "settings": vars(args) | {
+                                  "out": str(args.out) if args.out else None},
+                              "rows": []}
+    if torch.cuda.is_available():
+        report["machine"]["cuda_device"] = torch.cuda.get_device_name(0)
+        report["machine"]["torch_cuda"] = torch.version.cuda
+    for name in devices:
+        device = torch.device(name)
+        for n in args.tet_sizes:
+            row = tetbox_row(n, device, args.backend, args.material, args.frames,
+                             args.setup_only, args.compare_host_pattern, args.host_pattern_max)
+            print(f"tetbox n={n} {name}: {row['tets']} tets, {row['free_dofs']} free dofs, "
+                  f"set-up {row['setup']['total_s']:.2f} s", file=sys.stderr)
+            report["rows"].append(row)
+        if not args.setup_only:
+            for N in args.poisson_sizes:
+                row = poisson_row(N, device, args.backend)
+                print(f"poisson2d N={N} {name}: forward {row['forward']['seconds']:.3f} s, "
+                      f"GN step {row['gn_step']['seconds']:.3f} s", file=sys.stderr)
+                report["rows"].append(row)
+    report["loadavg_end"] = loadavg()
+    emit_report(report, args.out)
+    return report
+
+
+if __name__ == "__main__":
+    main()
