@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import warnings
+import logging
 from typing import Any, ContextManager
 
 import numpy as np
@@ -54,6 +54,8 @@ from .bounds import check_bounds, modulus_bounds, region_report, theta_bounds
 from .repeated_poses import distinct_poses
 from .config import Layout, RiggedBodyConfig, Target, Truth
 
+
+log = logging.getLogger(__name__)
 
 #: largest distance (fraction of the bounding-box diagonal) of a surface vertex outside the
 #: tetrahedra before the tetrahedralisation is judged not to match the surface
@@ -145,7 +147,7 @@ class RiggedBody(InverseProblem):
         self.rig_report = check_rig(cfg, animation)
         self.animation = animation
         for text in animation.warnings:
-            warnings.warn(f"{animation.path}: rest surface: {text}", UserWarning, stacklevel=2)
+            log.warning(f"{animation.path}: rest surface: {text}")
         self.n_frames = animation.n_frames
         self.tet = self.tetrahedralize(cfg, animation)
         # per frame: each tetrahedron's F, stress, derivatives (40 values), vertex (9 values)

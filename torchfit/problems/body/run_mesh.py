@@ -8,7 +8,7 @@ the fitted body's. The file format and the matching: :mod:`torchfit.mesh.tetwild
 """
 from __future__ import annotations
 
-import warnings
+import logging
 from pathlib import Path
 from typing import ContextManager
 
@@ -16,6 +16,8 @@ from ...mesh import MeshError
 from ...mesh.tetwild.store import (RUN_MESH_FILE, StoredMesh, read_run_mesh, register_run_mesh,
                               requiring, write_run_mesh)
 from ...mesh.tetwild.tetrahedralize import TetMesh
+
+log = logging.getLogger(__name__)
 
 __all__ = ["RUN_MESH_FILE", "StoredMesh", "fitted_mesh", "keep_run_mesh", "read_run_mesh",
            "use_run_mesh"]
@@ -43,8 +45,7 @@ def use_run_mesh(run_dir: str | Path) -> StoredMesh | None:
     try:
         return register_run_mesh(run_dir)
     except MeshError as e:
-        warnings.warn(f"{' '.join(str(e).split())}; building the mesh from the cache instead",
-                      UserWarning, stacklevel=2)
+        log.warning(f"{' '.join(str(e).split())}; building the mesh from the cache instead")
         return None
 
 
