@@ -176,6 +176,12 @@ class RiggedBody(InverseProblem):
                 progress.result = f"{count(len(drive.vertices))} driven (prescribed)"
         except MeshError as err:
             raise ProblemConfigError(f"{animation.path}: {err}") from err
+        if drive.idle_bones:
+            log.warning(f"{animation.path}: rig check: bone(s) {', '.join(drive.idle_bones)} "
+                        f"drive no material (no tetrahedron vertex within attach_radius="
+                        f"{animation.skeleton.attach_radius:.3g} m is nearest to them): their "
+                        "flesh follows only its neighbours; raise the attach radius "
+                        "(torchfit:attachRadius) or give those bones a length")
         dirichlet = drive.vertices
         self.dirichlet_vertices = dirichlet
         self.dirichlet_positions = torch.as_tensor(drive.positions, dtype=self.dtype,
