@@ -20,7 +20,8 @@ def _surface(frames: int = 3) -> np.ndarray:
 
 
 def _problem(path: Path, names: list[str]) -> SimpleNamespace:
-    return SimpleNamespace(animation=SimpleNamespace(path=path, faces=FACES),
+    return SimpleNamespace(animation=SimpleNamespace(path=path, faces=FACES, output_faces=FACES,
+                                                     file_points=lambda points: points),
                            mesh=SimpleNamespace(points=POINTS, cells=CELLS),
                            frame_names=lambda: names, tet_regions=np.array([0, 1]))
 

@@ -1,6 +1,7 @@
 """The files of a simulated body, shared by a fit's outputs and ``simulate``.
 
-``frames/frame_NNN.obj`` (the user's surface per frame), ``body.vtu`` (the tet mesh for
+``frames/frame_NNN.obj`` (the user's surface per frame, on the file's own vertices and
+faces: :func:`file_surface`), ``body.vtu`` (the tet mesh for
 ParaView with the field and a displacement per frame), and where ``usd-core`` is installed
 ``usd/frames.usda`` (the surface as a time-sampled USD point cache at ``/Simulated``,
 layered over the user's stage when the animation came from USD, in its units) and
@@ -27,6 +28,13 @@ USD_DIR = "usd"
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
 progress = logging.getLogger(PROGRESS_LOGGER)
+
+
+def file_surface(problem: Any, surface: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The simulated surface ``(F, V, 3)`` on the user's file's own vertices (seams the
+    reader welded split again: :mod:`torchfit.mesh.formats.seams`) and the file's faces."""
+    animation = problem.animation
+    return animation.file_points(surface), np.asarray(animation.output_faces)
 
 
 def write_obj_sequence(folder: Path, surface: np.ndarray, faces: np.ndarray) -> list[Path]:
@@ -79,7 +87,7 @@ def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarra
     source = Path(str(problem.animation.path))
     over = source if source.suffix.lower() in USD_SUFFIXES and source.is_file() else None
     times = _frame_times(problem.frame_names()) if over is not None else None
-    faces = np.asarray(problem.animation.faces)
+    surface, faces = file_surface(problem, surface)
     cells = np.asarray(problem.mesh.cells)
     fields = {"youngs_modulus": field}
     if getattr(problem, "tet_regions", None) is not None:
