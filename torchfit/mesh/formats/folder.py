@@ -72,6 +72,7 @@ class Animation:
         file_vertices: ``(V_file,)`` the vertex of this surface each vertex of the file is
             (seams welded, :mod:`.seams`), or ``None``: the file's own vertices.
         file_faces: ``(T_file, 3)`` the file's faces on its own vertices, or ``None``.
+        prim: the mesh prim a USD stage's animation was read from ("" otherwise).
     """
 
     path: Path
@@ -87,6 +88,7 @@ class Animation:
     warnings: list[str] = dataclasses.field(default_factory=list)
     file_vertices: np.ndarray | None = None
     file_faces: np.ndarray | None = None
+    prim: str = ""
 
     @property
     def n_frames(self) -> int:

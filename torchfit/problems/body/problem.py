@@ -52,6 +52,7 @@ from .held_out import NO_VALIDATION, problem_on_frames, split_frames, validation
 from .model_comparison import simulate_with_model
 from .bounds import check_bounds, modulus_bounds, region_report, theta_bounds
 from .repeated_poses import distinct_poses
+from .init_field import initial_field_theta
 from .config import Layout, RiggedBodyConfig, Target, Truth
 
 
@@ -268,6 +269,13 @@ class RiggedBody(InverseProblem):
         self._observed_corners = torch.as_tensor(self.embedding_cells()[observed],
                                                  device=self.device)
 
+    def initial_parameters(self, cfg: RiggedBodyConfig) -> Tensor:
+        """The constant ``E0``, or the field of ``problem.init_field`` projected on the
+        parameters (:func:`.init_field.initial_field_theta`)."""
+        if not cfg.init_field:
+            return super().initial_parameters(cfg)
+        return initial_field_theta(self, cfg)
+
     def embedding_cells(self) -> np.ndarray:
         """Tetrahedron vertex indices ``(V_surface, 4)`` of each user surface vertex."""
         return self.mesh.cells[self.embedding.cells]
@@ -420,8 +428,10 @@ class RiggedBody(InverseProblem):
     def homogeneous_surface_error(self) -> float:
         """Mean surface error of the homogeneous material (any constant: scale-free)."""
         if not hasattr(self, "_homogeneous_error"):
+            homogeneous = self.parameterization.constant(self.initial_value(self.cfg),
+                                                         self.dtype, self.device)
             with torch.no_grad(), self.independent_simulation():
-                x = self.simulate(self.field(self.theta0))
+                x = self.simulate(self.field(homogeneous))
                 self._homogeneous_error = float(self.surface_errors(x).mean())
         return self._homogeneous_error
 

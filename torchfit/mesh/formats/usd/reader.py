@@ -232,7 +232,8 @@ def _skinned(pxr: Any, path: Path, prim: Any, skeleton_query: Any, query: Any,
                                     None if radius is None else radius * scale, rest * scale,
                                     where, None if lengths is None else lengths * scale)
     names = [f"{path.name}:{prim.GetPath()}@{c.GetValue():g}" for c in codes]
-    return _animation(path, rest * scale, faces, frames * scale, scale, names, skeleton=skeleton)
+    return _animation(path, rest * scale, faces, frames * scale, scale, names, skeleton=skeleton,
+                      prim=str(prim.GetPath()))
 
 
 def _point_cache(pxr: Any, path: Path, prim: Any, scale: float) -> Animation:
@@ -271,7 +272,8 @@ def _point_cache(pxr: Any, path: Path, prim: Any, scale: float) -> Animation:
         tolerance = float(np.linalg.norm(edges, axis=-1).mean())
     names = [f"{path.name}:{prim.GetPath()}@{c.GetValue():g}" for c in codes]
     return _animation(path, rest * scale, faces, frames * scale, scale, names,
-                      driven=DrivenSurface(mask, tolerance * scale))
+                      driven=DrivenSurface(mask, tolerance * scale),
+                      prim=str(prim.GetPath()))
 
 
 def _animation(path: Path, rest: np.ndarray, faces: np.ndarray, frames: np.ndarray,
