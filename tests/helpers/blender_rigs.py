@@ -362,12 +362,24 @@ def _tet_materials(path: str) -> list[dict]:
         if material:
             entry["material"] = {
                 "path": str(material.GetPath()),
-                "schemas": list(material.GetPrim().GetAppliedSchemas()),
+                # the draft's schemas are codeless (not registered here): the authored list
+                "schemas": [str(t) for t in material.GetPrim().GetMetadata(
+                    "apiSchemas").GetAddedOrExplicitItems()],
                 **{a.GetName(): a.Get() for a in material.GetPrim().GetAttributes()
                    if a.GetName().startswith("omniphysics:")},
-                "customData": {k: v for k, v in material.GetPrim().GetCustomData().items()
-                               if isinstance(v, (str, float, int))}}
+                "customData": _flat(material.GetPrim().GetCustomData())}
         out.append(entry)
+    return out
+
+
+def _flat(data: dict, prefix: str = "") -> dict:
+    """``customData`` with nested keys joined by ``:`` (as USD nests ``a:b``)."""
+    out = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}:"))
+        elif isinstance(value, (str, float, int)):
+            out[f"{prefix}{key}"] = value
     return out
 
 
