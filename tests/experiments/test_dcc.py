@@ -109,3 +109,40 @@ def test_a_painted_layer_is_the_fits_start_and_another_bodys_is_refused(tmp_path
     (line,) = [x for x in proc.stderr.splitlines() if x.startswith("error:")]
     assert "problem.init_field=" in line and "another body" in line
     assert not run.exists() or not any(run.iterdir())
+
+
+def test_the_end_bone_bends_its_flesh_and_fits_far_closer_than_a_point(tmp_path):
+    """The acceptance of the end bone: the Blender limb whose end bone alone bends 60 degrees,
+    fitted with the end joint's bone (its extent from the weights) and with it held at a
+    point (the earlier reading), on the same mesh and data."""
+    import dataclasses
+    import json
+
+    from torchfit.mesh.formats import read_animation, write_animation
+
+    rig = tmp_path / "blender"
+    run_blender({"kind": "limb", "usd": "limb.usda", "frames": 4, "bend": 60.0}, rig)
+    animation = read_animation(rig / "limb.usda")
+    skeleton = animation.skeleton
+    point = np.concatenate([skeleton.tails[:2], skeleton.heads[2:]])
+    errors, tips = {}, {}
+    tip = animation.rest_vertices[:, 0] > 0.49
+    joint = skeleton.heads[2]
+    for name, tails in (("bone", skeleton.tails), ("point", point)):
+        folder = write_animation(tmp_path / name, animation.rest_vertices, animation.faces,
+                                 animation.frames,
+                                 skeleton=dataclasses.replace(skeleton, tails=tails)).parent
+        run = tmp_path / f"run_{name}"
+        proc = run_fit_app(run, "problem=animation", f"problem.path={folder}",
+                           "solver.max_iter=4", "problem.tet_edge_length=0.08",
+                           f"problem.cache_dir={tmp_path / 'cache'}", timeout=900)
+        assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
+        assert ("drive no material" in proc.stdout + proc.stderr) == (name == "point")
+        errors[name] = json.loads((run / "result.json").read_text())["surface_err_mean"]
+        last = trimesh.load(str(run / "frames" / "frame_003.obj"), process=False,
+                            maintain_order=True).vertices
+        direction = last[tip].mean(0) - joint
+        tips[name] = np.degrees(np.arctan2(direction[1], direction[0]))
+    assert tips["bone"] == pytest.approx(60.0, abs=2.0)          # the tip follows the bone
+    assert tips["point"] < 30.0                                   # held at a point: it hangs
+    assert errors["bone"] <= errors["point"] / 3
