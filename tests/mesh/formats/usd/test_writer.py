@@ -109,3 +109,31 @@ def test_a_vertex_field_on_an_over_of_the_users_mesh(tmp_path):
     layer = stage.GetRootLayer()
     assert layer.GetPrimAtPath("/Root/Tube").specifier == Sdf.SpecifierOver
     assert UsdGeom.GetStageMetersPerUnit(stage) == 0.01
+
+
+def test_a_layer_of_another_body_is_refused(tmp_path):
+    from torchfit.mesh.formats.folder import AnimationError
+    from torchfit.mesh.formats.usd.material import layer_cell_values, read_modulus_layer
+
+    points, quads = tube(length=0.2, radius=0.02)
+    faces = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    tets = np.array([[0, 1, 2, 3], [4, 5, 6, 7]])
+    values = np.linspace(1.0, 2.0, len(points))
+    common = dict(file_rest=points, file_vertices=None, rest=points, points=points, cells=tets)
+    # the same body, moved and scaled (a bind space): accepted, per vertex as painted
+    write_vertex_field_usd(tmp_path / "same.usda", "youngsModulus", values,
+                           rest=2 * points + 0.1, faces=faces)
+    got = layer_cell_values(read_modulus_layer(tmp_path / "same.usda"), "x", **common)
+    assert got.shape == (2,) and (got >= 1).all() and (got <= 2).all()
+    # as many points, another shape: refused
+    bent = points.copy()
+    bent[:, 0] += 5 * bent[:, 1] ** 2
+    write_vertex_field_usd(tmp_path / "bent.usda", "youngsModulus", values, rest=bent,
+                           faces=faces)
+    with pytest.raises(AnimationError, match="another body"):
+        layer_cell_values(read_modulus_layer(tmp_path / "bent.usda"), "x", **common)
+    # another vertex count: refused
+    write_vertex_field_usd(tmp_path / "few.usda", "youngsModulus", values[:5],
+                           rest=points[:5], faces=faces[:1])
+    with pytest.raises(AnimationError, match="5 per-vertex values .* another body"):
+        layer_cell_values(read_modulus_layer(tmp_path / "few.usda"), "x", **common)

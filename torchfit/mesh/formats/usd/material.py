@@ -114,7 +114,8 @@ def layer_cell_values(layer: ModulusLayer, where: str, *, file_rest: np.ndarray,
             rest: ``(V, 3)`` the welded rest surface; points, cells: the body's tet mesh.
 
     A per-vertex layer must have the file's vertex count (and, where it holds points, the
-    same rest points within ``MATCH_TOLERANCE`` of the diagonal); each tetrahedron takes the
+    same rest points up to an affine map, within ``MATCH_TOLERANCE`` of the diagonal: a
+    skinned mesh's points may lie in its bind space); each tetrahedron takes the
     value of the surface vertex nearest its centroid (as region labels are carried inward),
     copies of a welded vertex averaged. A per-tetrahedron layer of the same tet mesh is taken
     as it is; one of another tetrahedralisation of the same body (its points within the
@@ -131,7 +132,11 @@ def layer_cell_values(layer: ModulusLayer, where: str, *, file_rest: np.ndarray,
                                  "vertices: it is a layer of another body; paint the mesh "
                                  "that is fitted")
         if layer.points is not None and len(layer.points) == len(file_rest):
-            gap = float(np.linalg.norm(layer.points - file_rest, axis=1).max())
+            # up to an affine map: a skinned mesh's own points may sit in another space
+            # (its geomBindTransform, the skeleton's transform) than the posed rest
+            homogeneous = np.concatenate([layer.points, np.ones((len(file_rest), 1))], 1)
+            fit = np.linalg.lstsq(homogeneous, file_rest, rcond=None)[0]
+            gap = float(np.linalg.norm(homogeneous @ fit - file_rest, axis=1).max())
             if gap > tolerance:
                 raise AnimationError(f"{where}: the points of {layer.prim} lie up to {gap:.3g} m "
                                      "from the animation's rest vertices: it is a layer of "
