@@ -20,9 +20,11 @@ def _surface(frames: int = 3) -> np.ndarray:
 
 
 def _problem(path: Path, names: list[str]) -> SimpleNamespace:
-    return SimpleNamespace(animation=SimpleNamespace(path=path, faces=FACES),
+    return SimpleNamespace(animation=SimpleNamespace(path=path, faces=FACES, output_faces=FACES,
+                                                     file_points=lambda points: points),
                            mesh=SimpleNamespace(points=POINTS, cells=CELLS),
-                           frame_names=lambda: names, tet_regions=np.array([0, 1]))
+                           frame_names=lambda: names, tet_regions=np.array([0, 1]),
+                           cfg=SimpleNamespace(nu=0.45, E0=1.0), scale_free=True)
 
 
 def test_obj_sequence_is_whole_or_absent(tmp_path, monkeypatch):

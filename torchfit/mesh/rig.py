@@ -84,11 +84,14 @@ class Drive:
         start: ``(F, n, 3)`` where each frame's Newton starts: the prescribed vertices at
             ``positions``, the others moved by the rig (surface vertices with the animated
             surface).
+        idle_bones: names of the bones that prescribe no vertex (:func:`idle_bones`): their
+            flesh follows only through its neighbours.
     """
 
     vertices: np.ndarray
     positions: np.ndarray
     start: np.ndarray
+    idle_bones: list[str] = dataclasses.field(default_factory=list)
 
 
 def segment_distances(points: np.ndarray, heads: np.ndarray, tails: np.ndarray) -> np.ndarray:
@@ -222,12 +225,22 @@ def surface_start(points: np.ndarray, rest_vertices: np.ndarray, faces: np.ndarr
     return points[None] + moved
 
 
+def idle_bones(distances: np.ndarray, skeleton: Skeleton) -> list[str]:
+    """Names of the bones nearest to no material point within ``attach_radius`` (from the
+    point-bone ``distances`` ``(n, B)``): bones that drive nothing."""
+    attached = distances.min(axis=1) <= skeleton.attach_radius
+    driving = np.bincount(distances[attached].argmin(axis=1), minlength=skeleton.n_bones)
+    names = list(skeleton.names) or [f"bone{b}" for b in range(skeleton.n_bones)]
+    return [names[b] for b in np.flatnonzero(driving == 0)]
+
+
 def skeleton_drive(points: np.ndarray, cells: np.ndarray, skeleton: Skeleton,
                    rest_vertices: np.ndarray, faces: np.ndarray, frames: np.ndarray) -> Drive:
     """Tetrahedron vertices within ``attach_radius`` of a bone are prescribed, moved by linear
     blend skinning (the skeleton's weights carried inward from the nearest rest-surface
     vertex, else weights from distance); Newton starts from the skinned pose with the mesh's
-    boundary vertices on the animated surface."""
+    boundary vertices on the animated surface. Bones that prescribe no vertex are named in
+    ``Drive.idle_bones``."""
     distances = segment_distances(points, skeleton.heads, skeleton.tails)   # (n, B)
     attached = distances.min(axis=1) <= skeleton.attach_radius
     if not attached.any():
@@ -252,7 +265,7 @@ def skeleton_drive(points: np.ndarray, cells: np.ndarray, skeleton: Skeleton,
     start[:, boundary] = surface_start(points[boundary], rest_vertices, faces, frames)
     positions = rigged[:, dirichlet]
     start[:, dirichlet] = positions
-    return Drive(dirichlet, positions, start)
+    return Drive(dirichlet, positions, start, idle_bones(distances, skeleton))
 
 
 def surface_drive(points: np.ndarray, driven: DrivenSurface, rest_vertices: np.ndarray,

@@ -286,8 +286,7 @@ class InverseProblem:
         self.build_model(cfg)
         self.parameterization = self.build_parameterization(cfg)
         self.build_observation(cfg)
-        self.theta0 = self.parameterization.constant(self.initial_value(cfg), self.dtype,
-                                                     self.device)
+        self.theta0 = self.initial_parameters(cfg)
         truth = self.true_field(cfg)
         if truth is not None:
             self.field_true = truth.to(device=self.device, dtype=self.dtype)
@@ -325,6 +324,11 @@ class InverseProblem:
     def build_observation(self, cfg: Any) -> None:
         """What is observed (``self.observed_nodes`` for :meth:`observation_index`)."""
         raise NotImplementedError
+
+    def initial_parameters(self, cfg: Any) -> Tensor:
+        """``theta0``: the constant field :meth:`initial_value` (a problem may start from a
+        field of its own, e.g. a painted material layer)."""
+        return self.parameterization.constant(self.initial_value(cfg), self.dtype, self.device)
 
     def initial_value(self, cfg: Any) -> float:
         """The constant field ``theta0`` stands for (``cfg.<initial_setting>``)."""

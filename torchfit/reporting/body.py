@@ -48,8 +48,8 @@ from .evaluation import Evaluation
 from .figures import colorize, frame_errors_figure, save_png
 from .guard import PlotGuard
 from .progress import PROGRESS_LOGGER
-from .body_files import (FRAMES_DIR, VTU_FILE, write_body_vtu, write_obj_sequence,
-                         write_usd)
+from .body_files import (FRAMES_DIR, VTU_FILE, file_surface, write_body_vtu,
+                         write_obj_sequence, write_usd)
 from .results import write_folder, write_json
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -227,8 +227,8 @@ class BodyOutputs:
         return self.guard.run("animation copy", self._copy_animation) or []
 
     def _write_frames(self, x: Tensor) -> list[Path]:
-        paths = write_obj_sequence(self.run_dir / FRAMES_DIR, _numpy(self.problem.surface(x)),
-                                   np.asarray(self.problem.animation.faces))
+        paths = write_obj_sequence(self.run_dir / FRAMES_DIR,
+                                   *file_surface(self.problem, _numpy(self.problem.surface(x))))
         progress.info("wrote %d simulated frames to %s", len(paths), self.run_dir / FRAMES_DIR)
         return paths
 

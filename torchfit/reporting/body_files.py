@@ -1,11 +1,16 @@
 """The files of a simulated body, shared by a fit's outputs and ``simulate``.
 
-``frames/frame_NNN.obj`` (the user's surface per frame), ``body.vtu`` (the tet mesh for
+``frames/frame_NNN.obj`` (the user's surface per frame, on the file's own vertices and
+faces: :func:`file_surface`), ``body.vtu`` (the tet mesh for
 ParaView with the field and a displacement per frame), and where ``usd-core`` is installed
 ``usd/frames.usda`` (the surface as a time-sampled USD point cache at ``/Simulated``,
 layered over the user's stage when the animation came from USD, in its units) and
 ``usd/body.usda`` (the tet mesh as a ``UsdGeom.TetMesh`` with the field per tetrahedron as
-a primvar). Folders are filled beside their name and renamed when whole, single files
+a primvar, and the material as the deformable-physics draft names it: ``youngsModulus``,
+``poissonsRatio``, ``density`` per tetrahedron and a physics material bound to the mesh),
+``usd/material.usda`` (the field sampled at the rest vertices, ``primvars:youngsModulus``
+on an ``over`` of the user's mesh prim, or on a ``/Rest`` mesh for a folder or glTF
+animation; :func:`modulus_units` says in ``customData`` what the values are). Folders are filled beside their name and renamed when whole, single files
 written to a temporary name and renamed: a kill or a full disk leaves no part.
 """
 from __future__ import annotations
@@ -22,11 +27,23 @@ from .progress import PROGRESS_LOGGER
 from .results import write_folder
 
 VTU_FILE = "body.vtu"
+#: the per-vertex Young's modulus on the user's mesh (an over of its prim)
+MATERIAL_FILE = "material.usda"
+#: the density written with the material (kg/m^3): a quasistatic fit does not determine it
+DENSITY = 1000.0
+DENSITY_SOURCE = "assumed 1000 kg/m^3 (water): a quasistatic fit does not determine it"
 FRAMES_DIR = "frames"
 USD_DIR = "usd"
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
 progress = logging.getLogger(PROGRESS_LOGGER)
+
+
+def file_surface(problem: Any, surface: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The simulated surface ``(F, V, 3)`` on the user's file's own vertices (seams the
+    reader welded split again: :mod:`torchfit.mesh.formats.seams`) and the file's faces."""
+    animation = problem.animation
+    return animation.file_points(surface), np.asarray(animation.output_faces)
 
 
 def write_obj_sequence(folder: Path, surface: np.ndarray, faces: np.ndarray) -> list[Path]:
@@ -74,21 +91,63 @@ def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarra
     if importlib.util.find_spec("pxr") is None:
         progress.info("no USD output: install the extra torchfit[usd] (usd-core) for it")
         return []
-    from ..mesh.formats.usd.writer import write_point_cache_usd, write_tet_mesh_usd
+    from ..mesh.formats.usd.writer import (write_point_cache_usd, write_tet_mesh_usd,
+                                           write_vertex_field_usd)
 
     source = Path(str(problem.animation.path))
     over = source if source.suffix.lower() in USD_SUFFIXES and source.is_file() else None
     times = _frame_times(problem.frame_names()) if over is not None else None
-    faces = np.asarray(problem.animation.faces)
+    surface, faces = file_surface(problem, surface)
     cells = np.asarray(problem.mesh.cells)
     fields = {"youngs_modulus": field}
     if problem.tet_regions is not None:
         fields["region"] = np.asarray(problem.tet_regions, dtype=np.int32)
 
+    units = modulus_units(problem)
+    material = {"youngsModulus": field, "poissonsRatio": np.full(len(cells), problem.cfg.nu),
+                "density": np.full(len(cells), DENSITY)}
+    per_vertex = vertex_field(problem, field)
+
     def fill(partial: Path) -> None:
         write_point_cache_usd(partial / "frames.usda", faces, surface, times=times, over=over)
-        write_tet_mesh_usd(partial / "body.usda", np.asarray(problem.mesh.points), cells, fields)
+        write_tet_mesh_usd(partial / "body.usda", np.asarray(problem.mesh.points), cells, fields,
+                           material=material, custom=units)
+        if per_vertex is not None:
+            animation = problem.animation
+            write_vertex_field_usd(partial / MATERIAL_FILE, "youngsModulus", per_vertex,
+                                   over=over, prim=animation.prim if over is not None else "",
+                                   rest=animation.file_points(animation.rest_vertices),
+                                   faces=faces, custom=units)
 
     folder = run_dir / USD_DIR
     write_folder(folder, fill)
-    return [folder / "frames.usda", folder / "body.usda"]
+    return [folder / "frames.usda", folder / "body.usda"] + (
+        [folder / MATERIAL_FILE] if per_vertex is not None else [])
+
+
+def modulus_units(problem: Any) -> dict[str, str | float]:
+    """``customData`` saying what the written moduli are: a scale-free problem (every load a
+    prescribed displacement, a rig target) determines the field only up to a factor, so its
+    values are relative to ``problem.E0`` (pascals only where E0 is a modulus in pascals)."""
+    if getattr(problem, "scale_free", False):
+        return {"torchfit:youngsModulusUnits": "relative to problem.E0",
+                "torchfit:E0": float(getattr(problem.cfg, "E0", 1.0)),
+                "torchfit:densitySource": DENSITY_SOURCE}
+    return {"torchfit:youngsModulusUnits": "Pa", "torchfit:densitySource": DENSITY_SOURCE}
+
+
+def vertex_field(problem: Any, field: np.ndarray) -> np.ndarray | None:
+    """The per-tetrahedron ``field`` sampled at the user's rest vertices ``(V_file,)``: the
+    volume-weighted mean of the tetrahedra at each tet vertex, interpolated with each surface
+    vertex's embedding weights; ``None`` for a problem without an embedded surface."""
+    if not hasattr(problem, "embedding_cells"):
+        return None
+    points, cells = np.asarray(problem.mesh.points), np.asarray(problem.mesh.cells)
+    volumes = np.abs(np.linalg.det(points[cells[:, 1:]] - points[cells[:, :1]])) / 6.0
+    total = np.zeros(len(points))
+    weight = np.zeros(len(points))
+    np.add.at(total, cells.reshape(-1), np.repeat(field * volumes, 4))
+    np.add.at(weight, cells.reshape(-1), np.repeat(volumes, 4))
+    nodes = total / np.maximum(weight, 1e-300)
+    values = np.einsum("vk,vk->v", nodes[problem.embedding_cells()], problem.embedding.weights)
+    return problem.animation.file_values(values)

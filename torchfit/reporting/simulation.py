@@ -4,7 +4,7 @@ Into the simulation's directory:
 
 ``frames/frame_NNN.obj``
     the simulated surface of every frame on the user's own vertices and faces (the
-    animation's faces, vertex order of its rest surface; 17 significant digits);
+    file's vertex count and order, its seams split as it has them; 17 significant digits);
 ``body.vtu``
     the tetrahedral mesh at rest for ParaView (meshio): cell data ``E`` (the fitted field),
     ``region``; point data ``displacement_NNN`` per frame (``Warp By Vector`` shows one);
@@ -30,8 +30,8 @@ import numpy as np
 from torch import Tensor
 
 from .body import surface_figure
-from .body_files import (FRAMES_DIR, VTU_FILE, write_body_vtu, write_obj_sequence,
-                         write_usd)
+from .body_files import (FRAMES_DIR, VTU_FILE, file_surface, write_body_vtu,
+                         write_obj_sequence, write_usd)
 from .figures import save_png
 from .results import atomic_write
 
@@ -52,11 +52,11 @@ def write_frames(run_dir: Path, problem: Any, x: Tensor, field: Tensor) -> list[
     cell_data = {"E": _numpy(field)}
     if problem.tet_regions is not None:
         cell_data["region"] = np.asarray(problem.tet_regions, dtype=np.int32)
-    faces = np.asarray(problem.animation.faces)
-    return [*write_obj_sequence(run_dir / FRAMES_DIR, surface, faces),
+    return [*write_obj_sequence(run_dir / FRAMES_DIR, *file_surface(problem, surface)),
             write_body_vtu(run_dir / VTU_FILE, np.asarray(problem.mesh.points),
                            problem.mesh.cells, positions, cell_data),
-            _write_npz(run_dir / FRAMES_NPZ, problem, positions, surface, _numpy(field)),
+            _write_npz(run_dir / FRAMES_NPZ, problem, positions,
+                       file_surface(problem, surface)[0], _numpy(field)),
             *write_usd(run_dir, problem, surface, _numpy(field))]
 
 

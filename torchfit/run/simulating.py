@@ -51,6 +51,8 @@ progress = logging.getLogger(PROGRESS_LOGGER)
 FITTED_SETTINGS = ("name", "parameters", "grid", "transform", "model", "nu", "E0",
                    "tet_edge_length", "tet_epsilon", "tet_stop_energy", "tet_optimize",
                    "dtype")
+#: settings of the fit alone: where its field started (the fitted parameters replace it)
+FIT_ONLY_SETTINGS = {"init_field": ""}
 #: relative difference allowed between the fitted field and the one ``theta`` maps to here
 _FIELD_RTOL = 1e-9
 
@@ -239,7 +241,7 @@ def build_fitted_body(fitted: FittedRun, overrides: dict[str, Any]) -> RiggedBod
                                  f"parameterisation and material ({key} "
                                  f"{fitted.settings.get(key)!r} in {fitted.directory}); leave "
                                  "it out")
-    merged = {**fitted.settings, **overrides}
+    merged = {**fitted.settings, **FIT_ONLY_SETTINGS, **overrides}
     mesh_file = fitted.directory / RUN_MESH_FILE
     stored = None
     if mesh_file.is_file():

@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 
 from torchfit.mesh.formats.folder import AnimationError
-from torchfit.mesh.formats.joints import bone_joints, fan_triangles, skeleton_from_joints
-from torchfit.mesh.rig import Skeleton, blend
+from torchfit.mesh.formats.joints import (bone_joints, end_bone_tails, fan_triangles,
+                                          skeleton_from_joints)
+from torchfit.mesh.rig import Skeleton, blend, skeleton_drive
 
 
 def test_fans_keep_the_polygon_order_and_refuse_bad_counts():
@@ -38,7 +39,9 @@ def test_a_branching_joint_splits_its_weight_and_skins_the_same():
                                     points, "s")
     assert skeleton.names == ["r->x", "r->y", "y"]
     assert np.allclose(skeleton.heads, [[0, 0, 0], [0, 0, 0], [0, 1, 0]])
-    assert np.allclose(skeleton.tails, [[1, 0, 0], [0, 1, 0], [0, 1, 0]])
+    assert np.allclose(skeleton.tails[:2], [[1, 0, 0], [0, 1, 0]])
+    # the weighted end joint y: a bone along its axis (from r), over its region's reach
+    assert np.allclose(skeleton.tails[2, [0, 2]], 0) and skeleton.tails[2, 1] > 1
     assert np.allclose(skeleton.weights[0], [0.35, 0.35, 0.3])
     assert np.allclose(blend(points, skeleton.weights, skeleton.transforms),
                        blend(points, weights, T))
@@ -68,3 +71,89 @@ def test_a_vertex_without_weight_is_refused():
         skeleton_from_joints(np.zeros((2, 3)), np.array([-1, 0]), rigid(1, 2),
                              np.array([[1.0, 0], [0, 0]]), ["a", "b"], 0.1, np.zeros((2, 3)),
                              "s")
+
+
+def limb(n_around=12, n_rings=31, length=0.5, radius=0.05, bend=60.0):
+    """A capped tube along x, three joints at 0, 1/3, 2/3 of it, weights by thirds blended
+    over a ring either side; the end joint alone turns about z by ``0 .. bend`` degrees."""
+    from scipy.spatial.transform import Rotation
+
+    phi = 2 * np.pi * np.arange(n_around) / n_around
+    x = np.linspace(0, length, n_rings)
+    ring = np.stack([np.broadcast_to(x[:, None], (n_rings, n_around)),
+                     radius * np.cos(phi)[None].repeat(n_rings, 0),
+                     radius * np.sin(phi)[None].repeat(n_rings, 0)], -1).reshape(-1, 3)
+    rest = np.concatenate([ring, [[0, 0, 0], [length, 0, 0]]])
+    joints = np.array([[0, 0, 0], [length / 3, 0, 0], [2 * length / 3, 0, 0]])
+    ramp = np.clip((rest[:, :1] - joints[None, 1:, 0]) / (length / 15) + 0.5, 0, 1)  # (V, 2)
+    weights = np.stack([1 - ramp[:, 0], ramp[:, 0] - ramp[:, 1], ramp[:, 1]], 1)
+    angles = np.linspace(0, bend, 4)
+    T = np.zeros((len(angles), 3, 3, 4))
+    T[..., :3] = np.eye(3)
+    R = Rotation.from_euler("z", angles[:, None], degrees=True).as_matrix()
+    T[:, 2, :, :3] = R
+    T[:, 2, :, 3] = joints[2] - np.einsum("fij,j->fi", R, joints[2])
+    return rest, joints, np.array([-1, 0, 1]), weights, T
+
+
+def test_a_weighted_end_joint_drives_the_flesh_its_weights_cover():
+    rest, joints, parents, weights, T = limb()
+    skeleton = skeleton_from_joints(joints, parents, T, weights, ["upper", "lower", "end"],
+                                    None, rest, "limb")
+    assert skeleton.names == ["upper", "lower", "end"]
+    # the end bone: from its joint along the axis from its parent, one flesh radius (0.05)
+    # short of the tip (0.5) its weights reach
+    assert np.allclose(skeleton.heads[2], [1 / 3, 0, 0])
+    assert np.allclose(skeleton.tails[2], [0.45, 0, 0])
+    # material points inside the tube (tet vertices): those of the end bone follow it
+    rng = np.random.default_rng(0)
+    inside = rng.uniform([0, -0.05, -0.05], [0.5, 0.05, 0.05], size=(4000, 3))
+    inside = inside[np.linalg.norm(inside[:, 1:], axis=1) < 0.048]
+    cells = np.arange(12).reshape(3, 4)                       # boundary only for the start
+    drive = skeleton_drive(inside, cells, skeleton, rest, np.array([[0, 1, 2]]),
+                           blend(rest, weights, T))
+    assert drive.idle_bones == []
+    driven = inside[drive.vertices]
+    along_end = driven[:, 0] > 0.4                            # the end bone's flesh
+    assert along_end.sum() > 10 and driven[:, 0].max() > 0.44
+    # in the full bend each of them is where the end joint's rotation takes it
+    R, t = T[-1, 2, :, :3], T[-1, 2, :, 3]
+    assert np.abs(drive.positions[-1][along_end] - (driven[along_end] @ R.T + t)).max() < 1e-12
+    tip = drive.positions[-1][along_end].mean(0) - joints[2]
+    direction = np.degrees(np.arctan2(tip[1], tip[0]))
+    assert direction == pytest.approx(60.0, abs=1.0)         # the bent bone's direction
+    # the same skeleton with the end joint a point (the old reading) drives no flesh there
+    point = Skeleton(skeleton.heads, np.concatenate([skeleton.tails[:2], skeleton.heads[2:]]),
+                     skeleton.transforms, skeleton.attach_radius, skeleton.weights,
+                     skeleton.names)
+    held = skeleton_drive(inside, cells, point, rest, np.array([[0, 1, 2]]),
+                          blend(rest, weights, T))
+    assert (inside[held.vertices][:, 0] > 0.4).sum() == 0
+
+
+def test_end_bones_authored_rootless_tiny_and_idle():
+    rest, joints, parents, weights, T = limb()
+    normalised = weights / weights.sum(1, keepdims=True)
+    # an authored length wins over the data (glTF extras / USD torchfit:boneLength)
+    tails = end_bone_tails(joints, parents, normalised, rest, np.array([2]),
+                           np.array([0.0, 0.0, 0.1]))
+    assert np.allclose(tails, [[1 / 3 + 0.1, 0, 0]])
+    # a single weighted root joint: the principal axis of its vertices, to their side
+    single = end_bone_tails(np.array([[0.0, 0, 0]]), np.array([-1]), np.ones((len(rest), 1)),
+                            rest, np.array([0]))
+    assert single[0, 0] > 0.3 and np.allclose(single[0, 1:], 0, atol=1e-9)
+    # a tiny region (the end joint dominates no vertex): where its weight is >= half its most
+    tiny = normalised.copy()
+    tiny[:, 2] *= 0.3
+    tiny /= tiny.sum(1, keepdims=True)
+    tails = end_bone_tails(joints, parents, tiny, rest, np.array([2]))
+    assert tails[0, 0] > 0.4 and np.allclose(tails[0, 1:], 0)
+    # a bone far from every material point drives nothing and is named
+    skeleton = skeleton_from_joints(joints, parents, T, weights, ["upper", "lower", "end"],
+                                    0.01, rest, "limb")
+    skeleton.heads[2] += [0, 1.0, 0]
+    skeleton.tails[2] += [0, 1.0, 0]
+    inside = np.random.default_rng(1).uniform([0, -0.04, -0.04], [0.5, 0.04, 0.04], (2000, 3))
+    drive = skeleton_drive(inside, np.arange(12).reshape(3, 4), skeleton, rest,
+                           np.array([[0, 1, 2]]), blend(rest, weights, T))
+    assert drive.idle_bones == ["end"]

@@ -69,6 +69,10 @@ class Animation:
         region_labels: ``(V,)`` int labels per rest vertex, or ``None``; region_names.
         frame_files: where each frame came from (for messages).
         warnings: what is odd about the surface (open, non-manifold, ...).
+        file_vertices: ``(V_file,)`` the vertex of this surface each vertex of the file is
+            (seams welded, :mod:`.seams`), or ``None``: the file's own vertices.
+        file_faces: ``(T_file, 3)`` the file's faces on its own vertices, or ``None``.
+        prim: the mesh prim a USD stage's animation was read from ("" otherwise).
     """
 
     path: Path
@@ -82,10 +86,34 @@ class Animation:
     region_names: list[str] = dataclasses.field(default_factory=list)
     frame_files: list[str] = dataclasses.field(default_factory=list)
     warnings: list[str] = dataclasses.field(default_factory=list)
+    file_vertices: np.ndarray | None = None
+    file_faces: np.ndarray | None = None
+    prim: str = ""
 
     @property
     def n_frames(self) -> int:
         return int(self.frames.shape[0])
+
+    @property
+    def n_file_vertices(self) -> int:
+        """The vertex count of the file (the welded surface's where nothing was welded)."""
+        return self.n_vertices if self.file_vertices is None else len(self.file_vertices)
+
+    def file_points(self, points: np.ndarray) -> np.ndarray:
+        """Points ``(..., V, 3)`` of this surface on the file's own vertices
+        ``(..., V_file, 3)``, in its order."""
+        return points if self.file_vertices is None else \
+            np.take(points, self.file_vertices, axis=-2)
+
+    def file_values(self, values: np.ndarray) -> np.ndarray:
+        """Per-vertex ``values`` ``(..., V)`` on the file's own vertices ``(..., V_file)``."""
+        return values if self.file_vertices is None else \
+            np.take(values, self.file_vertices, axis=-1)
+
+    @property
+    def output_faces(self) -> np.ndarray:
+        """The faces on the file's own vertices (for outputs of :meth:`file_points`)."""
+        return self.faces if self.file_faces is None else self.file_faces
 
     @property
     def n_vertices(self) -> int:

@@ -8,8 +8,18 @@ per bone. :func:`skeleton_from_joints` maps one to the other:
 - every joint with children gives one bone per child, ``joint -> child`` (rest positions),
   moved by the joint's transform; the joint's weight is split equally between them (they
   move alike, so the skinned points are unchanged);
-- a joint without children gives a zero-length bone at its position only where some vertex
-  has weight on it (an end joint without weight, such as a wrist tip, is no bone).
+- a joint without children (an end joint: a hand, a foot, a fingertip, a tail's last bone)
+  gives a bone only where some vertex has weight on it (an end joint without weight, such as
+  a wrist tip, is no bone), and that bone has an extent (:func:`end_bone_tails`): an
+  authored length where the file has one (USD ``torchfit:boneLength``, glTF ``extras``),
+  else one from the data: the rest vertices its weights dominate, projected on the joint's
+  axis (the direction from its parent joint), reach ``s_max`` along it; the bone ends one
+  flesh radius (the median distance of those vertices from the axis) short of that, so it
+  stays inside the body, and covers at least half of ``s_max``. A root joint without
+  children takes the principal axis of its vertices. A joint whose weights dominate fewer
+  than ``MIN_REGION`` vertices (a tiny region) takes the vertices where its weight is at
+  least half its largest instead; with none of either it stays a point (the rig check then
+  names it if it drives no material: :func:`~.rig.idle_bones`).
 
 ``attach_radius`` (material within it of a bone follows the rig) comes from the file where
 it says (the readers' ``torchfit:attachRadius``), else it is ``0.4`` times the median
@@ -27,6 +37,8 @@ from ..simplicial import MeshError
 
 #: attach_radius by default: this fraction of the median distance of the surface to a bone
 ATTACH_RATIO = 0.4
+#: an end joint whose weights dominate fewer rest vertices than this has a tiny region
+MIN_REGION = 3
 
 
 def fan_triangles(counts: np.ndarray, indices: np.ndarray, source: str) -> np.ndarray:
@@ -77,7 +89,8 @@ def default_attach_radius(rest_vertices: np.ndarray, heads: np.ndarray,
 def skeleton_from_joints(joint_positions: np.ndarray, parents: np.ndarray,
                          joint_transforms: np.ndarray, joint_weights: np.ndarray,
                          joint_names: list[str], attach_radius: float | None,
-                         rest_vertices: np.ndarray, source: str) -> Skeleton:
+                         rest_vertices: np.ndarray, source: str,
+                         bone_lengths: np.ndarray | None = None) -> Skeleton:
     """The animation format's :class:`~.rig.Skeleton` of a joint hierarchy (lengths in metres).
 
     Args:
@@ -86,6 +99,9 @@ def skeleton_from_joints(joint_positions: np.ndarray, parents: np.ndarray,
         joint_transforms: ``(F, J, 3, 4)`` ``[A | t]`` per frame and joint on rest positions.
         joint_weights: ``(V, J)`` skinning weights per rest vertex (normalised here).
         attach_radius: metres, or ``None`` for :func:`default_attach_radius`.
+        rest_vertices: ``(V, 3)`` metres (the end bones' extents, the default radius).
+        bone_lengths: ``(J,)`` authored lengths of end joints' bones (metres; ``NaN`` or
+            ``<= 0``: from the data), or ``None``.
     """
     parents = np.asarray(parents, dtype=np.int64)
     weights = normalized_weights(joint_weights, source)
@@ -104,8 +120,13 @@ def skeleton_from_joints(joint_positions: np.ndarray, parents: np.ndarray,
                              "skinning weight)")
     joint_of_bone = np.asarray(joint_of_bone)
     child_of_bone = np.asarray(child_of_bone)
-    heads = np.asarray(joint_positions, dtype=np.float64)[joint_of_bone]
-    tails = np.asarray(joint_positions, dtype=np.float64)[child_of_bone]
+    positions = np.asarray(joint_positions, dtype=np.float64)
+    heads = positions[joint_of_bone]
+    tails = positions[child_of_bone]
+    ends = np.flatnonzero(joint_of_bone == child_of_bone)
+    if ends.size:
+        tails[ends] = end_bone_tails(positions, parents, weights, rest_vertices,
+                                     joint_of_bone[ends], bone_lengths)
     shares = np.bincount(joint_of_bone, minlength=len(parents))[joint_of_bone]
     bone_weights = weights[:, joint_of_bone] / shares
     try:
@@ -122,6 +143,61 @@ def skeleton_from_joints(joint_positions: np.ndarray, parents: np.ndarray,
         raise AnimationError(f"{source}: attach radius {attach_radius!r} must be a positive "
                              "length")
     return Skeleton(heads, tails, transforms, float(attach_radius), bone_weights, names)
+
+
+def end_bone_tails(positions: np.ndarray, parents: np.ndarray, weights: np.ndarray,
+                   rest_vertices: np.ndarray, joints: np.ndarray,
+                   bone_lengths: np.ndarray | None = None) -> np.ndarray:
+    """Tails ``(len(joints), 3)`` of the bones of end joints ``joints`` (module docstring).
+
+    Args:
+        positions: ``(J, 3)`` rest joint positions; parents ``(J,)``; weights ``(V, J)``
+            normalised; rest_vertices ``(V, 3)``; bone_lengths ``(J,)`` or ``None``.
+    """
+    rest = np.asarray(rest_vertices, dtype=np.float64)
+    dominant = np.argmax(weights, axis=1)
+    tails = positions[joints].copy()
+    for k, j in enumerate(joints):
+        head = positions[j]
+        region = dominant == j
+        if region.sum() < MIN_REGION:
+            region = weights[:, j] >= 0.5 * weights[:, j].max()
+        axis = _joint_axis(positions, parents, j, rest[region] - head)
+        if axis is None:
+            continue
+        authored = np.nan if bone_lengths is None else float(bone_lengths[j])
+        if np.isfinite(authored) and authored > 0:
+            tails[k] = head + authored * axis
+            continue
+        rel = rest[region] - head
+        along = rel @ axis
+        reach = float(along.max()) if along.size else 0.0
+        if reach <= 0:
+            continue
+        radius = float(np.median(np.linalg.norm(rel - along[:, None] * axis, axis=1)))
+        tails[k] = head + max(reach - radius, 0.5 * reach) * axis
+    return tails
+
+
+def _joint_axis(positions: np.ndarray, parents: np.ndarray, joint: int,
+                offsets: np.ndarray) -> np.ndarray | None:
+    """The unit axis of an end joint: from its parent joint to it; for a root (or a joint on
+    its parent), the principal direction of ``offsets`` (its region's vertices from the
+    joint), pointing to their side; ``None`` when neither gives a direction."""
+    parent = int(parents[joint])
+    if parent >= 0:
+        axis = positions[joint] - positions[parent]
+        length = float(np.linalg.norm(axis))
+        if length > 1e-12 * max(float(np.abs(positions).max()), 1.0):
+            return axis / length
+    if len(offsets) < 2:
+        return None
+    centred = offsets - offsets.mean(axis=0)
+    _, _, vt = np.linalg.svd(centred, full_matrices=False)
+    axis = vt[0]
+    if float(offsets.mean(axis=0) @ axis) < 0:
+        axis = -axis
+    return axis
 
 
 def bone_joints(skeleton: Skeleton, tol: float = 1e-9) -> tuple[list[str], np.ndarray,

@@ -4,23 +4,30 @@
 ``.usdz`` to :mod:`.usd.reader` (the extra ``usd``), ``.gltf``, ``.glb`` to
 :mod:`.gltf.reader` (the extra ``gltf``), anything else (a folder, a manifest) to
 :func:`.folder.load_animation`. Every reader returns the same
-:class:`~.folder.Animation`; errors are one line
-(:class:`~.folder.AnimationError`).
+:class:`~.folder.Animation`, its seams welded (:mod:`.seams`: a glTF's split
+vertices are one surface again, the file's own vertices kept for outputs); errors are one
+line (:class:`~.folder.AnimationError`).
 """
 from __future__ import annotations
 
 from pathlib import Path
 
 from .folder import Animation, AnimationError, load_animation
+from .seams import weld_seams
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 GLTF_SUFFIXES = (".gltf", ".glb")
 
 
 def read_animation(path: str | Path, prim: str = "", fps: float = 0.0) -> Animation:
-    """The animation at ``path``; ``prim`` picks the mesh of a USD stage (a prim path) or of
-    a glTF file (a node name), ``fps`` the sampling rate of a glTF animation (0: its
-    keyframes). Both are refused for the folder format, which has neither."""
+    """The animation at ``path``, seams welded; ``prim`` picks the mesh of a USD stage (a
+    prim path) or of a glTF file (a node name), ``fps`` the sampling rate of a glTF
+    animation (0: its keyframes). Both are refused for the folder format, which has
+    neither."""
+    return weld_seams(_read(path, prim, fps))
+
+
+def _read(path: str | Path, prim: str, fps: float) -> Animation:
     suffix = Path(path).suffix.lower()
     if suffix in USD_SUFFIXES:
         from .usd.reader import load_usd

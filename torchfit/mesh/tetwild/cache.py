@@ -12,12 +12,14 @@ import hashlib
 import json
 import os
 import tempfile
-import warnings
+import logging
 from pathlib import Path
 
 import numpy as np
 
 from .options import TetOptions
+
+log = logging.getLogger(__name__)
 
 #: Version of the cache file layout (part of the key: a new layout never reads old files).
 _CACHE_FORMAT = "torchfit-tetmesh-1"
@@ -99,9 +101,8 @@ def write_entry(path: Path, key: str, points: np.ndarray, cells: np.ndarray,
             tmp = None
         return True
     except OSError as e:
-        warnings.warn(f"cannot write the tetrahedral mesh cache {path} "
-                      f"({' '.join(str(e).split())}); continuing without caching",
-                      UserWarning, stacklevel=3)
+        log.warning(f"cannot write the tetrahedral mesh cache {path} "
+                    f"({' '.join(str(e).split())}); continuing without caching")
         return None
     finally:
         if tmp is not None:

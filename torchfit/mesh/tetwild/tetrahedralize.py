@@ -25,7 +25,7 @@ import subprocess
 import sys
 import tempfile
 import time
-import warnings
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +37,8 @@ from ..surface import surface_volume, surface_warnings
 from .cache import cache_key, default_cache_dir, read_entry, write_entry
 from .options import TetMesh, TetOptions, TetrahedralizationError
 from .size import build_for_count
+
+log = logging.getLogger(__name__)
 
 _NO_TETS = ("tetrahedralisation produced no tetrahedra: the surface is too broken to enclose "
             "a volume{reason}; repair it (close holes, remove self-intersections) or raise "
@@ -113,8 +115,7 @@ def _cached_or_built(vertices: np.ndarray, faces: np.ndarray, options: TetOption
     surface = trimesh.Trimesh(vertices, faces, process=False)
     problems = surface_warnings(surface)
     if warn and problems:
-        warnings.warn("surface given to tetrahedralize: " + "; ".join(problems), UserWarning,
-                      stacklevel=4)
+        log.warning("surface given to tetrahedralize: " + "; ".join(problems))
     version = pytetwild_version()
     key = cache_key(vertices, faces, options, version)
     path: Path | None = None
@@ -125,9 +126,8 @@ def _cached_or_built(vertices: np.ndarray, faces: np.ndarray, options: TetOption
             try:
                 points, cells, build_seconds = read_entry(path, key)
             except Exception as e:                    # any unreadable entry is rebuilt
-                warnings.warn(f"tetrahedral mesh cache file {path} is unreadable "
-                              f"({type(e).__name__}: {' '.join(str(e).split())}); rebuilding it",
-                              UserWarning, stacklevel=4)
+                log.warning(f"tetrahedral mesh cache file {path} is unreadable "
+                            f"({type(e).__name__}: {' '.join(str(e).split())}); rebuilding it")
                 corrupt = True
             else:
                 return TetMesh(points, cells, key, True, time.perf_counter() - start,

@@ -23,7 +23,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import warnings
+import logging
 from pathlib import Path
 from typing import List
 
@@ -38,6 +38,8 @@ from ..config import ProblemConfigError, require_setting
 from .problem import RiggedBody
 from .config import RiggedBodyConfig
 
+
+log = logging.getLogger(__name__)
 
 @dataclasses.dataclass
 class Arm3DConfig(RiggedBodyConfig):
@@ -110,9 +112,8 @@ class Arm3D(RiggedBody):
         try:
             return load_animation(folder)
         except Exception as err:  # noqa: BLE001 - derived data: an unreadable copy is rebuilt
-            warnings.warn(f"arm3d animation cache {folder} is unreadable ({type(err).__name__}: "
-                          f"{' '.join(str(err).split())}); rebuilding it", UserWarning,
-                          stacklevel=2)
+            log.warning(f"arm3d animation cache {folder} is unreadable ({type(err).__name__}: "
+                        f"{' '.join(str(err).split())}); rebuilding it")
         self.write_arm(folder)
         try:
             return load_animation(folder)

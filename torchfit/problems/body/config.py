@@ -53,6 +53,10 @@ class RiggedBodyConfig(ProblemConfig):
     fps: float = 0.0                       # glTF: sample the animation at this rate; 0: at its
     #                                        keyframes (every input time of its samplers)
     frames: Optional[List[int]] = None     # a subset of the frames (numbers); null: all
+    # a USD layer with primvars:youngsModulus per vertex of this mesh or per tetrahedron (one
+    # an artist painted, or a run's usd/material.usda or usd/body.usda): the fit's starting
+    # field, projected on the parameters by least squares (docs/guide/dcc.md); "": E0
+    init_field: str = ""
     # validation (problems/body/held_out.py, docs/notes/validation.md): frames (numbers) held out of
     # the fit and simulated at every recorded iteration, or every k-th distinct pose (0: none);
     # frames repeating a validation pose (within this fraction of the diagonal) leave the fit

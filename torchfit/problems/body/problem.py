@@ -22,7 +22,6 @@ import contextlib
 import dataclasses
 import logging
 import math
-import warnings
 from pathlib import Path
 from typing import Any, Callable, ContextManager, Protocol
 
@@ -55,10 +54,11 @@ from .held_out import NO_VALIDATION, split_frames
 from .model_comparison import ModelComparison
 from .bounds import check_bounds, modulus_bounds, region_report, theta_bounds
 from .repeated_poses import distinct_poses
+from .init_field import initial_field_theta
 from .config import Layout, RiggedBodyConfig, Target, Truth
 
 
-log = logging.getLogger("torchfit.problems")
+log = logging.getLogger(__name__)
 
 #: largest distance (fraction of the bounding-box diagonal) of a surface vertex outside the
 #: tetrahedra before the tetrahedralisation is judged not to match the surface
@@ -175,7 +175,7 @@ class RiggedBody(InverseProblem):
         self.rig_report = check_rig(cfg, animation)
         self.animation = animation
         for text in animation.warnings:
-            warnings.warn(f"{animation.path}: rest surface: {text}", UserWarning, stacklevel=2)
+            log.warning(f"{animation.path}: rest surface: {text}")
         self.n_frames = animation.n_frames
         self.tet = self.tetrahedralize(cfg, animation)
         # per frame: each tetrahedron's F, stress, derivatives (40 values), vertex (9 values)
@@ -204,6 +204,12 @@ class RiggedBody(InverseProblem):
                 progress.result = f"{count(len(drive.vertices))} driven (prescribed)"
         except MeshError as err:
             raise ProblemConfigError(f"{animation.path}: {err}") from err
+        if drive.idle_bones:
+            log.warning(f"{animation.path}: rig check: bone(s) {', '.join(drive.idle_bones)} "
+                        f"drive no material (no tetrahedron vertex within attach_radius="
+                        f"{animation.skeleton.attach_radius:.3g} m is nearest to them): their "
+                        "flesh follows only its neighbours; raise the attach radius "
+                        "(torchfit:attachRadius) or give those bones a length")
         dirichlet = drive.vertices
         self.dirichlet_vertices = dirichlet
         self.dirichlet_positions = torch.as_tensor(drive.positions, dtype=self.dtype,
@@ -291,6 +297,13 @@ class RiggedBody(InverseProblem):
                                                  dtype=self.dtype, device=self.device)
         self._observed_corners = torch.as_tensor(self.mesh.cells[self.embedding.cells[observed]],
                                                  device=self.device)
+
+    def initial_parameters(self, cfg: RiggedBodyConfig) -> Tensor:
+        """The constant ``E0``, or the field of ``problem.init_field`` projected on the
+        parameters (:func:`.init_field.initial_field_theta`)."""
+        if not cfg.init_field:
+            return super().initial_parameters(cfg)
+        return initial_field_theta(self, cfg)
 
     def true_field(self, cfg: RiggedBodyConfig) -> Tensor | None:
         if cfg.target == Target.rig:
@@ -434,8 +447,10 @@ class RiggedBody(InverseProblem):
     def homogeneous_surface_error(self) -> float:
         """Mean surface error of the homogeneous material (any constant: scale-free)."""
         if not hasattr(self, "_homogeneous_error"):
+            homogeneous = self.parameterization.constant(self.initial_value(self.cfg),
+                                                         self.dtype, self.device)
             with torch.no_grad(), self.independent_simulation():
-                x = self.simulate(self.field(self.theta0))
+                x = self.simulate(self.field(homogeneous))
                 self._homogeneous_error = float(self.surface_errors(x).mean())
         return self._homogeneous_error
 

@@ -418,6 +418,8 @@ def serve(build: Callable[[dict[str, Any]], Any]) -> int:
     rank = dist.get_rank()
     logging.basicConfig(level=logging.WARNING, format=f"rank {rank}: %(message)s")
     warnings.simplefilter("ignore")     # rank 0 gives the problem's warnings once
+    for name in ("torchfit.mesh", "torchfit.problems"):    # (they are log records)
+        logging.getLogger(name).setLevel(logging.ERROR)
     received: list[Any] = [None]
     dist.broadcast_object_list(received, src=0)
     config = received[0]

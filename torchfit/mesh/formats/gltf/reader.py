@@ -15,9 +15,10 @@
   weights from the mesh, the node or a ``weights`` channel) are added before skinning; each
   joint's matrix is its global transform times its inverse bind matrix, and a vertex moves
   by ``sum_j w_j M_j [x, 1]``;
-- bones: the joints' segments (:func:`..joints.skeleton_from_joints`); ``attach_radius``
-  from ``extras: {"torchfit:attachRadius": metres}`` on the skin or the node, else the
-  default there.
+- bones: the joints' segments (:func:`..joints.skeleton_from_joints`: an end joint's bone
+  reaches over the vertices its weights dominate, or ``extras: {"torchfit:boneLength":
+  metres}`` on its joint node); ``attach_radius`` from ``extras: {"torchfit:attachRadius":
+  metres}`` on the skin or the node, else the default there.
 
 Units: metres (glTF's); the up axis is kept (glTF is Y-up: nothing downstream depends on
 it). Refused with one line (:class:`~..folder.AnimationError`): ``CUBICSPLINE``
@@ -330,8 +331,10 @@ def load_gltf(path: str | Path, prim: str = "", fps: float = 0.0) -> Animation:
             break
     positions = np.linalg.inv(inverse_bind)[:, :3, 3]
     names = [nodes[j].name or f"joint{j}" for j in joints]
+    lengths = np.array([float(nodes[j].extras.get("torchfit:boneLength", np.nan))
+                        if isinstance(nodes[j].extras, dict) else np.nan for j in joints])
     skeleton = skeleton_from_joints(positions, np.array(joint_parent), matrices[..., :3, :],
-                                    weights, names, radius, rest, where)
+                                    weights, names, radius, rest, where, lengths)
     if not np.isfinite(frames).all():
         raise AnimationError(f"{where}: the posed points hold a NaN or infinite coordinate")
     import trimesh

@@ -15,8 +15,11 @@ imported only here and only then), one mesh prim of the stage into the same
   skeleton's space, placed in the world by the skeleton prim's transform (the skinned mesh's
   own transform is ignored, as UsdSkel says; with ``skel:skinningMethod`` dualQuaternion the
   frames are UsdSkel's, the interior's drive stays linear). Bones: the joints' segments
-  (:func:`..joints.skeleton_from_joints`); ``attach_radius`` from the float attribute
-  ``torchfit:attachRadius`` (stage units) on the mesh or skeleton, else the default there.
+  (:func:`..joints.skeleton_from_joints`: an end joint's bone reaches over the vertices its
+  weights dominate, or ``torchfit:boneLength``, a float array on the skeleton prim with one
+  length per joint in stage units, 0 where the data decide); ``attach_radius`` from the
+  float attribute ``torchfit:attachRadius`` (stage units) on the mesh or skeleton, else the
+  default there.
 - **a point cache**: a mesh whose ``points`` are time-sampled; the driven vertices are the
   primvar ``primvars:torchfit:driven`` (bool or int per vertex, nonzero: driven), the
   tolerance ``torchfit:drivenTolerance`` (stage units; default: the mean edge length of the
@@ -128,6 +131,20 @@ def _length_attribute(prims: list[Any], name: str) -> float | None:
     return None
 
 
+def _bone_lengths(skeleton_prim: Any, n_joints: int, where: str) -> np.ndarray | None:
+    """``torchfit:boneLength`` of the skeleton prim: one length per joint in the skeleton's
+    order (stage units; ``<= 0``: from the data), or ``None`` where it is not authored."""
+    attr = skeleton_prim.GetAttribute("torchfit:boneLength")
+    if not attr or not attr.HasAuthoredValue():
+        return None
+    values = np.array(attr.Get(), dtype=np.float64).reshape(-1)
+    if values.shape != (n_joints,):
+        raise AnimationError(f"{where}: torchfit:boneLength on {skeleton_prim.GetPath()} has "
+                             f"{values.size} values for {n_joints} joints; give one per joint "
+                             "(0 where the length comes from the skinning weights)")
+    return values
+
+
 def _influences(query: Any, n_points: int, joint_index: dict[str, int], where: str
                 ) -> np.ndarray:
     """Weights ``(V, J)`` in the skeleton's joint order."""
@@ -209,12 +226,14 @@ def _skinned(pxr: Any, path: Path, prim: Any, skeleton_query: Any, query: Any,
     transforms = row_vector_transforms(joint_matrices)
     transforms[..., 3] *= scale
     radius = _length_attribute([prim, skeleton_prim], "torchfit:attachRadius")
+    lengths = _bone_lengths(skeleton_prim, len(joints), where)
     skeleton = skeleton_from_joints(positions * scale, parents, transforms, weights,
                                     [j.rsplit("/", 1)[-1] for j in joints],
                                     None if radius is None else radius * scale, rest * scale,
-                                    where)
+                                    where, None if lengths is None else lengths * scale)
     names = [f"{path.name}:{prim.GetPath()}@{c.GetValue():g}" for c in codes]
-    return _animation(path, rest * scale, faces, frames * scale, scale, names, skeleton=skeleton)
+    return _animation(path, rest * scale, faces, frames * scale, scale, names, skeleton=skeleton,
+                      prim=str(prim.GetPath()))
 
 
 def _point_cache(pxr: Any, path: Path, prim: Any, scale: float) -> Animation:
@@ -253,7 +272,8 @@ def _point_cache(pxr: Any, path: Path, prim: Any, scale: float) -> Animation:
         tolerance = float(np.linalg.norm(edges, axis=-1).mean())
     names = [f"{path.name}:{prim.GetPath()}@{c.GetValue():g}" for c in codes]
     return _animation(path, rest * scale, faces, frames * scale, scale, names,
-                      driven=DrivenSurface(mask, tolerance * scale))
+                      driven=DrivenSurface(mask, tolerance * scale),
+                      prim=str(prim.GetPath()))
 
 
 def _animation(path: Path, rest: np.ndarray, faces: np.ndarray, frames: np.ndarray,

@@ -20,7 +20,10 @@ and ``extent`` hold one time sample per frame; given the user's stage (``over``)
 layer has it as a sublayer and converts metres to its ``metersPerUnit``, so the TD opens
 (or references) one layer and sees the simulated body next to the original.
 :func:`write_tet_mesh_usd` writes a ``UsdGeom.TetMesh`` (points, tetrahedra, surface
-faces) with per-tetrahedron fields as ``uniform`` primvars ``primvars:torchfit:<name>``.
+faces) with per-tetrahedron fields as ``uniform`` primvars ``primvars:torchfit:<name>`` and
+the material as the deformable-physics draft names it (per tetrahedron, and a physics
+material bound to the TetMesh). :func:`write_vertex_field_usd` writes a per-vertex field as
+a primvar on an ``over`` of the user's own mesh prim.
 """
 from __future__ import annotations
 
@@ -189,12 +192,29 @@ def write_point_cache_usd(path: str | Path, faces: np.ndarray, frames: np.ndarra
     return path
 
 
+#: the applied API schemas of the deformable-physics draft's material (codeless schemas)
+MATERIAL_SCHEMAS = ("OmniPhysicsBaseMaterialAPI", "OmniPhysicsDeformableMaterialAPI")
+#: the draft's names of the material properties written per tetrahedron
+MATERIAL_PROPERTIES = ("youngsModulus", "poissonsRatio", "density")
+
+
 def write_tet_mesh_usd(path: str | Path, points: np.ndarray, cells: np.ndarray,
                        fields: dict[str, np.ndarray] | None = None, *,
-                       prim: str = "/Body") -> Path:
+                       prim: str = "/Body", material: dict[str, np.ndarray] | None = None,
+                       custom: dict[str, str | float] | None = None) -> Path:
     """Write a tetrahedral mesh (``points`` ``(n, 3)`` metres, ``cells`` ``(m, 4)``) as a
-    ``UsdGeom.TetMesh`` with each field ``(m,)`` as a per-tetrahedron primvar."""
-    from pxr import Sdf, Usd, UsdGeom, Vt
+    ``UsdGeom.TetMesh`` with each field ``(m,)`` as a per-tetrahedron primvar
+    ``primvars:torchfit:<name>``.
+
+    ``material``: ``youngsModulus``, ``poissonsRatio``, ``density`` ``(m,)`` each, as the
+    deformable-physics draft names them (docs/guide/dcc.md): per tetrahedron as ``uniform``
+    primvars ``primvars:<name>``, and a ``UsdShade.Material`` ``<prim>/PhysicsMaterial``
+    with the draft's ``OmniPhysicsDeformableMaterialAPI`` (``omniphysics:youngsModulus``,
+    ``omniphysics:poissonsRatio``) and ``OmniPhysicsBaseMaterialAPI``
+    (``omniphysics:density``) holding their volume-weighted means, bound to the TetMesh for
+    the ``physics`` purpose. ``custom``: ``customData`` on the TetMesh and the material
+    (units, where the values come from)."""
+    from pxr import Sdf, Usd, UsdGeom, UsdShade, Vt
 
     points = np.asarray(points, dtype=np.float64)
     stage = Usd.Stage.CreateNew(str(path))
@@ -214,6 +234,74 @@ def write_tet_mesh_usd(path: str | Path, points: np.ndarray, cells: np.ndarray,
                              "tetrahedra")
         primvars.CreatePrimvar(f"torchfit:{name}", Sdf.ValueTypeNames.DoubleArray,
                                UsdGeom.Tokens.uniform).Set(Vt.DoubleArray.FromNumpy(values))
+    for key, value in (custom or {}).items():
+        tet.GetPrim().SetCustomDataByKey(key, value)
+    if material:
+        volumes = np.abs(np.linalg.det(points[cells[:, 1:]] - points[cells[:, :1]])) / 6.0
+        shade = UsdShade.Material.Define(stage, f"{prim}/PhysicsMaterial")
+        for schema in MATERIAL_SCHEMAS:
+            shade.GetPrim().AddAppliedSchema(schema)
+        for name in MATERIAL_PROPERTIES:
+            values = np.asarray(material[name], dtype=np.float64).reshape(-1)
+            if values.shape != (len(cells),):
+                raise ValueError(f"material {name} has {values.size} values for "
+                                 f"{len(cells)} tetrahedra")
+            primvars.CreatePrimvar(name, Sdf.ValueTypeNames.FloatArray,
+                                   UsdGeom.Tokens.uniform).Set(
+                Vt.FloatArray.FromNumpy(values.astype(np.float32)))
+            shade.GetPrim().CreateAttribute(f"omniphysics:{name}", Sdf.ValueTypeNames.Float
+                                            ).Set(float(values @ volumes / volumes.sum()))
+        for key, value in (custom or {}).items():
+            shade.GetPrim().SetCustomDataByKey(key, value)
+        UsdShade.MaterialBindingAPI.Apply(tet.GetPrim()).Bind(
+            shade, UsdShade.Tokens.weakerThanDescendants, "physics")
     stage.SetDefaultPrim(tet.GetPrim())
     stage.GetRootLayer().Save()
     return Path(path)
+
+
+def write_vertex_field_usd(path: str | Path, name: str, values: np.ndarray, *,
+                           over: str | Path | None = None, prim: str = "",
+                           rest: np.ndarray | None = None, faces: np.ndarray | None = None,
+                           custom: dict[str, str | float] | None = None) -> Path:
+    """A per-vertex field ``values`` ``(V,)`` as the primvar ``primvars:<name>`` (``vertex``
+    interpolation) on the user's mesh: given the user's stage ``over`` and its mesh ``prim``,
+    a layer that sublayers the stage and holds an ``over`` of the prim (the DCC opens this
+    layer and sees the field on its own mesh); otherwise a ``Mesh`` ``/Rest`` of ``rest``
+    ``(V, 3)`` metres and ``faces`` ``(T, 3)``. ``custom``: ``customData`` on the primvar's
+    attribute (units)."""
+    from pxr import Sdf, Usd, UsdGeom, Vt
+
+    values = np.asarray(values, dtype=np.float64).reshape(-1)
+    path = Path(path)
+    stage = Usd.Stage.CreateNew(str(path))
+    if over is not None:
+        original = Usd.Stage.Open(str(over))
+        UsdGeom.SetStageMetersPerUnit(stage, UsdGeom.GetStageMetersPerUnit(original))
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.GetStageUpAxis(original))
+        stage.SetTimeCodesPerSecond(original.GetTimeCodesPerSecond())
+        if original.HasAuthoredTimeCodeRange():
+            stage.SetStartTimeCode(original.GetStartTimeCode())
+            stage.SetEndTimeCode(original.GetEndTimeCode())
+        relative = os.path.relpath(Path(over).resolve(), path.resolve().parent)
+        stage.GetRootLayer().subLayerPaths.append(Path(relative).as_posix())
+        target = stage.OverridePrim(prim)
+        if original.GetDefaultPrim():
+            stage.SetDefaultPrim(stage.GetPrimAtPath(original.GetDefaultPrim().GetPath()))
+    else:
+        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+        mesh = UsdGeom.Mesh.Define(stage, prim or "/Rest")
+        mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(rest, np.float32)))
+        mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(faces)))
+        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray([int(i) for i in np.ravel(faces)]))
+        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        target = mesh.GetPrim()
+        stage.SetDefaultPrim(target)
+    primvar = UsdGeom.PrimvarsAPI(target).CreatePrimvar(
+        name, Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex)
+    primvar.Set(Vt.FloatArray.FromNumpy(values.astype(np.float32)))
+    for key, value in (custom or {}).items():
+        primvar.GetAttr().SetCustomDataByKey(key, value)
+    stage.GetRootLayer().Save()
+    return path
