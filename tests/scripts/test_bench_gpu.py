@@ -28,14 +28,21 @@ def test_bench_gpu_layout_and_counts(tmp_path):
                         "3", "--poisson-sizes", "8", "--threads", "1",
                         "--compare-host-pattern")
     assert report["benchmark"] == "gpu"
-    tet, poisson = report["rows"]
+    init, tet, poisson = report["rows"]
+    assert init["problem"] == "device_init" and init["autograd_warm_up_s"] >= 0
     assert (tet["problem"], tet["tets"], tet["device"]) == ("tetbox", 6 * 27, "cpu")
     assert tet["free_dofs"] == 3 * 16 * 2          # 4 x 4 x 4 vertices, bottom and top fixed
-    for key in ("mesh_s", "model_s", "equilibrium_s", "total_s", "pattern_host_numpy_s"):
+    for key in ("mesh_s", "model_s", "equilibrium_s", "total_s", "pattern_host_numpy_s",
+                "rest_shape_s", "pattern_s"):
         assert tet["setup"][key] >= 0
-    # linear: one factorisation and one solve forward; backward reuses it (one solve)
+    # linear: one factorisation and one solve forward; backward reuses it (one solve), again
     assert tet["forward"]["counts"]["factorizations"] == 1
-    assert tet["backward"]["counts"] == {"factorizations": 0, "solves": 1, "rhs_columns": 1}
+    for key in ("backward", "backward_again"):
+        assert tet[key]["counts"] == {"factorizations": 0, "solves": 1, "rhs_columns": 1,
+                                      "analyses": 0}
+    # the next point: a new factorisation, the pattern's analysis kept
+    assert tet["forward_again"]["counts"]["factorizations"] == 1
+    assert tet["forward_again"]["counts"]["analyses"] == 0
     assert tet["memory"]["peak_rss_mb"] > 0
     assert poisson["problem"] == "poisson2d" and poisson["backward"]["counts"]["factorizations"] == 0
     m = poisson["gn_step"]["cg_iterations"]
