@@ -263,6 +263,8 @@ def test_stand_in_indefinite_fallback_and_nonsymmetric_solves():
         assert torch.allclose(factor.solve(b, transpose=True), x)
     assert torch.allclose(x, torch.linalg.solve(dense, b), rtol=1e-9, atol=1e-11)
     assert count.analyses == 2 and count.factorizations == 1   # the SPD plan, the LDL^T one
+    spd = CudssBackend(runtime=fake).plan(pattern, "spd", values.device, values.dtype)
+    assert spd.rejected == 1 and factor.plan.kind == "symmetric" and factor.plan.analyses == 1
     with pytest.raises(SingularMatrixError, match="not positive definite") as info:
         CudssBackend(runtime=fake, indefinite=False).factorize(pattern, indefinite, True).solve(b)
     assert "\n" not in str(info.value)

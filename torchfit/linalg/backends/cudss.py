@@ -260,6 +260,8 @@ class CudssPlan:
         factorizations: numeric factorisations made in its slots, first or again.
         refactorizations: of those, the ones of a factor that had been factorised before
             and lost its slot to another.
+        rejected: numeric factorisations cuDSS refused (a zero or, for ``'spd'``, a
+            non-positive pivot: the matrix then goes to the ``'symmetric'`` plan).
     """
 
     def __init__(self, pattern: SparsePattern, kind: str, device: torch.device,
@@ -292,6 +294,7 @@ class CudssPlan:
         self.analyses = 0
         self.factorizations = 0
         self.refactorizations = 0
+        self.rejected = 0
 
     def size(self) -> str:
         return f"a {self.n:,} x {self.n:,} sparse matrix with {self.nnz:,} stored entries"
@@ -316,6 +319,7 @@ class CudssPlan:
                 raise gpu_memory_error("the cuDSS factorisation", self.size(), err) from None
             raise
         if info != 0:
+            self.rejected += 1
             return None
         self.factorizations += 1
         if factor.factorized:
