@@ -33,6 +33,10 @@ else cg):
   - ``rhs_blocks`` (``--rhs-blocks``, cudss only): seconds of one solve of ``--rhs-columns``
     columns with the factor of the forward, per right-hand-side block width.
 
+* ``batched_factorization`` (``--batch-factorization B``, cudss only, on the first box):
+  nvmath's explicit batch of ``B`` matrices of one pattern against one matrix at a time
+  (:func:`batched_factorization_row`).
+
 * ``poisson2d``, for every ``N`` of ``--poisson-sizes``: build, forward, backward, one
   Gauss-Newton step from ``theta0`` (evaluated first, as in a running fit), counts.
 
@@ -59,6 +63,7 @@ from typing import Any, Callable
 
 import numpy as np
 import torch
+from torch import Tensor
 
 ROOT = Path(__file__).resolve().parents[1]
 try:        # a torchfit on PYTHONPATH (another checkout: before/after figures) is used as is
@@ -145,15 +150,7 @@ def device_init_row(device: torch.device, backend: str) -> dict[str, Any]:
     if name == "cudss":
         from torchfit.linalg import get_backend
 
-        mesh = box_tetrahedra(2, 2, 2, (1.0, 1.0, 1.0))
-        model = SimplicialElasticity(torch.from_numpy(mesh.points), torch.from_numpy(mesh.cells),
-                                     "linear", nu=0.3, device=device)
-        free = torch.nonzero(model.rest.points[:, 2] > 1e-12).reshape(-1)
-        dofs = (free[:, None] * 3 + torch.arange(3, device=free.device)).reshape(-1)
-        pattern, slots = model.tangent_pattern.submatrix(dofs, dofs)
-        E = torch.ones(model.n_cells, dtype=torch.float64, device=device)
-        values = model.tangent_pattern.assemble(model.tangent_values(
-            model.rest.points.reshape(1, -1), E))[0][slots.to(device)]
+        pattern, values = stiffness_at_rest(2, device)
         rhs = torch.ones(pattern.shape[0], dtype=torch.float64, device=device)
 
         def solve_once() -> None:
@@ -243,6 +240,82 @@ def tetbox_row(n: int, device: torch.device, backend: str, material: str, frames
     return row
 
 
+def stiffness_at_rest(n: int, device: torch.device) -> tuple[Any, Tensor]:
+    """The free-free linear stiffness of the ``n^3``-cube box at rest (bottom fixed):
+    ``(pattern, values)`` on ``device``."""
+    mesh = box_tetrahedra(n, n, n, (1.0, 1.0, 1.0))
+    model = SimplicialElasticity(torch.from_numpy(mesh.points), torch.from_numpy(mesh.cells),
+                                 "linear", nu=0.3, device=device)
+    free = torch.nonzero(model.rest.points[:, 2] > 1e-12).reshape(-1)
+    dofs = (free[:, None] * 3 + torch.arange(3, device=free.device)).reshape(-1)
+    pattern, slots = model.tangent_pattern.submatrix(dofs, dofs)
+    E = torch.ones(model.n_cells, dtype=torch.float64, device=device)
+    values = model.tangent_pattern.assemble(model.tangent_values(
+        model.rest.points.reshape(1, -1), E))[0][slots.to(device)]
+    return pattern, values
+
+
+def batched_factorization_row(n: int, device: torch.device, batch: int,
+                              runtime: Any = None) -> dict[str, Any]:
+    """cuDSS through nvmath's documented batching: ``batch`` matrices of one pattern (the
+    box's stiffness scaled per member, one RHS column each) in one ``DirectSolver`` of an
+    explicit batch, against one single-matrix ``DirectSolver`` factorising them in turn
+    (its values updated in place). Whether cuDSS analyses a batch of one pattern once
+    (``plan_batch_s`` near ``plan_single_s``) or once per member decides whether the frames
+    of a Newton round can be factorised as one batch without more analyses (issue 39)."""
+    from torchfit.linalg.backends.cudss import NvmathRuntime
+    from torchfit.linalg.pattern import csr_matrix
+
+    runtime = runtime or NvmathRuntime()
+    advanced = runtime.advanced
+    pattern, values = stiffness_at_rest(n, device)
+    size = pattern.shape
+    crow = pattern.crow_indices.to(device=device, dtype=torch.int32)
+    col = pattern.col_indices.to(device=device, dtype=torch.int32)
+    scales = [1.0 + 0.1 * k for k in range(batch)]
+    options = advanced.DirectSolverOptions(sparse_system_type=advanced.DirectSolverMatrixType.SPD)
+
+    def matrix(scale: float) -> Tensor:
+        return csr_matrix(crow, col, scale * values, size)
+
+    def column() -> Tensor:
+        return torch.ones(1, size[0], dtype=torch.float64, device=device).T
+
+    def call(fn: Callable[[], Any]) -> tuple[float, Any]:
+        runtime.make_current(device)
+        seconds, out, _ = timed(fn, device)
+        return seconds, out
+
+    row: dict[str, Any] = {"problem": "batched_factorization", "n": n, "device": str(device),
+                           "free_dofs": size[0], "nnz": pattern.nnz, "batch": batch}
+    single_matrix, single_rhs = matrix(1.0), column()
+    runtime.make_current(device)
+    single = advanced.DirectSolver(single_matrix, single_rhs, options=options)
+    row["plan_single_s"], _ = call(single.plan)
+    solutions, factorize_s, solve_s = [], 0.0, 0.0
+    for scale in scales:
+        single_matrix.values().copy_(scale * values)
+        seconds, _ = call(single.factorize)
+        factorize_s += seconds
+        seconds, x = call(single.solve)
+        solve_s += seconds
+        solutions.append(torch.as_tensor(x).reshape(-1).clone())
+    row["factorize_single_each_s"], row["solve_single_each_s"] = factorize_s, solve_s
+    runtime.make_current(device)
+    single.free()
+    runtime.make_current(device)
+    batched = advanced.DirectSolver([matrix(s) for s in scales], [column() for _ in scales],
+                                    options=options)
+    row["plan_batch_s"], _ = call(batched.plan)
+    row["factorize_batch_s"], _ = call(batched.factorize)
+    row["solve_batch_s"], xs = call(batched.solve)
+    row["max_difference"] = max(float((torch.as_tensor(x).reshape(-1) - y).abs().max())
+                                for x, y in zip(xs, solutions))
+    runtime.make_current(device)
+    batched.free()
+    return row
+
+
 def rhs_block_seconds(qs: QuasistaticElasticity, blocks: list[int], columns: int,
                       device: torch.device) -> list[dict[str, Any]]:
     """Seconds of one solve of ``columns`` right-hand sides with the box's tangent at rest,
@@ -311,6 +384,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                         help="cudss: RHS block widths to time (e.g. 1 8 32 64)")
     parser.add_argument("--rhs-columns", type=int, default=192,
                         help="right-hand sides of the --rhs-blocks solves (the arm: 192)")
+    parser.add_argument("--batch-factorization", type=int, default=0,
+                        help="cudss: time nvmath's explicit batch of this many matrices "
+                             "against one matrix at a time (on the first --tet-sizes box)")
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
@@ -336,6 +412,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             print(f"tetbox n={n} {name}: {row['tets']} tets, {row['free_dofs']} free dofs, "
                   f"set-up {row['setup']['total_s']:.2f} s", file=sys.stderr)
             report["rows"].append(row)
+        if args.batch_factorization and args.tet_sizes and row["backend"] == "cudss":
+            report["rows"].append(batched_factorization_row(args.tet_sizes[0], device,
+                                                            args.batch_factorization))
         if not args.setup_only:
             for N in args.poisson_sizes:
                 row = poisson_row(N, device, args.backend)

@@ -3,6 +3,7 @@ CPU: the :class:`~torchfit.linalg.backends.cudss.CudssRuntime` that
 ``CudssBackend(runtime=...)`` takes in tests where there is no GPU.
 
 It behaves as nvmath does where the backend relies on it: ``DirectSolver(a, b, options=)``
+(``a`` and ``b`` a matrix and a right-hand side, or sequences of them: an explicit batch)
 keeps references to ``a`` and ``b`` (values changed in place are read by the next
 ``factorize()`` / ``solve()``), ``plan()`` analyses the pattern, ``factorize()`` returns an
 object with ``info`` (> 0: a non-positive pivot of a Cholesky (SPD) factorisation, or a
@@ -91,27 +92,45 @@ class FakeCuda:
         runtime = self
 
         class DirectSolver:
-            def __init__(self, a: torch.Tensor, b: torch.Tensor, *,
+            def __init__(self, a: Any, b: Any, *,
                          options: DirectSolverOptions | None = None, **_: Any) -> None:
-                runtime.check("DirectSolver", a.device)
-                if a.layout != torch.sparse_csr or a.crow_indices().dtype != torch.int32:
-                    raise TypeError("the LHS must be a CSR tensor with int32 indices")
-                if b.dim() != 2 or b.stride(0) != 1:
-                    raise TypeError("the RHS must be a column-major matrix")
+                # an explicit batch: sequences of matrices and right-hand sides
+                self.batch = isinstance(a, (list, tuple))
+                if self.batch != isinstance(b, (list, tuple)) or \
+                        (self.batch and len(a) != len(b)):
+                    raise TypeError("batched LHS and RHS must be sequences of one length")
+                members = list(zip(a, b)) if self.batch else [(a, b)]
+                runtime.check("DirectSolver", members[0][0].device)
+                for matrix, rhs in members:
+                    if matrix.layout != torch.sparse_csr or \
+                            matrix.crow_indices().dtype != torch.int32:
+                        raise TypeError("the LHS must be a CSR tensor with int32 indices")
+                    if rhs.dim() != 2 or rhs.stride(0) != 1:
+                        raise TypeError("the RHS must be a column-major matrix")
+                self.members = [DirectSolver(matrix, rhs, options=options)
+                                for matrix, rhs in members] if self.batch else []
                 self.a, self.b = a, b
                 self.kind = (options or DirectSolverOptions()).sparse_system_type
-                self.device = a.device
+                self.device = members[0][0].device
                 self.lu: Any = None
                 self.planned = self.freed = False
 
             def plan(self) -> Any:
                 runtime.check("plan", self.device)
                 self.planned = True
+                for member in self.members:
+                    member.planned = True
                 return types.SimpleNamespace()
 
             def factorize(self) -> Any:
                 runtime.check("factorize", self.device)
                 assert self.planned and not self.freed
+                if self.batch:
+                    infos = [member._factorize().info for member in self.members]
+                    return types.SimpleNamespace(info=max(infos))
+                return self._factorize()
+
+            def _factorize(self) -> Any:
                 a = self.a
                 matrix = sp.csr_matrix((a.values().numpy(), a.col_indices().numpy(),
                                         a.crow_indices().numpy()), shape=tuple(a.shape)).tocsc()
@@ -131,8 +150,13 @@ class FakeCuda:
                     return types.SimpleNamespace(info=int(bad[0]) + 1)
                 return types.SimpleNamespace(info=0)
 
-            def solve(self) -> torch.Tensor:
+            def solve(self) -> Any:
                 runtime.check("solve", self.device)
+                if self.batch:
+                    return [member._solve() for member in self.members]
+                return self._solve()
+
+            def _solve(self) -> torch.Tensor:
                 assert self.lu is not None, "solve() before a successful factorize()"
                 x = self.lu.solve(np.ascontiguousarray(self.b.numpy()))
                 return torch.from_numpy(np.asarray(x)).to(self.b.dtype)

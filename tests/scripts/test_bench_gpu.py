@@ -58,3 +58,27 @@ def test_bench_materials_agrees_with_lapack(tmp_path):
     for row in kernels.values():
         assert row["max_abs_difference"] < 1e-12, row
         assert row["now_min_s"] > 0 and row["lapack_min_s"] > 0
+
+
+def test_batched_factorization_row_with_the_nvmath_stand_in():
+    """The row that decides whether a Newton round's frames can be factorised as one batch
+    (nvmath's explicit batch against one matrix at a time): run with the CPU stand-in, one
+    plan each, the same solutions."""
+    import importlib.util
+
+    import torch
+
+    from helpers.fake_nvmath import FakeCuda
+
+    sys.path.insert(0, str(REPO / "scripts"))
+    spec = importlib.util.spec_from_file_location("bench_gpu", REPO / "scripts/bench_gpu.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    fake = FakeCuda()
+    row = bench.batched_factorization_row(3, torch.device("cpu"), 3, runtime=fake)
+    assert row["batch"] == 3 and row["free_dofs"] == 3 * 16 * 3
+    assert fake.count("plan") == 2 and fake.count("factorize") == 3 + 1
+    assert row["max_difference"] < 1e-12
+    for key in ("plan_single_s", "factorize_single_each_s", "plan_batch_s", "factorize_batch_s"):
+        assert row[key] >= 0
+
