@@ -188,7 +188,7 @@ def tetbox_row(n: int, device: torch.device, backend: str, material: str, frames
     t_rest, rest, _ = timed(lambda: RestShape(points, cells, device=device), device)
     t_pattern, _, _ = timed(lambda: SparsePattern.from_dense_blocks(rest.cells, 3,
                                                                     rest.n_vertices), device)
-    del rest
+    rest = None                     # the copy's device memory
     X = model.rest.points
     bottom = torch.nonzero(X[:, 2] <= 1e-12).reshape(-1).cpu()
     top = torch.nonzero(X[:, 2] >= 1.0 - 1e-12).reshape(-1).cpu()
@@ -329,16 +329,15 @@ def rhs_block_seconds(qs: QuasistaticElasticity, blocks: list[int], columns: int
         1, -1).to(E), E))[0]
     rhs = torch.randn(eq.free_pattern.shape[0], columns, dtype=torch.float64,
                       generator=torch.Generator().manual_seed(1)).to(device)
-    out = []
-    for block in blocks:
+    def row(block: int) -> dict[str, Any]:
         factor = CudssBackend(rhs_block=block).factorize(eq.free_pattern, values, True)
         t_first, _, counts = timed(lambda: factor.solve(rhs[:, :1]), device)
         t_solve, _, _ = timed(lambda: factor.solve(rhs), device)
         t_one, _, _ = timed(lambda: factor.solve(rhs[:, :1]), device)
-        out.append({"rhs_block": block, "first_solve_s": t_first, "columns": columns,
-                    "solve_s": t_solve, "one_column_s": t_one, "counts": counts})
-        del factor
-    return out
+        return {"rhs_block": block, "first_solve_s": t_first, "columns": columns,
+                "solve_s": t_solve, "one_column_s": t_one, "counts": counts}
+
+    return [row(block) for block in blocks]      # each factor freed before the next
 
 
 def poisson_row(N: int, device: torch.device, backend: str) -> dict[str, Any]:
