@@ -43,7 +43,7 @@ matplotlib.use("Agg")   # pictures are files and TensorBoard images; never a win
 from torchfit.config import FitConfig, register_configs  # noqa: E402
 from torchfit.linalg import set_threads  # noqa: E402
 from torchfit.problems import build_problem  # noqa: E402
-from torchfit.problems.body.run_mesh import use_run_mesh  # noqa: E402
+from torchfit.problems.body.run_mesh import resumed_mesh  # noqa: E402
 from torchfit.reporting.results import write_json  # noqa: E402
 from torchfit.run import FitOptions, distributed, fit, fit_continued  # noqa: E402
 from torchfit.run.continuation import (FIRST_STAGE_DIR, continuation_applies,  # noqa: E402
@@ -67,9 +67,8 @@ def prepare(cfg: DictConfig, run_dir: Path | None = None
     threads = config.get("threads")
     if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0:
         set_threads(threads)     # before the build: a synthetic target is simulated there
-    if config["resume"] and run_dir is not None:
-        use_run_mesh(run_dir)
-    problem = build_problem(str(config["problem"].get("name")), dict(config["problem"]))
+    kept = resumed_mesh(run_dir) if config["resume"] and run_dir is not None else None
+    problem = build_problem(str(config["problem"].get("name")), dict(config["problem"]), kept)
     options = FitOptions(**{f.name: config[f.name] for f in dataclasses.fields(FitOptions)
                             if f.name in config})
     return problem, solver, options, config
@@ -161,9 +160,9 @@ def build_for_rank(config: dict[str, Any]) -> Any:
     threads = config.get("threads")
     if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0:
         set_threads(threads)
-    if config.get("resume") and config.get("run_dir") and Path(config["run_dir"]).is_dir():
-        use_run_mesh(Path(config["run_dir"]))
-    return build_problem(str(config["problem"].get("name")), dict(config["problem"]))
+    kept = resumed_mesh(Path(config["run_dir"])) if config.get("resume") and \
+        config.get("run_dir") and Path(config["run_dir"]).is_dir() else None
+    return build_problem(str(config["problem"].get("name")), dict(config["problem"]), kept)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,7 @@ no longer fits is recorded as skipped; ``--steps`` picks some):
 
 * ``tests``: the CUDA tests (``tests/linalg/backends/test_cudss.py`` whole, the CUDA tests
   of the pattern, spring1d, membrane2d, problem settings and the arm).
-* ``box_linear``: ``bench_gpu.py`` on a box of 80^3 cubes (3.07M tetrahedra, 1.55M free
+* ``box_linear``: ``scripts/bench/gpu.py`` on a box of 80^3 cubes (3.07M tetrahedra, 1.55M free
   dofs), linear, one frame: set-up by phase, forward, a forward at the next point,
   backwards; the one-off costs of the process (``device_init``).
 * ``box_200k``: a 40^3 box (384k tetrahedra, 197k free dofs): cuDSS solve seconds per
@@ -238,7 +238,7 @@ def run(command: list[str], env: dict[str, str], timeout: float, cwd: Path = ROO
 
 
 def bench(args: list[str]) -> list[str]:
-    return [sys.executable, "scripts/bench_gpu.py", *args]
+    return [sys.executable, "scripts/bench/gpu.py", *args]
 
 
 def fit_app(problem: str, device: str, iterations: int, run_dir: Path,
@@ -306,7 +306,7 @@ def junit_summary(path: Path) -> dict[str, Any]:
 
 
 def bench_summary(report: dict[str, Any]) -> list[dict[str, Any]]:
-    """The figures of a ``bench_gpu.py`` report, row by row (timings rounded)."""
+    """The figures of a ``scripts/bench/gpu.py`` report, row by row (timings rounded)."""
     rows = []
     for row in report.get("rows", []):
         rows.append(rounded({k: v for k, v in row.items() if k not in ("memory",)}
@@ -472,7 +472,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         if name == "tests":
             outcome["summary"] = junit_summary(work / "tests.xml")
             outcome["stdout_tail"] = stdout[-2000:]
-        elif command[1] == "scripts/bench_gpu.py":
+        elif command[1] == "scripts/bench/gpu.py":
             try:
                 outcome["report"] = json.loads(stdout)
                 outcome["rows"] = bench_summary(outcome["report"])

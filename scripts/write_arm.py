@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """Write the procedural arm of ``problem=arm3d`` as an animation folder (the worked example
-of README's "Bring your own animation").
+of docs/guide/formats.md).
 
     .venv/bin/python scripts/write_arm.py my_arm            # 48 frames, skeleton-driven
     .venv/bin/python scripts/write_arm.py my_arm --frames-as-meshes

@@ -1,5 +1,5 @@
 """The import graph of torchfit/ (lazy imports included): no cycle, and every arrow points down
-DESIGN.md's table of layers. One test for the whole package."""
+docs/architecture.md's table of layers. One test for the whole package."""
 from __future__ import annotations
 
 import ast
@@ -8,8 +8,8 @@ from pathlib import Path
 PACKAGE = Path(__file__).resolve().parents[1] / "torchfit"
 
 NEUTRAL = {"errors", "memory", "records", "residual", "settings", "steps"}   # the contract every layer may use
-#: layer -> the layers it may import (DESIGN.md's table): solvers know nothing of meshes or
-#: physics, problems nothing of solvers, reporting meets solvers only through the records.
+#: layer -> the layers it may import (docs/architecture.md's table): solvers know nothing of
+#: meshes or physics, problems nothing of solvers, reporting meets solvers only through the records.
 ALLOWED = {
     "errors": set(), "memory": {"errors"}, "records": set(), "residual": {"errors"}, "settings": {"errors"},
     "steps": set(),
@@ -96,7 +96,7 @@ def test_every_import_follows_the_layers():
     edges = graph()
     assert set(map(layer, edges)) - {"__init__"} <= set(ALLOWED), "a new layer needs its row"
     bad = forbidden(edges)
-    assert not bad, "imports against DESIGN.md's layers: " + ", ".join(bad)
+    assert not bad, "imports against docs/architecture.md's layers: " + ", ".join(bad)
 
 
 def test_no_private_name_crosses_a_module():

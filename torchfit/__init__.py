@@ -9,7 +9,7 @@ The verbs and the registries::
     report = torchfit.verify(problem)                                    # derivative checks
 
 ``torchfit.PROBLEMS`` and ``torchfit.SOLVERS`` map config names to their entries (config
-dataclass and class). Layers (DESIGN.md): ``linalg``, ``mesh``, ``physics``, ``params``,
+dataclass and class). Layers (docs/architecture.md): ``linalg``, ``mesh``, ``physics``, ``params``,
 ``problems``, ``solvers``, ``reporting``, and :mod:`torchfit.run` (one run) on top; the
 contract between problems and solvers is :mod:`torchfit.residual` and :mod:`torchfit.records`.
 

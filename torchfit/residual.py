@@ -11,7 +11,7 @@ Explicit products: a problem whose forward is a chain of explicit derivatives (a
 parameterisation, an equilibrium with the model's ``param_derivative``, a gather) may hand
 over ``products(theta) -> ForwardProducts``: the forward value and ``J v`` / ``J^T w`` as
 plain functions. :class:`Linearization` then builds no autograd graph and runs no
-autograd engine (what that saves: ``docs/solvers/time_to_accuracy.md``). The autograd
+autograd engine (what that saves: ``docs/notes/time_to_accuracy.md``). The autograd
 route stays the definition (tests compare the two).
 
 Few parameters: a problem may also hand over ``jacobian(theta) -> (m, n)``, the whole
@@ -46,7 +46,7 @@ def warm_up_autograd() -> None:
     ``symbolic_shapes``, once per process (0.6-1.5 s on the development machine; one
     second or more of the "first backward" measured on the H200 host). :func:`torchfit.fit`
     calls this during set-up, so solver clocks and iteration records measure solving (the
-    cost: ``docs/solvers/time_to_accuracy.md``). Idempotent.
+    cost: ``docs/notes/time_to_accuracy.md``). Idempotent.
     """
     global _WARM
     if _WARM:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import math
 import numbers
 import typing
@@ -56,18 +57,13 @@ def setting_error(error: type[ConfigurationError], path: str, value: Any,
     return error(f"{path}={show(value)}: {allowed}")
 
 
-_CHOICE_FIELDS: dict[type, dict[str, type[Choice]]] = {}
-
-
+@functools.cache
 def choice_fields(config_class: type) -> dict[str, type[Choice]]:
-    """``{field: Choice subclass}`` of the choice settings of a settings dataclass."""
-    cached = _CHOICE_FIELDS.get(config_class)
-    if cached is None:
-        hints = typing.get_type_hints(config_class)
-        cached = {f.name: hints[f.name] for f in dataclasses.fields(config_class)
-                  if isinstance(hints.get(f.name), type) and issubclass(hints[f.name], Choice)}
-        _CHOICE_FIELDS[config_class] = cached
-    return cached
+    """``{field: Choice subclass}`` of the choice settings of a settings dataclass (read
+    from its type hints once per class)."""
+    hints = typing.get_type_hints(config_class)
+    return {f.name: hints[f.name] for f in dataclasses.fields(config_class)
+            if isinstance(hints.get(f.name), type) and issubclass(hints[f.name], Choice)}
 
 
 def to_choice(kind: type[Choice], path: str, value: Any,

@@ -190,7 +190,7 @@ def taylor_test(residual: _Residual, theta: Tensor, direction: Tensor, *,
         # or the simulation's own tolerance (residual.accuracy, e.g. Newton's rtol:
         # remainders below ~10x that are its noise, not Taylor's h^2), relative to the
         # residuals: a Newton-solved position is exact to rtol of what it moved, not of
-        # where it is (docs/run/verification.md).
+        # where it is (docs/notes/verification.md).
         size = _norm(r_h) + r0_norm + h * jv_norm
         floors.append(max(eps * (size + data_norm), 10.0 * accuracy * size / safety))
 
@@ -202,7 +202,7 @@ def taylor_test(residual: _Residual, theta: Tensor, direction: Tensor, *,
     # Empirical floor: where the remainders, already far below their largest value,
     # stop decreasing they sit on round-off (solver error amplified by conditioning).
     # "Stop" is a halving of h that removes less than 10 % of the remainder (a rate
-    # below 0.15) once it has fallen two decades (docs/run/verification.md). The slow
+    # below 0.15) once it has fallen two decades (docs/notes/verification.md). The slow
     # decrease must last (the next three halvings stay above half of it): where a wrong
     # J v's first-order error cancels the second-order term, the remainders dip once and
     # then fall at rate 1 again, which is a finding, not a floor.
@@ -416,7 +416,7 @@ def default_fd_tol(residual: _Residual, dtype: torch.dtype = torch.float64) -> f
     """What a central difference can resolve for ``residual``: ``max(1e-6, 100 a^(2/3))``
     with ``a`` its ``accuracy`` (machine epsilon when exact): the step of
     :func:`finite_difference_test` leaves a relative error of order ``a^(2/3)`` times the
-    simulation's conditioning (figures: ``docs/run/verification.md``)."""
+    simulation's conditioning (figures: ``docs/notes/verification.md``)."""
     accuracy = max(getattr(residual, "accuracy", None) or 0.0, torch.finfo(dtype).eps)
     return max(FD_TOL_FLOOR, FD_TOL_FACTOR * accuracy ** (2.0 / 3.0))
 

@@ -1,6 +1,6 @@
 """Fault injection on the fit app (issue 27): what a probe of the fault path did, seeded.
 
-Each case asserts the promise of README's "Resume" section: a run killed at any point
+Each case asserts the promise of docs/guide/resume.md: a run killed at any point
 continues with ``resume=true`` to the uninterrupted run's ``params.pt`` (``torch.equal``),
 iterations and stop reason; a corrupt file of a run directory either resumes to the same
 result or is refused with one ``error:`` line (exit 2) leaving the directory byte-identical,

@@ -231,7 +231,7 @@ def test_verify_exit_statuses(tmp_path):
 
 
 def test_a_sweep_value_hydra_cannot_compose_stops_the_sweep_before_any_job(tmp_path):
-    # README, "Sweeps": Hydra composes every job before it launches the first.
+    # docs/guide/sweeps.md: Hydra composes every job before it launches the first.
     sweep = tmp_path / "sweep"
     proc = app("fit.py", "-m", f"hydra.sweep.dir={sweep}", "problem.noise=abc,0", "problem.n=8")
     assert proc.returncode == 2 and "Traceback" not in proc.stderr

@@ -1,4 +1,5 @@
-"""membrane2d: the elastic IPAM sheet of PROBLEMS.md (mesh, animation, truth, derivatives, fits)."""
+"""membrane2d: the elastic IPAM sheet of docs/problems.md (mesh, animation, truth, derivatives,
+fits)."""
 from __future__ import annotations
 
 import math
@@ -260,7 +261,7 @@ def _lm_full_resolution(max_iter: int, **settings) -> list[float]:
 
 @pytest.mark.slow
 def test_acceptance_levenberg_marquardt_full_resolution_40_iterations():
-    """PROBLEMS.md membrane2d, corotated, dense, noise-free: <= 1e-2 within 40 LM iterations.
+    """docs/problems.md membrane2d, corotated, dense, noise-free: <= 1e-2 within 40 LM iterations.
 
     Measured (96x24, one thread, about 61 s): 0.810, 0.633, 0.265, 0.008, 9.0e-5 after
     iterations 1, 5, 10, 20, 40; first below 1e-2 at iteration 20.

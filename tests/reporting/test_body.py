@@ -123,9 +123,9 @@ def test_the_fold_warning_points_at_the_problems_docs_only_where_it_has_them(cap
 
     with caplog.at_level("WARNING", logger="torchfit.progress"):
         warn_inverted(np.array([0, 2]), [0, 9])
-        warn_inverted(np.array([0, 2]), [0, 9], docs="docs/problems/arm3d.md, 'Several'")
+        warn_inverted(np.array([0, 2]), [0, 9], docs="docs/notes/arm3d.md, 'Several'")
     plain, arm = (r.getMessage() for r in caplog.records)
-    assert "docs/" not in plain and "(docs/problems/arm3d.md, 'Several')" in arm
+    assert "docs/" not in plain and "(docs/notes/arm3d.md, 'Several')" in arm
 
 
 def test_the_comparison_picture_turns_the_body_into_the_camera_axes():

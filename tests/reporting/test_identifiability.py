@@ -23,10 +23,9 @@ def report():
 def test_json_vtu_and_picture_of_a_tetrahedral_body(tmp_path):
     points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], dtype=float)
     cells = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
-    problem = SimpleNamespace(mesh=SimpleNamespace(points=points, cells=cells),
-                              tet_regions=np.array([0, 1]))
     guard = PlotGuard()
-    files = write_identifiability(tmp_path, problem, report(),
+    files = write_identifiability(tmp_path, SimpleNamespace(points=points, cells=cells),
+                                  np.array([0, 1]), report(),
                                   {"sensitivity": np.array([1.0, 0.25]),
                                    "determined": np.array([1.0, 0.5])}, guard)
     assert [f.name for f in files] == ["identifiability.json", "identifiability.vtu",
@@ -44,7 +43,7 @@ def test_json_vtu_and_picture_of_a_tetrahedral_body(tmp_path):
 
 
 def test_no_vtu_without_a_mesh(tmp_path):
-    files = write_identifiability(tmp_path, SimpleNamespace(), report(),
+    files = write_identifiability(tmp_path, None, None, report(),
                                   {"sensitivity": np.ones(3), "determined": np.ones(3)},
                                   PlotGuard())
     assert [f.name for f in files] == ["identifiability.json", "identifiability.png"]

@@ -1,4 +1,4 @@
-"""The run's evaluator: one simulation per recorded iteration, the metrics of PROBLEMS.md at
+"""The run's evaluator: one simulation per recorded iteration, the metrics of docs/problems.md at
 no solver cost, and observers that add no simulation."""
 from __future__ import annotations
 

@@ -85,7 +85,7 @@ def test_bad_input_writes_nothing(tmp_path, call, error, match):
 
 
 def test_split_bregman_run_records_its_terms(tmp_path):
-    # (its accuracy: tests/solvers/test_split_bregman.py)
+    # (its accuracy: tests/solvers/split_bregman/test_solver.py)
     problem = build_problem("spring1d", {"n": 16, "noise": 1e-4})
     result = fit(problem, {"name": "split_bregman", "max_iter": 12}, run_dir=tmp_path,
                  options=QUIET)

@@ -142,7 +142,7 @@ def test_one_rigidly_moved_patch_determines_nothing(patch_runs):
     problem, result, run = patch_runs[1]
     # the targets are rigid to 3e-16 of the body's size; the simulation follows them to 9e-12
     # on some tetrahedralisations and not on others, whose prescribed vertices distort the
-    # cap (docs/run/identifiability.md): the report does not depend on which
+    # cap (docs/notes/identifiability.md): the report does not depend on which
     assert result.determined is False
     assert "(not determined by the data)" in result.summary()
     assert "converged" not in result.summary().split(")")[0]

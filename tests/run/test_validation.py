@@ -22,7 +22,7 @@ from torchfit.run import FitOptions, fit
 from torchfit.run.validation import BEST_PARAMS_FILE, ValidationTracker
 
 SOLVER = {"name": "levenberg_marquardt", "max_iter": 3}
-#: one thread: MKL PARDISO's factorisation is bit-reproducible then (docs/structure.md)
+#: one thread: MKL PARDISO's factorisation is bit-reproducible then (docs/notes/structure.md)
 QUIET = FitOptions(progress=False, threads=1)
 
 

@@ -1,6 +1,6 @@
 """Parameter-space preconditioning on poisson2d (issue 4): preconditioned Gauss-Newton.
 
-The split Bregman (TV) acceptance tests on poisson2d are in test_split_bregman.py.
+The split Bregman (TV) acceptance tests on poisson2d are in split_bregman/test_solver.py.
 
 Reduced grids run by default; the acceptance sizes (N = 64) are marked slow. The
 figures they guard were measured with the settings used here (see the issue report).

@@ -4,7 +4,7 @@ process, through ``threadpoolctl``.
 ``torch.set_num_threads`` governs torch's own kernels only; scipy's LAPACK (the banded
 Cholesky backend) runs on the OpenBLAS that numpy/scipy bundle, which starts one thread
 per core. On a machine whose cores are shared with other jobs those threads spin and
-wait (``docs/linalg/threads.md``).
+wait (``docs/notes/threads.md``).
 :func:`set_threads` sets both for the whole process (a sweep job with ``threads=1``).
 A library loaded later (MKL, when the ``pardiso`` backend is first used) gets the same
 limit through :func:`apply_requested_threads`.
@@ -14,7 +14,7 @@ threads are not recreated between MKL and non-MKL regions), and MKL then runs ev
 vector function (``torch.sqrt`` of 384 doubles goes to MKL's VML) on every thread: on a
 loaded machine that took 24-32 ms instead of 2 us. :func:`set_threads` switches it back on
 in torch's own MKL (``MKL_Set_Dynamic(1)``), so MKL picks fewer threads for small calls;
-figures in ``docs/linalg/threads.md`` (``scripts/bench_threads.py``).
+figures in ``docs/notes/threads.md`` (``scripts/bench/threads.py``).
 """
 from __future__ import annotations
 

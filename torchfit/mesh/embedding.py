@@ -11,7 +11,7 @@ moves the point by the same affine map.
 
 Conventions: points ``(n, 3)`` float64, tetrahedral mesh ``tet_points`` ``(V, 3)`` float64
 and ``tet_cells`` ``(m, 4)`` int64, positively oriented; lengths in the mesh's unit.
-Nothing here solves anything (see DESIGN.md, layer ``mesh``).
+Nothing here solves anything (see docs/architecture.md, layer ``mesh``).
 """
 from __future__ import annotations
 

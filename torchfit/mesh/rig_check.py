@@ -5,7 +5,7 @@ another unit than the rest surface (millimetres against metres), and bone transf
 in another convention than the format's ``x' = A x + t`` (``A`` transposed, i.e. a
 row-vector layout stored as column-vector ``[A | t]``; bone-local instead of rest-relative
 transforms; translations in another unit). :func:`check_animation` refuses both with one
-:class:`~.animation_format.AnimationError` line that names the frames (and bones) at fault
+:class:`~.formats.folder.AnimationError` line that names the frames (and bones) at fault
 and the likely cause.
 
 **Scale** (every animation, skeleton or driven vertices): the size of a frame is the RMS
@@ -24,11 +24,12 @@ failing frames are skinned again under each alternative convention (``A`` transp
 transforms inverted, bone-local transforms ``A (x - head) + t``, translations scaled by a
 power of ten or an inch factor); the one that passes is named as the likely cause.
 
-Measured (2026-11-26, docs/mesh/rig_check.md): the arm's largest per-bone median is 0.2 % of
+Measured (2026-11-26, docs/notes/rig_check.md): the arm's largest per-bone median is 0.2 % of
 its diagonal; its transforms transposed give 4-60 % on every bent frame and the transposed
 variant gives back 0.2 %.
 
-Lengths in metres (the loader's). Nothing here solves anything (DESIGN.md, layer ``mesh``).
+Lengths in metres (the loader's). Nothing here solves anything (docs/architecture.md, layer
+``mesh``).
 """
 from __future__ import annotations
 
@@ -215,6 +216,6 @@ def check_skinning(animation: Animation, tolerance: float = TOLERANCE) -> float 
 
 def check_animation(animation: Animation, tolerance: float = TOLERANCE) -> RigReport:
     """The scale of every frame, then (where the manifest gives weights) the skinning;
-    raises :class:`~.animation_format.AnimationError` (one line) for either."""
+    raises :class:`~.formats.folder.AnimationError` (one line) for either."""
     ratios = check_scale(animation)
     return RigReport(ratios, check_skinning(animation, tolerance))

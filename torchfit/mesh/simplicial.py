@@ -13,7 +13,7 @@ Conventions (every function here):
   diagonal from ``(i, j)`` to ``(i + 1, j + 1)`` into triangles ``2c`` (below the
   diagonal) and ``2c + 1`` (above it).
 
-Nothing here solves anything (see DESIGN.md, layer ``mesh``).
+Nothing here solves anything (see docs/architecture.md, layer ``mesh``).
 """
 from __future__ import annotations
 

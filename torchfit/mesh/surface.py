@@ -7,7 +7,7 @@ Conventions: vertices are ``(n, 3)`` float64 in the length unit the caller choos
 ``scale`` of :func:`load_surface` converts the file's unit into it), faces ``(k, 3)`` int64
 vertex indices, counter-clockwise seen from outside for an outward-facing surface.
 
-Nothing here solves anything (see DESIGN.md, layer ``mesh``).
+Nothing here solves anything (see docs/architecture.md, layer ``mesh``).
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Linear springs between scalar node values: a weighted graph Laplacian with loads.
 
-Two problems use it: the hanging chain of PROBLEMS.md ``spring1d`` (positions along gravity)
+Two problems use it: the hanging chain of docs/problems.md ``spring1d`` (positions along gravity)
 and the 2-D Poisson grid ``poisson2d`` (``div(k grad x) = 0`` by finite differences: one
 spring per grid edge, ``k`` its conductance, rest length 0, each displacement component a
 frame). Node values are scalars. Spring ``e`` joins nodes ``a_e < b_e``

@@ -1,4 +1,4 @@
-"""Canonical problems of PROBLEMS.md, one module each, and the registry used by the app."""
+"""Canonical problems of docs/problems.md, one module each, and the registry used by the app."""
 from __future__ import annotations
 
 import dataclasses
@@ -6,10 +6,11 @@ from typing import Any
 
 from .body.arm3d import Arm3D, Arm3DConfig
 from .base import (BodyProblem, FieldImageProblem, FramedProblem, InverseProblem, MeshProblem,
-                   MotionProblem)
+                   MotionProblem, PosedProblem)
 from .config import ProblemConfig, ProblemConfigError, make_config
 from .membrane2d import DynamicMembrane2D, Membrane2D, Membrane2DConfig
 from .poisson2d import Poisson2D, Poisson2DConfig
+from ..mesh.tetwild.store import KeptMesh
 from .body.problem import RiggedBody
 from .body.config import RiggedBodyConfig
 from .spring1d import DynamicSpring1D, Spring1D, Spring1DConfig
@@ -35,20 +36,28 @@ PROBLEMS: dict[str, ProblemEntry] = {
 }
 
 
-def build_problem(name: str, cfg: Any = None) -> InverseProblem:
+def build_problem(name: str, cfg: Any = None, kept_mesh: KeptMesh | None = None
+                  ) -> InverseProblem:
     """Problem ``name`` from a config (its dataclass, a mapping or an OmegaConf node): the
-    entry's dynamic class when the config says ``dynamic=true``, else its class."""
+    entry's dynamic class when the config says ``dynamic=true``, else its class. A body is
+    built on ``kept_mesh`` (a run's own tetrahedral mesh: a resume, ``simulate``) where its
+    surface is that mesh's; a problem without a tetrahedral mesh takes none."""
     if name not in PROBLEMS:
         raise ProblemConfigError(f"unknown problem {name!r}; choose one of "
                                  f"{', '.join(sorted(PROBLEMS))}")
     entry = PROBLEMS[name]
     config = make_config(entry.config_class, cfg)
     dynamic = entry.dynamic_class is not None and bool(getattr(config, "dynamic", False))
-    return (entry.dynamic_class if dynamic else entry.problem_class)(config)
+    problem_class = entry.dynamic_class if dynamic else entry.problem_class
+    if kept_mesh is None:
+        return problem_class(config)
+    if not issubclass(problem_class, RiggedBody):
+        raise ValueError(f"problem {name} has no tetrahedral mesh to build on a kept one")
+    return problem_class(config, kept_mesh=kept_mesh)
 
 
 __all__ = ["Arm3D", "Arm3DConfig", "BodyProblem", "DynamicMembrane2D", "DynamicSpring1D",
            "FieldImageProblem", "FramedProblem", "InverseProblem", "Membrane2D",
-           "Membrane2DConfig", "MeshProblem", "MotionProblem", "PROBLEMS", "Poisson2D",
+           "Membrane2DConfig", "MeshProblem", "MotionProblem", "PROBLEMS", "PosedProblem", "Poisson2D",
            "Poisson2DConfig", "ProblemConfig", "ProblemConfigError", "ProblemEntry",
            "RiggedBody", "RiggedBodyConfig", "Spring1D", "Spring1DConfig", "build_problem"]

@@ -1,7 +1,7 @@
 """The template every canonical problem follows: ``y = observe(simulate(map(theta)))``.
 
 A problem owns the mesh, the true field, the data (with seeded noise), the
-observation and the metrics of PROBLEMS.md. It contains no solver logic: solvers get
+observation and the metrics of docs/problems.md. It contains no solver logic: solvers get
 :meth:`InverseProblem.residual`, nothing else. Its settings are a
 :class:`~torchfit.problems.config.ProblemConfig`.
 
@@ -162,7 +162,15 @@ class BodyProblem(Protocol):
     mesh: Any
     full_bend_frame: int
     tet_regions: Any
+    region_names: list[str]
+    observed_vertices: Tensor
     writes_animation: bool
+    #: what the joint region's volume change is called (``elbow`` on the arm)
+    joint_label: str
+    #: the pictures' camera, ``(right, up, depth)`` unit axes ``(3, 3)``, or ``None``
+    view_axes: Any
+    #: where the documentation explains a fold of this body (``None``: nowhere)
+    fold_docs: str | None
 
     def surface(self, x: Tensor) -> Tensor:
         ...
@@ -189,6 +197,39 @@ class BodyProblem(Protocol):
         ...
 
     def region_summary(self, field: Tensor) -> dict[str, Any]:
+        ...
+
+    def keep_mesh(self, run_dir: Any) -> Any:
+        ...
+
+
+@runtime_checkable
+class PosedProblem(Protocol):
+    """A problem whose frames are independent poses (a quasistatic rigged body): what a
+    distributed run needs to split them over ranks.
+
+    ``simulated_poses()`` the frames simulated (each distinct pose once: an index ``(P,)``,
+    or every frame); ``repeated_poses`` ``(first frames (P,), pose of each frame (F,))`` or
+    ``None``; ``pose_jacobian(theta)`` ``(P, rows, n_params)`` of the simulated poses;
+    ``plug(simulation, jacobian)`` the seam the run plugs its split into (the problem's
+    pose simulation, and where its ``forward_jacobian`` comes from); ``quasistatic`` the
+    pose simulation in use; ``input_digests()`` what every rank must share.
+    """
+
+    n_frames: int
+    repeated_poses: Any
+    quasistatic: Any
+
+    def simulated_poses(self) -> Any:
+        ...
+
+    def pose_jacobian(self, theta: Tensor) -> Tensor:
+        ...
+
+    def plug(self, simulation: Any, jacobian: Any = None) -> None:
+        ...
+
+    def input_digests(self) -> dict[str, str]:
         ...
 
 
@@ -402,7 +443,7 @@ class InverseProblem:
         return self.parameterization.inverse(self.true_simulation_input())
 
     def metric_names(self) -> list[str]:
-        """Keys of PROBLEMS.md's metric table that :meth:`metrics` reports, in its order."""
+        """Keys of docs/problems.md's metric table that :meth:`metrics` reports, in its order."""
         names = ["misfit"]
         if self.x_true is not None:
             names += ["u_err_inf", "u_err_2"]
@@ -413,7 +454,7 @@ class InverseProblem:
         return names
 
     def metrics(self, theta: Tensor, x: Tensor | None = None) -> dict[str, float]:
-        """The metrics of PROBLEMS.md at ``theta`` (state errors on every node and frame)."""
+        """The metrics of docs/problems.md at ``theta`` (state errors on every node and frame)."""
         with torch.no_grad():
             field = self.field(theta)
             if x is None:

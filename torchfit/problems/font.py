@@ -1,4 +1,4 @@
-"""The 5x7 block font of PROBLEMS.md and the raster of the word ``IPAM``.
+"""The 5x7 block font of docs/problems.md and the raster of the word ``IPAM``.
 
 Shared by ``poisson2d`` (pattern ``ipam``) and ``membrane2d``: the word is laid out as
 one bitmap (glyphs of 5 columns, one blank column between letters, 7 rows, row 0 at the
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Glyph rows, top (row 0) to bottom, ``#`` = ink (PROBLEMS.md, poisson2d).
+#: Glyph rows, top (row 0) to bottom, ``#`` = ink (docs/problems.md, poisson2d).
 GLYPHS: dict[str, tuple[str, ...]] = {
     "I": ("#####", "..#..", "..#..", "..#..", "..#..", "..#..", "#####"),
     "P": ("####.", "#...#", "#...#", "####.", "#....", "#....", "#...."),
@@ -64,7 +64,7 @@ def ipam_mask(points_in_unit_box: np.ndarray,
               box: tuple[tuple[float, float], tuple[float, float]] = IPAM_BOX) -> np.ndarray:
     """``True`` where a point of the unit square lies on the ink of the word ``IPAM``.
 
-    The rule of PROBLEMS.md (poisson2d ``ipam``, reused by membrane2d): the 7 x 23 bitmap
+    The rule of docs/problems.md (poisson2d ``ipam``, reused by membrane2d): the 7 x 23 bitmap
     of ``IPAM`` (5x7 glyphs, one blank column between letters, row 0 at the top) is
     stretched over ``box`` (default ``[0.10, 0.90) x [0.35, 0.65)``) and a point takes
     the pixel under it. Pass cell centres (poisson2d) or triangle centroids (membrane2d),

@@ -1,11 +1,11 @@
-"""``membrane2d``: the elastic sheet spelling IPAM (PROBLEMS.md, the seed's PhysBAM 2-D test).
+"""``membrane2d``: the elastic sheet spelling IPAM (docs/problems.md, the seed's PhysBAM 2-D test).
 
 Rest rectangle ``[0, width] x [0, height]`` (``2 x 0.5``), structured triangulation of
 ``nx x ny`` cells (``96 x 24``) each split into two triangles, plane strain. One Young's
 modulus per triangle, Poisson ratio ``nu`` fixed; constitutive model ``corotated`` by
 default (``linear``, ``stable_neo_hookean`` / ``neo_hookean`` too). Truth: ``E = 1``,
 ``E = 10`` on the triangles whose centroid lies on the ink of the word IPAM in the 5x7
-font of PROBLEMS.md (:func:`torchfit.mesh.ipam_mask`, box ``[0.10, 0.90) x [0.35, 0.65)``
+font of docs/problems.md (:func:`torchfit.mesh.ipam_mask`, box ``[0.10, 0.90) x [0.35, 0.65)``
 of the sheet normalised to the unit square).
 
 Animation, 8 frames, each an independent quasistatic equilibrium: the left edge is held
@@ -33,7 +33,7 @@ coordinates of every free vertex at the output times. Fitted: ``E`` per triangle
 ``conf/problem/membrane2d_dynamic.yaml`` is the preset (a 48 x 12 sheet).
 
 ``problem.dtype=float32`` with a nonlinear model needs ``problem.newton_atol >= 1e-4``
-(checked; docs/problems/membrane2d.md); the ``linear`` model has no such limit.
+(checked; docs/notes/membrane2d.md); the ``linear`` model has no such limit.
 """
 from __future__ import annotations
 
@@ -72,7 +72,7 @@ class Model(Choice):
 
 
 class SheetData(Choice):
-    """membrane2d observes every free vertex (PROBLEMS.md: ``dense`` only)."""
+    """membrane2d observes every free vertex (docs/problems.md: ``dense`` only)."""
 
     dense = "dense"
 
@@ -80,7 +80,7 @@ class SheetData(Choice):
 #: smallest Newton ``atol`` accepted with ``dtype=float32`` for the nonlinear models
 _FLOAT32_NEWTON_ATOL = 1e-4
 
-#: The animation of PROBLEMS.md: (kind, value) per frame.
+#: The animation of docs/problems.md: (kind, value) per frame.
 FRAMES: tuple[tuple[str, float], ...] = (
     ("stretch", 0.10), ("stretch", 0.20),
     ("shear", 0.10), ("shear", 0.20),

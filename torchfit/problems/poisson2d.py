@@ -32,7 +32,7 @@ from .config import (Backend, DataMode, ProblemConfig, ProblemConfigError, requi
 
 
 class Pattern(Choice):
-    """The true field of poisson2d (PROBLEMS.md)."""
+    """The true field of poisson2d (docs/problems.md)."""
 
     blocks = "blocks"
     ipam = "ipam"
@@ -54,7 +54,7 @@ class Poisson2DConfig(ProblemConfig):
     sparse_stride: int = 4           # sparse: nodes (i, j) with i, j multiples of the stride
     k0: float = 1.0                  # initial guess, constant (scale-free: aligned errors)
     # The free stiffness is SPD (a graph Laplacian with positive k and Dirichlet columns):
-    # ldl, sparse L D L^T with the ordering kept per pattern (docs/linalg/ldl.md); scipy
+    # ldl, sparse L D L^T with the ordering kept per pattern (docs/notes/ldl.md); scipy
     # (SuperLU) | banded | cg (torch, CPU or CUDA) as for every problem.
     backend: Backend = Backend.ldl
 

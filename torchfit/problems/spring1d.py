@@ -1,4 +1,4 @@
-"""``spring1d``: the hanging mass-spring chain of PROBLEMS.md.
+"""``spring1d``: the hanging mass-spring chain of docs/problems.md.
 
 ``n`` springs and ``n + 1`` nodes on a vertical line, node 0 fixed at ``x = 0``
 (positions measured along gravity). Rest length ``1/n`` and node mass ``1/n``; every
@@ -59,7 +59,7 @@ def true_stiffness(n: int, background: float = 100.0,
                    dtype: torch.dtype = torch.float64) -> Tensor:
     """Piecewise-constant truth: ``k = 100``, ``k[16:32] = 400``, ``k[40:48] = 25``.
 
-    The slices are those of PROBLEMS.md for ``n = 64``; for other ``n`` they scale with
+    The slices are those of docs/problems.md for ``n = 64``; for other ``n`` they scale with
     the chain so that the same fractions of it are stiff and soft.
     """
     k = torch.full((n,), float(background), dtype=dtype)

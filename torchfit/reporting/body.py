@@ -185,7 +185,7 @@ class BodyOutputs:
         # a run started from an earlier one (init=) is that continuation already
         warn_inverted(problem.frame_errors(x).get("inverted_tets"), problem.frame_numbers(),
                       suggest=self.suggest_continuation and not self.started_elsewhere,
-                      docs=getattr(problem, "fold_docs", None))
+                      docs=problem.fold_docs)
         files: list[Path] = []
         steps = [
             ("simulated frames (OBJ)", self._write_frames, (x,)),
@@ -365,7 +365,7 @@ class BodyOutputs:
         for material, name in shown:
             info = summary[material][name]
             label = f"{name}, {'fitted E' if material == 'fitted' else 'homogeneous E'}"
-            panels.append((f"{label}\n{getattr(problem, 'joint_label', 'joint region')} volume "
+            panels.append((f"{label}\n{problem.joint_label} volume "
                            f"{100 * info['joint_volume_change_at_frame']:+.1f} %, "
                            f"mean error {1e3 * float(errors[(material, name)].mean()):.2f} mm",
                            _numpy(problem.surface(states[material][name]))[frame],
@@ -373,7 +373,7 @@ class BodyOutputs:
         fig = surface_figure(panels, np.asarray(problem.animation.faces), vmax,
                              title=f"{names[frame]} (colour: surface error, 0 to "
                                    f"{1e3 * vmax:.1f} mm)",
-                             view=getattr(problem, "view_axes", None))
+                             view=problem.view_axes)
         png = self.run_dir / COMPARISON_PNG
         save_png(fig, png)
         return [png, json_path], summary

@@ -82,7 +82,7 @@ def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarra
     faces = np.asarray(problem.animation.faces)
     cells = np.asarray(problem.mesh.cells)
     fields = {"youngs_modulus": field}
-    if getattr(problem, "tet_regions", None) is not None:
+    if problem.tet_regions is not None:
         fields["region"] = np.asarray(problem.tet_regions, dtype=np.int32)
 
     def fill(partial: Path) -> None:

@@ -22,7 +22,7 @@ class Evaluation:
         field: ``(n_field,)`` the physical field, ``problem.field(theta)``.
         state: ``(F, n_nodes, dim)`` every node of every frame,
             ``problem.simulate(problem.simulation_input(theta))`` (no graph).
-        metrics: ``problem.metrics(theta, state)``: the metrics of PROBLEMS.md.
+        metrics: ``problem.metrics(theta, state)``: the metrics of docs/problems.md.
         record: the iteration record evaluated (``None``: a point that is not a record's,
             such as a report's baseline).
         validation: the metrics of the frames held out of the fit at ``theta`` (the run's

@@ -8,7 +8,7 @@ directory
     a 2-D field (a :class:`~torchfit.problems.base.FieldImageProblem`): truth, fit and
     error side by side, each with its colour bar; for a scale-free problem the fit is first
     multiplied by the best global scale onto the truth (``a = <k, k_true> / <k, k>``, the
-    ``k_err_rel_aligned`` of PROBLEMS.md) and the error panel is ``a k - k_true``. A 1-D
+    ``k_err_rel_aligned`` of docs/problems.md) and the error panel is ``a k - k_true``. A 1-D
     chain (:func:`field_is_chain`): ``k`` per cell, truth and fit, as a step plot.
 ``error_curves.png``
     ``misfit``, the field error (``k_err_rel_aligned`` or ``k_err_rel``), the damping

@@ -32,37 +32,39 @@ PNG_FILE = "identifiability.png"
 _CELL_TYPES = {4: "tetra", 3: "triangle", 2: "line"}
 
 
-def write_identifiability(run_dir: Path, problem: Any, report: Mapping[str, Any],
+def write_identifiability(run_dir: Path, mesh: Any, regions: np.ndarray | None,
+                          report: Mapping[str, Any],
                           cell_fields: Mapping[str, np.ndarray | None],
                           guard: PlotGuard) -> list[Path]:
-    """Write the three files (module docstring); returns those written. ``cell_fields``:
-    ``sensitivity`` and ``determined`` per field element (``None``: no VTU)."""
+    """Write the three files (module docstring); returns those written. ``mesh``: the
+    problem's simplicial mesh (``points``, ``cells``) or ``None``; ``regions``: a region label
+    per cell or ``None``; ``cell_fields``: ``sensitivity`` and ``determined`` per field
+    element (``None``: no VTU)."""
     files = [write_json(run_dir / JSON_FILE, dict(report))]
-    mesh = getattr(problem, "mesh", None)
     fields = {k: v for k, v in cell_fields.items() if v is not None}
     if mesh is not None and fields and all(len(v) == len(mesh.cells) for v in fields.values()):
-        written = guard.run("the identifiability VTU", _write_vtu, run_dir / VTU_FILE, problem,
-                            fields)
+        written = guard.run("the identifiability VTU", _write_vtu, run_dir / VTU_FILE, mesh,
+                            regions, fields)
         files.extend(written or [])
     picture = guard.run("the identifiability picture", _write_png, run_dir / PNG_FILE, report)
     files.extend(picture or [])
     return files
 
 
-def _write_vtu(path: Path, problem: Any, fields: Mapping[str, np.ndarray]) -> list[Path]:
+def _write_vtu(path: Path, mesh: Any, regions: np.ndarray | None,
+               fields: Mapping[str, np.ndarray]) -> list[Path]:
     import meshio
 
-    cells = np.asarray(problem.mesh.cells)
-    points = np.asarray(problem.mesh.points, dtype=np.float64)
+    cells = np.asarray(mesh.cells)
+    points = np.asarray(mesh.points, dtype=np.float64)
     if points.shape[1] < 3:
         points = np.pad(points, ((0, 0), (0, 3 - points.shape[1])))
     cell_data = {name: [np.asarray(values, dtype=np.float64)] for name, values in fields.items()}
-    regions = getattr(problem, "tet_regions", None)
     if regions is not None and len(regions) == len(cells):
         cell_data["region"] = [np.asarray(regions, dtype=np.int32)]
-    mesh = meshio.Mesh(points, [(_CELL_TYPES[cells.shape[1]], cells)], cell_data=cell_data)
+    written = meshio.Mesh(points, [(_CELL_TYPES[cells.shape[1]], cells)], cell_data=cell_data)
     tmp = path.with_name(path.name + ".tmp.vtu")
-    meshio.write(str(tmp), mesh)
+    meshio.write(str(tmp), written)
     tmp.replace(path)
     return [path]
 

@@ -50,7 +50,7 @@ def write_frames(run_dir: Path, problem: Any, x: Tensor, field: Tensor) -> list[
     surface = _numpy(problem.surface(x))
     positions = _numpy(x)
     cell_data = {"E": _numpy(field)}
-    if getattr(problem, "tet_regions", None) is not None:
+    if problem.tet_regions is not None:
         cell_data["region"] = np.asarray(problem.tet_regions, dtype=np.int32)
     faces = np.asarray(problem.animation.faces)
     return [*write_obj_sequence(run_dir / FRAMES_DIR, surface, faces),

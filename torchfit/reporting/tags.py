@@ -1,7 +1,7 @@
 """TensorBoard tags of a run's values and the HParams values of its settings.
 
 ``fit/<key>``: what is minimised (``misfit``, ``objective``, ``tv``, ``penalty``);
-``metrics/<key>``: the metrics of PROBLEMS.md and any ``*_err*`` key, and the fitted
+``metrics/<key>``: the metrics of docs/problems.md and any ``*_err*`` key, and the fitted
 damping of a dynamic problem; ``solver/<key>``: everything else a record carries
 (``step_norm``, ``cg_iterations``, ``damping``, ``accepted``, counters, ``wall_time`` and
 solver-specific extras); a key with a ``/`` is its own tag; ``final/<key>``: per-run values
@@ -12,7 +12,7 @@ from __future__ import annotations
 from typing import Any, Mapping
 
 FIT_KEYS = ("misfit", "objective", "tv", "penalty")
-#: Keys of PROBLEMS.md's metric table (``misfit`` is also the solver's own value).
+#: Keys of docs/problems.md's metric table (``misfit`` is also the solver's own value).
 METRIC_KEYS = ("u_err_inf", "u_err_2", "k_err_inf", "k_err_2", "k_err_rel",
                "k_err_rel_aligned", "misfit")
 #: fitted scalars reported as metrics (dynamic problems: the Rayleigh damping coefficients)

@@ -17,8 +17,9 @@ the budget of the whole run; a refused resume (:class:`ResumeError`) touches not
 The checkpoint also records digests of the problem's input data
 (:meth:`~torchfit.problems.InverseProblem.input_digests`: a body's tet mesh and animation),
 and a resume on other data is refused naming what changed. A body's run keeps its mesh
-(``mesh.npz``, :func:`torchfit.problems.body.run_mesh.keep_run_mesh`); the app's resume builds the problem with it
-(:func:`~torchfit.mesh.tetwild.store.register_run_mesh`), so a resume needs no mesh cache. A directory that holds a run
+(``mesh.npz``, :meth:`torchfit.problems.BodyProblem.keep_mesh`); the app's resume builds the
+problem on it (:func:`torchfit.problems.body.run_mesh.resumed_mesh`, handed to
+:func:`torchfit.problems.build_problem`), so a resume needs no mesh cache. A directory that holds a run
 (:func:`run_files`) but no readable ``checkpoint.pt`` is refused too: a resume never
 starts over.
 """

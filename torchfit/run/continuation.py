@@ -3,7 +3,7 @@
 Where a body folds (tetrahedra turned inside out at equilibrium: the arm's inner elbow near
 full bend), a frame has several equilibria, and which one Newton reaches depends on where
 it starts. A fit of every frame from the homogeneous material can then stall with those
-frames on other branches than the target's (``docs/problems/arm3d.md``, "Several
+frames on other branches than the target's (``docs/notes/arm3d.md``, "Several
 equilibria near full bend"), while the frames far from a fold pin the field down, and from
 their fit the folded frames reach the target's branch. :func:`fit_continued` does that
 continuation in one call (``continuation=true`` in the app):
@@ -28,7 +28,7 @@ included, has an equilibrium on its target), and then two stages only where some
 near a fold at the start. Targets the model does not reproduce (a rig, a user's frames) have
 no such equilibrium for the folded frames: there it is one plain fit, with no fold check
 (measured on the arm's rig targets: a reduction of 1.45 against 1.39 for several times the
-cost, ``docs/run/continuation.md``).
+cost, ``docs/notes/continuation.md``).
 
 The second stage helps only where the folded frames reach the target's equilibrium from
 the first stage's field; where they do not, it can move the field away from the truth, and
@@ -37,7 +37,7 @@ is near a fold at the start, or every frame is, it is one plain :func:`~.fitting
 Both stages use the same solver settings (but the first stage's ``max_iter``) and options; a
 ``resume`` continues whichever stage was interrupted (a finished first stage is read back,
 not refitted; the start and the first stage's last state are simulated again for their
-fold checks). Figures: ``docs/run/continuation.md``.
+fold checks). Figures: ``docs/notes/continuation.md``.
 """
 from __future__ import annotations
 
@@ -106,7 +106,7 @@ def continuation_applies(problem: InverseProblem) -> bool:
     """Whether ``continuation=auto`` considers the continuation: a body fitted to an
     animation whose targets are simulated with its own model (it has a true field). Whether
     a frame is near a fold at the start is :func:`fit_continued`'s check."""
-    return isinstance(problem, BodyProblem) and getattr(problem, "field_true", None) is not None
+    return isinstance(problem, BodyProblem) and problem.field_true is not None
 
 
 def frames_near_fold(problem: InverseProblem, theta: Tensor, min_volume: float) -> list[int]:

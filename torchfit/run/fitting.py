@@ -26,14 +26,13 @@ from typing import Any, Callable, Iterable, Mapping
 from torch import Tensor
 
 from ..linalg import set_threads
-from ..problems import InverseProblem
+from ..problems import BodyProblem, InverseProblem
 from ..records import IterationRecord
 from ..reporting.progress import ProgressPrinter
 from ..reporting.results import (CHECKPOINT_FILE, PARAMS_FILE, RESULT_FILE,
                                  remove_stale_temporaries)
 from ..residual import warm_up_autograd
 from ..solvers import Solver, SolverConfig
-from ..problems.body.run_mesh import keep_run_mesh
 from .checkpoint import (Checkpointer, check_fresh_start, checkpointed_solve,
                          finished_outputs_readable, finished_result, read_checkpoint)
 from .directory import check_writable
@@ -150,7 +149,8 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
     checkpointer = outputs = None
     if run_path is not None:
         run_path.mkdir(parents=True, exist_ok=True)
-        keep_run_mesh(run_path, problem)
+        if isinstance(problem, BodyProblem):   # a resume or simulate needs no mesh cache
+            problem.keep_mesh(run_path)
         checkpointer = Checkpointer(run_path, problem, solver, rows, start, tracker)
         chain.append(checkpointer)
         outputs = RunOutputs(run_path, problem, evaluator, options, config, restart)

@@ -25,7 +25,7 @@ After the solver stops, :func:`identify` says which parameters the data determin
     point's RMS noise distance ``1.1 sqrt(3) delta / sqrt(m)`` over the diagonal). Any
     material then moves the body the same way; a Jacobian that is not flat there comes from
     the drive of the prescribed vertices, not from the data
-    (docs/run/identifiability.md).
+    (docs/notes/identifiability.md).
 
 Where the Jacobian comes from (``source``): the dense Jacobian the solver made at its last
 accepted point (Levenberg-Marquardt and Gauss-Newton on the dense path: no extra work); else
@@ -52,7 +52,7 @@ import torch
 from torch import Tensor
 
 from ..linalg.estimators import column_norms
-from ..problems import InverseProblem
+from ..problems import BodyProblem, InverseProblem
 
 #: a parameter is determined when its sensitivity is at least this fraction of the largest
 #: (and a singular value counts in the effective rank when it is this fraction of the largest)
@@ -218,7 +218,7 @@ def assess(sensitivity: Tensor, singular_values: Tensor | None, data: Tensor,
 def from_jacobian(J: Any, theta: Tensor, data: Tensor, transform: str = "exp",
                   **kwargs: Any) -> Identifiability:
     """:func:`assess` of a dense Jacobian ``J`` ``(m, n)`` at ``theta``; rows kept on the
-    ranks of a distributed run (no tensor, :mod:`.distributed.rows`) go through :func:`from_gram`."""
+    ranks of a distributed run (no tensor, :mod:`.distributed.ranks.rows`) go through :func:`from_gram`."""
     if not isinstance(J, Tensor):
         return from_gram(J.T @ J, theta, data, transform, **kwargs)
     scaled = J.detach() * parameter_scale(theta, transform).to(J)[None, :]
@@ -273,12 +273,11 @@ def identify(problem: InverseProblem, lin: Any, theta: Tensor) -> Identifiabilit
 def _rigid(problem: InverseProblem) -> dict[str, Any]:
     """``rigid``, ``noise_level``, ``size`` of a body whose data are its observed surface
     vertices (``animation``, ``observed_vertices``; frame-major ``(F, n_obs, 3)``)."""
-    animation = getattr(problem, "animation", None)
-    observed = getattr(problem, "observed_vertices", None)
     out: dict[str, Any] = {"noise_level": problem.noise_level}
-    if animation is None or observed is None:
+    if not isinstance(problem, BodyProblem):
         return out
-    rest = np.asarray(animation.rest_vertices)[np.asarray(observed.cpu())]
+    rest = np.asarray(problem.animation.rest_vertices)[np.asarray(
+        problem.observed_vertices.cpu())]
     data = problem.data.detach().cpu().numpy()
     if len(rest) < 3 or data.size % (3 * len(rest)):
         return out
@@ -312,12 +311,11 @@ def _per_cell(problem: InverseProblem, theta: Tensor, report: Identifiability) -
 
     report.cell_sensitivity = cell_mean(report.relative)
     report.cell_determined = cell_mean(report.parameter_determined.astype(np.float64))
-    mesh = getattr(problem, "mesh", None)
     volumes = np.ones(n_field)
-    if mesh is not None and hasattr(mesh, "signed_volumes") and len(mesh.cells) == n_field:
-        volumes = np.abs(np.asarray(mesh.signed_volumes(), dtype=np.float64))
-    labels = getattr(problem, "tet_regions", None)
-    names = list(getattr(problem, "region_names", []) or [])
+    labels, names = None, []
+    if isinstance(problem, BodyProblem) and len(problem.mesh.cells) == n_field:
+        volumes = np.abs(np.asarray(problem.mesh.signed_volumes(), dtype=np.float64))
+        labels, names = problem.tet_regions, list(problem.region_names)
     if labels is None or len(labels) != n_field:
         labels, names = np.zeros(n_field, dtype=np.int64), ["body"]
     labels = np.asarray(labels)

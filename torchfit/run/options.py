@@ -61,7 +61,7 @@ class FitOptions(ProcessOptions):
         sheet_frame: frame whose deformed mesh is drawn (``None``: the problem's choice).
         objective_metric: the key of ``result.json`` that :attr:`FitResult.objective`
             returns, i.e. what a sweeper such as Optuna minimises (a metric of
-            PROBLEMS.md, or ``iterations``, ``wall_s``, ``factorizations``, ``solves``).
+            docs/problems.md, or ``iterations``, ``wall_s``, ``factorizations``, ``solves``).
         fold_hint: a 3-D body's warning about folded frames at the end suggests
             ``continuation=true`` (off in the stages of one, which report themselves).
         validation_patience: with frames held out of the fit (a body's

@@ -140,9 +140,11 @@ class RunOutputs:
         write_json(run_dir / RESULT_FILE, summary)
         if result.identifiability is not None:
             report = result.identifiability
+            mesh = problem.mesh if isinstance(problem, MeshProblem) else None
+            regions = problem.tet_regions if isinstance(problem, BodyProblem) else None
             files.extend(write_identifiability(
-                run_dir, problem, report.as_json(), {"sensitivity": report.cell_sensitivity,
-                                                     "determined": report.cell_determined},
+                run_dir, mesh, regions, report.as_json(),
+                {"sensitivity": report.cell_sensitivity, "determined": report.cell_determined},
                 self.guard))
         files[:0] = write_run_pngs(run_dir, problem, final.field, result.history, self.guard,
                                    field_is_chain(problem))

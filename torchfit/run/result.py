@@ -1,6 +1,6 @@
 """What a run returns (:class:`FitResult`) and what its ``result.json`` holds.
 
-``result.json``: the final metrics (PROBLEMS.md), ``iterations``, ``wall_s``,
+``result.json``: the final metrics (docs/problems.md), ``iterations``, ``wall_s``,
 ``factorizations``, ``solves`` (whole-run totals, a resumed run included), ``converged``,
 ``stop_reason``, ``status`` (``completed``), ``resumed_from_iteration`` (a resumed run),
 ``problem`` (sizes), ``config`` and ``history`` (one row per outer iteration); a 3-D body
@@ -30,7 +30,7 @@ class FitResult:
 
     Attributes:
         theta: ``(n_params,)`` fitted parameters; ``field`` the physical field.
-        metrics: the final metrics of PROBLEMS.md.
+        metrics: the final metrics of docs/problems.md.
         iterations, wall_s, factorizations, solves: whole-run totals (a resumed run
             included).
         converged, stop_reason: as the solver reports them.

@@ -20,7 +20,6 @@ reproduce. The animation's frames may differ from the fit's in number and poses.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import json
 import logging
@@ -251,8 +250,7 @@ def build_fitted_body(fitted: FittedRun, overrides: dict[str, Any]) -> RiggedBod
         except Exception as e:  # noqa: BLE001  (MeshError: an unreadable mesh.npz)
             raise FitConfigError(f"run={fitted.directory}: {' '.join(str(e).split())}; "
                                  "simulate needs the fitted body's mesh") from None
-    with fitted_mesh(stored) if stored is not None else contextlib.nullcontext():
-        problem = build_problem(name, merged)
+    problem = build_problem(name, merged, None if stored is None else fitted_mesh(stored))
     assert isinstance(problem, RiggedBody)
     if stored is None and fitted.inputs and "tet mesh" in fitted.inputs:
         now = problem.input_digests()["tet mesh"]

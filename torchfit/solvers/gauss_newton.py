@@ -19,7 +19,7 @@ have left (with ``max_step``'s), so the step and every shorter one stay inside.
 ``max_step`` (the largest change of one parameter per step) is a trust region for the
 inner CGLS (Steihaug's truncated CG with a box): it stops where its next update would
 leave ``||d||_inf <= max_step``, on the boundary, so steps are never clipped afterwards
-(why: ``docs/solvers/gauss_newton.md``).
+(why: ``docs/notes/gauss_newton.md``).
 
 ``preconditioner=difference`` (needs the parameterisation's ``D``) runs CGLS on
 ``J S`` with ``S S^T = D^T D + s I`` (:class:`~.preconditioners.DifferencePreconditioner`);
@@ -30,7 +30,7 @@ is good. ``preconditioner=auto`` (the default) decides once, at ``theta0``
 are at least as many as the parameters (``m >= n``) and the noise level is unknown, zero
 or at most ``auto_noise_ratio`` times ``||r_0||``; ``none`` otherwise, where the
 discrepancy principle's early stopping is the regularisation (the preconditioner's first
-Krylov vectors are the rough modes). Measurements: ``docs/solvers/gauss_newton.md``.
+Krylov vectors are the rough modes). Measurements: ``docs/notes/gauss_newton.md``.
 
 Cost of one accepted full step with ``m`` CG iterations: one factorisation (the new
 point) and at most ``2m + 1`` solves.
@@ -129,7 +129,7 @@ def wants_difference_preconditioner(has_D: bool, m: int, n: int, noise_level: fl
     stopping to regularise, and the preconditioner cuts CGLS's iterations. No on noisy or
     sparse data, where the discrepancy principle stops a Krylov method early on purpose
     and the preconditioned one keeps a rougher field. Figures:
-    ``docs/solvers/gauss_newton.md``.
+    ``docs/notes/gauss_newton.md``.
     """
     if not has_D or m < n:
         return False

@@ -35,7 +35,7 @@ complement of the gauge) are solved exactly by Cholesky
 (:class:`~.least_squares.DenseNormalEquations`; ``lstsq`` where Cholesky fails), also
 for the geodesic acceleration; the difference preconditioner (which only changes the
 Krylov space) is not used there. A rejected step then costs one factorisation per frame
-and no solve. Measurements: ``docs/solvers/levenberg_marquardt.md``.
+and no solve. Measurements: ``docs/notes/levenberg_marquardt.md``.
 
 Opt-in (all on in ``solver=levenberg_marquardt_geodesic``):
 ``geodesic_acceleration`` (Transtrum and Sethna: a second-order correction ``a / 2``
@@ -45,7 +45,7 @@ are rejected without a trial) and ``preconditioner='difference'`` (CGLS in the m
 ``preconditioner_probes`` random products ``J^T w`` per linearisation; switched on
 after the first damped solve that reaches ``cg_max_iter``). The damped system, hence
 the step, is the same with and without it. Measurements and the reasons for these
-choices: ``docs/solvers/levenberg_marquardt.md``.
+choices: ``docs/notes/levenberg_marquardt.md``.
 
 Carried state (:meth:`LevenbergMarquardt.state_dict`): ``theta``, the gradient, the
 damping ``lam``, its rejection growth factor, ``lam_0``, ``||J^T r_0||``, the previous

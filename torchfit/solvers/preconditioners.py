@@ -7,7 +7,7 @@ parameter neighbours (``D`` the difference operator the caller hands over; solve
 build it) is then a cheap approximate inverse. Gauss-Newton shifts it
 (:class:`DifferencePreconditioner`), Levenberg-Marquardt scales it by the Jacobian's
 column norms (:class:`ColumnScaledLaplacian`); the Laplacian itself lives here, once.
-Measured effects: ``docs/solvers/gauss_newton.md``, ``docs/solvers/levenberg_marquardt.md``.
+Measured effects: ``docs/notes/gauss_newton.md``, ``docs/notes/levenberg_marquardt.md``.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from .total_variation import check_difference_operator
 
 def compressed_rows(matrix: Tensor) -> Tensor:
     """``matrix`` (sparse COO or CSR) as CSR, for ``torch.mv`` at one product per CGLS
-    iteration (CSR is the faster layout on the CPU: ``docs/solvers/gauss_newton.md``)."""
+    iteration (CSR is the faster layout on the CPU: ``docs/notes/gauss_newton.md``)."""
     with warnings.catch_warnings():   # "sparse CSR support is in beta": mv is all we use
         warnings.simplefilter("ignore", UserWarning)
         return matrix.coalesce().to_sparse_csr() if matrix.layout == torch.sparse_coo \

@@ -59,7 +59,7 @@ def test_the_count_is_part_of_the_key_only_when_given():
 @pytest.mark.slow
 def test_half_the_target_gives_about_half_the_tetrahedra(tmp_path, monkeypatch):
     """The test capsule (800 faces), real pytetwild, twice per target at most: asked for
-    3,000 and 1,500 (docs/mesh/tet_size.md has the measured table)."""
+    3,000 and 1,500 (docs/notes/tet_size.md has the measured table)."""
     monkeypatch.chdir(tmp_path)
     surface = trimesh.creation.capsule(height=0.5, radius=0.05, count=[20, 20])
     counts = {}

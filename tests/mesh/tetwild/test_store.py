@@ -7,7 +7,7 @@ import pytest
 import trimesh
 
 from torchfit.mesh import MeshError, box_tetrahedra
-from torchfit.mesh.tetwild.store import (read_run_mesh, register_run_mesh, requiring,
+from torchfit.mesh.tetwild.store import (KeptMesh, read_kept_mesh, read_run_mesh,
                                      tetrahedralize_kept, write_run_mesh)
 from torchfit.mesh.tetwild.tetrahedralize import TetMesh, TetOptions, cache_key, pytetwild_version
 
@@ -39,28 +39,31 @@ def test_the_run_mesh_reads_back_bit_for_bit_and_writes_the_same_bytes(tmp_path)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["again.npz", "mesh.npz"]
 
 
-def test_a_registered_mesh_comes_before_the_cache(tmp_path):
+def test_a_kept_mesh_comes_before_the_cache(tmp_path):
     vertices, faces, box, _ = stored_box(tmp_path / "mesh.npz")
-    assert register_run_mesh(tmp_path / "nowhere") is None
-    register_run_mesh(tmp_path)
-    tet = tetrahedralize_kept(vertices, faces, OPTIONS, cache_dir=tmp_path / "cache")
+    assert read_kept_mesh(tmp_path / "nowhere") is None
+    kept = read_kept_mesh(tmp_path)
+    tet = tetrahedralize_kept(vertices, faces, OPTIONS, kept, cache_dir=tmp_path / "cache")
     np.testing.assert_array_equal(tet.cells, box.cells)
     assert tet.from_cache and not (tmp_path / "cache").exists()
+    # not required: another surface is tetrahedralised as usual (here: no kept mesh used)
+    assert kept.mesh_for(1.05 * vertices, faces, OPTIONS) is None
+    assert kept.frame_for(vertices, faces, OPTIONS) is None      # stored without a frame
 
 
 def test_a_required_mesh_refuses_another_surface_or_option(tmp_path):
     vertices, faces, box, _ = stored_box(tmp_path / "mesh.npz")
     stored = read_run_mesh(tmp_path / "mesh.npz")
-    with requiring(stored):
-        assert tetrahedralize_kept(vertices, faces, OPTIONS).points is stored.points
-        with pytest.raises(MeshError, match=r"not the fitted body: its rest surface's vertices "
-                                            r"differ from the fitted body's \(by up to 0\.075\)"):
-            tetrahedralize_kept(1.05 * vertices, faces, OPTIONS, cache_dir=tmp_path / "c")
-        with pytest.raises(MeshError, match="rest surface has 7 vertices and 1 faces"):
-            tetrahedralize_kept(vertices[:7], faces[:1], OPTIONS, cache_dir=tmp_path / "c")
-        with pytest.raises(MeshError, match="edge_length_fac: 0.3 fitted, 0.2 now"):
-            tetrahedralize_kept(vertices, faces, TetOptions(edge_length_fac=0.2),
-                                cache_dir=tmp_path / "c")
+    kept = KeptMesh(stored, required=True)
+    assert tetrahedralize_kept(vertices, faces, OPTIONS, kept).points is stored.points
+    with pytest.raises(MeshError, match=r"not the fitted body: its rest surface's vertices "
+                                        r"differ from the fitted body's \(by up to 0\.075\)"):
+        tetrahedralize_kept(1.05 * vertices, faces, OPTIONS, kept, cache_dir=tmp_path / "c")
+    with pytest.raises(MeshError, match="rest surface has 7 vertices and 1 faces"):
+        tetrahedralize_kept(vertices[:7], faces[:1], OPTIONS, kept, cache_dir=tmp_path / "c")
+    with pytest.raises(MeshError, match="edge_length_fac: 0.3 fitted, 0.2 now"):
+        tetrahedralize_kept(vertices, faces, TetOptions(edge_length_fac=0.2), kept,
+                            cache_dir=tmp_path / "c")
     assert not (tmp_path / "c").exists()
 
 

@@ -1,7 +1,7 @@
-"""problem=arm3d (PROBLEMS.md): the procedural arm through the animation path.
+"""problem=arm3d (docs/problems.md): the procedural arm through the animation path.
 
 Fast tests use a coarse arm (about 1-2k tetrahedra) and a few frames; the acceptance runs of
-the issue at full size are in scripts/bench_arm3d.py and the README's figures.
+the issue at full size are in scripts/bench/arm3d.py and docs/notes/arm3d.md.
 """
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ def test_forward_jacobian_matches_jvps(cache):
 @pytest.mark.parametrize("warm_start", [True, False])
 def test_warm_start_setting_decides_where_newton_starts(cache, warm_start):
     """``problem.warm_start=false`` starts every simulation from the animated pose (the
-    definition in PROBLEMS.md): the answer at a parameter vector does not depend on the ones
+    definition in docs/problems.md): the answer at a parameter vector does not depend on the ones
     simulated before it. The default starts from the last solution."""
     problem = arm(cache, frames=[0, 11], warm_start=warm_start)
     equilibrium = problem.quasistatic.equilibrium
@@ -198,7 +198,7 @@ def test_rotate_turns_surface_frames_and_rig_together():
 @pytest.mark.slow
 def test_a_rotated_arm_gets_the_same_tetrahedra_and_grid(cache):
     """Two coarse arms (one tetrahedralisation, then a cache hit); the short arm's runs of
-    docs/problems/axes.md showed the same (one key, the same iterates)."""
+    docs/notes/axes.md showed the same (one key, the same iterates)."""
     plain = arm(cache, frames=[0, 11])
     turned = arm(cache, frames=[0, 11], rotate=[0.0, 90.0, 0.0])
     turn = turned.rotation

@@ -1,4 +1,4 @@
-"""The procedural arm of PROBLEMS.md (torchfit.problems.body.procedural_arm)."""
+"""The procedural arm of docs/problems.md (torchfit.problems.body.procedural_arm)."""
 import numpy as np
 import pytest
 import trimesh

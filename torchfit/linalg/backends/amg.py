@@ -1,10 +1,10 @@
 """``amg`` backend: conjugate gradients preconditioned by smoothed-aggregation AMG (pyamg).
 
 For large 3-D bodies a direct factorisation's fill grows faster than the cost of an
-algebraic-multigrid preconditioned CG (``docs/linalg/amg.md`` has the measured
-crossover). This backend keeps the :class:`~.backends.Factor` contract:
+algebraic-multigrid preconditioned CG (``docs/notes/amg.md`` has the measured
+crossover). This backend keeps the :class:`~.base.Factor` contract:
 
-* **"factorisation"** (counted as one in :mod:`.counters`): pyamg's smoothed-aggregation
+* **"factorisation"** (counted as one in :mod:`..counters`): pyamg's smoothed-aggregation
   hierarchy of the matrix (``smoothed_aggregation_solver`` with :data:`HIERARCHY`'s
   options; its coarsest level factorised here too), built once per matrix and reused by
   every solve with it (forward, adjoint, ``J v``, blocks of right-hand sides). The
@@ -51,7 +51,7 @@ from ..pattern import SparsePattern
 AMG_EXTRA = "pip install 'torchfit[amg]' (pyamg)"
 
 #: keyword arguments of ``pyamg.smoothed_aggregation_solver`` (measured choice:
-#: ``docs/linalg/amg.md``)
+#: ``docs/notes/amg.md``)
 HIERARCHY: dict[str, Any] = {
     "improve_candidates": None,
     "max_coarse": 500,

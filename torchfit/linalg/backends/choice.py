@@ -5,7 +5,7 @@ The backends (one module each): ``scipy`` (:mod:`.superlu`, CPU, always there), 
 (:mod:`.banded`, thin meshes), ``ldl`` (:mod:`.ldl`, qdldl), ``pardiso`` (:mod:`.pardiso`,
 MKL, the 3-D default on the CPU where installed), ``amg`` (:mod:`.amg`, large 3-D bodies
 with few solves per factorisation), ``cudss`` (:mod:`.cudss`, CUDA) and ``cg`` (:mod:`.cg`,
-any device). Measured speeds and the alternatives rejected: ``docs/linalg/backends.md``.
+any device). Measured speeds and the alternatives rejected: ``docs/notes/backends.md``.
 """
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from .superlu import ScipyBackend
 
 
 #: free dofs above which :func:`default_backend` picks ``amg`` for a 3-D problem on the CPU
-#: that makes few solves per factorisation (measured crossover: ``docs/linalg/amg.md``)
+#: that makes few solves per factorisation (measured crossover: ``docs/notes/amg.md``)
 AMG_MIN_DOFS = 20_000
 #: the most solves (right-hand-side columns) per factorisation for which ``amg`` is picked
 #: (a forward solve and its adjoint: 2; a dense Jacobian: one per parameter, 192 on the arm)
@@ -59,7 +59,7 @@ def get_backend(name: str | Backend) -> Backend:
     """``'scipy'``, ``'banded'``, ``'ldl'``, ``'pardiso'``, ``'amg'``, ``'cudss'`` or ``'cg'``
     (or an object with ``factorize``).
 
-    ``'pardiso'`` without its extra raises :class:`~.pardiso.PardisoUnavailableError`,
+    ``'pardiso'`` without its extra raises :class:`~.pardiso_mkl.PardisoUnavailableError`,
     ``'cudss'`` without CUDA or ``torchfit[cuda]`` :class:`~.cudss.CudssUnavailableError`.
     """
     if not isinstance(name, str):

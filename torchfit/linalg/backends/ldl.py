@@ -16,7 +16,7 @@ per pattern here, and every further factorisation of that pattern is numeric onl
   its solver to the pool when it is garbage collected.
 
 Measured against SuperLU (faster factorisations, slower solves at large sizes):
-``docs/linalg/ldl.md``, ``scripts/bench_factorization.py``.
+``docs/notes/ldl.md``, ``scripts/bench/factorization.py``.
 
 Without pivoting, ``L D L^T`` is only trustworthy for positive definite matrices: a
 factorisation whose ``D`` has an entry that is not positive (an indefinite Newton
@@ -132,7 +132,7 @@ _LDL_PLANS: "weakref.WeakKeyDictionary[SparsePattern, _LdlPlan]" = weakref.WeakK
 class LdlBackend:
     """Sparse ``L D L^T`` (qdldl) for SPD matrices; the rest goes to ``fallback`` (the
     pivoting SuperLU of the ``scipy`` backend, handed in by
-    :func:`~.backends.get_backend`). ``fallbacks`` counts the factorisations handed over.
+    :func:`~.choice.get_backend`). ``fallbacks`` counts the factorisations handed over.
     """
 
     fallback: Any

@@ -122,7 +122,7 @@ class PardisoBackend:
         capacity: live factors one analysis serves (PARDISO's ``maxfct``) before a second
             analysis of the same pattern is made; free slots cost no memory.
 
-    Raises :class:`~.pardiso.PardisoUnavailableError` (an ``ImportError`` naming
+    Raises :class:`~.pardiso_mkl.PardisoUnavailableError` (an ``ImportError`` naming
     ``pip install 'torchfit[pardiso]'``) when pypardiso or MKL is missing.
     """
 

@@ -1,12 +1,12 @@
 """MKL PARDISO through ``ctypes``: the library, host-side structures and handles.
 
 This module is the binding only (numpy in, numpy out, no torch, no counters); the
-:class:`~torchfit.linalg.backends.choice.PardisoBackend` builds the ``Factor`` interface on it.
+:class:`~torchfit.linalg.backends.pardiso.PardisoBackend` builds the ``Factor`` interface on it.
 PARDISO comes with the optional extra ``torchfit[pardiso]`` (``pypardiso`` and the
 ``mkl`` wheels: x86-64 only, about 700 MB). The shared library is found the way
 pypardiso finds it (``PYPARDISO_MKL_RT``, ``ctypes.util.find_library``, the
 environment's ``lib``); the calls are made here, with settings of our own (why not
-pypardiso's own solver: ``docs/linalg/pardiso.md``).
+pypardiso's own solver: ``docs/notes/pardiso.md``).
 
 PARDISO's phases: 11 symbolic analysis (fill-reducing METIS ordering, symbolic
 factorisation), 22 numeric factorisation, 33 solve (forward/backward substitution),
@@ -23,7 +23,7 @@ a small pivot of a regular one; scaling and weighted matching for nonsymmetric m
 symmetric ones (their analysis is purely structural); Bunch-Kaufman pivoting for
 symmetric indefinite (``[20] = 1``); zero-based CSR indices (``[34] = 1``); no iterative
 refinement (``[7] = 0``: MKL then refines only after perturbed pivots, which
-:class:`~torchfit.linalg.backends.choice.PardisoBackend` reports as singular).
+:class:`~torchfit.linalg.backends.pardiso.PardisoBackend` reports as singular).
 """
 from __future__ import annotations
 
@@ -301,7 +301,7 @@ class PardisoHandle:
     ``threads`` is MKL's thread limit at the analysis. A numeric factorisation under a
     lower limit than the analysis had crashes MKL (a segmentation fault, measured with
     MKL 2025 on the arm: analysis with 2 threads, factorisation with 1), so
-    :class:`~torchfit.linalg.backends.choice.PardisoPlan` factorises only into handles analysed
+    :class:`~torchfit.linalg.backends.pardiso.PardisoPlan` factorises only into handles analysed
     under the current limit. Solves with existing factors are safe under any limit.
     """
 

@@ -382,7 +382,7 @@ def _manifest_path(path: str | Path) -> Path:
         path = path / MANIFEST
     if not path.is_file():
         raise AnimationError(f"no animation manifest at {path}: problem.path must be a folder "
-                             f"holding {MANIFEST} (see README, 'Bring your own animation')")
+                             f"holding {MANIFEST} (see docs/guide/formats.md)")
     return path
 
 

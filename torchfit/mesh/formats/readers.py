@@ -3,9 +3,9 @@
 :func:`read_animation` dispatches by the path's suffix: ``.usd``, ``.usda``, ``.usdc``,
 ``.usdz`` to :mod:`.usd.reader` (the extra ``usd``), ``.gltf``, ``.glb`` to
 :mod:`.gltf.reader` (the extra ``gltf``), anything else (a folder, a manifest) to
-:func:`.animation_format.load_animation`. Every reader returns the same
-:class:`~.animation_format.Animation`; errors are one line
-(:class:`~.animation_format.AnimationError`).
+:func:`.folder.load_animation`. Every reader returns the same
+:class:`~.folder.Animation`; errors are one line
+(:class:`~.folder.AnimationError`).
 """
 from __future__ import annotations
 

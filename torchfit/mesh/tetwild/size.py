@@ -3,20 +3,20 @@
 fTetWild sizes its mesh by two settings: the target edge length and the envelope
 ``epsilon`` (how far the boundary may stray from the surface). On a finely tessellated
 surface the envelope decides: with ``epsilon`` fixed at 1e-3, raising the edge length from
-0.05 to 0.08 of the diagonal gave *more* tetrahedra on a 16k-face capsule (docs/mesh/
+0.05 to 0.08 of the diagonal gave *more* tetrahedra on a 16k-face capsule (docs/notes/
 tet_size.md). A target count (``TetOptions.count``, ``problem.tet_count``) therefore sets
 both: the edge length from the body's volume (closed surface: the enclosed one; open: its
 convex hull's), as if it were filled with regular tetrahedra of that edge, times
 ``TETS_PER_REGULAR`` measured; the envelope ``ENVELOPE_PER_EDGE`` times the edge length.
 fTetWild's count varies from run to run and with the shape: on thin bodies the boundary's
-refinement dominates and the count falls only as about ``edge ** -1.3`` (docs/mesh/
+refinement dominates and the count falls only as about ``edge ** -1.3`` (docs/notes/
 tet_size.md), not ``edge ** -3``. So a build off by more than ``COUNT_TOLERANCE`` is built
 again with the edge length scaled by ``(count / target) ** (1 / COUNT_EXPONENT)``, and from
 the second build on by the exponent the last two builds measured (a secant in log-log), at
 most ``MAX_BUILDS`` builds; the closest one is kept and cached under a key that holds the
 target, so a second run reads it back.
 
-Nothing here solves anything (DESIGN.md, layer ``mesh``).
+Nothing here solves anything (docs/architecture.md, layer ``mesh``).
 """
 from __future__ import annotations
 

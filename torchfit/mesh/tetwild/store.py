@@ -1,12 +1,12 @@
 """A run's own copy of its tetrahedral mesh (``mesh.npz``), and tetrahedralisation that uses it.
 
-fTetWild is not deterministic: the on-disk cache (:mod:`.tetrahedralize`) is what gives the
-same surface the same tetrahedra. A fit keeps the mesh it used in its run directory
+fTetWild is not deterministic: the on-disk cache (:mod:`.cache`) is what gives the same
+surface the same tetrahedra. A fit keeps the mesh it used in its run directory
 (:func:`write_run_mesh`), so that a resume, or ``simulate`` of the fitted material on
-another machine, needs no cache: :func:`register_run_mesh` makes every later
-:func:`tetrahedralize_kept` of the same surface and options return that mesh (before the
-cache is looked at), and :func:`requiring` (``simulate``) refuses any other surface or
-options instead of tetrahedralising it.
+another machine, needs no cache: the run reads it back (:func:`read_kept_mesh`) and hands
+it to the body's build as a :class:`KeptMesh`, whose :func:`tetrahedralize_kept` returns
+it for its own surface and options before the cache is looked at; a ``required`` one
+(``simulate``) refuses any other surface or options instead of tetrahedralising them.
 
 ``mesh.npz`` holds ``points`` ``(n, 3)`` float64, ``cells`` ``(m, 4)`` int64, ``regions``
 ``(m,)`` int64 (``-1`` everywhere without region labels), ``surface_vertices`` and
@@ -17,7 +17,6 @@ options instead of tetrahedralising it.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import io
 import json
@@ -25,7 +24,6 @@ import os
 import time
 import zipfile
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
@@ -148,70 +146,56 @@ def read_run_mesh(path: str | Path) -> StoredMesh:
                       path=path, frame=frame)
 
 
-#: meshes of runs this process registered, by cache key
-_REGISTERED: dict[str, StoredMesh] = {}
-#: the mesh :func:`requiring` demands (``simulate``), or ``None``
-_REQUIRED: list[StoredMesh] = []
+@dataclasses.dataclass(frozen=True)
+class KeptMesh:
+    """A run's own mesh handed to the build of a body (an explicit input, no registry).
+
+    Used for its own rest surface and options instead of the cache; with ``required``
+    (``simulate`` of a fitted material) any other surface or option is refused rather than
+    tetrahedralised, since the fitted field lives on these tetrahedra.
+    """
+
+    stored: StoredMesh
+    required: bool = False
+
+    def mesh_for(self, vertices: np.ndarray, faces: np.ndarray, options: TetOptions
+                 ) -> TetMesh | None:
+        """The kept mesh where ``vertices``, ``faces`` and ``options`` are its own, else
+        ``None``; raises :class:`~..simplicial.MeshError` naming what differs where the mesh
+        is ``required``."""
+        start = time.perf_counter()
+        if self.stored.matches(vertices, faces, options):
+            return self.stored.tet_mesh(time.perf_counter() - start)
+        if self.required:
+            why = self.stored.difference(vertices, faces, options) or "its cache key differs"
+            raise MeshError(f"not the fitted body: {why}; the fitted material applies to "
+                            "animations of the same rest surface")
+        return None
+
+    def frame_for(self, vertices: np.ndarray, faces: np.ndarray, options: TetOptions
+                  ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The body frame recorded with the kept mesh, where the surface and options are
+        its own (a new animation of the body keeps the fitted grid), else ``None``."""
+        if self.stored.frame is not None and self.stored.matches(vertices, faces, options):
+            return self.stored.frame
+        return None
 
 
-def register_run_mesh(run_dir: str | Path) -> StoredMesh | None:
-    """Make the mesh kept in ``run_dir`` (its ``mesh.npz``) the one every later
-    :func:`tetrahedralize_kept` of the same surface and options returns, in this process
-    (a resume without the cache entry); ``None`` where the run has no ``mesh.npz``.
-    Raises :class:`~.simplicial.MeshError` for an unreadable one."""
+def read_kept_mesh(run_dir: str | Path, required: bool = False) -> KeptMesh | None:
+    """The mesh ``run_dir`` keeps (its ``mesh.npz``), ``None`` where it has none; raises
+    :class:`~..simplicial.MeshError` for an unreadable one."""
     path = Path(run_dir) / RUN_MESH_FILE
     if not path.is_file():
         return None
-    stored = read_run_mesh(path)
-    _REGISTERED[stored.key] = stored
-    return stored
-
-
-@contextlib.contextmanager
-def requiring(stored: StoredMesh) -> Iterator[None]:
-    """Within: :func:`tetrahedralize_kept` returns ``stored`` for its own surface and
-    options and raises :class:`~.simplicial.MeshError` naming what differs for any other
-    (nothing is tetrahedralised)."""
-    _REQUIRED.append(stored)
-    try:
-        yield
-    finally:
-        _REQUIRED.remove(stored)
-
-
-def kept_mesh(vertices: np.ndarray, faces: np.ndarray, options: TetOptions) -> TetMesh | None:
-    """The run mesh registered for this surface and options (:func:`register_run_mesh`,
-    :func:`requiring`), or ``None``; raises :class:`~.simplicial.MeshError` where one is
-    required and this surface is not its own."""
-    start = time.perf_counter()
-    if _REQUIRED:
-        stored = _REQUIRED[-1]
-        if not stored.matches(vertices, faces, options):
-            why = stored.difference(vertices, faces, options) or "its cache key differs"
-            raise MeshError(f"not the fitted body: {why}; the fitted material applies to "
-                            "animations of the same rest surface")
-        return stored.tet_mesh(time.perf_counter() - start)
-    for stored in _REGISTERED.values():
-        if stored.matches(vertices, faces, options):
-            return stored.tet_mesh(time.perf_counter() - start)
-    return None
-
-
-def kept_frame(vertices: np.ndarray, faces: np.ndarray, options: TetOptions
-               ) -> tuple[np.ndarray, np.ndarray] | None:
-    """The body frame recorded with the run mesh registered for this surface and options
-    (:func:`kept_mesh`), or ``None``."""
-    for stored in ([_REQUIRED[-1]] if _REQUIRED else list(_REGISTERED.values())):
-        if stored.frame is not None and stored.matches(vertices, faces, options):
-            return stored.frame
-    return None
+    return KeptMesh(read_run_mesh(path), required)
 
 
 def tetrahedralize_kept(vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
-                        cache_dir: str | Path | None = None, warn: bool = True) -> TetMesh:
-    """:func:`~.tetrahedralize.tetrahedralize`, but a run mesh registered for this surface
-    and options (:func:`kept_mesh`) comes first."""
-    kept = kept_mesh(vertices, faces, options)
-    if kept is not None:
-        return kept
+                        kept: KeptMesh | None, cache_dir: str | Path | None = None,
+                        warn: bool = True) -> TetMesh:
+    """:func:`~.tetrahedralize.tetrahedralize`, but the ``kept`` mesh where it is this
+    surface's (:meth:`KeptMesh.mesh_for`) comes first."""
+    mesh = None if kept is None else kept.mesh_for(vertices, faces, options)
+    if mesh is not None:
+        return mesh
     return tetrahedralize(vertices, faces, options, cache_dir=cache_dir, warn=warn)

@@ -14,7 +14,7 @@ Conventions: ``points`` ``(n, 3)`` float64 in the unit of the surface's vertices
 vertex referenced by some cell.
 
 pytetwild is imported lazily (inside :func:`tetrahedralize`): the rest of ``torchfit.mesh``
-works without it. Nothing here solves anything (see DESIGN.md, layer ``mesh``).
+works without it. Nothing here solves anything (see docs/architecture.md, layer ``mesh``).
 """
 from __future__ import annotations
 

@@ -85,7 +85,7 @@ class SVDMemo:
     decomposed together. At most ``capacity`` times the largest batch seen is kept
     (least recently used dropped); only detached tensors are stored. One batch
     (``capacity=1``) already serves nearly every repeat of Newton's pattern; its cost and
-    hit counts on the arm are in ``docs/problems/arm3d.md``.
+    hit counts on the arm are in ``docs/notes/arm3d.md``.
     """
 
     def __init__(self, capacity: int = 1) -> None:

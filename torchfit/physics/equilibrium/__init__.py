@@ -7,7 +7,7 @@ picks warm starts (:mod:`.cache`), differentiates by the implicit function theor
 (:mod:`.adjoint`: backward solves ``K^T lam = g``, jvp ``K dx = -(dR/dparams) v``; Newton
 is never unrolled) and gives explicit products and whole Jacobians without autograd
 (:mod:`.linearization`). Measured costs and the history of these choices:
-``docs/physics/equilibrium.md``.
+``docs/notes/equilibrium.md``.
 """
 from .equilibrium import Equilibrium
 from .linearization import EquilibriumLinearization

@@ -66,7 +66,7 @@ class EquilibriumLinearization:
     equilibrium, values gathered on first use here).
 
     The arithmetic is the autograd Function's jvp and backward without the autograd
-    engine (its cost: docs/physics/equilibrium.md).
+    engine (its cost: docs/notes/equilibrium.md).
     """
 
     def __init__(self, equilibrium: LinearizedEquilibrium, solution: Solution) -> None:
@@ -180,7 +180,7 @@ def solve_directions(eq: SolvedEquilibrium, sol: Solution,
                      rhs: Tensor) -> Iterator[tuple[int, int, Tensor]]:
     """Yield ``(start, stop, K^{-1} rhs)`` for frames ``start:stop`` on the free dofs,
     ``(stop - start, n_free, k)``, for ``rhs`` ``(F, n_dofs, k)``. One shared factor:
-    frames in blocks of about 1024 right-hand sides (docs/physics/equilibrium.md); else
+    frames in blocks of about 1024 right-hand sides (docs/notes/equilibrium.md); else
     one solve per frame. A block is read before it is yielded, so the caller may overwrite
     it in ``rhs``."""
     free = eq.reduction.free_dofs.to(rhs.device)

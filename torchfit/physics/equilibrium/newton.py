@@ -105,7 +105,7 @@ class NewtonOptions:
     # TrialBudgetExceeded instead of going on to the cold start (the long walk of a step
     # that is then usually rejected). 0 disables it: the default, because a budget also
     # cuts accepted steps and the short arm's fit ended worse, while without one a rejected
-    # step costs under 2x an accepted iteration (docs/physics/equilibrium.md).
+    # step costs under 2x an accepted iteration (docs/notes/equilibrium.md).
     trial_factor: float = 0.0
     trial_min_iter: int = 5
     # Start such a trial from the first-order predictor x_anchor + (dx/dparams) dparams

@@ -1,4 +1,4 @@
-"""``arm3d``: the seed's 3-D test, a tetrahedral arm with a two-bone rig (PROBLEMS.md).
+"""``arm3d``: the seed's 3-D test, a tetrahedral arm with a two-bone rig (docs/problems.md).
 
 The procedural arm of :mod:`torchfit.problems.body.procedural_arm` (upper arm 0.30 m, forearm
 0.28 m, radius 0.05 to 0.035 m with a muscle profile; 48 frames: elbow bend to 120 degrees
@@ -15,7 +15,7 @@ region is the elbow (within 1.5 radii of it), frames are named by their elbow an
 ``rotate=[rx, ry, rz]`` (degrees about x, then y, then z) turns the whole animation (rest
 surface, frames, skeleton) before it is written: ``[0, 90, 0]`` lays the arm along ``+x``,
 ``[-90, 0, 0]`` along ``+y`` (Y-up). The fit does not depend on it (the grid, the camera
-and the reference frame follow the body: docs/problems/axes.md); regions and the elbow are
+and the reference frame follow the body: docs/notes/axes.md); regions and the elbow are
 found in the arm's own frame.
 """
 from __future__ import annotations
@@ -71,7 +71,7 @@ class Arm3D(RiggedBody):
     name = "arm3d"
     writes_animation = True
     joint_label = "elbow"
-    fold_docs = "docs/problems/arm3d.md, 'Several equilibria near full bend'"
+    fold_docs = "docs/notes/arm3d.md, 'Several equilibria near full bend'"
 
     def check_source(self, cfg: Arm3DConfig) -> None:
         require_setting(not cfg.path, cfg, "path", "is not used by arm3d (it writes its own "
@@ -124,7 +124,7 @@ class Arm3D(RiggedBody):
         write_animation(folder, data["rest_vertices"], data["faces"], data["frames"],
                         skeleton=data["skeleton"],
                         description="procedural arm of torchfit's arm3d problem "
-                                    "(PROBLEMS.md): two bones, 48 frames, elbow bend with "
+                                    "(docs/problems.md): two bones, 48 frames, elbow bend with "
                                     "bicep bulge, extension with tricep bulge")
 
     def regions(self, cfg: Arm3DConfig) -> tuple[np.ndarray, list[str]]:

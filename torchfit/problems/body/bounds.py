@@ -1,10 +1,10 @@
 """Bounds on a rigged body's Young's modulus: which apply, their check, their ``theta``.
 
-Settings (:class:`~.rigged_body_config.RiggedBodyConfig`): ``bounds`` (``null``: on for
+Settings (:class:`~.config.RiggedBodyConfig`): ``bounds`` (``null``: on for
 ``target=rig``, off for ``target=synthetic``), ``E_min``, ``E_max`` and
 ``E_bounds_relative`` (``true``: ``E_min`` and ``E_max`` are factors of ``E0``; ``false``:
 moduli in the units of ``E0``). The defaults, ``[E0 / 100, 100 E0]`` for rig targets, and
-why: ``docs/problems/bounds.md``.
+why: ``docs/notes/bounds.md``.
 
 The solvers enforce them (:mod:`torchfit.solvers.bounds`): the run hands them
 :meth:`~.base.InverseProblem.theta_bounds`, the bounds on ``theta`` (``log E_min``,
@@ -71,7 +71,7 @@ def theta_bounds(cfg: RiggedBodyConfig, n_params: int, like: Tensor
 def add_parameter_fractions(summary: dict[str, dict[str, float]], basis: Optional[Tensor],
                             field: Tensor, labels, names: list[str],
                             bounds: Optional[tuple[float, float]]) -> None:
-    """Add to each region of ``summary`` (:func:`~.body_report.region_summary`) the
+    """Add to each region of ``summary`` (:func:`~.report.region_summary`) the
     parameters that act on it (a non-zero basis weight in one of its tetrahedra:
     ``params``) and the fractions of them on each bound (``params_at_lower``,
     ``params_at_upper``). A grid node on a bound rarely puts a tetrahedron on it (the
@@ -111,7 +111,7 @@ def add_parameter_fractions(summary: dict[str, dict[str, float]], basis: Optiona
 
 def region_report(field: Tensor, volumes, labels, names: list[str], basis: Optional[Tensor],
                   bounds: Optional[tuple[float, float]]) -> dict[str, dict[str, float]]:
-    """:func:`~.body_report.region_summary` of ``field`` with, under ``bounds``, the
+    """:func:`~.report.region_summary` of ``field`` with, under ``bounds``, the
     tetrahedra and the parameters on each bound (:func:`add_parameter_fractions`)."""
     out = region_summary(field.detach().cpu().numpy(), volumes, labels, names, bounds)
     add_parameter_fractions(out, basis, field, labels, names, bounds)

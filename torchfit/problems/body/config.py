@@ -53,7 +53,7 @@ class RiggedBodyConfig(ProblemConfig):
     fps: float = 0.0                       # glTF: sample the animation at this rate; 0: at its
     #                                        keyframes (every input time of its samplers)
     frames: Optional[List[int]] = None     # a subset of the frames (numbers); null: all
-    # validation (problems/body/held_out.py, docs/run/validation.md): frames (numbers) held out of
+    # validation (problems/body/held_out.py, docs/notes/validation.md): frames (numbers) held out of
     # the fit and simulated at every recorded iteration, or every k-th distinct pose (0: none);
     # frames repeating a validation pose (within this fraction of the diagonal) leave the fit
     validation_frames: Optional[List[int]] = None
@@ -79,7 +79,7 @@ class RiggedBodyConfig(ProblemConfig):
     grid: Optional[List[int]] = None
     E0: float = 1.0                        # initial guess, constant (the homogeneous material)
     # bounds on the fitted modulus, kept by the solver's steps (problems/body/bounds.py;
-    # the defaults and why: docs/problems/bounds.md). null: on for target=rig, off for synthetic
+    # the defaults and why: docs/notes/bounds.md). null: on for target=rig, off for synthetic
     bounds: Optional[bool] = None
     E_min: float = 0.01                    # lowest modulus: a factor of E0 (E_bounds_relative)
     E_max: float = 100.0                   # highest modulus: a factor of E0 (E_bounds_relative)
@@ -108,6 +108,6 @@ class RiggedBodyConfig(ProblemConfig):
     newton_atol: float = 1e-12
     newton_max_iter: int = 300
     # Newton's start at a new parameter vector: an earlier solution (true; the solver's current
-    # point where it is known) or the animated pose (false, the definition in PROBLEMS.md; see
-    # docs/problems/arm3d.md, "Several equilibria near full bend", for when it matters)
+    # point where it is known) or the animated pose (false, the definition in docs/problems.md; see
+    # docs/notes/arm3d.md, "Several equilibria near full bend", for when it matters)
     warm_start: bool = True

@@ -18,7 +18,7 @@ repeatable: :mod:`torchfit.mesh.tetwild.tetrahedralize`). The rest surface is th
 its principal frame, its coordinates rounded to a power-of-two grid (``2^-30`` of the
 body's radius, so a rotated copy gives the same bytes), tetrahedralised there (and cached
 under that key) and turned back: a body and its rotated copy get the same tetrahedra,
-rotated (docs/problems/axes.md).
+rotated (docs/notes/axes.md).
 """
 from __future__ import annotations
 

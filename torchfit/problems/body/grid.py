@@ -1,9 +1,9 @@
 """The rigged body's parameter grid along its principal axes, and its ``blocks`` truth.
 
 The grid follows the body, not the world: a rotated body and its rotated animation get the
-same grid in body coordinates, so the same fit (docs/problems/axes.md).
+same grid in body coordinates, so the same fit (docs/notes/axes.md).
 
-**Frame** (:func:`.body_frame.principal_frame` of the tetrahedra): origin at their volume
+**Frame** (:func:`.frame.principal_frame` of the tetrahedra): origin at their volume
 centroid, axes ``a0``, ``a1``, ``a2`` of increasing extent (the longest last, so
 ``problem.grid=[4, 4, 12]`` puts 12 nodes along the body's length whatever its
 orientation), signs and round cross-sections settled by documented, rotation-equivariant

@@ -1,6 +1,6 @@
 """Frames held out of a body's fit for validation: which ones, with repeated poses grouped.
 
-A body's settings (:class:`~.rigged_body_config.RiggedBodyConfig`) name the validation frames
+A body's settings (:class:`~.config.RiggedBodyConfig`) name the validation frames
 (``validation_frames``: animation frame numbers) or a rule (``validation_every = k``: every
 k-th distinct pose of the frames considered, in order of first appearance, the k-th, 2k-th,
 ...). Frames are *the same pose* when every surface vertex of one lies within
@@ -18,16 +18,10 @@ validation problem itself, a continuation's first stage).
 from __future__ import annotations
 
 import dataclasses
-import logging
-import math
 from typing import Any
 
 import numpy as np
-import torch
-
 from ..config import setting_error
-
-log = logging.getLogger("torchfit.problems")
 
 #: The validation settings of a problem that holds none (``dataclasses.replace(cfg, **...)``).
 NO_VALIDATION: dict[str, Any] = {"validation_frames": None, "validation_every": 0}
@@ -150,40 +144,3 @@ def split_frames(cfg: Any, rest_vertices: np.ndarray, frames: np.ndarray) -> Fra
                             f"hold {poses} distinct poses, each repeat of a validation pose "
                             "leaves the fit too); leave some poses to fit")
     return FrameSplit(fitted, validation, repeats, poses)
-
-
-def validation_problem(problem: Any) -> Any:
-    """The body ``problem`` on its validation frames (``problem.frame_split``), with no
-    validation of its own (:meth:`settings_for_frames`), or ``None``; logs the split."""
-    split: FrameSplit | None = problem.frame_split
-    if split is None:
-        return None
-    log.info("%s", split.describe())
-    return type(problem)(problem.settings_for_frames(split.validation))
-
-
-def problem_on_frames(problem: Any, numbers: list[int]) -> Any:
-    """The rigged body ``problem`` on some of its fitted frames (animation frame numbers,
-    in the order given), with **its** targets on them, noise included.
-
-    Built again from the settings with ``frames=numbers``: the tet mesh and the animation
-    come from their caches (the same mesh, so the same parameterisation); a synthetic truth
-    is simulated again on those frames (cold, as here). The targets are then replaced by
-    ``problem``'s rows of those frames, so the noise is the same draw, not a new one, and
-    the noise level ``delta`` is ``problem``'s for the subset's data count. Raises
-    ``ValueError`` for a frame ``problem`` does not fit."""
-    mine = problem.frame_numbers()
-    unknown = [n for n in numbers if n not in mine]
-    if not numbers or unknown:
-        raise ValueError(f"frames {unknown or numbers} are not fitted frames of this "
-                         f"problem ({mine})")
-    sub = type(problem)(problem.settings_for_frames([int(n) for n in numbers]))
-    if sub.tet.key != problem.tet.key or sub.parameterization.n_params != \
-            problem.parameterization.n_params:
-        raise RuntimeError("the problem on a subset of its frames got another tet mesh "
-                           f"({sub.tet.key} against {problem.tet.key}); check the mesh cache")
-    rows = torch.as_tensor([mine.index(n) for n in numbers], device=problem.data.device)
-    sub.data = problem.data.reshape(problem.n_frames, -1)[rows].reshape(-1).clone()
-    if problem.noise_level is not None:
-        sub.noise_level = problem.noise_level * math.sqrt(sub.data.numel() / problem.data.numel())
-    return sub

@@ -1,8 +1,8 @@
 """The rigged body simulated with another constitutive model (the model comparison).
 
-:func:`simulate_with_model` reuses the body's mesh, rig and field; the other model's
-quasistatic solver is built once per model and kept on the problem (``other_models``),
-cold-started from the animated pose (``start="rest"``), without gradient.
+:class:`ModelComparison` is a collaborator of the body: it holds the body's mesh, driven
+vertices and backend, builds each other model's quasistatic solver once (cold-started from
+the animated pose, ``start="rest"``) and simulates it without gradient.
 """
 from __future__ import annotations
 
@@ -11,31 +11,46 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ...mesh import SimplexMesh
 from ...physics import NewtonOptions
 from ...physics.elasticity import QuasistaticElasticity, SimplicialElasticity
 
 
-def simulate_with_model(problem: Any, model: str, E: Tensor,
-                        frames: list[int] | None = None) -> Tensor:
-    """Positions ``(len(frames), n_vertices, 3)`` of the rigged body ``problem`` with the
-    constitutive ``model`` and field ``E`` ``(n_tets,)`` (all frames by default); the fit's
-    own model returns the fit's simulation (its state, warm starts included)."""
-    frames = list(range(problem.n_frames)) if frames is None else list(frames)
-    if model == problem.cfg.model.value:
+class ModelComparison:
+    """Other constitutive models on the same body, rig and field.
+
+    Args:
+        mesh: the body's tetrahedral mesh.
+        driven: ``(n_driven,)`` tetrahedron vertices the rig prescribes.
+        backend: the linear-solve backend of the body's own model.
+        settings: the body's settings (``nu``, ``newton_max_iter``, ``newton_rtol``,
+            ``newton_atol``).
+        dtype, device: the body's.
+    """
+
+    def __init__(self, mesh: SimplexMesh, driven: Any, backend: Any, settings: Any,
+                 dtype: torch.dtype, device: torch.device) -> None:
+        self.mesh, self.driven, self.backend, self.settings = mesh, driven, backend, settings
+        self.dtype, self.device = dtype, device
+        self.models: dict[str, QuasistaticElasticity] = {}   # built once per model
+
+    def solver(self, model: str) -> QuasistaticElasticity:
+        """The quasistatic solver of ``model`` (built on first use)."""
+        if model not in self.models:
+            cfg = self.settings
+            elastic = SimplicialElasticity(torch.from_numpy(self.mesh.points),
+                                           torch.from_numpy(self.mesh.cells), model, nu=cfg.nu,
+                                           dtype=self.dtype, device=self.device)
+            newton = NewtonOptions(max_iter=cfg.newton_max_iter, rtol=cfg.newton_rtol,
+                                   atol=cfg.newton_atol)
+            self.models[model] = QuasistaticElasticity(elastic, self.driven,
+                                                       backend=self.backend, newton=newton,
+                                                       start="rest")
+        return self.models[model]
+
+    def simulate(self, model: str, E: Tensor, drive: Tensor, start: Tensor) -> Tensor:
+        """Positions ``(P, n_vertices, 3)`` with ``model`` and field ``E`` ``(n_tets,)`` for
+        the driven positions ``drive`` ``(P, n_driven, 3)`` from ``start`` ``(P, n, 3)``,
+        no gradient."""
         with torch.no_grad():
-            return problem.simulate(E.detach())[frames]
-    others: dict[str, QuasistaticElasticity] = problem.other_models
-    if model not in others:
-        cfg = problem.cfg
-        other = SimplicialElasticity(torch.from_numpy(problem.mesh.points),
-                                     torch.from_numpy(problem.mesh.cells), model, nu=cfg.nu,
-                                     dtype=problem.dtype, device=problem.device)
-        newton = NewtonOptions(max_iter=cfg.newton_max_iter, rtol=cfg.newton_rtol,
-                               atol=cfg.newton_atol)
-        others[model] = QuasistaticElasticity(other, problem.dirichlet_vertices,
-                                              backend=problem.backend, newton=newton,
-                                              start="rest")
-    index = torch.as_tensor(frames, device=problem.device)
-    with torch.no_grad():
-        return others[model](E.detach(), problem.dirichlet_positions[index].to(E),
-                             x_init=problem.start_positions[index].to(E))
+            return self.solver(model)(E.detach(), drive.to(E), x_init=start.to(E))

@@ -3,7 +3,7 @@ strained region.
 
 All three are rotation-equivariant (a rotated body and animation give the same frame, a
 rotated camera, the same tetrahedra), so the pictures of a rotated body are the same
-pictures (docs/problems/axes.md):
+pictures (docs/notes/axes.md):
 
 * :func:`most_deformed_frame`: the frame whose target surface lies farthest (mean over the
   vertices) from the rest surface moved rigidly onto it (best rotation and translation,

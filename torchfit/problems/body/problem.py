@@ -20,8 +20,11 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
+import math
 import warnings
-from typing import Any, ContextManager
+from pathlib import Path
+from typing import Any, Callable, ContextManager, Protocol
 
 import numpy as np
 import torch
@@ -34,26 +37,28 @@ from ...mesh.formats.folder import Animation, AnimationError
 from ...mesh.formats.readers import read_animation
 from ...mesh.embedding import Embedding, dof_matrix, embed_points
 from ...mesh.rig import joint_cells, skeleton_drive, surface_drive
-from ...mesh.tetwild.store import kept_frame
+from ...mesh.tetwild.store import RUN_MESH_FILE, KeptMesh, write_run_mesh
 from ...mesh.tetwild.tetrahedralize import TetMesh
 from ...params import Parameterization, per_element, per_region
 from ...physics import NewtonOptions
 from ...physics.elasticity import QuasistaticElasticity, SimplicialElasticity
 from ...steps import count, step
 from ..base import InverseProblem, array_digest
-from .grid import block_nodes, blocks_field, body_grid, grid_parameterization
+from .grid import blocks_field, body_grid, grid_parameterization
 from .motion import most_deformed_frame, most_strained_cells, view_axes
 from .setup import animation_summary, check_rig, first_simulation, tet_mesh, tet_options
 from .report import (BODY_METRICS, body_metrics, describe_body, frame_report,
                           inverted_counts, min_volume_ratios, surface_distances, volume_change)
 from ..config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
                      resolve_backend, setting_error)
-from .held_out import NO_VALIDATION, problem_on_frames, split_frames, validation_problem
-from .model_comparison import simulate_with_model
+from .held_out import NO_VALIDATION, split_frames
+from .model_comparison import ModelComparison
 from .bounds import check_bounds, modulus_bounds, region_report, theta_bounds
 from .repeated_poses import distinct_poses
 from .config import Layout, RiggedBodyConfig, Target, Truth
 
+
+log = logging.getLogger("torchfit.problems")
 
 #: largest distance (fraction of the bounding-box diagonal) of a surface vertex outside the
 #: tetrahedra before the tetrahedralisation is judged not to match the surface
@@ -73,6 +78,30 @@ class RiggedBody(InverseProblem):
     writes_animation = False
     #: arm3d's fitted grid may start a fit of the same arm read as an animation folder
     parameter_family = "rigged body"
+    #: where the documentation explains a fold of this body (the arm's; none for yours)
+    fold_docs: str | None = None
+
+    #: how the distinct poses are simulated: this process's quasistatic solver, or what a
+    #: distributed run plugged in (:meth:`plug`)
+    quasistatic: "PoseSimulation"
+
+    def __init__(self, cfg: Any = None, *, kept_mesh: KeptMesh | None = None,
+                 **overrides: Any) -> None:
+        #: the run's own tetrahedral mesh (a resume, ``simulate``), used before the cache
+        self.kept_mesh = kept_mesh
+        #: where :meth:`forward_jacobian` comes from when a distributed run gave one
+        self.jacobian_provider: Callable[[Tensor], Any] | None = None
+        self._simulated = False         # the first simulation's progress lines are shown
+        super().__init__(cfg, **overrides)
+
+    def plug(self, simulation: "PoseSimulation",
+             jacobian: Callable[[Tensor], Any] | None = None) -> None:
+        """The seam a distributed run plugs into: simulate the poses with ``simulation``
+        from now on and, where given, take :meth:`forward_jacobian` from ``jacobian``
+        (``theta -> (m, n_params)`` rows, or a handle with the products the dense path
+        forms: ``torchfit.run.distributed.rows``)."""
+        self.quasistatic = simulation
+        self.jacobian_provider = jacobian
 
     # -- hooks of the template --------------------------------------------------------
     def check(self, cfg: RiggedBodyConfig) -> None:
@@ -120,7 +149,8 @@ class RiggedBody(InverseProblem):
 
     def check_source(self, cfg: RiggedBodyConfig) -> None:
         require_setting(bool(cfg.path), cfg, "path", "must name the folder of your animation "
-                        "(holding animation.yaml; see README, 'Bring your own animation')")
+                        "(holding animation.yaml), a USD stage or a glTF file; see "
+                        "docs/guide/formats.md")
 
     def load(self, cfg: RiggedBodyConfig) -> Animation:
         """The animation (``problem=arm3d`` makes and writes its own first)."""
@@ -190,21 +220,23 @@ class RiggedBody(InverseProblem):
         self.quasistatic = QuasistaticElasticity(self.model, dirichlet, backend=self.backend,
                                                  newton=newton, start="rest",
                                                  warm_start=cfg.warm_start)
+        self.comparison = ModelComparison(self.mesh, dirichlet, self.backend, cfg, self.dtype,
+                                          self.device)
         self.tet_regions, self.region_names = self.regions(cfg)
         self.full_bend_frame = self.reference_frame()
-        self.grid = body_grid(points, cells, self.motion, cfg.grid_nodes, cfg.grid, kept_frame(
-            animation.rest_vertices, animation.faces, self.tet_options))   # a run's own
+        kept_frame = None if self.kept_mesh is None else self.kept_mesh.frame_for(
+            animation.rest_vertices, animation.faces, self.tet_options)    # a run's own
+        self.grid = body_grid(points, cells, self.motion, cfg.grid_nodes, cfg.grid, kept_frame)
         self.grid_shape = self.grid.shape
         self.view_axes = view_axes(animation.rest_vertices, animation.frames, self.grid.axes[2])
         self.joint_cells = self.joint_region(cfg)
-        self.other_models: dict[str, QuasistaticElasticity] = {}   # the model comparison's
 
     def tetrahedralize(self, cfg: RiggedBodyConfig, animation: Animation) -> TetMesh:
         """The rest surface's tet mesh, built in the body's frame (the same tetrahedra for
-        a rotated body; :func:`.body_setup.tet_mesh`); a run's own mesh (``mesh.npz``)
+        a rotated body; :func:`.setup.tet_mesh`); a run's own mesh (``mesh.npz``)
         first."""
         self.tet_options = tet_options(cfg)
-        return tet_mesh(cfg, animation, self.motion)
+        return tet_mesh(cfg, animation, self.motion, self.kept_mesh)
 
     # -- regions and the joint ----------------------------------------------------------
     def regions(self, cfg: RiggedBodyConfig) -> tuple[np.ndarray | None, list[str]]:
@@ -229,7 +261,7 @@ class RiggedBody(InverseProblem):
 
     def reference_frame(self) -> int:
         """The frame the pictures compare: the most deformed target surface
-        (:func:`.body_motion.most_deformed_frame`)."""
+        (:func:`.motion.most_deformed_frame`)."""
         return most_deformed_frame(self.animation.rest_vertices, self.animation.frames)
 
     # -- parameters, observation, truth ----------------------------------------------
@@ -257,12 +289,8 @@ class RiggedBody(InverseProblem):
         self.observed_nodes = self.observed_vertices
         self._observed_weights = torch.as_tensor(self.embedding.weights[observed],
                                                  dtype=self.dtype, device=self.device)
-        self._observed_corners = torch.as_tensor(self.embedding_cells()[observed],
+        self._observed_corners = torch.as_tensor(self.mesh.cells[self.embedding.cells[observed]],
                                                  device=self.device)
-
-    def embedding_cells(self) -> np.ndarray:
-        """Tetrahedron vertex indices ``(V_surface, 4)`` of each user surface vertex."""
-        return self.mesh.cells[self.embedding.cells]
 
     def true_field(self, cfg: RiggedBodyConfig) -> Tensor | None:
         if cfg.target == Target.rig:
@@ -277,14 +305,6 @@ class RiggedBody(InverseProblem):
                             f"{', '.join(self.region_names)})")
             values = torch.tensor(cfg.E_regions, dtype=self.dtype, device=self.device)
             return values[torch.as_tensor(self.tet_regions, device=self.device)]
-        return self.blocks_field(cfg)
-
-    def block_nodes(self) -> np.ndarray:
-        """Label per grid node of the ``blocks`` truth (:func:`.body_grid.block_nodes`)."""
-        return block_nodes(self.grid_shape)
-
-    def blocks_field(self, cfg: RiggedBodyConfig) -> Tensor:
-        """The ``blocks`` truth per tetrahedron (:func:`.body_grid.blocks_field`)."""
         return blocks_field(self.grid, self.mesh.centroids(), cfg.E_blocks, self.dtype,
                             self.device)
 
@@ -300,7 +320,7 @@ class RiggedBody(InverseProblem):
                                      f"(one per tetrahedron), got {tuple(E.shape)}")
         poses = self.simulated_poses()      # each distinct pose once, then every frame
         drive, start = self.dirichlet_positions[poses], self.start_positions[poses]
-        with contextlib.nullcontext() if getattr(self, "_simulated", False) else \
+        with contextlib.nullcontext() if self._simulated else \
                 first_simulation(len(drive), self.model.n_cells, self.cfg.model.value):
             x = self.quasistatic(E, drive.to(E), x_init=start.to(E))
         self._simulated = True
@@ -339,7 +359,9 @@ class RiggedBody(InverseProblem):
 
     def forward_jacobian(self, theta: Tensor) -> Tensor:
         """``d observe(simulate(map(theta))) / d theta`` ``(m, n_params)``: every frame's
-        rows of :meth:`pose_jacobian`."""
+        rows of :meth:`pose_jacobian` (or the :attr:`jacobian_provider`'s)."""
+        if self.jacobian_provider is not None:
+            return self.jacobian_provider(theta)
         observed = self.pose_jacobian(theta)
         if self.repeated_poses is not None:
             observed = observed[self.repeated_poses[1]]
@@ -397,7 +419,7 @@ class RiggedBody(InverseProblem):
 
     def inverted_tets(self, x: Tensor) -> np.ndarray:
         """Tetrahedra turned inside out (signed volume <= 0) per frame ``(F,)``: such a
-        frame has several equilibria (docs/problems/arm3d.md, "Several equilibria")."""
+        frame has several equilibria (docs/notes/arm3d.md, "Several equilibria")."""
         return inverted_counts(_positions(x), self.mesh.cells)
 
     def min_volume_ratio(self, x: Tensor) -> np.ndarray:
@@ -450,23 +472,81 @@ class RiggedBody(InverseProblem):
         return [int(f) for f in frames] if frames is not None else list(range(self.n_frames))
 
     def validation_problem(self) -> "RiggedBody | None":
-        """The same body on its validation frames (:func:`.held_out.validation_problem`)."""
-        return validation_problem(self)
+        """The same body on its validation frames (:attr:`frame_split`), on the same mesh,
+        with no validation of its own; ``None`` without validation frames."""
+        split = self.frame_split
+        if split is None:
+            return None
+        log.info("%s", split.describe())
+        return self.on_frames(split.validation)
 
-    def with_frames(self, numbers: list[int]) -> "RiggedBody":
-        """The same problem on some of its fitted frames, with this problem's targets
-        there, noise included (:func:`.held_out.problem_on_frames`)."""
-        return problem_on_frames(self, numbers)
+    def on_frames(self, numbers: list[int]) -> "RiggedBody":
+        """The same body, rig and mesh on the animation frames ``numbers`` (a new problem
+        built from this one's settings with ``frames=numbers`` and no validation; the tet
+        mesh comes from this one's kept mesh or the cache, so the parameterisation is the
+        same)."""
+        return type(self)(self.settings_for_frames(numbers), kept_mesh=self.kept_mesh)
 
     def settings_for_frames(self, numbers: list[int]) -> RiggedBodyConfig:
-        """This problem's config with ``frames=numbers`` (for :meth:`with_frames`)."""
-        return dataclasses.replace(self.cfg, frames=list(numbers), **NO_VALIDATION)
+        """This problem's config with ``frames=numbers`` and no validation (for
+        :meth:`on_frames`)."""
+        return dataclasses.replace(self.cfg, frames=[int(n) for n in numbers], **NO_VALIDATION)
+
+    def with_frames(self, numbers: list[int]) -> "RiggedBody":
+        """The same problem on some of its fitted frames (animation frame numbers, in the
+        order given), with **its** targets there, noise included: a synthetic truth is
+        simulated again on those frames, then the targets are replaced by this problem's
+        rows of those frames, so the noise is the same draw, not a new one, and the noise
+        level is this problem's for the subset's data count. Raises ``ValueError`` for a
+        frame this problem does not fit."""
+        mine = self.frame_numbers()
+        unknown = [n for n in numbers if n not in mine]
+        if not numbers or unknown:
+            raise ValueError(f"frames {unknown or numbers} are not fitted frames of this "
+                             f"problem ({mine})")
+        sub = self.on_frames(numbers)
+        if sub.tet.key != self.tet.key or sub.parameterization.n_params != \
+                self.parameterization.n_params:
+            raise RuntimeError("the problem on a subset of its frames got another tet mesh "
+                               f"({sub.tet.key} against {self.tet.key}); check the mesh cache")
+        rows = torch.as_tensor([mine.index(n) for n in numbers], device=self.data.device)
+        data = self.data.reshape(self.n_frames, -1)[rows].reshape(-1).clone()
+        level = None if self.noise_level is None else \
+            self.noise_level * math.sqrt(data.numel() / self.data.numel())
+        sub.adopt_targets(data, level)
+        return sub
+
+    def adopt_targets(self, data: Tensor, noise_level: float | None) -> None:
+        """Fit ``data`` ``(m,)`` with noise level ``noise_level`` instead of the targets the
+        settings gave (a subset of another problem's frames keeps its noise draw)."""
+        if data.shape != self.data.shape:
+            raise ValueError(f"targets of shape {tuple(data.shape)} for a problem of "
+                             f"{tuple(self.data.shape)}")
+        self.data, self.noise_level = data, noise_level
 
     def simulate_model(self, model: str, E: Tensor, frames: list[int] | None = None) -> Tensor:
         """Positions ``(len(frames), n_vertices, 3)`` of the same body, rig and field with
-        another constitutive ``model`` (for the model comparison), no gradient
-        (:func:`.model_comparison.simulate_with_model`)."""
-        return simulate_with_model(self, model, E, frames)
+        another constitutive ``model`` (all frames by default), no gradient; the fit's own
+        model returns the fit's simulation (:class:`.model_comparison.ModelComparison`)."""
+        frames = list(range(self.n_frames)) if frames is None else list(frames)
+        if model == self.cfg.model.value:
+            with torch.no_grad():
+                return self.simulate(E.detach())[frames]
+        index = torch.as_tensor(frames, device=self.device)
+        return self.comparison.simulate(model, E, self.dirichlet_positions[index],
+                                        self.start_positions[index])
+
+    def keep_mesh(self, run_dir: Path) -> Path | None:
+        """The tetrahedral mesh into ``run_dir/mesh.npz`` (with the rest surface it was made
+        of, the options, the regions and the grid's frame) so that a resume or ``simulate``
+        needs no cache; an existing one is left as it is (a resume passed the checkpoint's
+        mesh digest, so it is the same mesh). Returns the path written, or ``None``."""
+        path = Path(run_dir) / RUN_MESH_FILE
+        if path.exists() or path.is_symlink():
+            return None
+        a = self.animation
+        return write_run_mesh(path, self.tet, self.tet_options, a.rest_vertices, a.faces,
+                              self.tet_regions, (self.grid.origin, self.grid.axes))
 
     def region_summary(self, field: Tensor) -> dict[str, dict[str, float]]:
         """Mean, min, max and volume-weighted mean of ``field`` per region (all tetrahedra
@@ -482,6 +562,41 @@ class RiggedBody(InverseProblem):
 
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), **describe_body(self, modulus_bounds(self.cfg))}
+
+
+class PoseEquilibrium(Protocol):
+    """The warm starts of a pose simulation: cold blocks and the state a checkpoint keeps."""
+
+    def independent(self) -> ContextManager[None]:
+        ...
+
+    def warm_start_state(self) -> dict[str, Any]:
+        ...
+
+    def restore_warm_start_state(self, state: dict[str, Any], device: Any = None) -> None:
+        ...
+
+
+class PoseSimulation(Protocol):
+    """What a rigged body simulates its distinct poses with (:meth:`RiggedBody.plug`): a
+    :class:`~torchfit.physics.elasticity.QuasistaticElasticity`, or a distributed run's
+    split of it over ranks.
+
+    ``simulation(E, positions, x_init)``: positions ``(P, n, 3)`` of the poses whose driven
+    vertices are at ``positions`` ``(P, n_driven, 3)``, from ``x_init`` ``(P, n, 3)``;
+    ``jacobian(...)``: ``(P, rows, k)`` derivatives of the observed rows along ``k`` field
+    directions; ``equilibrium``: cold blocks (``independent()``) and the warm-start state a
+    checkpoint saves and a resume restores.
+    """
+
+    equilibrium: PoseEquilibrium
+
+    def __call__(self, E: Tensor, positions: Tensor, x_init: Tensor | None = None) -> Tensor:
+        ...
+
+    def jacobian(self, E: Tensor, positions: Tensor, directions: Tensor,
+                 x_init: Tensor | None = None, observe: Tensor | None = None) -> Tensor:
+        ...
 
 
 def _positions(x: Tensor) -> np.ndarray:

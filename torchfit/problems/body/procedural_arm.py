@@ -1,4 +1,4 @@
-"""The procedural arm of PROBLEMS.md (``arm3d``): surface, two-bone rig, 48-frame animation.
+"""The procedural arm of docs/problems.md (``arm3d``): surface, two-bone rig, 48-frame animation.
 
 Geometry (metres): the arm lies along ``+z`` with the shoulder at the origin; the upper
 arm is ``0 <= z <= upper`` (0.30), the forearm ``upper <= z <= upper + fore`` (0.28). The
@@ -22,7 +22,7 @@ extension, up to ``tricep_bulge`` = 0.006), both applied in the rest pose before
 
 Regions (for the ``regions`` truth): ``bone`` within ``bone_ratio`` (0.4) of the local radius
 from the bone axis (the attached core), ``muscle`` up to ``muscle_ratio`` (0.75), ``fat``
-outside. Nothing here solves anything (DESIGN.md, layer ``mesh``).
+outside. Nothing here solves anything (docs/architecture.md, layer ``mesh``).
 """
 from __future__ import annotations
 

@@ -21,7 +21,7 @@ from ...physics.elasticity import get_material
 #: a value within this relative distance of a bound is on it (region_summary's bounds)
 ON_BOUND_RTOL = 1e-6
 
-#: the body metrics (PROBLEMS.md) after the generic ones, in this order
+#: the body metrics (docs/problems.md) after the generic ones, in this order
 BODY_METRICS = ("surface_err_mean", "surface_err_max", "surface_err_reduction",
                 "joint_volume_change", "inverted_tets")
 
@@ -112,7 +112,7 @@ def fraction_on_bounds(values, bounds: tuple[float, float] | None) -> dict[str, 
 
 def describe_body(problem: Any, bounds: Any) -> dict[str, Any]:
     """The sizes, mesh, rig and settings a rigged body adds to ``describe()`` (result.json);
-    ``bounds``: its modulus bounds (:func:`.modulus_bounds.modulus_bounds`)."""
+    ``bounds``: its modulus bounds (:func:`.bounds.modulus_bounds`)."""
     out = {"model": get_material(problem.cfg.model.value).name, "nu": problem.model.nu,
            "animation": str(problem.animation.path), "n_frames": problem.n_frames,
            "n_tets": problem.model.n_cells, "n_vertices": problem.model.n_vertices,

@@ -1,6 +1,6 @@
 """A rigged body's set-up as a person follows it: the rig checked first, every step on the console.
 
-:class:`~.rigged_body.RiggedBody` builds in steps (reading the animation, checking the rig,
+:class:`~.problem.RiggedBody` builds in steps (reading the animation, checking the rig,
 tetrahedralising, embedding, attaching the rig, the first simulation); each logs what it
 does, its counts and its time (:mod:`torchfit.steps`, logger ``torchfit.setup``), so the
 console shows the tet count, the number of driven vertices and where the tet cache is
@@ -17,7 +17,7 @@ from typing import Any, Iterator
 from ...mesh import MeshError
 from ...mesh.formats.folder import Animation, AnimationError
 from ...mesh.rig_check import RigReport, check_animation
-from ...mesh.tetwild.store import kept_mesh
+from ...mesh.tetwild.store import KeptMesh
 from ...mesh.tetwild.tetrahedralize import TetMesh, TetOptions, default_cache_dir
 from ...physics.equilibrium.newton import newton_progress
 from ...steps import count, step
@@ -80,19 +80,21 @@ def tet_options(cfg: Any) -> TetOptions:
                       count=cfg.tet_count)
 
 
-def tet_mesh(cfg: Any, animation: Animation, motion: Any = None) -> TetMesh:
+def tet_mesh(cfg: Any, animation: Animation, motion: Any = None,
+             kept: KeptMesh | None = None) -> TetMesh:
     """The rest surface tetrahedralised with the ``tet_*`` settings (``tet_count``: a
     target count, :mod:`torchfit.mesh.tetwild.size`) in the body's principal frame
-    (:func:`.body_frame.tetrahedralize_in_frame`; ``motion`` ``(F, V, 3)`` settles a round
-    body's frame), cached in ``cache_dir``; a run's own mesh registered for this surface
-    (:mod:`torchfit.mesh.tetwild.store`) comes first."""
+    (:func:`.frame.tetrahedralize_in_frame`; ``motion`` ``(F, V, 3)`` settles a round
+    body's frame), cached in ``cache_dir``; the run's own mesh ``kept`` comes first where it
+    is this surface's (:class:`torchfit.mesh.tetwild.store.KeptMesh`)."""
     options = tet_options(cfg)
     cache = Path(cfg.cache_dir).expanduser() / "tetmesh" if cfg.cache_dir else \
         default_cache_dir()
     try:
-        kept = kept_mesh(animation.rest_vertices, animation.faces, options)
+        mesh = None if kept is None else kept.mesh_for(animation.rest_vertices,
+                                                       animation.faces, options)
         # the surface's warnings were given once, with the animation's name
-        return kept if kept is not None else tetrahedralize_in_frame(
+        return mesh if mesh is not None else tetrahedralize_in_frame(
             animation.rest_vertices, animation.faces, motion, options, cache)
     except MeshError as err:
         raise ProblemConfigError(f"{animation.path}: {err}") from err

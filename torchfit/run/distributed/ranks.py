@@ -5,8 +5,8 @@ the same settings (mesh, rig, data: cheap and identical), then the distinct pose
 simulates (``problems/body/repeated_poses.py``: the arm's 48 frames are 23 poses; every frame where none
 repeats) are split by a static balanced partition (:func:`partition`: every ``W``-th pose,
 the first ``P mod W`` ranks one more) and each rank simulates only its share:
-its Newton solves, factorisations and warm starts stay on it (:class:`FrameSplit` replaces
-the problem's ``quasistatic``), and a pose that several frames repeat is simulated once in
+its Newton solves, factorisations and warm starts stay on it (:class:`FrameSplit`, plugged
+into the problem through the seam it declares: ``problem.plug(split, jacobian)``), and a pose that several frames repeat is simulated once in
 the whole job.
 
 Leader and workers: rank 0 runs the whole fit (:func:`torchfit.fit`, the solver, every
@@ -20,7 +20,7 @@ handle on which the dense path's products run on every rank (``J^T J`` and ``J^T
 summed in rank order on rank 0, ``J x`` gathered), so no rank holds more than its own
 frames' rows (the arm: 110 MB per rank of 2 instead of 220 MB gathered on rank 0). The
 iterates are those of one process to round-off (the partial sums; measured:
-docs/run/distributed.md), and bit-reproducible for a given number of processes. What
+docs/notes/distributed.md), and bit-reproducible for a given number of processes. What
 rank 0 alone runs (pictures, the model comparison's other materials) is unchanged and may
 simulate any time: a worker is idle until the next command. Counters of factorisations
 and solves of the other ranks are added to rank 0's (the result's totals are the whole
@@ -60,6 +60,7 @@ from .channel import (FULL, GRAPH_COMMANDS, INDEPENDENT_OFF, INDEPENDENT_ON,
                                   JACOBIAN, MATVEC, RESTORE, RMATVEC, ROW_COMMANDS, SIMULATE,
                                   STATE, STOP, Channel, exchange, exchanging)
 from .rows import DistributedRows, RowStore, local_product
+from ...problems import MotionProblem, PosedProblem
 from ..options import FitConfigError
 
 #: solvers that run distributed (dense Jacobian or matrix-free)
@@ -88,7 +89,7 @@ def partition(n_poses: int, n_ranks: int) -> list[list[int]]:
     Interleaved, not contiguous: neighbouring poses of an animation cost alike (the arm's
     folded poses near full bend lie together), so contiguous blocks gave rank 0 of 2 the
     arm's whole bend: 144 of the cold simulation's 185 Newton iterations at 10k tetrahedra
-    and 331 of 373 at 36k (docs/run/distributed.md)."""
+    and 331 of 373 at 36k (docs/notes/distributed.md)."""
     if n_ranks < 1 or n_poses < 0:
         raise ValueError(f"cannot split {n_poses} poses over {n_ranks} ranks")
     return [list(range(rank, n_poses, n_ranks)) for rank in range(n_ranks)]
@@ -106,10 +107,9 @@ def start_group() -> None:
 
 def check_supported(problem: Any, config: dict[str, Any], n_ranks: int) -> None:
     """:class:`~.options.FitConfigError` (one line) for what does not run distributed yet."""
-    from ...problems.body.problem import RiggedBody
     solver = str(config.get("solver", {}).get("name"))
-    name = getattr(problem, "name", type(problem).__name__)
-    supported = isinstance(problem, RiggedBody) and not getattr(problem, "dynamic", False) \
+    name = problem.name
+    supported = isinstance(problem, PosedProblem) and not isinstance(problem, MotionProblem) \
         and solver in SOLVERS
     if not supported:
         raise FitConfigError(f"problem {name} / solver {solver} does not run distributed yet "
@@ -277,17 +277,17 @@ class FrameSplit:
 
     def store_jacobian(self, theta: Tensor, ident: int) -> Tensor:
         """Every rank: compute and keep the rows of this rank's poses
-        (``(P_rank n_obs 3, n)``) as Jacobian ``ident`` (:class:`.distributed_rows.RowStore`);
+        (``(P_rank n_obs 3, n)``) as Jacobian ``ident`` (:class:`.rows.RowStore`);
         returns their shape ``(2,)`` (int64)."""
         with self.local():
-            rows = type(self.problem).pose_jacobian(self.problem, theta)
+            rows = self.problem.pose_jacobian(theta)
         rows = rows.reshape(-1, rows.shape[-1])
         self.rows.add(rows, ident)
         return torch.tensor(rows.shape, dtype=torch.int64)
 
     def forward_jacobian(self, theta: Tensor) -> DistributedRows:
         """Rank 0: every frame's rows, ``(F n_obs 3, n)``, kept where they were computed
-        (:class:`.distributed_rows.DistributedRows`: the products the dense path needs)."""
+        (:class:`.rows.DistributedRows`: the products the dense path needs)."""
         ident = self.rows.next_id
         self.channel.command(JACOBIAN, ident)
         self.channel.share(theta, tuple(theta.shape), theta.dtype)
@@ -345,17 +345,17 @@ class FrameSplit:
         return self.channel.total(part)
 
 
-def split_frames(problem: Any) -> FrameSplit:
-    """Replace ``problem.quasistatic`` by its split (every rank, same problem): the distinct
-    poses the problem simulates (every frame where none repeats) are partitioned over the
-    ranks, so a pose that several frames repeat is simulated once in the whole job."""
+def split_frames(problem: PosedProblem) -> FrameSplit:
+    """Plug the split of the problem's pose simulation into it (every rank, same problem;
+    :meth:`~torchfit.problems.PosedProblem.plug`): the distinct poses the problem simulates
+    (every frame where none repeats) are partitioned over the ranks, so a pose that several
+    frames repeat is simulated once in the whole job; rank 0's Jacobian rows stay on their
+    ranks (:meth:`FrameSplit.forward_jacobian`)."""
     poses = problem.simulated_poses()
     count = int(problem.n_frames) if isinstance(poses, slice) else len(poses)
     blocks = partition(count, dist.get_world_size())
     split = FrameSplit(problem, Channel(blocks))
-    problem.quasistatic = split
-    if split.channel.rank == 0:
-        problem.forward_jacobian = split.forward_jacobian
+    problem.plug(split, split.forward_jacobian if split.channel.rank == 0 else None)
     return split
 
 

@@ -18,7 +18,7 @@ The partial sums are gathered to rank 0 and added there in rank order: the traff
 all-reduce (``n^2`` doubles per rank for the Gram matrix, 295 KB for the arm's 192
 parameters, against 110 MB of rows per rank when ``J`` was gathered) with a fixed order of
 summation, so a run is bit-reproducible for a given number of processes (an exact resume),
-and equal to the one-process run to round-off (measured: ``docs/run/distributed.md``).
+and equal to the one-process run to round-off (measured: ``docs/notes/distributed.md``).
 Anything else a tensor would allow raises ``TypeError``: a new use of ``J`` in the solvers
 must be added here, not silently gathered.
 """
@@ -76,7 +76,7 @@ def local_product(code: int, rows: Tensor, operand: Tensor | None,
 class DistributedRows:
     """Rank 0's handle of a Jacobian ``(m, n)`` whose rows stay on the ranks (module
     docstring). ``exchange(code, ident, operand)`` runs a product on every rank and returns
-    the reduced result on rank 0 (:meth:`.distributed.FrameSplit.row_product`)."""
+    the reduced result on rank 0 (:meth:`.ranks.FrameSplit.row_product`)."""
 
     def __init__(self, ident: int, shape: tuple[int, int], dtype: torch.dtype,
                  device: torch.device, exchange: Callable[[int, int, Tensor | None], Tensor]

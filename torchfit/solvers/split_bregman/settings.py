@@ -3,7 +3,7 @@
 Every default is written here once. The rules the settings steer: the outer iteration
 in :mod:`.solver`, the weights ``mu`` and ``beta`` in
 :mod:`.weights`, the stages in ``mu`` in :mod:`.stages`.
-Measured effects of the defaults: ``docs/solvers/split_bregman.md``.
+Measured effects of the defaults: ``docs/notes/split_bregman.md``.
 """
 from __future__ import annotations
 

@@ -40,7 +40,7 @@ Carried state (:meth:`SplitBregman.state_dict`, plain values): ``theta``, ``D th
 spectral pair, objective, misfit and ADMM-residual windows, best objective, rejections,
 inner tolerance), the search's memory, and what the last record left to decide (the
 stage-end test and the ``beta`` update run after a record, so first on resume).
-Reasons and figures: ``docs/solvers/split_bregman.md``.
+Reasons and figures: ``docs/notes/split_bregman.md``.
 """
 from __future__ import annotations
 
@@ -83,7 +83,7 @@ class SplitBregman(Solver):
     ``lin``, ``norm``, ``Dtheta``, ``d``, ``b``, ``mu``, ``beta``, ``stage``), the stage's
     bookkeeping (``stage_iteration``, ``best``, ``spectral``, ``objectives``, ``misfits``,
     ``rejections``), the search over stages (``search``, a
-    :class:`~.split_bregman_stages.StageSearch`) and what the last record left to decide
+    :class:`~.stages.StageSearch`) and what the last record left to decide
     (``pending``, ``last``).
     """
 

@@ -17,7 +17,7 @@ keep ``beta b``): :func:`adapted_beta` every second iteration of a stage (spectr
 estimate, else residual balancing), and in a data-Bregman run :func:`admm_stalled`
 (double ``beta`` when the ADMM residual has not decreased over ``stall_window``
 iterations). A rejected iteration doubles ``beta`` too. Reasons and figures:
-``docs/solvers/split_bregman.md``.
+``docs/notes/split_bregman.md``.
 """
 from __future__ import annotations
 
@@ -119,7 +119,7 @@ def spectral_beta(beta: float, dH: Tensor, dlam_hat: Tensor, correlation: float 
     intermediate multiplier (``dlam_hat``, sign-adjusted so that their inner product is
     positive for a convex data term), hybrid steepest-descent/minimum-gradient rule,
     trusted when the two changes are correlated (> ``correlation``). The TV side's
-    estimate is left out (``docs/solvers/split_bregman.md``). One update changes ``beta``
+    estimate is left out (``docs/notes/split_bregman.md``). One update changes ``beta``
     by at most ``max_factor``; ``None`` when the estimate is not reliable.
     """
     xy = float(torch.dot(dH, dlam_hat))
@@ -158,7 +158,7 @@ def admm_stalled(admm_window: list[float], window: int) -> bool:
 
     ADMM on a non-convex data term converges for a large enough penalty (Wang, Yin and
     Zeng 2019); a too small ``beta`` that neither the spectral estimate nor residual
-    balancing moves lets the iteration drift (``docs/solvers/split_bregman.md``)."""
+    balancing moves lets the iteration drift (``docs/notes/split_bregman.md``)."""
     return len(admm_window) > window and admm_window[-1] >= admm_window[-1 - window]
 
 

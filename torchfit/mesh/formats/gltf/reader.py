@@ -1,7 +1,7 @@
 """A glTF 2.0 skin as an animation (``.glb``/``.gltf``, the extra ``gltf``: pygltflib).
 
 :func:`load_gltf` reads one skinned node (a node with a ``mesh`` and a ``skin``) into the same
-:class:`~.animation_format.Animation` as the folder format:
+:class:`~..folder.Animation` as the folder format:
 
 - rest: the mesh's ``POSITION`` (every triangle primitive, concatenated in order), faces from
   its indices; the skinned node's own transform is ignored, as the specification says (the
@@ -15,12 +15,12 @@
   weights from the mesh, the node or a ``weights`` channel) are added before skinning; each
   joint's matrix is its global transform times its inverse bind matrix, and a vertex moves
   by ``sum_j w_j M_j [x, 1]``;
-- bones: the joints' segments (:func:`.joint_rig.skeleton_from_joints`); ``attach_radius``
+- bones: the joints' segments (:func:`..joints.skeleton_from_joints`); ``attach_radius``
   from ``extras: {"torchfit:attachRadius": metres}`` on the skin or the node, else the
   default there.
 
 Units: metres (glTF's); the up axis is kept (glTF is Y-up: nothing downstream depends on
-it). Refused with one line (:class:`~.animation_format.AnimationError`): ``CUBICSPLINE``
+it). Refused with one line (:class:`~..folder.AnimationError`): ``CUBICSPLINE``
 samplers, sparse accessors, Draco or meshopt compression (any required extension), primitives
 other than triangles, no skinned node, several without ``problem.prim``.
 """

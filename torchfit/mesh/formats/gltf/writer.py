@@ -1,8 +1,8 @@
 """Writing glTF 2.0 (the extra ``gltf``): a rigged animation as a skin with an animation.
 
 :func:`write_skinned_gltf` writes the animation format's rig as a ``.glb`` (or a ``.gltf``
-with its buffer embedded) that :func:`.gltf_reader.load_gltf` poses back to the same frames:
-one joint node per joint of :func:`.joint_rig.bone_joints` (rest pose = bind pose, inverse
+with its buffer embedded) that :func:`.reader.load_gltf` poses back to the same frames:
+one joint node per joint of :func:`..joints.bone_joints` (rest pose = bind pose, inverse
 bind matrices the inverse translations, stored column-major), the mesh with ``JOINTS_0`` /
 ``WEIGHTS_0`` (the four largest weights per vertex: more are refused) and one morph target
 per corrective shape, one animation: each joint's translation and rotation (``LINEAR``) at
@@ -26,7 +26,7 @@ def write_skinned_gltf(path: str | Path, rest_vertices: np.ndarray, faces: np.nd
                        shape_weights: np.ndarray | None = None, fps: float = 24.0) -> Path:
     """Write a skinned mesh and its animation to ``path`` (``.glb`` or ``.gltf``).
 
-    Arguments as :func:`.usd_writer.write_skinned_usd`.
+    Arguments as :func:`..usd.writer.write_skinned_usd`.
     """
     import pygltflib as g
     from scipy.spatial.transform import Rotation

@@ -2,7 +2,7 @@
 
 ``problem.path=<file>.usd|.usda|.usdc|.usdz`` reads, with Pixar's ``usd-core`` (``pxr``,
 imported only here and only then), one mesh prim of the stage into the same
-:class:`~.animation_format.Animation` as the folder format:
+:class:`~..folder.Animation` as the folder format:
 
 - **a skinned mesh** (a ``UsdGeom.Mesh`` with ``SkelBindingAPI`` bound to a
   ``UsdSkel.Skeleton`` with a ``SkelAnimation``): rest points (the ``points`` at the default
@@ -15,7 +15,7 @@ imported only here and only then), one mesh prim of the stage into the same
   skeleton's space, placed in the world by the skeleton prim's transform (the skinned mesh's
   own transform is ignored, as UsdSkel says; with ``skel:skinningMethod`` dualQuaternion the
   frames are UsdSkel's, the interior's drive stays linear). Bones: the joints' segments
-  (:func:`.joint_rig.skeleton_from_joints`); ``attach_radius`` from the float attribute
+  (:func:`..joints.skeleton_from_joints`); ``attach_radius`` from the float attribute
   ``torchfit:attachRadius`` (stage units) on the mesh or skeleton, else the default there.
 - **a point cache**: a mesh whose ``points`` are time-sampled; the driven vertices are the
   primvar ``primvars:torchfit:driven`` (bool or int per vertex, nonzero: driven), the
@@ -29,7 +29,7 @@ the animation, or the points), in time order; ``problem.frames`` picks among the
 Units: lengths are multiplied by the stage's ``metersPerUnit``. The up axis is kept as
 authored (a Y-up stage stays Y-up: nothing downstream depends on it; the reader logs it).
 USD matrices act on row vectors, ``[x, 1] @ M``. Errors are one line
-(:class:`~.animation_format.AnimationError`).
+(:class:`~..folder.AnimationError`).
 """
 from __future__ import annotations
 

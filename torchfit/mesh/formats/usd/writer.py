@@ -2,12 +2,12 @@
 
 :func:`write_skinned_usd` writes the animation format's rig (bones, per-frame ``[A | t]``,
 per-vertex weights, rest-pose corrective shapes) as a stage that
-:func:`.usd_reader.load_usd` (and any UsdSkel client) poses back to the same frames:
+:func:`.reader.load_usd` (and any UsdSkel client) poses back to the same frames:
 
 - joints: one per bone at its head, moved by the bone's transform, carrying the bone's weight;
   a bone whose tail starts no other bone gets an end joint there (child of the bone's joint,
   same motion, no weight). A bone is the child of the bone whose tail is its head. So
-  :func:`.joint_rig.skeleton_from_joints` reads the same bones back.
+  :func:`..joints.skeleton_from_joints` reads the same bones back.
 - bind transforms: translations to the joints' rest positions; the rest pose the bind pose;
   the ``SkelAnimation`` holds each joint's local translation, rotation and scale per frame
   (time codes ``0 .. F-1`` at ``fps``), the corrective shapes' weights as blend-shape weights.
