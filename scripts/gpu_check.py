@@ -432,8 +432,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         return report
 
     started = time.perf_counter()
-    work = options.work or Path(tempfile.mkdtemp(prefix="torchfit-gpu-check-"))
-    work.mkdir(parents=True, exist_ok=True)
+    work = options.work or (Path(tempfile.gettempdir()) / "torchfit-gpu-check" if
+                            options.dry_run else Path(tempfile.mkdtemp(prefix="torchfit-gpu-check-")))
+    if not options.dry_run:
+        work.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "PYTHONUNBUFFERED": "1",
            "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     report = {"check": "gpu", "issue": 39,
