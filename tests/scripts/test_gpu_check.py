@@ -91,8 +91,9 @@ def test_summaries_and_goals(tmp_path):
     assert module.compare_fits(fits, results["arm3d_cuda"]["fit"])["at"] == "misfit"
 
 
-def test_without_cuda_every_step_is_skipped_in_one_json():
-    report = check("--steps", "tests", "box_linear", "--budget-s", "60")
+def test_without_cuda_every_step_is_skipped_in_one_json(tmp_path):
+    report = check("--steps", "tests", "box_linear", "--budget-s", "60", "--work",
+                   str(tmp_path / "work"))
     assert report["check"] == "gpu" and report["machine"]["cuda_available"] is False
     assert set(report["steps"]) == {"tests", "box_linear"}
     assert all(step == {"skipped": "torch sees no CUDA device here"}
