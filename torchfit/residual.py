@@ -41,10 +41,12 @@ def warm_up_autograd() -> None:
     """Pay torch's one-time lazy initialisation of derivative products now.
 
     The first forward-mode product of a process loads torch's jvp decompositions
-    (compiled by TorchScript) and the first ``autograd.grad`` imports sympy through
-    ``symbolic_shapes``, once per process. :func:`torchfit.fit` calls this during set-up,
-    so solver clocks and iteration records measure solving (the cost:
-    ``docs/notes/time_to_accuracy.md``). Idempotent.
+    (compiled by TorchScript) and the first ``autograd.grad`` *given* ``grad_outputs``
+    (every vector-Jacobian product, every adjoint of a simulation) imports sympy through
+    ``symbolic_shapes``, once per process (0.6-1.5 s on the development machine; one
+    second or more of the "first backward" measured on the H200 host). :func:`torchfit.fit`
+    calls this during set-up, so solver clocks and iteration records measure solving (the
+    cost: ``docs/notes/time_to_accuracy.md``). Idempotent.
     """
     global _WARM
     if _WARM:
@@ -53,7 +55,8 @@ def warm_up_autograd() -> None:
     with fwAD.dual_level():
         fwAD.unpack_dual(torch.exp(fwAD.make_dual(x.detach(), torch.ones_like(x))))
     with torch.enable_grad():
-        torch.autograd.grad(torch.exp(x).sum(), x)
+        # with grad_outputs: a scalar output's implicit one does not load symbolic_shapes
+        torch.autograd.grad(torch.exp(x), x, torch.ones_like(x))
     _WARM = True
 
 

@@ -49,7 +49,7 @@ def test_one_pass_jacobian_is_the_stack_of_jvps_and_costs_one_solve():
         assert lin.jacobian() is J                           # computed once, cached
     # a linear model: one shared factor, one solve with F n columns, no factorisation
     assert count.as_dict() == {"factorizations": 0, "solves": 1,
-                               "rhs_columns": p.n_frames * 16}
+                               "rhs_columns": p.n_frames * 16, "analyses": 0}
     generic = ResidualFunction(p.forward, p.data).linearize(theta)
     assert generic.jacobian().shape == J.shape == (p.data.numel(), 16)
     assert float((J - generic.jacobian()).norm() / J.norm()) < 1e-12

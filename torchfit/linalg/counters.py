@@ -15,7 +15,11 @@ thread (autograd's device threads run a CUDA backward) re-enters the scopes of t
 started on with :func:`within`.
 
 A *solve* is one application of a factor to a block of right-hand sides (all frames or
-components that share the factor are one solve); ``rhs_columns`` counts the columns.
+components that share the factor are one solve); ``rhs_columns`` counts the columns. An
+*analysis* is the ordering and symbolic factorisation of a sparsity pattern, counted by the
+backends that keep it apart from the numeric factorisations (``pardiso``, ``ldl``,
+``cudss``: one per pattern, whatever the number of frames and Newton steps); SuperLU and the
+iterative backends analyse inside each factorisation or not at all and count none.
 """
 from __future__ import annotations
 
@@ -29,23 +33,27 @@ from torch import Tensor
 
 @dataclasses.dataclass
 class SolveCounters:
-    """Factorisations, solves and right-hand-side columns counted in one scope."""
+    """Factorisations, solves, right-hand-side columns and pattern analyses counted in one
+    scope."""
 
     factorizations: int = 0
     solves: int = 0
     rhs_columns: int = 0
+    analyses: int = 0
 
     def snapshot(self) -> "SolveCounters":
         return dataclasses.replace(self)
 
     def __sub__(self, other: "SolveCounters") -> "SolveCounters":
         return SolveCounters(self.factorizations - other.factorizations,
-                             self.solves - other.solves, self.rhs_columns - other.rhs_columns)
+                             self.solves - other.solves, self.rhs_columns - other.rhs_columns,
+                             self.analyses - other.analyses)
 
     def add(self, other: "SolveCounters") -> None:
         self.factorizations += other.factorizations
         self.solves += other.solves
         self.rhs_columns += other.rhs_columns
+        self.analyses += other.analyses
 
     def as_dict(self) -> dict[str, int]:
         return dataclasses.asdict(self)
@@ -66,6 +74,11 @@ def credit(counts: SolveCounters) -> None:
 def count_factorization() -> None:
     """One numeric factorisation (a backend calls this when it makes one)."""
     credit(SolveCounters(factorizations=1))
+
+
+def count_analysis() -> None:
+    """One analysis (ordering and symbolic factorisation) of a sparsity pattern."""
+    credit(SolveCounters(analyses=1))
 
 
 def count_solve(rhs: Tensor | int) -> None:

@@ -24,7 +24,8 @@ def test_ldl_solve_matches_superlu_and_counts():
         factor = backend.factorize(pattern, values, symmetric=True)
         x = factor.solve(rhs)
         x1 = factor.solve(rhs[:, 0], transpose=True)
-    assert count.as_dict() == {"factorizations": 1, "solves": 2, "rhs_columns": 4}
+    assert count.as_dict() == {"factorizations": 1, "solves": 2, "rhs_columns": 4,
+                               "analyses": 1}
     assert type(factor).__name__ == "LdlFactor" and backend.fallbacks == 0
     ref = ScipyBackend().factorize(pattern, values, True).solve(rhs)
     assert torch.allclose(x, ref, rtol=0, atol=1e-11)

@@ -97,3 +97,43 @@ def test_polar_backward_is_finite_at_repeated_singular_values_and_matches_autogr
         F0 = F0.clone().requires_grad_(True)
         (grad,) = torch.autograd.grad((polar_rotation(F0) * W[0]).sum(), F0)
         assert torch.isfinite(grad).all()
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_rest_shape_in_closed_form_matches_lapack_and_names_bad_cells(d):
+    """Volumes, ``D_m^{-1}`` and the shape-function gradients by triple and cross products
+    equal numpy's batched ``det``/``inv`` to round-off on a jittered mesh; an inverted cell
+    is a MeshError naming it (the host check's message); float32 is cast at the end."""
+    import math
+
+    import numpy as np
+
+    from torchfit.mesh import MeshError, box_tetrahedra
+    from torchfit.physics.elasticity.kinematics import RestShape
+
+    if d == 3:
+        mesh = box_tetrahedra(5, 4, 3, (1.0, 1.0, 1.0))
+        points, cells = mesh.points, mesh.cells
+    else:
+        xs, ys = np.meshgrid(np.linspace(0, 1, 6), np.linspace(0, 1, 5))
+        points = np.stack([xs.ravel(), ys.ravel()], 1)
+        quads = np.array([[j * 6 + i, j * 6 + i + 1, (j + 1) * 6 + i + 1, (j + 1) * 6 + i]
+                          for j in range(4) for i in range(5)])
+        cells = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    points = points + 0.03 * np.random.default_rng(0).standard_normal(points.shape)
+    rest = RestShape(points, cells)
+    dm = np.transpose(points[cells][:, 1:] - points[cells][:, :1], (0, 2, 1))
+    dm_inv = np.linalg.inv(dm)
+    scale = np.abs(dm_inv).max()
+    assert np.abs(rest.dm_inv.numpy() - dm_inv).max() <= 1e-14 * scale
+    assert np.allclose(rest.volumes.numpy(), np.linalg.det(dm) / math.factorial(d),
+                       rtol=1e-13, atol=0)
+    grads = np.concatenate([-dm_inv.sum(axis=1, keepdims=True), dm_inv], axis=1)
+    assert np.abs(rest.grads.numpy() - grads).max() <= 1e-14 * scale
+    single = RestShape(points, cells, dtype=torch.float32)
+    assert single.grads.dtype == torch.float32
+    assert torch.allclose(single.grads.double(), rest.grads, rtol=1e-6, atol=1e-6 * scale)
+    flipped = cells.copy()
+    flipped[3, [0, 1]] = flipped[3, [1, 0]]
+    with pytest.raises(MeshError, match=r"1 inverted .* element\(s\): 3 \(vertices"):
+        RestShape(points, flipped)

@@ -209,3 +209,64 @@ def test_a_rotated_arm_gets_the_same_tetrahedra_and_grid(cache):
     np.testing.assert_array_equal(turned.tet_regions, plain.tet_regions)
     np.testing.assert_array_equal(turned.joint_cells, plain.joint_cells)
     assert turned.full_bend_frame == plain.full_bend_frame == 1
+
+
+def arm_fits(cache, **on_device):
+    """The coarse corotated arm on frames 0, 6 and 11 fitted by 2 Levenberg-Marquardt
+    iterations on the CPU and again with ``on_device`` settings (after which ``configure``,
+    if given, is called with the problem): ``{name: (result, counts)}``."""
+    from torchfit.linalg import counting
+
+    configure = on_device.pop("configure", None)
+    results = {}
+    for name, settings in (("cpu", {}), ("device", on_device)):
+        problem = arm(cache, frames=[0, 6, 11], model="corotated", **settings)
+        if name == "device" and configure is not None:
+            configure(problem)
+        with counting() as count:
+            result = fit(problem, {"name": "levenberg_marquardt", "max_iter": 2,
+                                   "max_step": 1.0})
+        results[name] = (result, count)
+    return results
+
+
+def assert_same_fit(results):
+    """Theta and every finite metric of the device run equal the CPU run's to 1e-8."""
+    (cpu, cpu_count), (other, count) = results["cpu"], results["device"]
+    assert float((other.theta.cpu() - cpu.theta).abs().max()) <= \
+        1e-8 * float(cpu.theta.abs().max())
+    for key, value in cpu.metrics.items():
+        if isinstance(value, float) and np.isfinite(value):
+            assert other.metrics[key] == pytest.approx(value, rel=1e-8, abs=1e-12), key
+    assert count.solves == cpu_count.solves and count.rhs_columns == cpu_count.rhs_columns
+    return count
+
+
+@pytest.mark.slow
+def test_the_arm_on_the_cudss_path_matches_the_cpu_backend(cache):
+    """``problem=arm3d problem.device=cuda`` solves with the ``cudss`` backend. Here (no GPU)
+    it runs with the stand-in for nvmath on the CPU: the fit's metrics are the CPU
+    backend's to 1e-8 relative, every frame and Newton step of the fit share one analysis
+    per matrix type, the solves are the CPU's, and each frame's Jacobian columns are solved
+    in blocks of the RHS width (36 parameters, blocks of 16: 3 cuDSS calls per frame)."""
+    from torchfit.linalg.backends.cudss import CudssBackend
+
+    from helpers.fake_nvmath import FakeCuda
+
+    fake = FakeCuda()
+    results = arm_fits(cache, configure=lambda problem: problem.quasistatic.equilibrium.
+                       use_backend(CudssBackend(runtime=fake, rhs_block=16)))
+    assert results["device"][0].theta.shape == (36,)
+    count = assert_same_fit(results)
+    # one analysis per matrix type: Cholesky, and LDL^T where an exact tangent of the fold
+    # is indefinite (it depends on pytetwild's mesh: 1 or 2 in runs of this test)
+    assert count.analyses <= 2 and fake.count("plan") == count.analyses
+    assert fake.count("solve") > count.solves            # 36 columns: several calls each
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_the_arm_on_cuda_matches_the_cpu(cache):
+    """The same on a GPU: ``problem.device=cuda`` (cudss where installed, else cg)."""
+    count = assert_same_fit(arm_fits(cache, device="cuda"))
+    assert count.analyses <= 2

@@ -58,7 +58,8 @@ def test_cost_model_and_discrepancy_stop(report):
         assert all(res["count_checks"].values()), res["count_checks"]
         assert res["forward"]["counts"]["factorizations"] == 1
         assert res["forward"]["counts"]["rhs_columns"] == 2       # both components, one solve
-        assert res["backward"]["counts"] == {"factorizations": 0, "solves": 1, "rhs_columns": 2}
+        assert res["backward"]["counts"] == {"factorizations": 0, "solves": 1, "rhs_columns": 2,
+                                             "analyses": 0}
     for run in report["gn_iterations"].values():
         assert run["stop_reason"] == "discrepancy"
         assert run["misfit"] <= 1.5 * run["noise_level"]

@@ -34,7 +34,7 @@ import scipy.sparse as sp
 import torch
 from torch import Tensor
 
-from ..counters import count_factorization, count_solve
+from ..counters import count_analysis, count_factorization, count_solve
 from ..errors import SingularMatrixError, cpu_only
 from ..pattern import SparsePattern
 
@@ -55,7 +55,8 @@ class _LdlPlan:
     Attributes:
         slots: ``(nnz_upper,)`` CSR slots of the pattern whose values make the upper
             triangle's CSC data, in order.
-        analyses: solvers made for this pattern (each one ordering + symbolic analysis).
+        analyses: solvers made for this pattern (each one ordering + symbolic analysis, also
+            counted in the open counting scopes).
     """
 
     def __init__(self, pattern: SparsePattern) -> None:
@@ -91,6 +92,7 @@ class _LdlPlan:
             return solver
         solver = _qdldl().Solver(upper, upper=True)
         self.analyses += 1
+        count_analysis()
         return solver
 
     def release(self, solver) -> None:

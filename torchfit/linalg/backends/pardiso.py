@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..counters import count_factorization, count_solve
+from ..counters import count_analysis, count_factorization, count_solve
 from ..errors import SingularMatrixError, cpu_only
 from ..pattern import SparsePattern
 from .pardiso_mkl import (REAL_NONSYMMETRIC, REAL_SYMMETRIC_INDEFINITE, SINGULAR_CODES,
@@ -73,7 +73,8 @@ class PardisoPlan:
     factor has a handle (and an analysis) of its own.
 
     Attributes:
-        analyses: phase-11 analyses made for this pattern and type so far.
+        analyses: phase-11 analyses made for this pattern and type so far (each also
+            counted in the open counting scopes: ``SolveCounters.analyses``).
     """
 
     def __init__(self, pattern: SparsePattern, mtype: int, capacity: int) -> None:
@@ -91,6 +92,7 @@ class PardisoPlan:
         if self.mtype == REAL_NONSYMMETRIC:
             handle = PardisoHandle(library, self.structure, self.mtype, 1, a)
             self.analyses += 1
+            count_analysis()
             return handle, handle.acquire()  # type: ignore[return-value]
         threads = library.max_threads()
         # a handle analysed under another limit is dropped here (its live factors keep it)
@@ -101,6 +103,7 @@ class PardisoPlan:
                 return handle, mnum
         handle = PardisoHandle(library, self.structure, self.mtype, self.capacity, a)
         self.analyses += 1
+        count_analysis()
         self.handles.append(handle)
         return handle, handle.acquire()  # type: ignore[return-value]
 

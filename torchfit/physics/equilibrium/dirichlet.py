@@ -47,13 +47,18 @@ class DirichletReduction:
         self.free_positions[self.free_dofs] = torch.arange(self.free_dofs.numel())
         if self.free_dofs.numel() == 0:
             raise ValueError("every degree of freedom is fixed; nothing to solve")
-        self.backend = get_backend(backend)
         # Reduced (free-free) tangent pattern and the slots it takes, built once.
         self.free_pattern, self.free_slots = model.tangent_pattern.submatrix(
             self.free_dofs, self.free_dofs)
         self.extensions = ModelExtensions.of(model)
+        self.use_backend(backend)
+
+    def use_backend(self, backend: str | Backend) -> None:
+        """Factorise the reduced tangent with ``backend`` (a name or an object, e.g. a
+        configured :class:`~torchfit.linalg.CudssBackend`) from now on."""
+        self.backend = get_backend(backend)
         # an AMG backend aggregates with the model's near-nullspace (rigid-body modes)
-        modes, register = (getattr(model, "near_nullspace", None),
+        modes, register = (getattr(self.model, "near_nullspace", None),
                            getattr(self.backend, "set_near_nullspace", None))
         if callable(modes) and callable(register):
             register(self.free_pattern, modes()[self.free_dofs])

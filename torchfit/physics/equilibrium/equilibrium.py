@@ -316,6 +316,14 @@ class Equilibrium:
     def clear_cache(self) -> None:
         self.cache.clear()
 
+    def use_backend(self, backend: str | Backend) -> None:
+        """Solve with ``backend`` (a name or an object: a configured
+        :class:`~torchfit.linalg.CudssBackend`, a stand-in in tests) from now on; the
+        cached solutions, whose factors are the old backend's, are dropped."""
+        self.reduction.use_backend(backend)
+        self.backend = self.reduction.backend
+        self.cache.clear()
+
     def independent(self) -> ContextManager[None]:
         """Within: every new solve starts cold (from ``x_init``, not from an earlier
         solution) and its solution never warm-starts a later one, unless derivatives are

@@ -85,14 +85,14 @@ class Channel:
             error, status = err, _SIMULATION_FAILED
         except Exception as err:  # noqa: BLE001  (reported to rank 0, then raised)
             error, status = err, _FAILED
-        mine = torch.tensor([status, spent.factorizations, spent.solves, spent.rhs_columns],
-                            dtype=torch.int64)
+        mine = torch.tensor([status, spent.factorizations, spent.solves, spent.rhs_columns,
+                             spent.analyses], dtype=torch.int64)
         everyone = [torch.zeros_like(mine) for _ in range(self.size)]
         dist.all_gather(everyone, mine)
         if self.rank == 0:
             exchange(False)
             for row in everyone[1:]:        # the workers' work, in rank 0's scopes
-                credit(SolveCounters(int(row[1]), int(row[2]), int(row[3])))
+                credit(SolveCounters(int(row[1]), int(row[2]), int(row[3]), int(row[4])))
         failed = [(r, int(row[0])) for r, row in enumerate(everyone) if int(row[0]) != _OK]
         if failed:
             if self.rank != 0 and error is not None and status == _FAILED:
