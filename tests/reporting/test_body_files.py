@@ -94,3 +94,29 @@ def test_usd_frames_over_the_users_stage_in_its_units_and_times(tmp_path):
     points = UsdGeom.Mesh(layered.GetPrimAtPath("/Simulated")).GetPointsAttr()
     assert points.GetTimeSamples() == [101.0, 103.0, 105.0]
     np.testing.assert_allclose(np.asarray(points.Get(105.0)), surface[2] / 0.01, rtol=1e-6)
+
+
+def test_an_embedded_body_writes_its_material_on_the_users_vertices(tmp_path):
+    """The per-vertex layer (``usd/material.usda``): the field averaged at the tet vertices
+    by volume, then interpolated with each surface vertex's embedding weights."""
+    pytest.importorskip("pxr")
+    from pxr import Usd, UsdGeom
+
+    problem = _problem(tmp_path / "anim", ["a", "b", "c"])
+    problem.animation.rest_vertices = POINTS[:4]
+    problem.animation.file_values = lambda values: values
+    problem.animation.prim = ""
+    # vertex 0 sits at tet 0's corner 0; vertex 3 halfway between corners 3 and 4 of tet 1
+    problem.embedding = SimpleNamespace(cells=np.array([0, 0, 0, 1]),
+                                        weights=np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0],
+                                                          [0, 0, 1.0, 0], [0, 0, 0.5, 0.5]]))
+    field = np.array([1.5, 0.25])
+    files = write_usd(tmp_path / "run", problem, _surface(), field)
+    assert [f.name for f in files] == ["frames.usda", "body.usda", "material.usda"]
+    stage = Usd.Stage.Open(str(files[2]))
+    values = np.asarray(UsdGeom.PrimvarsAPI(stage.GetDefaultPrim())
+                        .GetPrimvar("youngsModulus").Get())
+    volumes = np.array([1.0, 2.0]) / 6.0        # the tetrahedra's volumes
+    shared = (1.5 * volumes[0] + 0.25 * volumes[1]) / volumes.sum()   # nodes 1, 2, 3
+    expected = [1.5, shared, shared, 0.5 * shared + 0.5 * 0.25]
+    np.testing.assert_allclose(values, expected, rtol=1e-6)

@@ -204,6 +204,16 @@ class BodyProblem(Protocol):
 
 
 @runtime_checkable
+class EmbeddedSurfaceProblem(Protocol):
+    """A body whose user surface is embedded in its tet mesh: ``embedding.cells`` ``(V,)``
+    the tetrahedron of each surface vertex and ``embedding.weights`` ``(V, 4)`` its
+    barycentric weights there (what the per-vertex material layer samples the field with)."""
+
+    mesh: Any
+    embedding: Any
+
+
+@runtime_checkable
 class PosedProblem(Protocol):
     """A problem whose frames are independent poses (a quasistatic rigged body): what a
     distributed run needs to split them over ranks.

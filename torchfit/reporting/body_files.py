@@ -23,6 +23,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..mesh import write_obj
+from ..problems.base import EmbeddedSurfaceProblem
 from .progress import PROGRESS_LOGGER
 from .results import write_folder
 
@@ -140,7 +141,7 @@ def vertex_field(problem: Any, field: np.ndarray) -> np.ndarray | None:
     """The per-tetrahedron ``field`` sampled at the user's rest vertices ``(V_file,)``: the
     volume-weighted mean of the tetrahedra at each tet vertex, interpolated with each surface
     vertex's embedding weights; ``None`` for a problem without an embedded surface."""
-    if not hasattr(problem, "embedding_cells"):
+    if not isinstance(problem, EmbeddedSurfaceProblem):
         return None
     points, cells = np.asarray(problem.mesh.points), np.asarray(problem.mesh.cells)
     volumes = np.abs(np.linalg.det(points[cells[:, 1:]] - points[cells[:, :1]])) / 6.0
@@ -149,5 +150,6 @@ def vertex_field(problem: Any, field: np.ndarray) -> np.ndarray | None:
     np.add.at(total, cells.reshape(-1), np.repeat(field * volumes, 4))
     np.add.at(weight, cells.reshape(-1), np.repeat(volumes, 4))
     nodes = total / np.maximum(weight, 1e-300)
-    values = np.einsum("vk,vk->v", nodes[problem.embedding_cells()], problem.embedding.weights)
+    values = np.einsum("vk,vk->v", nodes[cells[problem.embedding.cells]],
+                       problem.embedding.weights)
     return problem.animation.file_values(values)
