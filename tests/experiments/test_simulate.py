@@ -208,3 +208,28 @@ def test_a_resume_without_the_cache_uses_the_runs_mesh(fitted, tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (run / "mesh.npz").read_bytes() == before
     assert json.loads((run / "result.json").read_text())["iterations"] == 3
+
+
+def test_simulate_takes_its_frames_from_the_animation_it_is_given(fitted, tmp_path):
+    """The fit's ``frames`` and ``validation_frames`` do not apply to ``simulate``: a fit that
+    held out frames 4 and 5 of six simulates a three-frame shot, every frame of its own
+    animation by default and with ``frames=null``, and its held-out frames when asked."""
+    six = write_capsule(tmp_path / "capsule_six", angles=(0.0, 8.0, 15.0, 22.0, 30.0, 36.0))
+    run = tmp_path / "fit"
+    proc = run_fit_app(run, *FIT[:3], "solver.max_iter=1", "threads=1", f"problem.path={six}",
+                       "problem.validation_frames=[4,5]", f"problem.cache_dir={fitted['cache']}")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    cache = {"cache_dir": str(fitted["cache"])}
+    # a second shot with fewer frames than the fit's validation frames reach
+    shot = simulate(run, {**cache, "path": str(fitted["folder"])}, progress_lines=False)
+    assert shot.state.shape[0] == 3
+    for settings, frames in (({}, 6), ({"frames": None}, 6), ({"frames": [4, 5]}, 2)):
+        result = simulate(run, {**cache, **settings}, progress_lines=False)
+        assert result.state.shape[0] == frames
+        assert result.problem.frame_numbers() == ([4, 5] if frames == 2 else list(range(6)))
+    # through the app, as the guide types it
+    out = tmp_path / "sim"
+    proc = run_simulate_app(out, f"run={run}", f"problem.path={fitted['folder']}",
+                            "problem.frames=null", f"problem.cache_dir={fitted['cache']}")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads((out / "result.json").read_text())["n_frames"] == 3

@@ -16,7 +16,9 @@ parameterisation does not match: a run of a problem that is not a body, a settin
 parameterisation or material changed (:data:`FITTED_SETTINGS`), an animation whose rest
 surface (vertices, faces) is not the fitted body's, a ``params.pt`` of another parameter
 count, field or transform, or one whose field the body's parameterisation does not
-reproduce. The animation's frames may differ from the fit's in number and poses.
+reproduce. The animation's frames may differ from the fit's in number and poses: every
+frame of it is simulated unless ``settings`` names ``frames`` (the fit's ``frames`` and its
+held-out frames, :data:`FIT_ONLY_SETTINGS`, do not apply).
 """
 from __future__ import annotations
 
@@ -51,8 +53,11 @@ progress = logging.getLogger(PROGRESS_LOGGER)
 FITTED_SETTINGS = ("name", "parameters", "grid", "transform", "model", "nu", "E0",
                    "tet_edge_length", "tet_epsilon", "tet_stop_energy", "tet_optimize",
                    "dtype")
-#: settings of the fit alone: where its field started (the fitted parameters replace it)
-FIT_ONLY_SETTINGS = {"init_field": ""}
+#: settings of the fit alone, reset before the overrides: where its field started (the
+#: fitted parameters replace it) and which frames it fitted and held out (simulate takes its
+#: frames from the animation it is given: every frame unless ``problem.frames`` says)
+FIT_ONLY_SETTINGS = {"init_field": "", "frames": None, "validation_frames": None,
+                     "validation_every": 0}
 #: relative difference allowed between the fitted field and the one ``theta`` maps to here
 _FIELD_RTOL = 1e-9
 
