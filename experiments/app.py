@@ -329,3 +329,12 @@ def hydra_reason(message: str) -> str:
                                                                  "Error merging", "error:"))),
                "see Hydra's message above")
     return f"{key}: {why}" if key else why
+
+
+def results_line(run_dir: Path, files: list[Path], also: tuple[str, ...] = ()) -> str:
+    """``results: <run>/result.json (beside it: frames/, body.vtu, usd/, ...)``: every file a
+    run wrote, a folder's files shown once as the folder, then ``also``."""
+    names = list(dict.fromkeys(
+        p.relative_to(run_dir).parts[0] + ("/" if len(p.relative_to(run_dir).parts) > 1 else "")
+        for p in files if p.is_relative_to(run_dir) and p.name != "result.json"))
+    return f"results: {run_dir / 'result.json'} (beside it: {', '.join([*names, *also])})"

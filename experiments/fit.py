@@ -31,7 +31,7 @@ if str(REPO) not in sys.path:       # this checkout's experiments/ (and torchfit
     sys.path.insert(0, str(REPO))
 
 from experiments.app import (BAD_INPUT, RunDirGuard, Terminated, checked_config, no_space,
-                             no_space_line, one_line, refuse, run_hydra_app)
+                             no_space_line, one_line, refuse, results_line, run_hydra_app)
 
 import hydra  # noqa: E402
 import matplotlib  # noqa: E402
@@ -137,11 +137,7 @@ def main(cfg: DictConfig) -> float:
     if result.solve is None and result.resumed_from is not None:
         GUARD.restore(run_dir)      # a finished run: nothing done, nothing rewritten
     print(result.summary())
-    names = list(dict.fromkeys(  # frames/frame_000.obj ... shown once as frames/
-        p.relative_to(run_dir).parts[0] + ("/" if len(p.relative_to(run_dir).parts) > 1 else "")
-        for p in result.files if p.is_relative_to(run_dir)))
-    print(f"results: {run_dir / 'result.json'} (beside it: " + ", ".join(names)
-          + ", checkpoint.pt)")
+    print(results_line(run_dir, result.files, ("checkpoint.pt",)))
     for line in result.highlights:      # what the problem's own outputs point at
         print(line)
     if result.first_stage is not None:

@@ -27,7 +27,7 @@ if str(REPO) not in sys.path:       # this checkout's experiments/ (and torchfit
     sys.path.insert(0, str(REPO))
 
 from experiments.app import (BAD_INPUT, RunDirGuard, Terminated, checked_config, one_line,
-                             refuse, run_hydra_app)
+                             refuse, results_line, run_hydra_app)
 
 import hydra  # noqa: E402
 import matplotlib  # noqa: E402
@@ -82,8 +82,7 @@ def main(cfg: DictConfig) -> None:
               f"{run_dir / 'simulate.log'})", file=sys.stderr, flush=True)
         sys.exit(1)
     print(result.summary())
-    print(f"results: {run_dir / 'result.json'} (beside it: frames/ (OBJ), body.vtu, frames.npz, "
-          f"simulation.png)", flush=True)
+    print(results_line(run_dir, result.files), flush=True)
 
 
 def fitted_problem_group(argv: list[str]) -> list[str]:

@@ -4,6 +4,7 @@ of docs/guide/formats.md).
 
     .venv/bin/python scripts/write_arm.py my_arm            # 48 frames, skeleton-driven
     .venv/bin/python scripts/write_arm.py my_arm --frames-as-meshes
+    .venv/bin/python scripts/write_arm.py my_shot --n-frames 6 --max-flexion 90   # another shot
     scripts/fit.sh problem=animation problem.path=my_arm
     .venv/bin/python scripts/write_arm.py --usd arm.usda --gltf arm.glb   # the same arm as a
     scripts/fit.sh problem=animation problem.path=arm.usda    # UsdSkel rig and as a glTF skin
@@ -46,13 +47,20 @@ def main(argv: list[str] | None = None) -> int:
                         ".usdc or .usd)")
     parser.add_argument("--gltf", type=Path, help="also write the arm as a glTF skin (.glb or "
                         ".gltf)")
+    parser.add_argument("--n-frames", type=int, default=ArmShape.n_frames,
+                        help="frames of the animation (default %(default)s); with "
+                             "--max-flexion, another shot of the same arm")
+    parser.add_argument("--max-flexion", type=float, default=ArmShape.max_flexion,
+                        help="the elbow's largest bend in degrees (default %(default)s)")
     parser.add_argument("--float32-rest", action="store_true",
                         help="round the rest surface to float32 in every output (as USD and "
                              "glTF store it), so that the folder meshes like the files")
     args = parser.parse_args(argv)
     if args.folder is None and args.usd is None and args.gltf is None:
         parser.error("name a folder, --usd FILE or --gltf FILE")
-    shape = ArmShape()
+    if args.n_frames < 2 or not 0.0 < args.max_flexion <= 150.0:
+        parser.error("--n-frames must be at least 2 and --max-flexion in (0, 150] degrees")
+    shape = ArmShape(n_frames=args.n_frames, max_flexion=args.max_flexion)
     data = arm_animation(shape)
     if args.float32_rest:
         data["rest_vertices"] = data["rest_vertices"].astype(np.float32).astype(np.float64)
@@ -87,8 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     n_frames, n_vertices = data["frames"].shape[:2]
     print(f"wrote {manifest}: {n_vertices} surface vertices, {n_frames} frames, "
           f"{len(data['skeleton'].names)} bones; elbow angles "
-          f"{np.round(data['angles'][[0, 11, 23, 35, 47]]).astype(int).tolist()} (frames 0, 11, "
-          "23, 35, 47)")
+          f"{np.round(data['angles']).astype(int).tolist()} (frame by frame)")
     return 0
 
 

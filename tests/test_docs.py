@@ -173,7 +173,55 @@ def repository_files() -> list[Path]:
         return [p for p in REPO.rglob("*") if p.is_file() and not skip & set(p.parts)]
 
 
+#: ``docs/guide/formats.md#the-folder-format`` or ``docs/guide/formats.md ("The folder
+#: format")``: a page of the documentation with a section, as code and messages name them
+_DOC_POINTER = re.compile(r"(docs/[\w./-]+\.md)(?:#([\w-]+)|,? \(?(?:section )?\"([^\"]+)\")?")
+#: the sources whose messages, docstrings and comments point into the documentation
+POINTER_SOURCES = ("torchfit", "conf", "experiments", "scripts")
+
+
+def broken_pointers(text: str, repo: Path = REPO) -> list[str]:
+    """What a source file names of the repository that is not there: a path
+    (:func:`missing_paths`), a section of a page (``#anchor`` or a quoted heading) that the
+    page does not have."""
+    bad = missing_paths(text, repo=repo)
+    for match in _DOC_POINTER.finditer(text):
+        page, anchor, heading = match.groups()
+        target = repo / page
+        if not target.is_file():
+            continue                        # named by missing_paths already
+        wanted = anchor or (slug(heading) if heading else None)
+        if wanted and wanted not in anchors(target.read_text()):
+            bad.append(match.group(0))
+    return sorted(set(bad))
+
+
+def pointer_sources() -> list[Path]:
+    return sorted(p for d in POINTER_SOURCES for p in (REPO / d).rglob("*")
+                  if p.suffix in (".py", ".yaml", ".sh") and "__pycache__" not in p.parts)
+
+
 # -- the checks on the repository ---------------------------------------------------------
+def test_every_pointer_in_the_code_and_configs_exists():
+    """Messages, docstrings, comments and config comments point only to paths and sections
+    of the documentation that exist (a refusal that names a section the guide lost is the
+    TD's dead end)."""
+    broken = {p.relative_to(REPO).as_posix(): bad for p in pointer_sources()
+              if (bad := broken_pointers(p.read_text()))}
+    assert not broken, f"pointers to what is not in the repository: {broken}"
+
+
+def test_broken_pointers_finds_a_lost_page_and_a_lost_section(tmp_path):
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "guide.md").write_text("# Guide\n\n## The folder format\n")
+    text = ('raise Error("see docs/guide.md#the-folder-format, docs/guide.md (\\"The folder '
+            'format\\")")\n# docs/guide.md#bring-your-own-animation; docs/gone.md\n'
+            "msg = 'docs/guide.md, section \"Bring your own\"'\n")
+    text = text.replace("\\", "")
+    assert broken_pointers(text, tmp_path) == [
+        "docs/gone.md", "docs/guide.md#bring-your-own-animation",
+        'docs/guide.md, section "Bring your own"']
+
 def test_every_named_path_exists():
     missing = {}
     for page in doc_pages():

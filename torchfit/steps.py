@@ -17,9 +17,10 @@ use it; it imports nothing of torchfit.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
-from typing import Any
+from typing import Any, Iterator
 
 SETUP_LOGGER = "torchfit.setup"
 log = logging.getLogger(SETUP_LOGGER)
@@ -28,6 +29,18 @@ log = logging.getLogger(SETUP_LOGGER)
 def count(n: int) -> str:
     """``16,200``: a count with thousands separators."""
     return f"{int(n):,}"
+
+
+@contextlib.contextmanager
+def quiet() -> Iterator[None]:
+    """Within the block, steps log only warnings: the same set-up made again for a part of
+    what was built (the held-out frames of the same body) is not printed twice."""
+    level = log.level
+    log.setLevel(max(logging.WARNING, level))
+    try:
+        yield
+    finally:
+        log.setLevel(level)
 
 
 class step:

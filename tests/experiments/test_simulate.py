@@ -219,6 +219,12 @@ def test_simulate_takes_its_frames_from_the_animation_it_is_given(fitted, tmp_pa
     proc = run_fit_app(run, *FIT[:3], "solver.max_iter=1", "threads=1", f"problem.path={six}",
                        "problem.validation_frames=[4,5]", f"problem.cache_dir={fitted['cache']}")
     assert proc.returncode == 0, proc.stderr[-3000:]
+    # one set-up on the console: the held-out frames' body is built quietly; the frame
+    # count says what the file holds and what is used
+    console = proc.stdout + proc.stderr
+    assert console.count("reading the animation") == 2          # its start and end lines
+    assert "6 frames (4 of them used here)" in console
+    assert console.count("attaching the rig") == 2
     cache = {"cache_dir": str(fitted["cache"])}
     # a second shot with fewer frames than the fit's validation frames reach
     shot = simulate(run, {**cache, "path": str(fitted["folder"])}, progress_lines=False)
@@ -233,3 +239,6 @@ def test_simulate_takes_its_frames_from_the_animation_it_is_given(fitted, tmp_pa
                             "problem.frames=null", f"problem.cache_dir={fitted['cache']}")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert json.loads((out / "result.json").read_text())["n_frames"] == 3
+    (line,) = [x for x in proc.stdout.splitlines() if x.startswith("results: ")]
+    for name in ("frames/", "body.vtu", "frames.npz", "usd/", "simulation.png"):
+        assert name in line, (name, line)

@@ -53,7 +53,7 @@ def test_vtu_holds_the_field_and_every_frames_displacement(capsule_run):
     mesh = meshio.read(run / "body.vtu")
     assert np.allclose(mesh.points, problem.mesh.points)
     assert np.array_equal(mesh.cells_dict["tetra"], problem.mesh.cells)
-    assert np.allclose(mesh.cell_data["E"][0], result.field.numpy())
+    assert np.allclose(mesh.cell_data["E_relative_to_E0"][0], result.field.numpy())
     x = problem.simulate(result.field).numpy()
     for f in range(problem.n_frames):
         assert np.allclose(mesh.point_data[f"displacement_{f:03d}"], x[f] - problem.mesh.points)
@@ -154,3 +154,52 @@ def test_the_comparison_picture_turns_the_body_into_the_camera_axes():
     world = pixels(vertices, None)
     assert differ(pixels(vertices @ turn.T, turn.T), world) < 1e-3     # camera turned along
     assert differ(pixels(vertices @ turn.T, None), world) > 1e-2       # a fixed camera: not
+
+
+@pytest.mark.parametrize("unit", ["relative", "Pa"])
+def test_every_modulus_that_leaves_the_tool_says_its_unit(tmp_path, unit, caplog):
+    """``problem.E0=2``: relative to E0 the files hold the field / 2 and say so; with
+    ``E0_unit=Pa`` they hold pascals. USD attributes (``customData``, documentation), the
+    VTU field's name and ``result.json`` all say which. Bounds of [0.9, 1.1] E0 hold most
+    parameters: one warning line names the bound and the setting that moves it."""
+    pytest.importorskip("pxr")
+    from pxr import Usd, UsdGeom
+
+    folder = write_capsule(tmp_path / "capsule", "skeleton", "npz")
+    problem = build_problem("animation", {"path": str(folder), "cache_dir": str(tmp_path / "c"),
+                                          "tet_edge_length": 0.12, "grid": [2, 2, 3],
+                                          "E0": 2.0, "E0_unit": unit, "E_min": 0.9,
+                                          "E_max": 1.1})
+    run = tmp_path / "run"
+    with caplog.at_level("WARNING", logger="torchfit.run"):
+        result = fit(problem, {"name": "levenberg_marquardt", "max_iter": 2, "max_step": 1.0},
+                     run_dir=run)
+    field = result.field.numpy()
+    factor, label = (0.5, "relative to problem.E0") if unit == "relative" else (1.0, "Pa")
+    vtu = meshio.read(run / "body.vtu")
+    name = "E_relative_to_E0" if unit == "relative" else "E_Pa"
+    assert "E" not in vtu.cell_data
+    np.testing.assert_allclose(vtu.cell_data[name][0], factor * field, rtol=1e-12)
+    saved = json.loads((run / "result.json").read_text())["modulus_units"]
+    assert saved["unit"] == label and saved["E0"] == 2.0
+    assert ("to_pascals" in saved) == (unit == "relative")
+    stage = Usd.Stage.Open(str(run / "usd" / "body.usda"))      # (kept: prims need it)
+    tet = stage.GetDefaultPrim()
+    for primvar in ("torchfit:youngs_modulus", "youngsModulus"):
+        attribute = UsdGeom.PrimvarsAPI(tet).GetPrimvar(primvar).GetAttr()
+        assert attribute.GetCustomDataByKey("torchfit:units") == label
+        assert label in attribute.GetDocumentation()
+        np.testing.assert_allclose(np.asarray(attribute.Get()), factor * field, rtol=1e-6)
+    assert tet.GetCustomDataByKey("torchfit:youngsModulusUnits") == label
+    layered = Usd.Stage.Open(str(run / "usd" / "material.usda"))
+    layer = layered.GetDefaultPrim()
+    vertex = UsdGeom.PrimvarsAPI(layer).GetPrimvar("youngsModulus").GetAttr()
+    assert vertex.GetCustomDataByKey("torchfit:units") == label
+    # the bound: more than a tenth of the 12 parameters end on [1.8, 2.2]
+    last = result.history[-1]
+    on = int(last["at_lower_bound"] + last["at_upper_bound"])
+    lines = [r.getMessage() for r in caplog.records if "ended on a bound" in r.getMessage()]
+    assert (len(lines) == 1) == (on > 1.2)
+    if lines:
+        assert f"{on} of 12 parameters ended on a bound" in lines[0]
+        assert "problem.E_min=" in lines[0] or "problem.E_max=" in lines[0]

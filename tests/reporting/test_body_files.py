@@ -24,7 +24,8 @@ def _problem(path: Path, names: list[str]) -> SimpleNamespace:
                                                      file_points=lambda points: points),
                            mesh=SimpleNamespace(points=POINTS, cells=CELLS),
                            frame_names=lambda: names, tet_regions=np.array([0, 1]),
-                           cfg=SimpleNamespace(nu=0.45, E0=1.0), scale_free=True)
+                           cfg=SimpleNamespace(nu=0.45, E0=1.0, E0_unit="relative"),
+                           scale_free=True)
 
 
 def test_obj_sequence_is_whole_or_absent(tmp_path, monkeypatch):

@@ -142,8 +142,9 @@ def test_result_json_holds_both_errors_and_the_chosen_iteration(validated_run):
     assert section["stopped_early"] is False and section["patience"] == 5
     # the summary line names both errors and the chosen iteration
     line = result.summary()
-    assert f"chosen iteration {chosen}" in line and "validation frames" in line
-    assert f"{errors[-1]:.3e}" in line and f"{saved['surface_err_mean']:.3e}" in line
+    assert f"best held-out at iteration {chosen}" in line and "on the held-out frames" in line
+    assert f"{1e3 * errors[-1]:.3g} mm mean" in line
+    assert f"surface error on the fitted frames {1e3 * saved['surface_err_mean']:.3g} mm" in line
     assert result.value("validation_surface_err_mean") == errors[chosen]
 
 

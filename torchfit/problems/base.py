@@ -512,6 +512,12 @@ class InverseProblem:
         the next simulations then start exactly where they did there. Default: nothing to
         restore."""
 
+    def bound_warning(self, at_lower: int, at_upper: int) -> str | None:
+        """One line to warn with where many of the fitted parameters ended on the bounds
+        of :meth:`theta_bounds` (``at_lower``, ``at_upper`` of them), naming the setting
+        that moves them; ``None`` (the default: nothing to say)."""
+        return None
+
     def validation_problem(self) -> "InverseProblem | None":
         """The same problem on the frames held out of its fit, simulated for validation at
         every recorded iteration (:mod:`torchfit.run.validation`); built on each call.

@@ -48,7 +48,7 @@ from .evaluation import Evaluation
 from .figures import colorize, frame_errors_figure, save_png
 from .guard import PlotGuard
 from .progress import PROGRESS_LOGGER
-from .body_files import (FRAMES_DIR, VTU_FILE, file_surface, write_body_vtu,
+from .body_files import (FRAMES_DIR, VTU_FILE, file_surface, vtu_cell_data, write_body_vtu,
                          write_obj_sequence, write_usd)
 from .results import write_folder, write_json
 
@@ -234,11 +234,8 @@ class BodyOutputs:
 
     def _write_vtu(self, x: Tensor, field: Tensor) -> list[Path]:
         problem = self.problem
-        cell_data = {"E": _numpy(field)}
-        if problem.field_true is not None:
-            cell_data["E_true"] = _numpy(problem.field_true)
-        if problem.tet_regions is not None:
-            cell_data["region"] = np.asarray(problem.tet_regions, dtype=np.int32)
+        truth = None if problem.field_true is None else _numpy(problem.field_true)
+        cell_data = vtu_cell_data(problem, _numpy(field), truth)
         return [write_body_vtu(self.run_dir / VTU_FILE, np.asarray(problem.mesh.points),
                                problem.mesh.cells, _numpy(x), cell_data)]
 

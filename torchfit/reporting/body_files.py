@@ -10,11 +10,14 @@ a primvar, and the material as the deformable-physics draft names it: ``youngsMo
 ``poissonsRatio``, ``density`` per tetrahedron and a physics material bound to the mesh),
 ``usd/material.usda`` (the field sampled at the rest vertices, ``primvars:youngsModulus``
 on an ``over`` of the user's mesh prim, or on a ``/Rest`` mesh for a folder or glTF
-animation; :func:`modulus_units` says in ``customData`` what the values are). Folders are filled beside their name and renamed when whole, single files
+animation). Every modulus is written in the units :func:`modulus_units` gives (pascals, or
+relative to ``problem.E0``), said on each attribute (``customData``, ``documentation``)
+and in the VTU field's name. Folders are filled beside their name and renamed when whole, single files
 written to a temporary name and renamed: a kill or a full disk leaves no part.
 """
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import logging
 from pathlib import Path
@@ -78,6 +81,21 @@ def write_body_vtu(path: Path, points: np.ndarray, cells: np.ndarray, positions:
     return path
 
 
+def vtu_cell_data(problem: Any, field: np.ndarray,
+                  truth: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The cell fields of ``body.vtu``: the modulus ``field`` ``(m,)`` (and a known
+    ``truth``) in the units of :func:`modulus_units`, named with them (``E_Pa``,
+    ``E_relative_to_E0``; ``E_true_...``), and the region labels."""
+    units = modulus_units(problem)
+    data = {units.vtu_name: np.asarray(field, dtype=np.float64) * units.factor}
+    if truth is not None:
+        data[units.vtu_name.replace("E_", "E_true_", 1)] = \
+            np.asarray(truth, dtype=np.float64) * units.factor
+    if problem.tet_regions is not None:
+        data["region"] = np.asarray(problem.tet_regions, dtype=np.int32)
+    return data
+
+
 def _frame_times(names: Sequence[str]) -> list[float] | None:
     """The USD time codes of frames read from a stage (``<file>:<prim>@<time>``)."""
     try:
@@ -100,11 +118,13 @@ def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarra
     times = _frame_times(problem.frame_names()) if over is not None else None
     surface, faces = file_surface(problem, surface)
     cells = np.asarray(problem.mesh.cells)
+    units = modulus_units(problem)
+    field = np.asarray(field, dtype=np.float64) * units.factor
     fields = {"youngs_modulus": field}
     if problem.tet_regions is not None:
         fields["region"] = np.asarray(problem.tet_regions, dtype=np.int32)
-
-    units = modulus_units(problem)
+    labels = {"youngs_modulus": units.unit, "youngsModulus": units.unit,
+              "poissonsRatio": "1 (dimensionless)", "density": "kg/m^3"}
     material = {"youngsModulus": field, "poissonsRatio": np.full(len(cells), problem.cfg.nu),
                 "density": np.full(len(cells), DENSITY)}
     per_vertex = vertex_field(problem, field)
@@ -112,13 +132,13 @@ def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarra
     def fill(partial: Path) -> None:
         write_point_cache_usd(partial / "frames.usda", faces, surface, times=times, over=over)
         write_tet_mesh_usd(partial / "body.usda", np.asarray(problem.mesh.points), cells, fields,
-                           material=material, custom=units)
+                           material=material, custom=units.custom(), units=labels)
         if per_vertex is not None:
             animation = problem.animation
             write_vertex_field_usd(partial / MATERIAL_FILE, "youngsModulus", per_vertex,
                                    over=over, prim=animation.prim if over is not None else "",
                                    rest=animation.file_points(animation.rest_vertices),
-                                   faces=faces, custom=units)
+                                   faces=faces, custom=units.custom(), units=labels)
 
     folder = run_dir / USD_DIR
     write_folder(folder, fill)
@@ -126,15 +146,55 @@ def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarra
         [folder / MATERIAL_FILE] if per_vertex is not None else [])
 
 
-def modulus_units(problem: Any) -> dict[str, str | float]:
-    """``customData`` saying what the written moduli are: a scale-free problem (every load a
-    prescribed displacement, a rig target) determines the field only up to a factor, so its
-    values are relative to ``problem.E0`` (pascals only where E0 is a modulus in pascals)."""
-    if getattr(problem, "scale_free", False):
-        return {"torchfit:youngsModulusUnits": "relative to problem.E0",
-                "torchfit:E0": float(getattr(problem.cfg, "E0", 1.0)),
-                "torchfit:densitySource": DENSITY_SOURCE}
-    return {"torchfit:youngsModulusUnits": "Pa", "torchfit:densitySource": DENSITY_SOURCE}
+@dataclasses.dataclass(frozen=True)
+class ModulusUnits:
+    """What a Young's modulus leaving the tool is: the fitted field times ``factor`` is in
+    ``unit`` (``Pa``, or ``relative to problem.E0``: 1 is the homogeneous start).
+
+    A scale-free body (every load a prescribed displacement: rig targets) determines the
+    field only up to a factor, so its moduli are pascals only where ``problem.E0`` was
+    given as one (``problem.E0_unit=Pa``); otherwise they are written divided by E0."""
+
+    factor: float
+    unit: str
+    E0: float
+
+    @property
+    def vtu_name(self) -> str:
+        """The VTU cell field's name, the unit in it (``E_Pa``, ``E_relative_to_E0``)."""
+        return "E_Pa" if self.unit == "Pa" else "E_relative_to_E0"
+
+    def custom(self) -> dict[str, str | float]:
+        """``customData`` for USD prims and attributes."""
+        data: dict[str, str | float] = {"torchfit:youngsModulusUnits": self.unit,
+                                        "torchfit:E0": self.E0,
+                                        "torchfit:densitySource": DENSITY_SOURCE}
+        if self.unit != "Pa":
+            data["torchfit:toPascals"] = TO_PASCALS
+        return data
+
+    def as_dict(self) -> dict[str, str | float]:
+        """For ``result.json``: the unit, E0, and how to turn the values into pascals."""
+        out: dict[str, str | float] = {"unit": self.unit, "E0": self.E0,
+                                       "written_as": "field / E0" if self.unit != "Pa"
+                                       else "field"}
+        if self.unit != "Pa":
+            out["to_pascals"] = TO_PASCALS
+        return out
+
+
+#: how a relative modulus becomes one in pascals
+TO_PASCALS = ("multiply by the homogeneous material's Young's modulus in Pa: the animation "
+              "does not fix the scale (or fit with problem.E0=<Pa> problem.E0_unit=Pa)")
+
+
+def modulus_units(problem: Any) -> ModulusUnits:
+    """The units of ``problem``'s written moduli (:class:`ModulusUnits`): pascals where the
+    problem is not scale-free or ``problem.E0_unit`` is ``Pa``, else relative to E0."""
+    E0 = float(problem.cfg.E0)
+    if not problem.scale_free or str(problem.cfg.E0_unit) == "Pa":
+        return ModulusUnits(1.0, "Pa", E0)
+    return ModulusUnits(1.0 / E0, "relative to problem.E0", E0)
 
 
 def vertex_field(problem: Any, field: np.ndarray) -> np.ndarray | None:

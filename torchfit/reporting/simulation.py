@@ -30,7 +30,7 @@ import numpy as np
 from torch import Tensor
 
 from .body import surface_figure
-from .body_files import (FRAMES_DIR, VTU_FILE, file_surface, write_body_vtu,
+from .body_files import (FRAMES_DIR, VTU_FILE, file_surface, vtu_cell_data, write_body_vtu,
                          write_obj_sequence, write_usd)
 from .figures import save_png
 from .results import atomic_write
@@ -49,9 +49,7 @@ def write_frames(run_dir: Path, problem: Any, x: Tensor, field: Tensor) -> list[
     ``frames.npz`` and the USD files (:mod:`.body_files`); returns the files written."""
     surface = _numpy(problem.surface(x))
     positions = _numpy(x)
-    cell_data = {"E": _numpy(field)}
-    if problem.tet_regions is not None:
-        cell_data["region"] = np.asarray(problem.tet_regions, dtype=np.int32)
+    cell_data = vtu_cell_data(problem, _numpy(field))
     return [*write_obj_sequence(run_dir / FRAMES_DIR, *file_surface(problem, surface)),
             write_body_vtu(run_dir / VTU_FILE, np.asarray(problem.mesh.points),
                            problem.mesh.cells, positions, cell_data),

@@ -15,7 +15,8 @@ commit, TensorBoard, the problem's own outputs (fed the evaluation), then the ca
 iteration is thus in the checkpoint before TensorBoard shows it. The end of the run reads
 the last evaluation (:meth:`~.evaluator.Evaluator.final`) and reports what the data
 determine (:mod:`.identifiability`, from the solver's last linearisation; one warning line
-where they determine no material).
+where they determine no material, whose outputs then keep the starting field and do not say
+converged), and warns in one line where many parameters ended on a bound.
 """
 from __future__ import annotations
 
@@ -190,6 +191,10 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
     result.identifiability = identify(problem, getattr(solver, "lin", None), solved.theta)
     if not result.identifiability.determined:
         log.warning("%s", result.identifiability.warning())
+        final = keep_the_start(result, evaluator, problem.theta0 if start is None else start)
+    on_bounds = bound_warning(problem, rows)
+    if on_bounds:
+        log.warning("%s", on_bounds)
     if run_path is not None:
         assert outputs is not None and checkpointer is not None
         result.files = outputs.finish(result, final)
@@ -199,3 +204,23 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
             checkpointer.commit(solved.iterations, solved.theta, final_state,
                                 stop_reason=stop_reason)
     return result
+
+
+def keep_the_start(result: FitResult, evaluator: Evaluator, start: Tensor) -> Any:
+    """An undetermined fit's outputs: the data do not see the directions its steps took, so
+    the fitted field is the one it started from (``start``), evaluated, and the run does not
+    say converged; returns that evaluation (the outputs' ``final``)."""
+    final = evaluator.final(start.detach())
+    result.theta, result.field, result.metrics = start.detach(), final.field, final.metrics
+    result.converged = False
+    result.kept_start = True
+    return final
+
+
+def bound_warning(problem: InverseProblem, rows: list[dict[str, Any]]) -> str | None:
+    """The problem's line on the parameters that ended on a bound (the last record's
+    ``at_lower_bound``, ``at_upper_bound``), or ``None``."""
+    if not rows or "at_lower_bound" not in rows[-1]:
+        return None
+    return problem.bound_warning(int(rows[-1]["at_lower_bound"]),
+                                 int(rows[-1].get("at_upper_bound", 0)))

@@ -31,6 +31,7 @@ from ..problems import InverseProblem
 from ..problems.base import BodyProblem, FieldImageProblem, MeshProblem, MotionProblem
 from ..records import IterationRecord
 from ..reporting.body import BodyOutputs
+from ..reporting.body_files import modulus_units
 from ..reporting.evaluation import Evaluation
 from ..reporting.field_snapshots import FieldSnapshots
 from ..reporting.figures import field_is_chain, write_run_pngs
@@ -131,6 +132,8 @@ class RunOutputs:
             _save_frames(run_dir / "frames.npz", problem, final)
             files.append(run_dir / "frames.npz")
         summary = result_dict(problem, result, self.config)
+        if isinstance(problem, BodyProblem):
+            summary["modulus_units"] = modulus_units(problem).as_dict()
         if comparison:
             summary["model_comparison"] = {"frame": comparison["frame"]}
             for material in ("homogeneous", "fitted"):

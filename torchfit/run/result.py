@@ -5,7 +5,10 @@
 ``stop_reason``, ``status`` (``completed``), ``resumed_from_iteration`` (a resumed run),
 ``problem`` (sizes), ``config`` and ``history`` (one row per outer iteration); a 3-D body
 adds ``model_comparison``. ``determined`` (whether the data determine the material at all)
-and ``identifiability`` (its summary, :mod:`.identifiability`) where the run made the report;
+and ``identifiability`` (its summary, :mod:`.identifiability`) where the run made the report
+(``fitted_field`` says that the outputs keep the starting field where it is false);
+a 3-D body adds ``modulus_units`` (what its written moduli are:
+:class:`~torchfit.reporting.body_files.ModulusUnits`);
 a run with frames held out of the fit adds ``validation_iteration``,
 ``validation_surface_err_mean``, ``validation_surface_err_reduction`` and ``validation``
 (:mod:`.validation`).
@@ -21,7 +24,7 @@ from torch import Tensor
 
 from ..problems import InverseProblem
 from ..records import SolveResult
-from .validation import result_values, validation_line
+from .validation import result_values
 
 
 @dataclasses.dataclass
@@ -48,6 +51,9 @@ class FitResult:
             finished run read back); ``determined`` its verdict (``None``: no report).
         validation: ``result.json``'s ``validation`` section (frames held out of the fit:
             the chosen iteration, the errors there and at the end), else ``None``.
+        kept_start: the data determine no material, so ``theta``, ``field`` and
+            ``metrics`` are the start's, not where the solver stopped (and ``converged``
+            is false).
     """
 
     theta: Tensor
@@ -68,6 +74,7 @@ class FitResult:
     highlights: list[str] = dataclasses.field(default_factory=list)
     identifiability: Any = None
     validation: dict[str, Any] | None = None
+    kept_start: bool = False
 
     @property
     def determined(self) -> bool | None:
@@ -86,15 +93,47 @@ class FitResult:
         return value if math.isfinite(value) else math.inf
 
     def summary(self) -> str:
-        """One line: stop reason, iterations, time, counts and the headline metrics."""
-        shown = ", ".join(f"{k} {self.metrics[k]:.3e}" for k in
-                          ("misfit", "k_err_rel", "k_err_rel_aligned") if k in self.metrics)
-        verdict = "not determined by the data" if self.determined is False else \
-            "converged" if self.converged else "not converged"
-        line = (f"{self.stop_reason} after {self.iterations} iterations "
-                f"({verdict}) in {self.wall_s:.2f} s, "
-                f"{self.factorizations} factorizations, {self.solves} solves: {shown}")
-        return line + validation_line(self.metrics, self.validation)
+        """One line a TD reads: where the problem has a surface, its error (mean, max, and
+        how far below the homogeneous material's) on the fitted frames and on the held-out
+        ones (with the iteration they chose), else the headline metrics; whether the data
+        determine the material; the stop reason, iterations, time and counts."""
+        if "surface_err_mean" in self.metrics:
+            told = f"surface error on the fitted frames {surface_error_text(self.metrics)}"
+            if self.validation is not None:
+                section = self.validation
+                chosen = section.get("chosen", {})
+                told += (f"; on the held-out frames {surface_error_text(section.get('final', {}))}"
+                         f" (best held-out at iteration {section.get('iteration')}: "
+                         f"{_mm(chosen.get('surface_err_mean'))} mean, {section.get('params')})")
+        else:
+            told = ", ".join(f"{k} {self.metrics[k]:.3e}" for k in
+                             ("misfit", "k_err_rel", "k_err_rel_aligned") if k in self.metrics)
+        verdict = "" if self.determined is None else \
+            "; the data determine the material" if self.determined else \
+            ("; the data do NOT determine the material: the outputs keep the starting field "
+             "(identifiability.json)")
+        # an undetermined fit's stop means nothing: never "converged"
+        stop = "converged" if self.converged and self.determined is not False else \
+            "not converged"
+        misfit = f", misfit {self.metrics['misfit']:.3e}" if "misfit" in self.metrics and \
+            "surface_err_mean" in self.metrics else ""
+        return (f"{told}{verdict}; stopped by {self.stop_reason} after {self.iterations} "
+                f"iterations ({stop}) in {self.wall_s:.1f} s, {self.factorizations} "
+                f"factorizations, {self.solves} solves{misfit}")
+
+
+def _mm(metres: Any) -> str:
+    return "-" if metres is None else f"{1e3 * float(metres):.3g} mm"
+
+
+def surface_error_text(metrics: Mapping[str, Any]) -> str:
+    """``0.549 mm mean, 11.2 mm max, 1.29x below the homogeneous material`` (what is known)."""
+    text = f"{_mm(metrics.get('surface_err_mean'))} mean"
+    if metrics.get("surface_err_max") is not None:
+        text += f", {_mm(metrics['surface_err_max'])} max"
+    if metrics.get("surface_err_reduction") is not None:
+        text += f", {float(metrics['surface_err_reduction']):.3g}x below the homogeneous material"
+    return text
 
 
 def result_dict(problem: InverseProblem, result: FitResult,
@@ -108,6 +147,9 @@ def result_dict(problem: InverseProblem, result: FitResult,
     if result.identifiability is not None:
         out["determined"] = result.determined
         out["identifiability"] = result.identifiability.summary()
+    if result.kept_start:
+        out["fitted_field"] = ("the starting field: the data determine no material, so the "
+                               "outputs keep where the fit started (identifiability.json)")
     if result.resumed_from is not None:
         out["resumed_from_iteration"] = result.resumed_from
     if result.validation is not None:

@@ -39,6 +39,7 @@ from ..errors import ConfigurationError
 from ..linalg import set_threads
 from ..problems import PROBLEMS, RiggedBody, build_problem
 from ..problems.body.run_mesh import RUN_MESH_FILE, fitted_mesh, read_run_mesh
+from ..reporting.body_files import modulus_units
 from ..reporting.progress import PROGRESS_LOGGER, ensure_progress_visible
 from ..reporting.results import CHECKPOINT_FILE, PARAMS_FILE, RESULT_FILE, write_json
 from ..reporting.simulation import comparison_picture, write_frames
@@ -227,6 +228,7 @@ def simulate(run: str | Path, settings: Mapping[str, Any] | None = None,
         result.wall_s = time.perf_counter() - start
         if run_path is not None:
             write_json(run_path / RESULT_FILE, {**result.as_dict(),
+                                                "modulus_units": modulus_units(problem).as_dict(),
                                                 "settings": _plain(problem.cfg)})
             result.files.append(run_path / RESULT_FILE)
     return result

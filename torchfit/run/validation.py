@@ -169,20 +169,3 @@ def result_values(section: Mapping[str, Any]) -> dict[str, Any]:
     return {"validation_iteration": section.get("iteration"),
             "validation_surface_err_mean": chosen.get("surface_err_mean"),
             "validation_surface_err_reduction": chosen.get("surface_err_reduction")}
-
-
-def _error(metrics: Mapping[str, Any]) -> str:
-    mean, reduction = metrics.get("surface_err_mean"), metrics.get("surface_err_reduction")
-    text = "-" if mean is None else f"{float(mean):.3e}"
-    return text + ("" if reduction is None else f" ({float(reduction):.3g}x)")
-
-
-def validation_line(final: Mapping[str, Any], section: Mapping[str, Any] | None) -> str:
-    """The summary line's part on validation (empty without): the fitted and validation
-    frames' mean surface error (and its reduction) at the end and at the chosen iteration."""
-    if section is None:
-        return ""
-    return (f"; surface_err_mean (reduction) fitted frames {_error(final)}, validation "
-            f"frames {_error(section.get('final', {}))}; chosen iteration "
-            f"{section.get('iteration')}: fitted {_error(section.get('fitted_at_chosen', {}))}, "
-            f"validation {_error(section.get('chosen', {}))} ({section.get('params')})")

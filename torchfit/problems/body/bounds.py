@@ -116,3 +116,28 @@ def region_report(field: Tensor, volumes, labels, names: list[str], basis: Optio
     out = region_summary(field.detach().cpu().numpy(), volumes, labels, names, bounds)
     add_parameter_fractions(out, basis, field, labels, names, bounds)
     return out
+
+
+#: the fraction of the parameters on a bound above which a fit warns
+ON_BOUND_WARN_FRACTION = 0.1
+
+
+def bounds_warning(cfg: RiggedBodyConfig, n_params: int, at_lower: int,
+                   at_upper: int) -> Optional[str]:
+    """One line where more than a tenth of the ``n_params`` parameters ended on a bound
+    (``at_lower``, ``at_upper`` of them): which bound, and the setting that moves it; else
+    ``None``."""
+    bounds = modulus_bounds(cfg)
+    if bounds is None or at_lower + at_upper <= ON_BOUND_WARN_FRACTION * n_params:
+        return None
+    unit = " x E0" if cfg.E_bounds_relative else ""
+    parts = []
+    if at_lower:
+        parts.append(f"{at_lower} on the lower bound {bounds[0]:g} (problem.E_min="
+                     f"{cfg.E_min:g}{unit}; widen with e.g. problem.E_min={cfg.E_min / 10:g})")
+    if at_upper:
+        parts.append(f"{at_upper} on the upper bound {bounds[1]:g} (problem.E_max="
+                     f"{cfg.E_max:g}{unit}; widen with e.g. problem.E_max={cfg.E_max * 10:g})")
+    return (f"{at_lower + at_upper} of {n_params} parameters ended on a bound of the modulus: "
+            f"{'; '.join(parts)}; the data push the material past that range there "
+            "(problem.bounds=false lifts the bounds)")

@@ -33,6 +33,16 @@ class Truth(Choice):
     blocks = "blocks"       # blocks of grid nodes (E_blocks), trilinear between nodes
 
 
+class ModulusUnit(Choice):
+    """What ``problem.E0`` is, hence the unit of every modulus a body writes."""
+
+    # a reference: rig targets (prescribed motion only) do not fix the modulus' scale, so
+    # the outputs write the field divided by E0 (1 = the homogeneous start)
+    relative = "relative"
+    # a Young's modulus in pascals (e.g. 3e4 for soft tissue): the outputs write pascals
+    Pa = "Pa"
+
+
 class Layout(Choice):
     """Where the fitted parameters live."""
 
@@ -82,6 +92,7 @@ class RiggedBodyConfig(ProblemConfig):
     grid_nodes: int = 192
     grid: Optional[List[int]] = None
     E0: float = 1.0                        # initial guess, constant (the homogeneous material)
+    E0_unit: ModulusUnit = ModulusUnit.relative  # Pa: E0 is a modulus in pascals (outputs in Pa)
     # bounds on the fitted modulus, kept by the solver's steps (problems/body/bounds.py;
     # the defaults and why: docs/notes/bounds.md). null: on for target=rig, off for synthetic
     bounds: Optional[bool] = None
@@ -112,6 +123,6 @@ class RiggedBodyConfig(ProblemConfig):
     newton_atol: float = 1e-12
     newton_max_iter: int = 300
     # Newton's start at a new parameter vector: an earlier solution (true; the solver's current
-    # point where it is known) or the animated pose (false, the definition in docs/problems.md; see
-    # docs/notes/arm3d.md, "Several equilibria near full bend", for when it matters)
+    # point where it is known) or the animated pose (false, the definition in docs/problems.md;
+    # when it matters: docs/notes/arm3d.md#noticed-left-alone, several equilibria near full bend)
     warm_start: bool = True

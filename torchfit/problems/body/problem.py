@@ -41,7 +41,7 @@ from ...mesh.tetwild.tetrahedralize import TetMesh
 from ...params import Parameterization, per_element, per_region
 from ...physics import NewtonOptions
 from ...physics.elasticity import QuasistaticElasticity, SimplicialElasticity
-from ...steps import count, step
+from ...steps import count, quiet, step
 from ..base import InverseProblem, array_digest
 from .grid import blocks_field, body_grid, grid_parameterization
 from .motion import most_deformed_frame, most_strained_cells, view_axes
@@ -52,7 +52,7 @@ from ..config import (Backend, ProblemConfigError, check_newton_settings, requir
                      resolve_backend, setting_error)
 from .held_out import NO_VALIDATION, split_frames
 from .model_comparison import ModelComparison
-from .bounds import check_bounds, modulus_bounds, region_report, theta_bounds
+from .bounds import bounds_warning, check_bounds, modulus_bounds, region_report, theta_bounds
 from .repeated_poses import distinct_poses
 from .init_field import initial_field_theta
 from .config import Layout, RiggedBodyConfig, Target, Truth
@@ -166,12 +166,13 @@ class RiggedBody(InverseProblem):
             self.motion = animation.frames - animation.rest_vertices
             self.frame_split = split_frames(cfg, animation.rest_vertices, animation.frames)
             fitted = cfg.frames if self.frame_split is None else self.frame_split.fitted
+            in_file = animation.n_frames
             if fitted is not None:
                 try:
                     animation = animation.select([int(f) for f in fitted])
                 except AnimationError as err:
                     raise setting_error("frames", cfg.frames, str(err)) from err
-            progress.result = animation_summary(animation)
+            progress.result = animation_summary(animation, in_file)
         self.rig_report = check_rig(cfg, animation)
         self.animation = animation
         for text in animation.warnings:
@@ -432,7 +433,7 @@ class RiggedBody(InverseProblem):
 
     def inverted_tets(self, x: Tensor) -> np.ndarray:
         """Tetrahedra turned inside out (signed volume <= 0) per frame ``(F,)``: such a
-        frame has several equilibria (docs/notes/arm3d.md, "Several equilibria")."""
+        frame has several equilibria (docs/notes/arm3d.md#noticed-left-alone: several equilibria near full bend)."""
         return inverted_counts(_positions(x), self.mesh.cells)
 
     def min_volume_ratio(self, x: Tensor) -> np.ndarray:
@@ -492,8 +493,9 @@ class RiggedBody(InverseProblem):
         split = self.frame_split
         if split is None:
             return None
-        log.info("%s", split.describe())
-        return self.on_frames(split.validation)
+        log.info("%s (the same body, rig and mesh: built quietly)", split.describe())
+        with quiet():
+            return self.on_frames(split.validation)
 
     def on_frames(self, numbers: list[int]) -> "RiggedBody":
         """The same body, rig and mesh on the animation frames ``numbers`` (a new problem
@@ -574,6 +576,11 @@ class RiggedBody(InverseProblem):
     def theta_bounds(self) -> tuple[Tensor, Tensor] | None:
         """``problem.E_min`` / ``E_max`` on ``theta`` (:mod:`.bounds`)."""
         return theta_bounds(self.cfg, self.parameterization.n_params, self.theta0)
+
+    def bound_warning(self, at_lower: int, at_upper: int) -> str | None:
+        """More than a tenth of the parameters on ``problem.E_min`` / ``E_max``
+        (:func:`.bounds.bounds_warning`)."""
+        return bounds_warning(self.cfg, self.parameterization.n_params, at_lower, at_upper)
 
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), **describe_body(self, modulus_bounds(self.cfg))}

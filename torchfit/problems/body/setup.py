@@ -28,10 +28,14 @@ from ..config import ProblemConfigError
 FIRST_SIMULATION_BEAT_S = 5.0
 
 
-def animation_summary(animation: Animation) -> str:
-    """``2,466 surface vertices, 48 frames, a skeleton of 2 bones (weights given)``."""
-    text = (f"{count(animation.n_vertices)} surface vertices, {count(animation.n_frames)} "
-            "frames, ")
+def animation_summary(animation: Animation, in_file: int | None = None) -> str:
+    """``2,466 surface vertices, 48 frames, a skeleton of 2 bones (weights given)``; where
+    ``animation`` is a selection of the file's ``in_file`` frames: ``8 frames (4 of them
+    used here)``."""
+    used = animation.n_frames
+    frames = f"{count(used)} frames" if in_file is None or in_file == used else \
+        f"{count(in_file)} frames ({count(used)} of them used here)"
+    text = f"{count(animation.n_vertices)} surface vertices, {frames}, "
     skeleton = animation.skeleton
     if skeleton is not None:
         weights = "weights given" if skeleton.weights is not None else "weights from distance"

@@ -28,6 +28,7 @@ a primvar on an ``over`` of the user's own mesh prim.
 from __future__ import annotations
 
 import os
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -201,7 +202,8 @@ MATERIAL_PROPERTIES = ("youngsModulus", "poissonsRatio", "density")
 def write_tet_mesh_usd(path: str | Path, points: np.ndarray, cells: np.ndarray,
                        fields: dict[str, np.ndarray] | None = None, *,
                        prim: str = "/Body", material: dict[str, np.ndarray] | None = None,
-                       custom: dict[str, str | float] | None = None) -> Path:
+                       custom: dict[str, str | float] | None = None,
+                       units: dict[str, str] | None = None) -> Path:
     """Write a tetrahedral mesh (``points`` ``(n, 3)`` metres, ``cells`` ``(m, 4)``) as a
     ``UsdGeom.TetMesh`` with each field ``(m,)`` as a per-tetrahedron primvar
     ``primvars:torchfit:<name>``.
@@ -213,7 +215,9 @@ def write_tet_mesh_usd(path: str | Path, points: np.ndarray, cells: np.ndarray,
     ``omniphysics:poissonsRatio``) and ``OmniPhysicsBaseMaterialAPI``
     (``omniphysics:density``) holding their volume-weighted means, bound to the TetMesh for
     the ``physics`` purpose. ``custom``: ``customData`` on the TetMesh and the material
-    (units, where the values come from)."""
+    (units, where the values come from). ``units``: per field or material name, its unit
+    (``Pa``, ``relative to problem.E0``, ``kg/m^3``), written on that attribute as
+    ``customData`` ``torchfit:units`` and in its ``documentation``."""
     from pxr import Sdf, Usd, UsdGeom, UsdShade, Vt
 
     points = np.asarray(points, dtype=np.float64)
@@ -232,8 +236,10 @@ def write_tet_mesh_usd(path: str | Path, points: np.ndarray, cells: np.ndarray,
         if values.shape != (len(cells),):
             raise ValueError(f"field {name} has {values.size} values for {len(cells)} "
                              "tetrahedra")
-        primvars.CreatePrimvar(f"torchfit:{name}", Sdf.ValueTypeNames.DoubleArray,
-                               UsdGeom.Tokens.uniform).Set(Vt.DoubleArray.FromNumpy(values))
+        created = primvars.CreatePrimvar(f"torchfit:{name}", Sdf.ValueTypeNames.DoubleArray,
+                                         UsdGeom.Tokens.uniform)
+        created.Set(Vt.DoubleArray.FromNumpy(values))
+        _label(created.GetAttr(), name, units)
     for key, value in (custom or {}).items():
         tet.GetPrim().SetCustomDataByKey(key, value)
     if material:
@@ -246,11 +252,14 @@ def write_tet_mesh_usd(path: str | Path, points: np.ndarray, cells: np.ndarray,
             if values.shape != (len(cells),):
                 raise ValueError(f"material {name} has {values.size} values for "
                                  f"{len(cells)} tetrahedra")
-            primvars.CreatePrimvar(name, Sdf.ValueTypeNames.FloatArray,
-                                   UsdGeom.Tokens.uniform).Set(
-                Vt.FloatArray.FromNumpy(values.astype(np.float32)))
-            shade.GetPrim().CreateAttribute(f"omniphysics:{name}", Sdf.ValueTypeNames.Float
-                                            ).Set(float(values @ volumes / volumes.sum()))
+            created = primvars.CreatePrimvar(name, Sdf.ValueTypeNames.FloatArray,
+                                             UsdGeom.Tokens.uniform)
+            created.Set(Vt.FloatArray.FromNumpy(values.astype(np.float32)))
+            _label(created.GetAttr(), name, units)
+            mean = shade.GetPrim().CreateAttribute(f"omniphysics:{name}",
+                                                   Sdf.ValueTypeNames.Float)
+            mean.Set(float(values @ volumes / volumes.sum()))
+            _label(mean, name, units, "the volume-weighted mean")
         for key, value in (custom or {}).items():
             shade.GetPrim().SetCustomDataByKey(key, value)
         UsdShade.MaterialBindingAPI.Apply(tet.GetPrim()).Bind(
@@ -260,16 +269,26 @@ def write_tet_mesh_usd(path: str | Path, points: np.ndarray, cells: np.ndarray,
     return Path(path)
 
 
+def _label(attribute: Any, name: str, units: dict[str, str] | None, what: str = "") -> None:
+    """Write ``units[name]`` on ``attribute`` (``customData`` ``torchfit:units`` and its
+    ``documentation``), so that a DCC shows what the numbers are."""
+    if not units or name not in units:
+        return
+    attribute.SetCustomDataByKey("torchfit:units", units[name])
+    attribute.SetDocumentation(f"{name}{' (' + what + ')' if what else ''}: {units[name]}")
+
+
 def write_vertex_field_usd(path: str | Path, name: str, values: np.ndarray, *,
                            over: str | Path | None = None, prim: str = "",
                            rest: np.ndarray | None = None, faces: np.ndarray | None = None,
-                           custom: dict[str, str | float] | None = None) -> Path:
+                           custom: dict[str, str | float] | None = None,
+                           units: dict[str, str] | None = None) -> Path:
     """A per-vertex field ``values`` ``(V,)`` as the primvar ``primvars:<name>`` (``vertex``
     interpolation) on the user's mesh: given the user's stage ``over`` and its mesh ``prim``,
     a layer that sublayers the stage and holds an ``over`` of the prim (the DCC opens this
     layer and sees the field on its own mesh); otherwise a ``Mesh`` ``/Rest`` of ``rest``
     ``(V, 3)`` metres and ``faces`` ``(T, 3)``. ``custom``: ``customData`` on the primvar's
-    attribute (units)."""
+    attribute; ``units``: ``{name: unit}``, as for :func:`write_tet_mesh_usd`."""
     from pxr import Sdf, Usd, UsdGeom, Vt
 
     values = np.asarray(values, dtype=np.float64).reshape(-1)
@@ -303,5 +322,6 @@ def write_vertex_field_usd(path: str | Path, name: str, values: np.ndarray, *,
     primvar.Set(Vt.FloatArray.FromNumpy(values.astype(np.float32)))
     for key, value in (custom or {}).items():
         primvar.GetAttr().SetCustomDataByKey(key, value)
+    _label(primvar.GetAttr(), name, units)
     stage.GetRootLayer().Save()
     return path
