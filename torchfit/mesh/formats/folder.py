@@ -411,6 +411,11 @@ def _manifest_path(path: str | Path) -> Path:
     if not path.is_file():
         raise AnimationError(f"no animation manifest at {path}: problem.path must be a folder "
                              f"holding {MANIFEST} (see docs/guide/formats.md)")
+    from .sniff import refusal
+
+    refused = refusal(path)
+    if refused:
+        raise AnimationError(refused)
     return path
 
 

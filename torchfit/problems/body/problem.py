@@ -157,7 +157,10 @@ class RiggedBody(InverseProblem):
         try:
             return read_animation(cfg.path, cfg.prim, cfg.fps)
         except MeshError as err:
-            raise ProblemConfigError(f"problem.path={cfg.path}: {err}") from err
+            where, message = Path(cfg.path).expanduser().absolute(), str(err)
+            if message.startswith(f"{where} "):             # the sniffed file types' lines
+                message = message[len(str(where)) + 1:]
+            raise ProblemConfigError(f"problem.path={where}: {message}") from err
 
     def build_model(self, cfg: RiggedBodyConfig) -> None:
         with step(f"reading the animation {cfg.path or self.name}") as progress:

@@ -1,0 +1,211 @@
+"""scripts/convert.sh (torchfit.mesh.formats.convert): any of the three formats to any other,
+positions within 1e-6 m after round trips, refusals as one line with nothing written."""
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from helpers.capsule_animation import write_capsule
+from helpers.rigged_tube import tube_animation
+from torchfit.mesh import write_animation
+from torchfit.mesh.formats.convert import main
+from torchfit.mesh.formats.readers import read_animation
+from torchfit.mesh.rig import blend
+from torchfit.problems.body.procedural_arm import ArmShape, arm_animation
+
+pytest.importorskip("pxr")
+pytest.importorskip("pygltflib")
+REPO = Path(__file__).resolve().parents[3]
+TOL = 1e-6
+
+
+def write_arm(folder: Path) -> Path:
+    data = arm_animation(ArmShape())
+    write_animation(folder, data["rest_vertices"], data["faces"], data["frames"],
+                    skeleton=data["skeleton"])
+    return folder
+
+
+def write_y_tube(folder: Path) -> Path:
+    """The two-bone tube along y (Y up), with a bulge the skinning does not explain."""
+    data = tube_animation("y", count=12)
+    write_animation(folder, data["rest"], data["faces"], data["frames"],
+                    skeleton=data["skeleton"])
+    return folder
+
+
+def converted(source: Path, out: Path, *options: str, capsys=None) -> Path:
+    assert main([str(source), str(out), *options]) == 0
+    return out
+
+
+def assert_same(a, b, rig: bool = True) -> None:
+    assert a.rest_vertices.shape == b.rest_vertices.shape and a.faces.shape == b.faces.shape
+    assert np.abs(a.rest_vertices - b.rest_vertices).max() < TOL
+    assert np.abs(a.frames - b.frames).max() < TOL
+    assert (a.faces == b.faces).all()
+    if rig:       # the skinning of either rig moves the rest surface alike
+        skinned = [blend(x.rest_vertices, x.skeleton.weights, x.skeleton.transforms)
+                   for x in (a, b)]
+        assert np.abs(skinned[0] - skinned[1]).max() < TOL
+        assert a.skeleton.attach_radius == pytest.approx(b.skeleton.attach_radius, rel=1e-6)
+
+
+def test_the_arm_folder_usd_gltf_folder(tmp_path, capsys):
+    source = write_arm(tmp_path / "arm")
+    usd = converted(source, tmp_path / "arm.usda")
+    assert "2 blend shapes" in capsys.readouterr().out     # the bicep and tricep correctives
+    glb = converted(usd, tmp_path / "arm.glb")
+    back = converted(glb, tmp_path / "back")
+    original = read_animation(source)
+    for path in (usd, glb, back):
+        assert_same(original, read_animation(path))
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(usd))
+    assert UsdGeom.GetStageMetersPerUnit(stage) == 1.0 and stage.GetTimeCodesPerSecond() == 24
+    assert UsdGeom.GetStageUpAxis(stage) == "Z"
+
+
+def test_the_y_up_tube_folder_gltf_usd_folder_and_fps(tmp_path):
+    source = write_y_tube(tmp_path / "tube")
+    glb = converted(source, tmp_path / "tube.glb", "--fps", "30")
+    usd = converted(glb, tmp_path / "tube.usdc")            # glTF is Y up: the stage says so
+    back = converted(usd, tmp_path / "back")
+    original = read_animation(source)
+    for path in (glb, usd, back):
+        assert_same(original, read_animation(path))
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(usd))
+    assert UsdGeom.GetStageUpAxis(stage) == "Y" and stage.GetTimeCodesPerSecond() == 30
+    assert "at 30 fps" in (back / "animation.yaml").read_text()
+    # USD to glTF directly, and folder to folder
+    assert_same(original, read_animation(converted(usd, tmp_path / "direct.gltf")))
+    assert_same(original, read_animation(converted(source, tmp_path / "copy")))
+
+
+def test_seams_are_written_as_the_file_has_them(tmp_path):
+    data = tube_animation("y", count=12)
+    rest, faces, skeleton = data["rest"], data["faces"].copy(), data["skeleton"]
+    # split the vertices of the faces on the +x side (a UV seam): copies at one position
+    side = np.flatnonzero(rest[faces].mean(1)[:, 0] > rest[:, 0].mean())
+    split = np.unique(faces[side])
+    copy = {int(v): len(rest) + k for k, v in enumerate(split)}
+    faces[side] = np.vectorize(copy.get)(faces[side])
+    import dataclasses
+
+    skeleton = dataclasses.replace(skeleton, weights=np.concatenate(
+        [skeleton.weights, skeleton.weights[split]]))
+    write_animation(tmp_path / "split", np.concatenate([rest, rest[split]]), faces,
+                    np.concatenate([data["frames"], data["frames"][:, split]], axis=1),
+                    skeleton=skeleton)
+    glb = converted(tmp_path / "split", tmp_path / "split.glb")
+    folder = converted(glb, tmp_path / "back")
+    for path in (glb, folder):
+        file = read_animation(path, weld=False)
+        assert file.n_vertices == len(rest) + len(split)          # as the input had them
+        welded = read_animation(path)
+        assert welded.n_vertices == len(rest)
+        assert_same(read_animation(tmp_path / "split"), welded)
+
+
+def test_a_point_cache_converts_to_usd_and_back(tmp_path, capsys):
+    source = write_capsule(tmp_path / "cache", mode="driven")
+    usd = converted(source, tmp_path / "cache.usda")
+    back = converted(usd, tmp_path / "back")
+    original = read_animation(source)
+    for path in (usd, back):
+        again = read_animation(path)
+        assert_same(original, again, rig=False)
+        assert (again.driven.mask == original.driven.mask).all()
+        assert again.driven.tolerance == pytest.approx(original.driven.tolerance)
+    # a glTF skin cannot hold it: one line, nothing written
+    assert main([str(source), str(tmp_path / "cache.glb")]) == 2
+    assert "a point cache (driven vertices, no rig)" in capsys.readouterr().err
+
+
+def test_refusals_write_nothing(tmp_path, capsys):
+    arm = write_arm(tmp_path / "arm")
+    (tmp_path / "shot.fbx").write_bytes(b"Kaydara FBX Binary  \x00\x1a\x00" + b"\x00" * 40)
+    data = tube_animation("x", count=8)
+    weights = np.full((len(data["rest"]), 5), 0.2)                 # five influences
+    skeleton = data["skeleton"]
+    import dataclasses
+
+    five = dataclasses.replace(skeleton, heads=np.repeat(skeleton.heads[:1], 5, 0),
+                               tails=np.repeat(skeleton.tails[:1], 5, 0),
+                               transforms=np.repeat(skeleton.transforms[:, :1], 5, 1),
+                               weights=weights, names=[f"b{i}" for i in range(5)])
+    write_animation(tmp_path / "five", data["rest"], data["faces"], data["frames"],
+                    skeleton=five)
+    cases = {
+        "missing": ([str(tmp_path / "nothing"), str(tmp_path / "out.usda")],
+                    "no such file or folder"),
+        "fbx": ([str(tmp_path / "shot.fbx"), str(tmp_path / "out.usda")],
+                "is a binary FBX file"),
+        "usdz": ([str(arm), str(tmp_path / "out.usdz")], "not a .usdz package"),
+        "itself": ([str(arm), str(arm)], "would overwrite the input"),
+        "influences": ([str(tmp_path / "five"), str(tmp_path / "out.glb")],
+                       "5 bone influences; a glTF skin holds four"),
+        "fps": ([str(arm), str(tmp_path / "out.glb"), "--fps", "-3"], "positive frame rate"),
+    }
+    before = sorted(p.name for p in tmp_path.iterdir())
+    for name, (argv, words) in cases.items():
+        assert main(argv) == 2, name
+        err = capsys.readouterr().err
+        errors = [line for line in err.splitlines() if line.startswith("error: ")]
+        assert len(errors) == 1 and words in errors[0], (name, err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == before      # not even a temporary
+
+
+def test_convert_sh_help(tmp_path):
+    """The wrapper sources scripts/_venv.sh and runs the module (a stand-in environment
+    whose install stamp is current, so that nothing is installed)."""
+    venv = tmp_path / "venv"
+    (venv / "bin").mkdir(parents=True)
+    (venv / "bin" / "python").write_text(f"#!/bin/sh\nexec {sys.executable} \"$@\"\n")
+    (venv / "bin" / "python").chmod(0o755)
+    extras = "none"
+    stamp = hashlib.sha256((REPO / "pyproject.toml").read_bytes()
+                           + (REPO / "constraints.txt").read_bytes()
+                           + f"{extras} 0\n".encode()).hexdigest()
+    (venv / ".torchfit-install").write_text(stamp + "\n")
+    env = {**os.environ, "TORCHFIT_VENV": str(venv), "TORCHFIT_EXTRAS": extras,
+           "TORCHFIT_BLENDER": "0", "PYTHONPATH": str(REPO)}
+    proc = subprocess.run(["bash", str(REPO / "scripts" / "convert.sh"), "--help"], env=env,
+                          capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "[torchfit] installing" not in proc.stderr
+    for words in ("folder format", "UsdSkel", "glTF", "--prim", "--fps", "--up-axis",
+                  ".usd/.usda/.usdc"):
+        assert words in proc.stdout, words
+
+
+@pytest.mark.slow
+def test_a_conversion_opens_in_blender(tmp_path):
+    from helpers.blender_rigs import blender_available, run_blender
+
+    if not blender_available():
+        pytest.skip("Blender (bpy, the extra blender) is not installed")
+    source = write_y_tube(tmp_path / "tube")
+    glb = converted(source, tmp_path / "tube.glb")
+    usd = converted(glb, tmp_path / "tube.usda")
+    original = read_animation(source)
+    frames = [0, 2, 4]
+    back = run_blender({"kind": "reimport", "path": str(usd), "frames": frames},
+                       tmp_path / "blender")
+    (mesh,) = back["meshes"]
+    assert mesh["vertices"] == original.n_vertices and "ARMATURE" in mesh["modifiers"]
+    points = np.load(back["npz"])[f"{mesh['name']}|points"]
+    # Blender stands the Y-up stage up (Z up): compare shapes after undoing its rotation
+    rotate = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])            # Y up -> Z up
+    expected = original.frames[frames] @ rotate.T
+    assert np.abs(points - expected).max() < 1e-5
+    assert np.abs(points[2] - points[0]).max() > 0.05                  # it bends
