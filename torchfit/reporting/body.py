@@ -18,9 +18,12 @@ into the run directory
     the same field, rig and frames with the ``linear`` model beside the fitted model (the
     states the run simulated for it, :meth:`BodyOutputs.comparison_models`): per-frame mean
     surface error and joint-region volume change, and a picture of the reference frame
-    (animation | linear | fitted model), the seed's frame-24 figure;
+    (animation | linear | fitted model), the seed's frame-24 figure, through the body's
+    camera (``view_axes``: the file's up axis up), one colour range for every panel
+    (:func:`comparison_range`: the fitted model's largest error) with a colour bar in mm;
 ``frame_errors.png``
-    mean surface error per frame: the homogeneous material (iteration 0) against the fit;
+    mean surface error per animation frame: the homogeneous material (iteration 0) against
+    the fit, the validation frames (held out of the fit) drawn and marked, integer ticks;
 ``animation/``
     a copy of the animation folder when the problem wrote it itself (``arm3d``): a worked
     example of the format.
