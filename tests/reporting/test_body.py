@@ -4,6 +4,7 @@ server through its HTTP data API."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import meshio
 import numpy as np
@@ -203,3 +204,105 @@ def test_every_modulus_that_leaves_the_tool_says_its_unit(tmp_path, unit, caplog
     if lines:
         assert f"{on} of 12 parameters ended on a bound" in lines[0]
         assert "problem.E_min=" in lines[0] or "problem.E_max=" in lines[0]
+
+
+# -- the pictures' colour ranges and the per-frame error plot ------------------------------
+def colour_bars(fig):
+    """``(label, (low, high))`` of every colour bar of ``fig`` (the colour bar's axes)."""
+    return [(ax.get_ylabel(), ax.get_ylim()) for ax in fig.axes if ax.name != "3d"]
+
+
+def test_the_comparison_range_fits_the_fitted_models_panels_with_a_bar_in_mm():
+    from torchfit.reporting.body import comparison_range, surface_figure
+
+    rng = np.random.default_rng(3)
+    errors = {("homogeneous", "linear"): 0.010 * rng.random(50),        # far worse
+              ("homogeneous", "corotated"): 0.002 * rng.random(50),
+              ("fitted", "corotated"): 0.0012 * rng.random(50)}
+    vmax = comparison_range(errors, "corotated")
+    assert vmax == pytest.approx(float(errors[("homogeneous", "corotated")].max()))
+    for key, error in errors.items():        # no panel dark: each reaches a quarter of it
+        assert np.percentile(error, 90) >= 0.25 * vmax, key
+    assert comparison_range(errors, "linear") == pytest.approx(0.010 * 1.0, rel=0.05)
+    mesh = trimesh.creation.icosphere(1)
+    faces, vertices = np.asarray(mesh.faces), np.asarray(mesh.vertices)
+    error = 0.010 * np.linspace(0, 1, len(vertices))
+    fig = surface_figure([("a", vertices, None), ("b", vertices, error),
+                          ("c", vertices, 0.5 * error)], faces, 0.004)
+    (label, (low, high)), = colour_bars(fig)
+    assert label == "surface error (mm)" and (low, high) == pytest.approx((0.0, 4.0))
+
+
+def test_the_per_frame_errors_show_every_frame_and_mark_the_validation_frames():
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from torchfit.reporting.body import per_frame_errors_figure
+
+    fitted = {0: 1e-3, 1: 2e-3, 3: 1.5e-3}
+    fig = per_frame_errors_figure([("fitted", "C0", {**fitted, 2: 3e-3})], [2])
+    FigureCanvasAgg(fig).draw()
+    ax = fig.axes[0]
+    assert sorted(ax.lines[0].get_xdata()) == [0, 1, 2, 3]
+    marked = [line for line in ax.lines if line.get_marker() == "s" and len(line.get_xdata())]
+    assert [list(line.get_xdata()) for line in marked] == [[2]]
+    assert "validation frame (held out of the fit)" in [t.get_text() for t in
+                                                         ax.get_legend().get_texts()]
+    ticks = [t for t in ax.get_xticks() if ax.get_xlim()[0] <= t <= ax.get_xlim()[1]]
+    assert ticks and all(float(t).is_integer() for t in ticks)
+
+
+@pytest.fixture(scope="module")
+def validated_run(tmp_path_factory):
+    """A capsule of four frames fitted with frame 2 held out; every figure the outputs
+    drew, by file name."""
+    root = tmp_path_factory.mktemp("validated")
+    folder = write_capsule(root / "capsule", "skeleton", "npz", angles=(0.0, 10.0, 20.0, 30.0))
+    problem = build_problem("animation", {"path": str(folder), "cache_dir": str(root / "cache"),
+                                          "tet_edge_length": 0.12, "grid": [2, 2, 3],
+                                          "validation_frames": [2]})
+    drawn = {}
+    monkeypatch = pytest.MonkeyPatch()
+    import torchfit.reporting.body as body
+
+    saved = body.save_png
+
+    def keep(fig, path):
+        drawn[Path(path).name] = fig
+        return saved(fig, path)
+
+    monkeypatch.setattr(body, "save_png", keep)
+    try:
+        run = root / "run"
+        fit(problem, {"name": "levenberg_marquardt", "max_iter": 1, "max_step": 1.0},
+            run_dir=run)
+    finally:
+        monkeypatch.undo()
+    return problem, run, drawn
+
+
+def test_the_error_plot_of_a_fit_holds_its_validation_frames(validated_run):
+    problem, run, drawn = validated_run
+    assert problem.frame_numbers() == [0, 1, 3]
+    ax = drawn["frame_errors.png"].axes[0]
+    curves = [line for line in ax.lines if line.get_linestyle() == "-"]
+    assert [sorted(line.get_xdata()) for line in curves] == [[0, 1, 2, 3]] * 2  # both materials
+    squares = [list(line.get_xdata()) for line in ax.lines if line.get_marker() == "s"
+               and len(line.get_xdata())]
+    assert squares == [[2], [2]]
+    ticks = [t for t in ax.get_xticks() if ax.get_xlim()[0] <= t <= ax.get_xlim()[1]]
+    assert all(float(t).is_integer() for t in ticks)
+    result = json.loads((run / "result.json").read_text())
+    fitted = [line for line in ax.lines if line.get_color() == "C0" and
+              line.get_linestyle() == "-"][0]
+    at_two = dict(zip(fitted.get_xdata(), fitted.get_ydata()))[2]
+    # the held-out frame's point is the run's validation error at the end (one frame)
+    assert at_two == pytest.approx(1e3 * result["validation"]["final"]["surface_err_mean"])
+
+
+def test_the_comparison_picture_of_a_fit_has_the_fitted_models_range(validated_run):
+    problem, run, drawn = validated_run
+    picture = json.loads((run / "model_comparison.json").read_text())["picture"]
+    own = [v for k, v in picture["panel_max_mm"].items() if k.endswith("/corotated")]
+    assert picture["colour_max_mm"] == pytest.approx(max(own))
+    (label, (low, high)), = colour_bars(drawn["frame_comparison.png"])
+    assert label == "surface error (mm)" and high == pytest.approx(picture["colour_max_mm"])

@@ -167,7 +167,8 @@ class BodyProblem(Protocol):
     writes_animation: bool
     #: what the joint region's volume change is called (``elbow`` on the arm)
     joint_label: str
-    #: the pictures' camera, ``(right, up, depth)`` unit axes ``(3, 3)``, or ``None``
+    #: the pictures' camera, rows ``right, depth, up`` (unit axes ``(3, 3)``; up: the
+    #: file's up axis, else the body's: :func:`~.body.motion.picture_up`), or ``None``
     view_axes: Any
     #: where the documentation explains a fold of this body (``None``: nowhere)
     fold_docs: str | None

@@ -18,9 +18,12 @@ into the run directory
     the same field, rig and frames with the ``linear`` model beside the fitted model (the
     states the run simulated for it, :meth:`BodyOutputs.comparison_models`): per-frame mean
     surface error and joint-region volume change, and a picture of the reference frame
-    (animation | linear | fitted model), the seed's frame-24 figure;
+    (animation | linear | fitted model), the seed's frame-24 figure, through the body's
+    camera (``view_axes``: the file's up axis up), one colour range for every panel
+    (:func:`comparison_range`: the fitted model's largest error) with a colour bar in mm;
 ``frame_errors.png``
-    mean surface error per frame: the homogeneous material (iteration 0) against the fit;
+    mean surface error per animation frame: the homogeneous material (iteration 0) against
+    the fit, the validation frames (held out of the fit) drawn and marked, integer ticks;
 ``animation/``
     a copy of the animation folder when the problem wrote it itself (``arm3d``): a worked
     example of the format.
@@ -76,20 +79,37 @@ def vertex_field(cells: np.ndarray, values: np.ndarray, n_vertices: int) -> np.n
     return total / np.maximum(count, 1.0)
 
 
+def comparison_range(errors: dict[tuple[str, str], np.ndarray], model: str) -> float:
+    """The colour range's top (m) of the model comparison's panels: the largest error of
+    the panels of the fitted ``model`` (homogeneous and fitted field), so that neither is
+    dark beside a far worse comparison model (``linear`` under a large bend: its panel is
+    clipped, the colour bar's arrow says so, its label gives its mean). ``errors``:
+    ``(material, model) -> (V,)`` per-vertex errors; 1.0 where every error is 0."""
+    own = [e for (_, name), e in errors.items() if name == model] or list(errors.values())
+    top = max((float(np.max(e)) for e in own if np.size(e)), default=0.0)
+    return top if top > 0 and np.isfinite(top) else 1.0
+
+
 def surface_figure(panels: Sequence[tuple[str, np.ndarray, np.ndarray | None]],
                    faces: np.ndarray, vmax: float, title: str | None = None,
-                   view: np.ndarray | None = None):
+                   view: np.ndarray | None = None, label: str = "surface error (mm)"):
     """Surfaces side by side (matplotlib 3-D), each ``(label, vertices (V, 3), error (V,))``
-    coloured by its per-vertex error on a common scale ``[0, vmax]`` (grey without one).
+    coloured by its per-vertex error (m) on a common scale ``[0, vmax]`` (grey without
+    one), with a colour bar in millimetres (``label``; an arrow where a panel goes beyond
+    ``vmax``).
 
     ``view`` ``(3, 3)``: the camera's axes, rows ``right, depth, up`` (the problem's
-    ``view_axes``); the camera looks along ``depth``, slightly from above. ``None``: the
-    world's ``x, y, z``."""
+    ``view_axes``: up is the picture's up); the camera looks along ``depth``, slightly from
+    above. ``None``: the world's ``x, y, z``."""
     from matplotlib import colormaps
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
     from matplotlib.figure import Figure
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    fig = Figure(figsize=(4.2 * len(panels), 5.2), dpi=100, layout="constrained")
+    coloured = [error for _, _, error in panels if error is not None]
+    width = 4.2 * len(panels) + (0.9 if coloured else 0.0)
+    fig = Figure(figsize=(width, 5.2), dpi=100, layout="constrained")
     if view is not None:
         panels = [(label, np.asarray(vertices) @ np.asarray(view).T, error)
                   for label, vertices, error in panels]
@@ -97,8 +117,10 @@ def surface_figure(panels: Sequence[tuple[str, np.ndarray, np.ndarray | None]],
     lo, hi = all_points.min(0), all_points.max(0)
     centre, half = (lo + hi) / 2, (hi - lo).max() / 2
     cmap = colormaps["magma"]
-    for i, (label, vertices, error) in enumerate(panels):
+    axes = []
+    for i, (panel_label, vertices, error) in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), i + 1, projection="3d")
+        axes.append(ax)
         triangles = vertices[faces]
         if error is None:
             colours = np.tile([0.75, 0.75, 0.78, 1.0], (len(faces), 1))
@@ -117,9 +139,54 @@ def surface_figure(panels: Sequence[tuple[str, np.ndarray, np.ndarray | None]],
         ax.set_box_aspect((1, 1, 1))
         ax.view_init(elev=10, azim=-90)
         ax.set_axis_off()
-        ax.set_title(label, fontsize=9)
+        ax.set_title(panel_label, fontsize=9)
+    if coloured:
+        beyond = max(float(np.max(e)) for e in coloured if np.size(e)) > vmax * (1 + 1e-9)
+        bar = fig.colorbar(ScalarMappable(Normalize(0.0, 1e3 * vmax), cmap), ax=axes,
+                           shrink=0.7, extend="max" if beyond else "neither")
+        bar.set_label(label)
     if title:
         fig.suptitle(title, fontsize=10)
+    return fig
+
+
+def per_frame_errors_figure(series: Sequence[tuple[str, str, dict[int, float]]],
+                            validation: Sequence[int] = ()):
+    """Mean surface error per animation frame: each of ``series`` ``(label, colour,
+    {frame number: error (m)})`` a line over its frames (in mm), the ``validation`` frames
+    (held out of the fit) marked by squares with their own legend entry; integer frame
+    ticks."""
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from matplotlib.ticker import MaxNLocator
+
+    held = {int(f) for f in validation}
+    fig = Figure(figsize=(7.0, 3.6), dpi=100, layout="constrained")
+    ax = fig.add_subplot()
+    for label, colour, values in series:
+        frames = sorted(values)
+        errors = np.array([values[f] for f in frames]) * 1e3
+        fitted = [i for i, f in enumerate(frames) if f not in held]
+        ax.plot(frames, errors, "-", color=colour, lw=1.2)
+        ax.plot(np.asarray(frames)[fitted], errors[fitted], "o", color=colour, ms=3,
+                label=label)
+        shown = [i for i, f in enumerate(frames) if f in held]
+        if shown:
+            ax.plot(np.asarray(frames)[shown], errors[shown], "s", color=colour, ms=7,
+                    mec="k", mew=0.8)
+    if held:
+        for f in held:
+            ax.axvspan(f - 0.4, f + 0.4, color="0.9", zorder=0)
+        handles, labels = ax.get_legend_handles_labels()
+        handles.append(Line2D([], [], ls="", marker="s", ms=7, mfc="w", mec="k", mew=0.8))
+        labels.append("validation frame (held out of the fit)")
+        ax.legend(handles, labels, fontsize=8)
+    else:
+        ax.legend(fontsize=8)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_xlabel("animation frame")
+    ax.set_ylabel("mean surface error (mm)")
+    ax.grid(alpha=0.3)
     return fig
 
 
@@ -152,6 +219,8 @@ class BodyOutputs:
                              else {int(f) for f in frames})
         self.guard = guard or PlotGuard()
         self.history: dict[int, np.ndarray] = {}
+        #: per recorded iteration: the validation frames' mean surface error (where held out)
+        self.validation_history: dict[int, np.ndarray] = {}
         #: the evaluation of the homogeneous material (the initial guess) at iteration 0:
         #: the model comparison's baseline (``None``: the run did not start there)
         self.baseline: Evaluation | None = None
@@ -165,6 +234,8 @@ class BodyOutputs:
         iteration = int(evaluation.record.iteration)
         curves = self.problem.frame_errors(evaluation.state)
         self.history[iteration] = curves["surface_err_mean"]
+        if evaluation.validation_errors is not None:
+            self.validation_history[iteration] = np.asarray(evaluation.validation_errors)
         if iteration == 0:
             self.started_elsewhere = not torch.equal(evaluation.theta, self.problem.theta0)
             if not self.started_elsewhere:
@@ -193,7 +264,7 @@ class BodyOutputs:
             ("USD frames and tet mesh", self._write_usd, (x, field)),
             ("regions.json", self._write_regions, (field,)),
             ("TensorBoard meshes", self._write_meshes, (x, field)),
-            ("frame_errors.png", self._write_frame_errors, (x,)),
+            ("frame_errors.png", self._write_frame_errors, (final,)),
         ]
         for what, step, args in steps:
             written = self.guard.run(what, step, *args)
@@ -302,22 +373,25 @@ class BodyOutputs:
         writer.flush()
         return []
 
-    def _write_frame_errors(self, x: Tensor) -> list[Path]:
-        from matplotlib.figure import Figure
-
+    def _write_frame_errors(self, final: Evaluation) -> list[Path]:
         problem = self.problem
-        final = problem.frame_errors(x)["surface_err_mean"]
-        fig = Figure(figsize=(7.0, 3.6), dpi=100, layout="constrained")
-        ax = fig.add_subplot()
-        frames = np.arange(len(final))
+        numbers = problem.frame_numbers()
+        split = getattr(problem, "frame_split", None)     # held-out frames (RiggedBody)
+        held = [int(f) for f in split.validation] if split is not None else []
+
+        def by_frame(fitted: np.ndarray | None, validated: Any) -> dict[int, float]:
+            values = {} if fitted is None else dict(zip(numbers, map(float, fitted)))
+            if validated is not None and len(validated) == len(held):
+                values.update(zip(held, map(float, validated)))
+            return values
+
+        series = []
         if 0 in self.history:
-            ax.plot(frames, self.history[0] * 1e3, "o-", color="0.5", ms=3,
-                    label="homogeneous (initial)")
-        ax.plot(frames, final * 1e3, "o-", color="C0", ms=3, label="fitted")
-        ax.set_xlabel("frame")
-        ax.set_ylabel("mean surface error (mm)")
-        ax.grid(alpha=0.3)
-        ax.legend()
+            series.append(("homogeneous (initial)", "0.5",
+                           by_frame(self.history[0], self.validation_history.get(0))))
+        series.append(("fitted", "C0", by_frame(problem.frame_errors(final.state)[
+            "surface_err_mean"], final.validation_errors)))
+        fig = per_frame_errors_figure(series, held)
         path = self.run_dir / "frame_errors.png"
         save_png(fig, path)
         paths = [path]
@@ -351,14 +425,17 @@ class BodyOutputs:
                     "joint_volume_change_per_frame": curves["joint_volume_change"].tolist(),
                     "inverted_tets_per_frame": curves["inverted_tets"].tolist(),
                 }
-        json_path = self.run_dir / COMPARISON_JSON
-        write_json(json_path, summary)
         panels = [("animation (target)", _numpy(problem.clean_surface())[frame], None)]
         shown = [("homogeneous", n) for n in sorted(states["homogeneous"], key=lambda n: n != "linear")]
         shown.append(("fitted", model))
         errors = {key: _numpy(problem.surface_error_field(states[key[0]][key[1]]))[frame]
                   for key in shown}
-        vmax = max(float(e.max()) for e in errors.values()) or 1.0
+        vmax = comparison_range(errors, model)
+        summary["picture"] = {"colour_max_mm": 1e3 * vmax, "panel_max_mm": {
+            f"{material}/{name}": 1e3 * float(np.max(errors[(material, name)]))
+            for material, name in shown}}
+        json_path = self.run_dir / COMPARISON_JSON
+        write_json(json_path, summary)
         for material, name in shown:
             info = summary[material][name]
             label = f"{name}, {'fitted E' if material == 'fitted' else 'homogeneous E'}"
@@ -369,7 +446,7 @@ class BodyOutputs:
                            errors[(material, name)]))
         fig = surface_figure(panels, np.asarray(problem.animation.faces), vmax,
                              title=f"{names[frame]} (colour: surface error, 0 to "
-                                   f"{1e3 * vmax:.1f} mm)",
+                                   f"{1e3 * vmax:.2f} mm, the {model} panels' largest)",
                              view=problem.view_axes)
         png = self.run_dir / COMPARISON_PNG
         save_png(fig, png)

@@ -7,6 +7,7 @@ record's, when the run ended there); observers take it and never simulate again.
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 from torch import Tensor
 
@@ -27,6 +28,9 @@ class Evaluation:
             such as a report's baseline).
         validation: the metrics of the frames held out of the fit at ``theta`` (the run's
             validation problem, :mod:`torchfit.run.validation`), ``None`` without them.
+        validation_errors: ``(F_val,)`` the mean surface error (m) of every validation
+            frame at ``theta`` (their ``frame_errors``' ``surface_err_mean``, for the
+            per-frame plots), ``None`` without validation frames or per-frame errors.
     """
 
     theta: Tensor
@@ -35,3 +39,4 @@ class Evaluation:
     metrics: dict[str, float]
     record: IterationRecord | None = None
     validation: dict[str, float] | None = None
+    validation_errors: Any = None

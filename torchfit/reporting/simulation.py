@@ -13,7 +13,8 @@ Into the simulation's directory:
     ``surface`` ``(F, V, 3)`` of the user's vertices, ``field``;
 ``simulation.png``
     the frame of largest mean surface error: the animation | the simulation coloured by
-    its distance to the animation;
+    its distance to the animation (a colour bar in mm), through the body's camera
+    (``view_axes``: the file's up axis up);
 ``result.json``
     written by the caller (:mod:`torchfit.run.simulating`).
 
@@ -78,7 +79,8 @@ def comparison_picture(run_dir: Path, problem: Any, x: Tensor, frame: int,
                _numpy(problem.surface(x))[frame], error)]
     fig = surface_figure(panels, np.asarray(problem.animation.faces), vmax,
                          title=f"{frame_names[frame]} (colour: surface error, 0 to "
-                               f"{1e3 * vmax:.1f} mm)")
+                               f"{1e3 * vmax:.2f} mm)",
+                         view=getattr(problem, "view_axes", None))
     path = run_dir / SIMULATION_PNG
     save_png(fig, path)
     return path

@@ -68,23 +68,28 @@ class Evaluator:
             field = problem.field(theta)
             state = problem.simulate(problem.simulation_input(theta)).detach()
         self.simulations += 1
-        validation = None if independent or self.validation is None else self.validate(theta)
+        validation, per_frame = (None, None) if independent or self.validation is None else \
+            self.validate(theta)
         return Evaluation(theta, field.detach(), state, problem.metrics(theta, state), record,
-                          validation)
+                          validation, per_frame)
 
-    def validate(self, theta: Tensor) -> dict[str, float]:
-        """The validation problem's metrics at ``theta`` (one simulation of its frames)."""
+    def validate(self, theta: Tensor) -> tuple[dict[str, float], Any]:
+        """The validation problem's metrics at ``theta`` (one simulation of its frames) and
+        its per-frame mean surface error ``(F_val,)`` (``None`` where it reports none)."""
         problem = self.validation
         assert problem is not None
         start = time.perf_counter()
         with torch.no_grad(), counting(isolated=True) as cost:    # not the solver's work
             state = problem.simulate(problem.simulation_input(theta)).detach()
             metrics = validation_metrics(problem.metrics(theta, state))
+            frame_errors = getattr(problem, "frame_errors", None)
+            per_frame = None if frame_errors is None else \
+                frame_errors(state).get("surface_err_mean")
         self.validation_cost["factorizations"] += cost.factorizations
         self.validation_cost["solves"] += cost.solves
         self.validation_cost["seconds"] += time.perf_counter() - start
         self.validation_simulations += 1
-        return metrics
+        return metrics, per_frame
 
     def __call__(self, record: IterationRecord) -> None:
         self.last = self.evaluate(record.theta, record)

@@ -87,3 +87,17 @@ def test_bone_transform_not_finite(tmp_path):
     bones["transforms"][1, 0, 2, 3] = np.inf
     np.savez(folder / "skeleton.npz", **bones)
     expect_error(folder, "the transform of bone 0 in frame 1 is not finite")
+
+
+def test_the_manifest_up_axis_is_read_as_a_unit_vector_and_checked(tmp_path):
+    folder = write_capsule(tmp_path / "c")
+    assert load_animation(folder).up is None                  # none written: none read
+    manifest = folder / "animation.yaml"
+    spec = yaml.safe_load(manifest.read_text())
+    for value, expected in (("y", [0, 1, 0]), ("-Z", [0, 0, -1]), ("+x", [1, 0, 0])):
+        manifest.write_text(yaml.safe_dump({**spec, "up": value}))
+        np.testing.assert_array_equal(load_animation(folder).up, expected)
+    manifest.write_text(yaml.safe_dump({**spec, "up": "north"}))
+    with pytest.raises(AnimationError, match=r"up must be one of x, y, z, -x, -y, -z") as err:
+        load_animation(folder)
+    assert "\n" not in str(err.value) and "'north'" in str(err.value)

@@ -22,6 +22,9 @@ unit, or one of ``m``, ``cm``, ``mm``, ``in``). Example (what ``problem=arm3d`` 
     regions:                        # optional: per-rest-vertex labels (carried inward)
       labels: regions.npy
       names: [bone, muscle, fat]
+    up: z                           # optional: the files' up axis (x, y, z, -x, -y, -z);
+                                    # the pictures stand the body on it (none: the body's
+                                    # own, problems/body/motion.py)
 
 Every problem of ``problem=animation`` and ``problem=arm3d`` reads its data through
 :func:`load_animation`; :func:`write_animation` writes the format. Errors are one line
@@ -47,7 +50,10 @@ from ..simplicial import MeshError
 
 MANIFEST = "animation.yaml"
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
-_TOP_KEYS = ("unit", "rest", "frames", "skeleton", "driven", "regions", "description")
+_TOP_KEYS = ("unit", "rest", "frames", "skeleton", "driven", "regions", "up", "description")
+#: the up axes a manifest may name (``up``), as unit vectors
+UP_AXES = {f"{sign}{name}": (1.0 if sign != "-" else -1.0) * np.eye(3)[i]
+           for i, name in enumerate("xyz") for sign in ("", "+", "-")}
 _SKELETON_KEYS = ("bones", "attach_radius", "weights")
 _DRIVEN_KEYS = ("vertices", "tolerance")
 _REGION_KEYS = ("labels", "names")
@@ -73,6 +79,9 @@ class Animation:
             (seams welded, :mod:`.seams`), or ``None``: the file's own vertices.
         file_faces: ``(T_file, 3)`` the file's faces on its own vertices, or ``None``.
         prim: the mesh prim a USD stage's animation was read from ("" otherwise).
+        up: ``(3,)`` the file's up direction (a unit vector in these coordinates: a USD
+            stage's ``upAxis``, glTF's +Y, the manifest's ``up``), or ``None`` where the file
+            says none; the pictures' camera stands the body on it.
     """
 
     path: Path
@@ -89,6 +98,7 @@ class Animation:
     file_vertices: np.ndarray | None = None
     file_faces: np.ndarray | None = None
     prim: str = ""
+    up: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -146,6 +156,16 @@ def _unit(value: Any, manifest: Path) -> float:
         raise AnimationError(f"{manifest}: unit must be a positive number of metres per file "
                              f"unit (or one of {sorted(UNITS)}), got {value!r}")
     return float(value)
+
+
+def _up(value: Any, manifest: Path) -> np.ndarray | None:
+    if value is None:
+        return None
+    key = str(value).strip().lower() if isinstance(value, str) else None
+    if key not in UP_AXES:
+        raise AnimationError(f"{manifest}: up must be one of x, y, z, -x, -y, -z (the files' "
+                             f"up axis), got {value!r}")
+    return UP_AXES[key].copy()
 
 
 def _check_keys(section: Any, allowed: tuple[str, ...], where: str, manifest: Path) -> dict:
@@ -467,7 +487,8 @@ def load_animation(path: str | Path) -> Animation:
     if spec.get("regions") is not None:
         labels, region_names = _read_regions(folder, spec["regions"], manifest, rest.shape[0])
     return Animation(manifest, rest * unit, faces, frames * unit, unit, skeleton, driven,
-                     labels, region_names, names, surface_warnings(surface))
+                     labels, region_names, names, surface_warnings(surface),
+                     up=_up(spec.get("up"), manifest))
 
 
 # -- writing ------------------------------------------------------------------------------
@@ -483,8 +504,10 @@ def write_animation(folder: str | Path, rest_vertices: np.ndarray, faces: np.nda
                     frames: np.ndarray, *, skeleton: Skeleton | None = None,
                     driven: DrivenSurface | None = None,
                     region_labels: np.ndarray | None = None,
-                    region_names: list[str] | None = None, description: str = "") -> Path:
-    """Write an animation folder in the format above (lengths in metres, ``unit: 1.0``).
+                    region_names: list[str] | None = None, description: str = "",
+                    up: str | None = None) -> Path:
+    """Write an animation folder in the format above (lengths in metres, ``unit: 1.0``;
+    ``up``: the manifest's up axis, one of :data:`UP_AXES`, or ``None``: none written).
 
     The folder is written whole into a temporary sibling and renamed into place, so a
     killed process never leaves a half-written animation. Returns the manifest path.
@@ -502,6 +525,10 @@ def write_animation(folder: str | Path, rest_vertices: np.ndarray, faces: np.nda
         if description:
             manifest["description"] = description
         manifest.update({"unit": 1.0, "rest": "rest.obj", "frames": "frames.npz"})
+        if up is not None:
+            if up.strip().lower() not in UP_AXES:
+                raise ValueError(f"up must be one of x, y, z, -x, -y, -z, got {up!r}")
+            manifest["up"] = up.strip().lower()
         if skeleton is not None:
             np.savez(tmp / "skeleton.npz", heads=skeleton.heads, tails=skeleton.tails,
                      transforms=skeleton.transforms, names=np.asarray(skeleton.names))

@@ -1,17 +1,25 @@
 """What of a body's motion the outputs show: the most deformed frame, the camera, the most
 strained region.
 
-All three are rotation-equivariant (a rotated body and animation give the same frame, a
+All are rotation-equivariant (a rotated body and animation give the same frame, a
 rotated camera, the same tetrahedra), so the pictures of a rotated body are the same
-pictures (docs/notes/axes.md):
+pictures (docs/notes/axes.md), except where the file names its up axis: then the picture
+stands the body on it, as the TD's DCC tool does:
 
 * :func:`most_deformed_frame`: the frame whose target surface lies farthest (mean over the
   vertices) from the rest surface moved rigidly onto it (best rotation and translation,
   Kabsch): deformation, not a rigid turn of the whole body nor a root bone's rotation.
-* :func:`view_axes`: the camera looks along the direction in which the target moves least
-  (the smallest principal axis of the displacements over every frame and vertex; among
-  equal ones, not along the body's length), so the plane of motion faces it; "up" is the body's long axis (the grid's ``a2``) made
-  perpendicular to that; the sign is chosen so that the mean motion goes to the right.
+* :func:`picture_up`: the pictures' up: the file's up axis where the file has one (a USD
+  stage's ``upAxis``, glTF's +Y, the folder manifest's ``up``: ``Animation.up``), else the
+  body's own: its long axis (the grid's ``a2``) pointing from the rig's root joint towards
+  the joints of its largest branch (:func:`rig_up`: a standing character's pelvis to its
+  spine, neck, head and arms rather than to its two legs; the procedural arm's shoulder to
+  its wrist), else (no rig, or a branch across the long axis) ``a2`` with its own sign
+  (the third moment: :mod:`.frame`).
+* :func:`view_axes`: "up" is that direction, exactly; the camera looks across it along the
+  direction in which the target moves least (the smallest principal axis of the
+  displacements over every frame and vertex, within the plane across up), so the plane of
+  motion faces it; the sign is chosen so that the mean motion goes to the right.
 * :func:`most_strained_cells`: the tetrahedra of largest Green strain in a pose (for bodies
   whose rig has no joint: the region whose volume change the run reports).
 """
@@ -41,31 +49,85 @@ def most_deformed_frame(rest: np.ndarray, frames: np.ndarray) -> int:
     return int(np.argmax(residual))
 
 
-def view_axes(rest: np.ndarray, frames: np.ndarray, long_axis: np.ndarray) -> np.ndarray:
+def view_axes(rest: np.ndarray, frames: np.ndarray, up: np.ndarray) -> np.ndarray:
     """Camera axes ``(3, 3)``, rows ``right, depth, up`` (right-handed): a picture in these
-    coordinates seen from ``-depth`` shows the motion side-on (module doc).
+    coordinates seen from ``-depth`` shows the motion side-on with ``up`` up (module doc).
 
-    ``rest`` ``(V, 3)``, ``frames`` ``(F, V, 3)``; ``long_axis`` ``(3,)`` the body's longest
-    principal axis (``up`` where the view allows)."""
+    ``rest`` ``(V, 3)``, ``frames`` ``(F, V, 3)``; ``up`` ``(3,)`` the picture's up
+    (:func:`picture_up`; any length), the last row exactly (normalised)."""
+    up = np.asarray(up, dtype=np.float64)
+    up = up / np.linalg.norm(up)
     motion = (np.asarray(frames, dtype=np.float64) - np.asarray(rest)[None]).reshape(-1, 3)
     centred = motion - motion.mean(axis=0)
-    spread = centred.T @ centred
-    # where the least motion is not one direction (a motion along one line), look across
-    # the body rather than along its length
-    long_axis = np.asarray(long_axis, dtype=np.float64)
-    spread += 1e-3 * np.trace(spread) * np.outer(long_axis, long_axis)
+    across = np.eye(3) - np.outer(up, up)
+    spread = across @ (centred.T @ centred) @ across
+    # up itself gets the largest eigenvalue: the least motion is sought across it
+    spread += (np.trace(spread) + 1.0) * np.outer(up, up)
     _, vectors = np.linalg.eigh(spread)
-    depth = vectors[:, 0]                                     # the direction of least motion
-    up = None
-    for candidate in (long_axis, vectors[:, 2], vectors[:, 1]):
-        upright = candidate - (candidate @ depth) * depth
-        if np.linalg.norm(upright) > 0.3 * np.linalg.norm(candidate):
-            up = upright / np.linalg.norm(upright)
-            break
+    depth = vectors[:, 0] - (vectors[:, 0] @ up) * up         # the direction of least motion
+    depth /= np.linalg.norm(depth)
     right = np.cross(depth, up)
     if motion.mean(axis=0) @ right < 0:
         depth, right = -depth, -right
     return np.stack([right, depth, up])
+
+
+#: a branch direction within this cosine of the plane across the long axis says nothing
+_ACROSS = 0.2
+
+
+def rig_up(skeleton, long_axis: np.ndarray) -> np.ndarray | None:
+    """``long_axis`` ``(3,)`` signed to point from the rig's root joint towards the mean
+    tail of the bones of its largest branch, or ``None`` (no skeleton, or that direction
+    within :data:`_ACROSS` of the plane across the long axis).
+
+    The root joint is the head of the first bone whose head is no other bone's tail; a
+    branch is a bone starting there and every bone beyond it (a bone follows the one whose
+    tail is its head); the largest has the most bones (the first of equals). A standing
+    character's pelvis has its legs (a few bones each) and its spine (spine, neck, head,
+    both arms: most of the rig) below and above it; a rig rooted at the floor has one
+    branch, above; an arm rooted at the shoulder one, towards the hand."""
+    if skeleton is None or skeleton.n_bones == 0:
+        return None
+    heads, tails = np.asarray(skeleton.heads), np.asarray(skeleton.tails)
+    scale = max(float(np.linalg.norm(tails - heads, axis=1).max()), 1e-300)
+    meets = np.linalg.norm(tails[:, None, :] - heads[None, :, :], axis=-1) <= 1e-9 * scale
+    np.fill_diagonal(meets, False)                    # meets[p, c]: c starts at p's tail
+    roots = np.flatnonzero(~meets.any(axis=0))
+    if not roots.size:
+        return None
+    root = heads[roots[0]]
+    starts = np.flatnonzero(np.linalg.norm(heads - root, axis=1) <= 1e-9 * scale)
+    best: list[int] = []
+    for start in starts:
+        branch, todo = {int(start)}, [int(start)]
+        while todo:
+            for child in np.flatnonzero(meets[todo.pop()]):
+                if int(child) not in branch:
+                    branch.add(int(child))
+                    todo.append(int(child))
+        if len(branch) > len(best):
+            best = sorted(branch)
+    direction = tails[best].mean(axis=0) - root
+    long_axis = np.asarray(long_axis, dtype=np.float64)
+    along = float(direction @ long_axis)
+    if abs(along) <= _ACROSS * np.linalg.norm(direction) * np.linalg.norm(long_axis):
+        return None
+    return long_axis if along > 0 else -long_axis
+
+
+def picture_up(file_up: np.ndarray | None, skeleton, long_axis: np.ndarray
+               ) -> tuple[np.ndarray, str]:
+    """The pictures' up ``(3,)`` (unit) and where it came from (for the log): the file's
+    up axis ``file_up`` (``Animation.up``), else :func:`rig_up`, else ``long_axis``."""
+    if file_up is not None:
+        up = np.asarray(file_up, dtype=np.float64)
+        return up / np.linalg.norm(up), "the file's up axis"
+    long_axis = np.asarray(long_axis, dtype=np.float64) / np.linalg.norm(long_axis)
+    signed = rig_up(skeleton, long_axis)
+    if signed is not None:
+        return signed, "the body's long axis, from the rig's root to its largest branch"
+    return long_axis, "the body's long axis (the file names no up axis)"
 
 
 def most_strained_cells(rest: np.ndarray, cells: np.ndarray, pose: np.ndarray,

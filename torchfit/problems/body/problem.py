@@ -44,7 +44,7 @@ from ...physics.elasticity import QuasistaticElasticity, SimplicialElasticity
 from ...steps import count, quiet, step
 from ..base import InverseProblem, array_digest
 from .grid import blocks_field, body_grid, grid_parameterization
-from .motion import most_deformed_frame, most_strained_cells, view_axes
+from .motion import most_deformed_frame, most_strained_cells, picture_up, view_axes
 from .setup import animation_summary, check_rig, first_simulation, tet_mesh, tet_options
 from .report import (BODY_METRICS, body_metrics, describe_body, frame_report,
                           inverted_counts, min_volume_ratios, surface_distances, volume_change)
@@ -238,7 +238,9 @@ class RiggedBody(InverseProblem):
             animation.rest_vertices, animation.faces, self.tet_options)    # a run's own
         self.grid = body_grid(points, cells, self.motion, cfg.grid_nodes, cfg.grid, kept_frame)
         self.grid_shape = self.grid.shape
-        self.view_axes = view_axes(animation.rest_vertices, animation.frames, self.grid.axes[2])
+        up, source = picture_up(animation.up, animation.skeleton, self.grid.axes[2])
+        log.info("pictures: up (%s), %s", ", ".join(f"{c:.3g}" for c in up), source)
+        self.view_axes = view_axes(animation.rest_vertices, animation.frames, up)
         self.joint_cells = self.joint_region(cfg)
 
     def tetrahedralize(self, cfg: RiggedBodyConfig, animation: Animation) -> TetMesh:

@@ -20,8 +20,8 @@
   metres}`` on its joint node); ``attach_radius`` from ``extras: {"torchfit:attachRadius":
   metres}`` on the skin or the node, else the default there.
 
-Units: metres (glTF's); the up axis is kept (glTF is Y-up: nothing downstream depends on
-it). Refused with one line (:class:`~..folder.AnimationError`): ``CUBICSPLINE``
+Units: metres (glTF's); the coordinates are kept, and the animation's ``up`` is +Y (the
+glTF specification's up axis; the pictures stand the body on it). Refused with one line (:class:`~..folder.AnimationError`): ``CUBICSPLINE``
 samplers, sparse accessors, Draco or meshopt compression (any required extension), primitives
 other than triangles, no skinned node, several without ``problem.prim``.
 """
@@ -344,4 +344,4 @@ def load_gltf(path: str | Path, prim: str = "", fps: float = 0.0) -> Animation:
     surface = trimesh.Trimesh(rest, faces, process=False)
     return Animation(path, rest, faces, frames, 1.0, skeleton=skeleton,
                      frame_files=[f"{path.name}@{t:.6g}s" for t in times],
-                     warnings=surface_warnings(surface))
+                     warnings=surface_warnings(surface), up=np.array([0.0, 1.0, 0.0]))

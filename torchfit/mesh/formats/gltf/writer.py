@@ -8,7 +8,8 @@ bind matrices the inverse translations, stored column-major), the mesh with ``JO
 per corrective shape, one animation: each joint's translation and rotation (``LINEAR``) at
 times ``f / fps``, and the morph weights. ``attach_radius`` goes in the skin's
 ``extras`` (``torchfit:attachRadius``). Bone transforms must be rigid. Metres; the axes as
-given (glTF says Y up: the arm stays Z up, nothing downstream depends on it).
+given (glTF says Y up, and the reader takes +Y as the pictures' up: a body written along z
+is drawn lying, as a DCC tool shows it; turn it first to have it stand).
 """
 from __future__ import annotations
 

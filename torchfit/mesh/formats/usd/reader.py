@@ -29,13 +29,16 @@ imported only here and only then), one mesh prim of the stage into the same
 Which prim: ``problem.prim`` (a prim path); by default the one skinned mesh, else the one
 point cache. Frames: every authored time sample (joint transforms and blend-shape weights of
 the animation, or the points), in time order; ``problem.frames`` picks among them by index.
-Units: lengths are multiplied by the stage's ``metersPerUnit``. The up axis is kept as
-authored (a Y-up stage stays Y-up: nothing downstream depends on it; the reader logs it).
+Units: lengths are multiplied by the stage's ``metersPerUnit``. The coordinates are kept as
+authored (a Y-up stage stays Y-up); the stage's ``upAxis`` (``UsdGeom.GetStageUpAxis``: Y
+or Z) is the animation's ``up`` (``(0, 1, 0)`` or ``(0, 0, 1)``), which the pictures stand
+the body on.
 USD matrices act on row vectors, ``[x, 1] @ M``. Errors are one line
 (:class:`~..folder.AnimationError`).
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 from typing import Any
@@ -304,11 +307,14 @@ def load_usd(path: str | Path, prim: str = "") -> Animation:
     if stage is None:
         raise AnimationError(f"{path}: cannot open it as a USD stage")
     scale = float(pxr.UsdGeom.GetStageMetersPerUnit(stage))
-    _log.info("%s: up axis %s (kept as authored), %g metres per unit", path,
-              pxr.UsdGeom.GetStageUpAxis(stage), scale)
+    axis = str(pxr.UsdGeom.GetStageUpAxis(stage)).upper()
+    _log.info("%s: up axis %s (coordinates kept as authored), %g metres per unit", path,
+              axis, scale)
     skinned, cached = _candidates(pxr, stage)
     chosen = _pick(path, prim, skinned, cached)
     usd_prim = stage.GetPrimAtPath(chosen)
     if chosen in skinned:
-        return _skinned(pxr, path, usd_prim, *skinned[chosen], scale)
-    return _point_cache(pxr, path, usd_prim, scale)
+        animation = _skinned(pxr, path, usd_prim, *skinned[chosen], scale)
+    else:
+        animation = _point_cache(pxr, path, usd_prim, scale)
+    return dataclasses.replace(animation, up=np.eye(3)[1 if axis == "Y" else 2])

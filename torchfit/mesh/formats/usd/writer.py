@@ -11,7 +11,8 @@ per-vertex weights, rest-pose corrective shapes) as a stage that
 - bind transforms: translations to the joints' rest positions; the rest pose the bind pose;
   the ``SkelAnimation`` holds each joint's local translation, rotation and scale per frame
   (time codes ``0 .. F-1`` at ``fps``), the corrective shapes' weights as blend-shape weights.
-- ``torchfit:attachRadius`` on the skeleton; lengths in metres (``metersPerUnit`` 1), Z up.
+- ``torchfit:attachRadius`` on the skeleton; lengths in metres (``metersPerUnit`` 1), the
+  stage's ``upAxis`` Z unless ``up_axis`` says Y (the coordinates are written as given).
 
 Bone transforms must be rigid (rotation and translation; a USD joint holds no shear).
 
@@ -47,8 +48,10 @@ def _quaternions(rotations: np.ndarray) -> np.ndarray:
 
 def write_skinned_usd(path: str | Path, rest_vertices: np.ndarray, faces: np.ndarray,
                       skeleton: Skeleton, shapes: dict[str, np.ndarray] | None = None,
-                      shape_weights: np.ndarray | None = None, fps: float = 24.0) -> Path:
-    """Write a skinned mesh, its skeleton and animation to ``path`` (``.usda``/``.usdc``).
+                      shape_weights: np.ndarray | None = None, fps: float = 24.0,
+                      up_axis: str = "Z") -> Path:
+    """Write a skinned mesh, its skeleton and animation to ``path`` (``.usda``/``.usdc``);
+    ``up_axis`` ``"Y"`` or ``"Z"``: the stage's ``upAxis`` (the points are not turned).
 
     Args:
         rest_vertices: ``(V, 3)`` metres; faces ``(T, 3)``.
@@ -60,12 +63,15 @@ def write_skinned_usd(path: str | Path, rest_vertices: np.ndarray, faces: np.nda
 
     if skeleton.weights is None:
         raise ValueError("write_skinned_usd needs the skeleton's per-vertex weights")
+    if up_axis.upper() not in ("Y", "Z"):
+        raise ValueError(f"up_axis must be 'Y' or 'Z' (USD's up axes), got {up_axis!r}")
     shapes = shapes or {}
     paths, parents, positions, mover = bone_joints(skeleton)
     F, J = skeleton.transforms.shape[0], len(paths)
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up_axis.upper() == "Y" else
+                           UsdGeom.Tokens.z)
     stage.SetStartTimeCode(0)
     stage.SetEndTimeCode(F - 1)
     stage.SetTimeCodesPerSecond(fps)
