@@ -6,8 +6,10 @@ Exit statuses of ``experiments/fit.py``, ``experiments/verify.py`` and
 * 0: done (verify: every check passed);
 * 1: the work ran and failed (a derivative check failed; the simulation failed during a
   fit: the traceback is in the job's log);
-* 2: bad input, nothing run: an invalid setting or an override Hydra cannot compose, or a
-  run directory that cannot be written (``error: <one line>`` on standard error). The run
+* 2: bad input, nothing run: an invalid setting or an override Hydra cannot compose (a
+  misspelt key: the line names the nearest one, :mod:`experiments.cli`), or a run
+  directory that cannot be written (``error: <one line>`` on standard error, Hydra's own
+  block not shown). The run
   directory is left as it was: removed when the run created it, and a refused resume puts
   the earlier run's ``.hydra/`` back. In a sweep, a value Hydra cannot compose stops the
   whole sweep before any job runs (Hydra composes every job first); settings that compose
@@ -39,6 +41,7 @@ from typing import Any, Callable, NoReturn
 
 from omegaconf.errors import OmegaConfBaseException
 
+from experiments.cli import check_sections, schema_named, unknown_setting
 from torchfit.errors import ConfigurationError
 
 #: Exceptions that mean "the input is wrong" (exit 2, one line, nothing left behind).
@@ -149,15 +152,19 @@ def remove_if_only_hydra(run_dir: Path) -> None:
 
 
 def check_top_level(config: dict, schema: type) -> None:
-    """Refuse a top-level key the app's schema (a dataclass) does not have: Hydra accepts
-    ``+foo=1`` and its hint for a misspelt key (``contination=true``) is to add one."""
+    """Refuse a key the app's schema (a dataclass) does not have, at the top level or in
+    ``problem`` / ``solver`` (their config classes): Hydra accepts ``+foo=1`` and
+    ``+problem.foo=1``, and its hint for a misspelt key (``contination=true``) is to add
+    one. The line names the nearest key and where the settings are documented."""
     known = [f.name for f in dataclasses.fields(schema)]
     unknown = [key for key in config if key not in known]
     if unknown:
-        close = difflib.get_close_matches(unknown[0], known, n=1)
-        hint = f" (did you mean {close[0]}?)" if close else ""
-        raise ConfigurationError(f"unknown top-level setting {unknown[0]}={config[unknown[0]]}"
-                                 f"{hint}: the known ones are {', '.join(known)}")
+        raise ConfigurationError(unknown_setting(f"{unknown[0]}={config[unknown[0]]}",
+                                                 unknown[0], 0, schema, "top-level")
+                                 .replace("unknown setting", "unknown top-level setting", 1))
+    line = check_sections(config, [s for s in ("problem", "solver") if s in known])
+    if line is not None:
+        raise ConfigurationError(line)
 
 
 def checked_config(cfg: Any, schema: type, throw_on_missing: bool = True) -> dict:
@@ -235,7 +242,10 @@ def run_hydra_app(main: Callable[[], Any], started: Callable[[], bool],
         if exit_.code != 1 or started() or "Traceback (most recent call last)" in stderr.tail:
             raise           # not a configuration Hydra refused: a crash (its traceback is above)
         reason = hydra_reason(stderr.tail)
-        stderr.release()                # Hydra's message, then the line that sums it up
+        if reason.endswith(_SEE_ABOVE):
+            stderr.release()            # Hydra's message, then the line that sums it up
+        else:
+            stderr.held = ""            # the line below says it all
         if multirun:
             _remove_new(output_root(argv, default_root).resolve(), before, multirun)
             # Hydra's basic sweeper composes every job before it launches the first: one
@@ -243,7 +253,8 @@ def run_hydra_app(main: Callable[[], Any], started: Callable[[], bool],
             print(f"error: invalid sweep, no job was run: {reason} (Hydra composes every job "
                   "of a sweep before launching any)", file=stderr.stream)
         else:
-            print(f"error: invalid configuration: {reason}", file=stderr.stream)
+            prefix = "" if reason.startswith("unknown setting") else "invalid configuration: "
+            print(f"error: {prefix}{reason}", file=stderr.stream)
         sys.exit(2)
     finally:
         stderr.release()
@@ -319,16 +330,48 @@ class _Tail:
         return getattr(self.stream, name)
 
 
+_SEE_ABOVE = "see Hydra's message above"
+
+
 def hydra_reason(message: str) -> str:
-    """One line from Hydra's composition error: the setting (``full_key``) and why."""
+    """One line from Hydra's composition error: an unknown key with the nearest known one
+    (:func:`~experiments.cli.unknown_setting`), an unknown option of a group with the
+    nearest option and the others, else the override (or the setting, ``full_key``) and why."""
     lines = [line.strip() for line in message.splitlines() if line.strip()]
-    key = next((line.split(":", 1)[1].strip() for line in lines
-                if line.startswith("full_key:")), None)
+    override = next((m.group(1) for m in map(re.compile(r"Could not override '(.+)'\.").search,
+                                              lines) if m), None)
+    missing = next((m for m in map(re.compile(r"Key '(.+)' not in '(\w+)'").search, lines)
+                    if m), None)
+    full_key = next((line.split(":", 1)[1].strip() for line in lines
+                     if line.startswith("full_key:")), None)
+    if override and missing and full_key is not None and schema_named(missing.group(2)):
+        cls, what = schema_named(missing.group(2))
+        shown = next((m.group(1) for m in map(re.compile(r"use \+(\S+=.*)$").search, lines)
+                      if m), override)
+        return unknown_setting(shown, override, full_key.count("."), cls, what)
+    group = next((m for m in map(re.compile(r"Could not find '([\w/]+)/([^'/]+)'").search,
+                                 lines) if m), None)
+    if group:
+        start = next((i for i, line in enumerate(lines) if line.startswith("Available options")),
+                     None)
+        options: list[str] = []
+        for line in lines[start + 1:] if start is not None else []:
+            if line.endswith(":") or line.startswith(("provider=", "Set the environment")):
+                break
+            options.append(line)
+        close = difflib.get_close_matches(group.group(2), options, n=1, cutoff=0.5)
+        hint = f" (did you mean {group.group(1)}={close[0]}?)" if close else ""
+        return (f"{group.group(1)}={group.group(2)} is not an option{hint}; the options: "
+                f"{', '.join(options) or 'none'} (conf/{group.group(1)}/)")
     why = next((line for line in lines if not line.startswith(("full_key:", "object_type=",
                                                                  "Set the environment",
                                                                  "Error merging", "error:"))),
-               "see Hydra's message above")
-    return f"{key}: {why}" if key else why
+               _SEE_ABOVE)
+    merging = next((line.split("override", 1)[1].strip() for line in lines
+                    if line.startswith("Error merging override")), None)
+    if merging and why != _SEE_ABOVE:
+        return f"{merging}: {why}"          # the override as typed: problem.noise=abc
+    return f"{full_key}: {why}" if full_key else why
 
 
 def results_line(run_dir: Path, files: list[Path], also: tuple[str, ...] = ()) -> str:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import shlex
 import sys
 import traceback
 from pathlib import Path
@@ -29,6 +30,11 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:       # this checkout's experiments/ (and torchfit), installed or not
     sys.path.insert(0, str(REPO))
+
+from experiments.cli import FIT_HELP, command_line  # noqa: E402
+
+if __name__ == "__main__":      # help, unreadable overrides, paths: before the heavy imports
+    sys.argv[1:] = command_line(sys.argv[1:], FIT_HELP)
 
 from experiments.app import (BAD_INPUT, RunDirGuard, Terminated, checked_config, no_space,
                              no_space_line, one_line, refuse, results_line, run_hydra_app)
@@ -78,8 +84,8 @@ def resume_command(run_dir: Path) -> str:
     """The command that continues the run in ``run_dir``."""
     launcher = f"torchrun --nproc_per_node={distributed.world_size()}" if distributed.launched() \
         else "python"
-    return f"{launcher} experiments/fit.py hydra.run.dir={run_dir} resume=true (and the same " \
-           "overrides)"
+    return f"{launcher} experiments/fit.py {shlex.quote(f'hydra.run.dir={run_dir}')} resume=true " \
+           "(and the same overrides)"
 
 
 @hydra.main(config_path="../conf", config_name="fit", version_base="1.3")
@@ -144,9 +150,9 @@ def main(cfg: DictConfig) -> float:
         print(f"first stage (the frames far from a fold): {result.first_stage.summary()}; "
               f"its run: {run_dir / FIRST_STAGE_DIR}")
         # both stages' curves side by side: the run directory holds tb/ and unique_frames/tb/
-        print(f"tensorboard --logdir {run_dir}", flush=True)
+        print(f"tensorboard --logdir {shlex.quote(str(run_dir))}", flush=True)
     else:
-        print(f"tensorboard --logdir {run_dir / 'tb'}", flush=True)
+        print(f"tensorboard --logdir {shlex.quote(str(run_dir / 'tb'))}", flush=True)
     return result.value(str(config["objective_metric"]))
 
 

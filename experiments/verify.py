@@ -19,6 +19,11 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:       # this checkout's experiments/ (and torchfit), installed or not
     sys.path.insert(0, str(REPO))
 
+from experiments.cli import VERIFY_HELP, command_line  # noqa: E402
+
+if __name__ == "__main__":      # help, unreadable overrides, paths: before the heavy imports
+    sys.argv[1:] = command_line(sys.argv[1:], VERIFY_HELP)
+
 from experiments.app import BAD_INPUT, RunDirGuard, checked_config, refuse, run_hydra_app
 
 import hydra  # noqa: E402

@@ -4,5 +4,5 @@
 #   scripts/fit.sh solver=levenberg_marquardt problem.noise=1e-4
 #   scripts/fit.sh -m solver=gauss_newton,levenberg_marquardt hydra/launcher=joblib
 source "$(dirname "${BASH_SOURCE[0]}")/_venv.sh"
-cd "$ROOT"
-exec "$TORCHFIT_PYTHON" experiments/fit.py "$@"
+# no cd: relative paths and the default outputs/ are those of the directory it is run from
+exec "$TORCHFIT_PYTHON" "$ROOT/experiments/fit.py" "$@"

@@ -310,7 +310,9 @@ def write_csv(rows: Sequence[JobRow], path: Path) -> None:
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+                                     formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog="Writes only --out and --csv. Documented in "
+                                            "docs/guide/sweeps.md (One table of a sweep).")
     parser.add_argument("sweep_dir", type=Path, help="the multirun directory of one sweep")
     parser.add_argument("--out", type=Path, help="also write the markdown table to this file")
     parser.add_argument("--csv", type=Path, help="write the table as CSV to this file")

@@ -37,7 +37,15 @@ from torchfit.problems.body.procedural_arm import corrective_shapes  # noqa: E40
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        description="Write the procedural arm of problem=arm3d as an animation folder (the "
+                    "worked example of the format), and as a UsdSkel stage or a glTF skin.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="examples:\n"
+               "  .venv/bin/python scripts/write_arm.py my_arm     # 48 frames, skeleton-driven\n"
+               "  .venv/bin/python scripts/write_arm.py --usd arm.usda --gltf arm.glb\n"
+               "  scripts/fit.sh problem=animation problem.path=my_arm\n"
+               "Documented in docs/guide/formats.md and docs/guide/your-character.md.")
     parser.add_argument("folder", type=Path, nargs="?",
                         help="where to write the animation folder (replaced)")
     parser.add_argument("--frames-as-meshes", action="store_true",
