@@ -210,6 +210,7 @@ def test_a_resume_without_the_cache_uses_the_runs_mesh(fitted, tmp_path):
     assert json.loads((run / "result.json").read_text())["iterations"] == 3
 
 
+@pytest.mark.slow      # a fit with held-out frames and four simulations (about 30-60 s)
 def test_simulate_takes_its_frames_from_the_animation_it_is_given(fitted, tmp_path):
     """The fit's ``frames`` and ``validation_frames`` do not apply to ``simulate``: a fit that
     held out frames 4 and 5 of six simulates a three-frame shot, every frame of its own
