@@ -26,6 +26,7 @@ nothing.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import difflib
 import errno
@@ -65,14 +66,64 @@ def no_space(error: BaseException) -> bool:
     return False
 
 
-def no_space_line(error: BaseException, run_dir: Path, resume_command: str) -> str:
-    """The one line for a run stopped by a full disk: what was being written, and how to
-    continue (the checkpoint and every file were written atomically: nothing is half)."""
-    while not (isinstance(error, OSError) and error.errno in _NO_SPACE):
+def _no_space_error(error: BaseException) -> OSError:
+    """The full-disk ``OSError`` in ``error``'s chain, the one that names a file if any."""
+    chain = []
+    while error is not None:
+        if isinstance(error, OSError) and error.errno in _NO_SPACE:
+            chain.append(error)
         error = error.__cause__ or error.__context__
-    where = f" (writing {error.filename})" if error.filename else ""
-    return (f"no space left on the device of {run_dir}{where}; free space there, "
-            f"then continue with: {resume_command}")
+    return next((e for e in chain if e.filename), chain[0])
+
+
+def _full(error: OSError) -> str:
+    return "the disk quota is exhausted" if error.errno == errno.EDQUOT else \
+        "no space left on the device"
+
+
+def no_space_line(error: BaseException, run_dir: Path, resume_command: str) -> str:
+    """The one line for a run stopped by a full disk: the file being written, and how to
+    continue (the checkpoint and every file were written atomically: nothing is half)."""
+    error = _no_space_error(error)
+    where = f" while writing {error.filename}" if error.filename else ""
+    return (f"{_full(error)} of {run_dir}{where}; free space there, then continue with: "
+            f"{resume_command}")
+
+
+def no_space_at_start_line(error: BaseException, run_dir: Path) -> str:
+    """The one line for a disk full before the task ran (the lock, Hydra's ``.hydra/``):
+    nothing of the run was written, the same command runs once there is space."""
+    error = _no_space_error(error)
+    where = f" while writing {error.filename}" if error.filename else ""
+    return (f"{_full(error)} of {run_dir}{where}, before the run started (nothing of it "
+            f"was written); free space there, then run the same command again")
+
+
+def _name_hydras_files() -> None:
+    """Hydra writes ``.hydra/*.yaml`` with ``open(...)`` and ``write``; a full disk raises
+    there without a file name: give it the file's (Hydra reports the error as text)."""
+    import hydra.core.utils as hydra_utils
+
+    save = hydra_utils._save_config
+    if getattr(save, "_names_its_file", False):
+        return
+
+    def _save_config(cfg: Any, filename: str, output_dir: Path) -> None:
+        try:
+            save(cfg, filename, output_dir)
+        except OSError as error:
+            if error.errno is None or error.filename:
+                raise
+            raise OSError(error.errno, error.strerror or str(error),
+                          str(Path(output_dir) / filename)) from None
+
+    _save_config._names_its_file = True  # type: ignore[attr-defined]
+    hydra_utils._save_config = _save_config
+
+
+#: Hydra's report of an OSError of a full disk: ``OSError: [Errno 28] ...: '<file>'``
+_HYDRA_NO_SPACE = re.compile(r"(?:OSError|\w+Error): \[Errno (%s)\] ([^\n]*?)(?:: '([^'\n]+)')?$"
+                             % "|".join(str(n) for n in _NO_SPACE), re.MULTILINE)
 
 
 def _quiet_thread_errors(args: threading.ExceptHookArgs) -> None:
@@ -218,8 +269,10 @@ def run_hydra_app(main: Callable[[], Any], started: Callable[[], bool],
             acquire(root)
             guard.snapshot()
     except OSError as error:        # RunDirectoryError, RunLockedError, a failed mkdir
-        print("error: " + one_line(error), file=sys.stderr, flush=True)
+        line = no_space_at_start_line(error, root) if no_space(error) else one_line(error)
+        print("error: " + line, file=sys.stderr, flush=True)
         sys.exit(2)
+    _name_hydras_files()
     signal.signal(signal.SIGTERM, _terminate)
     threading.excepthook = _quiet_thread_errors
     # a log file on a full disk: no "--- Logging error ---" traceback per line on the console
@@ -238,6 +291,18 @@ def run_hydra_app(main: Callable[[], Any], started: Callable[[], bool],
             _remove_new(output_root(argv, default_root).resolve(), before, multirun)
             stderr.held = ""                # Hydra's traceback: the line below says it all
             print("error: " + long_name_reason(stderr.tail, argv), file=stderr.stream)
+            sys.exit(2)
+        found = sorted(_HYDRA_NO_SPACE.finditer(stderr.tail), key=lambda m: not m.group(3))
+        full = found[0] if found else None
+        if exit_.code == 1 and not started() and full:     # a full disk as Hydra wrote .hydra/
+            stderr.held = ""                # Hydra's chained tracebacks: the line says it all
+            release_all()
+            if guard is not None and guard.run_dir is not None and "${" not in str(guard.run_dir):
+                with contextlib.suppress(OSError):
+                    guard.undo(root)
+            error = OSError(int(full.group(1)), full.group(2), full.group(3))
+            print("error: " + no_space_at_start_line(error, root), file=stderr.stream,
+                  flush=True)
             sys.exit(2)
         if exit_.code != 1 or started() or "Traceback (most recent call last)" in stderr.tail:
             raise           # not a configuration Hydra refused: a crash (its traceback is above)

@@ -11,9 +11,11 @@ simulate: the same body (rest surface), any frames. One progress line per frame 
 Newton iterations, seconds), then a summary line. The run directory (default
 ``outputs/simulate/<problem>/<time>``) gets ``frames/frame_NNN.obj``, ``body.vtu``,
 ``frames.npz``, ``simulation.png``, ``result.json`` (per-frame errors) and Hydra's
-``.hydra/`` and ``simulate.log``. Exit statuses (:mod:`app`): 0 done, 1 the simulation
-failed, 2 bad input (one ``error:`` line, nothing written: e.g. a run of another problem, a
-changed parameterisation, an animation of another body), 130 interrupted, 143 terminated.
+``.hydra/`` and ``simulate.log``; a ``hydra.run.dir`` that is the fitted run, or holds a fit
+or a simulation (``result.json``, ``params.pt``), is refused before Hydra writes there.
+Exit statuses (:mod:`app`): 0 done, 1 the simulation failed, 2 bad input (one ``error:``
+line, nothing written: e.g. a run of another problem, a changed parameterisation, an
+animation of another body), 130 interrupted, 143 terminated.
 """
 from __future__ import annotations
 
@@ -43,7 +45,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 matplotlib.use("Agg")   # pictures are files; never a window
 from torchfit.config import SimulateConfig, register_configs  # noqa: E402
 from torchfit.errors import ConfigurationError  # noqa: E402
-from torchfit.run.simulating import read_fitted_run, simulate  # noqa: E402
+from torchfit.run.simulating import check_run_dir, read_fitted_run, simulate  # noqa: E402
 
 register_configs()
 log = logging.getLogger("simulate")
@@ -115,6 +117,26 @@ def fitted_problem_group(argv: list[str]) -> list[str]:
     return [*argv, f"problem={choice}"]
 
 
+def refuse_a_taken_run_dir(argv: list[str]) -> None:
+    """Exit 2 with one line, before Hydra writes ``.hydra/`` and ``simulate.log``, where
+    ``hydra.run.dir`` is the fitted run or holds a fit or a simulation
+    (:func:`~torchfit.run.simulating.check_run_dir`)."""
+    given = next((a.split("=", 1)[1] for a in argv if a.startswith("hydra.run.dir=")), None)
+    run = next((a.split("=", 1)[1] for a in argv if a.startswith("run=")), None)
+    if given is None or "${" in given or any(a in ("-m", "--multirun") for a in argv):
+        return
+    fitted = None
+    if run is not None:
+        path = Path(run).expanduser()
+        fitted = path if path.is_dir() or path.suffix != ".pt" else path.parent
+    try:
+        check_run_dir(given, fitted, "hydra.run.dir")
+    except ConfigurationError as error:
+        print("error: " + one_line(error), file=sys.stderr)
+        sys.exit(2)
+
+
 if __name__ == "__main__":
+    refuse_a_taken_run_dir(sys.argv[1:])
     sys.argv[1:] = fitted_problem_group(sys.argv[1:])
     run_hydra_app(main, lambda: _started, guard=GUARD)

@@ -1,13 +1,16 @@
-"""Aggregate the ``result.json`` files of a Hydra multirun directory into one table.
+"""Aggregate the ``result.json`` files of a Hydra sweep or of run directories into one table.
 
 Usage::
 
     python scripts/report.py multirun/seed_table/<date-time>                 # markdown on stdout
     python scripts/report.py multirun/seed_table/<date-time> --out report.md --csv report.csv
+    python scripts/report.py outputs/<date>/<time> outputs/<date>/<time2>    # single runs
 
-One row per job of the sweep, in job order: the job's overrides (those that differ between
-jobs; the ones shared by every job are listed above the table), ``u_err_inf``, ``u_err_2``,
-``k_err_inf``, ``k_err_2``, ``k_err_rel_aligned`` (``k_err_rel`` as well when a problem is
+Each argument is a sweep directory (``multirun/<date-time>``: the job directories below
+it) or one run directory (the one that holds ``.hydra/``; a single run's job has no number,
+and its row is named by its directory). One row per job of the sweep, in job order: the
+job's overrides (those that differ between jobs; the ones shared by every job are listed
+above the table), ``u_err_inf``, ``u_err_2``, ``k_err_inf``, ``k_err_2``, ``k_err_rel_aligned`` (``k_err_rel`` as well when a problem is
 not scale-free), iterations, solver wall seconds, factorisations and the stop reason. Jobs
 with frames held out of the fit (``problem.validation_frames`` / ``validation_every``) add
 the validation error at the chosen iteration (``validation_surface_err_mean``), its
@@ -30,8 +33,9 @@ The report reads files only (``result.json``, ``.hydra/*.yaml``, ``multirun.yaml
 imports nothing of Hydra.
 
 With Hydra's Optuna sweeper the best trial of ``optimization_results.yaml`` is named
-below the table. Exit status 2 with one ``error:`` line when the directory does not exist
-or holds no jobs.
+below the table. ``--out`` and ``--csv`` create the folders they name. Exit status 2 with one
+``error:`` line, and nothing written, when a directory does not exist or holds no jobs, or
+an output file cannot be written (a folder, a path below a file, no permission).
 """
 from __future__ import annotations
 
@@ -40,9 +44,10 @@ import csv
 import dataclasses
 import json
 import math
+import os
 import sys
 from pathlib import Path
-from typing import Any, Iterable, Optional, Sequence
+from typing import Any, Callable, Iterable, Optional, Sequence
 
 import yaml
 
@@ -76,6 +81,13 @@ class JobRow:
     directory: Optional[Path]
     result: Optional[dict[str, Any]] = None
     failure: Optional[str] = None
+    #: the table's job cell: the job number, or a single run's directory name
+    label: str = ""
+
+    def __post_init__(self) -> None:
+        if not self.label:
+            self.label = str(self.num) if self.num >= 0 else (
+                self.directory.name if self.directory is not None else "?")
 
     @property
     def failed(self) -> bool:
@@ -99,6 +111,22 @@ def _load_yaml(path: Path) -> Any:
         return yaml.safe_load(f)
 
 
+def _try_yaml(path: Path) -> Any:
+    """The YAML in ``path``; ``None`` where it is missing, unreadable or not YAML."""
+    try:
+        return _load_yaml(path) if path.is_file() else None
+    except (OSError, ValueError, yaml.YAMLError):
+        return None
+
+
+def job_number(hydra_cfg: Any) -> int:
+    """``hydra.job.num`` of a job's ``hydra.yaml``; -1 for a single run (Hydra writes
+    ``???`` there) or a file that does not say."""
+    job = ((hydra_cfg if isinstance(hydra_cfg, dict) else {}).get("hydra") or {}).get("job")
+    num = (job or {}).get("num") if isinstance(job, dict) else None
+    return num if isinstance(num, int) and not isinstance(num, bool) and num >= 0 else -1
+
+
 def _last_error_line(job_dir: Path) -> Optional[str]:
     """The last line of the job's Hydra logs that reports an error, if any."""
     for log_file in sorted(job_dir.glob("*.log")):
@@ -111,10 +139,9 @@ def _last_error_line(job_dir: Path) -> Optional[str]:
 
 def read_job(job_dir: Path) -> JobRow:
     """The row of one job directory (one that holds ``.hydra/``)."""
-    hydra_cfg = _load_yaml(job_dir / ".hydra" / "hydra.yaml") or {}
-    num = int(hydra_cfg.get("hydra", {}).get("job", {}).get("num", -1))
-    overrides_file = job_dir / ".hydra" / "overrides.yaml"
-    overrides = parse_overrides(_load_yaml(overrides_file) or []) if overrides_file.is_file() else {}
+    num = job_number(_try_yaml(job_dir / ".hydra" / "hydra.yaml"))
+    lines = _try_yaml(job_dir / ".hydra" / "overrides.yaml")
+    overrides = parse_overrides(lines) if isinstance(lines, list) else {}
     row = JobRow(num, overrides, job_dir)
     result_path = job_dir / RESULT_FILE
     if not result_path.is_file():
@@ -149,24 +176,41 @@ def expected_trials(sweep_dir: Path) -> int:
     """The number of trials a sweeper was asked for (``n_trials`` of Optuna and sweepers
     alike, read from ``multirun.yaml``); 0 when it does not say."""
     multirun = sweep_dir / "multirun.yaml"
-    config = _load_yaml(multirun) if multirun.is_file() else None
-    n_trials = ((config or {}).get("hydra", {}).get("sweeper") or {}).get("n_trials")
+    config = _try_yaml(multirun)
+    hydra_cfg = (config.get("hydra") if isinstance(config, dict) else None) or {}
+    sweeper = (hydra_cfg.get("sweeper") if isinstance(hydra_cfg, dict) else None) or {}
+    n_trials = sweeper.get("n_trials") if isinstance(sweeper, dict) else None
     return n_trials if isinstance(n_trials, int) and n_trials > 0 else 0
 
 
+def collect_all(directories: Sequence[Path]) -> list[JobRow]:
+    """The rows of every directory given, in the order given: a run directory's one row,
+    a sweep's rows in job order (:func:`collect`)."""
+    rows: list[JobRow] = []
+    for directory in directories:
+        rows += collect(directory)
+    return rows
+
+
 def collect(sweep_dir: Path) -> list[JobRow]:
-    """Every job of the sweep, in job order, with its result or failure."""
+    """Every job of the sweep, in job order, with its result or failure; a run directory
+    (one that holds ``.hydra/hydra.yaml``) is its one job."""
     if not sweep_dir.is_dir():
-        raise ReportError(f"sweep directory {sweep_dir} does not exist; pass the multirun "
-                          f"directory of a sweep, e.g. multirun/seed_table/<date-time>")
+        what = "is not a directory" if sweep_dir.exists() else "does not exist"
+        raise ReportError(f"{sweep_dir} {what}; pass the multirun directory of a sweep "
+                          f"(e.g. multirun/seed_table/<date-time>) or a run directory (the "
+                          f"one that holds .hydra/)")
+    if (sweep_dir / ".hydra" / "hydra.yaml").is_file():
+        return [read_job(sweep_dir)]
     job_dirs = sorted({p.parent.parent for p in sweep_dir.rglob(".hydra/hydra.yaml")
                        if ".submitit" not in p.parts})
     found = [read_job(d) for d in job_dirs]
     by_num = {job.num: job for job in found if job.num >= 0}
     expected = expected_trials(sweep_dir)
     if not found and not expected:
-        raise ReportError(f"{sweep_dir} holds no jobs (no <job>/.hydra/hydra.yaml, no "
-                          f"multirun.yaml); pass the directory of a multirun (-m) sweep")
+        raise ReportError(f"{sweep_dir} holds no jobs (no .hydra/hydra.yaml in it or below "
+                          f"it, no multirun.yaml); pass the directory of a multirun (-m) sweep "
+                          f"or a run directory")
     rows = list(found)
     for num in range(expected):
         if num not in by_num:
@@ -182,8 +226,8 @@ def override_columns(rows: Sequence[JobRow]) -> tuple[list[str], dict[str, str]]
         keys += [k for k in row.overrides if k not in keys]
     known = [row for row in rows if row.overrides]
     common = {k: known[0].overrides[k] for k in keys
-              if len(known) > 1 and all(r.overrides.get(k) == known[0].overrides[k]
-                                        for r in known)}
+              if len(known) > 1 and k in known[0].overrides
+              and all(r.overrides.get(k) == known[0].overrides[k] for r in known)}
     return [k for k in keys if k not in common], common
 
 
@@ -237,7 +281,7 @@ def stop_cell(row: JobRow) -> str:
     return reason if row.result.get("converged", True) else f"{reason} (not converged)"
 
 
-def markdown_table(rows: Sequence[JobRow], sweep_dir: Path) -> str:
+def markdown_table(rows: Sequence[JobRow], sweep_dirs: Sequence[Path]) -> str:
     """The report as markdown: shared overrides, the table, the Optuna best trial."""
     keys, common = override_columns(rows)
     metrics = metric_columns(rows)
@@ -249,7 +293,7 @@ def markdown_table(rows: Sequence[JobRow], sweep_dir: Path) -> str:
               "|" + "|".join(" --- " if i <= len(keys) or i == len(header) - 1 else " ---: "
                              for i in range(len(header))) + "|"]
     for row in rows:
-        cells = [str(row.num), *(_format_override(row.overrides.get(k, "?")) for k in keys)]
+        cells = [row.label.replace("|", "\\|"), *(_format_override(row.overrides.get(k, "?")) for k in keys)]
         if row.failed:
             cells += ["–"] * len(metrics)
         else:
@@ -258,8 +302,10 @@ def markdown_table(rows: Sequence[JobRow], sweep_dir: Path) -> str:
         cells.append(stop_cell(row).replace("|", "\\|"))
         lines.append("| " + " | ".join(cells) + " |")
     n_failed = sum(row.failed for row in rows)
-    lines += ["", f"{len(rows)} jobs, {n_failed} failed or unfinished."]
-    lines += [line for line in (best_validation(rows, keys), optuna_best(sweep_dir)) if line]
+    lines += ["", f"{len(rows)} job{'' if len(rows) == 1 else 's'}, {n_failed} failed or "
+                  "unfinished."]
+    lines += [line for line in (best_validation(rows, keys),
+                                *(optuna_best(d) for d in sweep_dirs)) if line]
     return "\n".join(lines) + "\n"
 
 
@@ -271,8 +317,9 @@ def best_validation(rows: Sequence[JobRow], keys: Sequence[str]) -> Optional[str
     if not scored:
         return None
     error, row = min(scored, key=lambda item: item[0])
+    job = f"job {row.num}" if row.num >= 0 else f"run {row.label}"
     settings = ", ".join(f"`{k}={_format_override(row.overrides.get(k, '?'))}`" for k in keys)
-    return (f"Lowest validation error {error:.3e}: job {row.num}"
+    return (f"Lowest validation error {error:.3e}: {job}"
             + (f" ({settings})" if settings else "")
             + f", at its iteration {row.result.get('validation_iteration')}.")
 
@@ -282,8 +329,8 @@ def optuna_best(sweep_dir: Path) -> Optional[str]:
     path = sweep_dir / "optimization_results.yaml"
     if not path.is_file():
         return None
-    data = _load_yaml(path) or {}
-    if "best_value" not in data:
+    data = _try_yaml(path)
+    if not isinstance(data, dict) or not _finite(data.get("best_value")):
         return None
     params = ", ".join(f"`{k}={_format_override(str(v))}`"
                        for k, v in (data.get("best_params") or {}).items())
@@ -301,33 +348,85 @@ def write_csv(rows: Sequence[JobRow], path: Path) -> None:
         writer.writerow(["job", *keys, *metrics, "converged", "stop_reason", "status", "directory"])
         for row in rows:
             result = row.result if (row.result is not None and not row.failed) else {}
-            writer.writerow([row.num, *(row.overrides.get(k, "") for k in keys),
+            writer.writerow([row.label, *(row.overrides.get(k, "") for k in keys),
                              *("" if result.get(m) is None else result[m] for m in metrics),
                              result.get("converged", ""), result.get("stop_reason", ""),
                              f"failed: {row.failure}" if row.failed else "ok",
                              "" if row.directory is None else str(row.directory)])
 
 
+def check_output(option: str, path: Path) -> None:
+    """Refuse an output file that cannot be written (:class:`ReportError`): a folder, a path
+    below a file, a folder without write permission. Missing folders are fine (created)."""
+    if path.is_dir():
+        raise ReportError(f"{option} {path} is a folder; name a file in it, e.g. "
+                          f"{option} {path / ('report.csv' if option == '--csv' else 'report.md')}")
+    ancestor = path.parent
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise ReportError(f"{option} {path}: {ancestor} is a file, not a folder; choose "
+                          f"another path")
+    if not os.access(ancestor, os.W_OK | os.X_OK) or (
+            path.exists() and not os.access(path, os.W_OK)):
+        raise ReportError(f"{option} {path}: no permission to write "
+                          f"{path if path.exists() else ancestor}; choose another path")
+
+
+def write_outputs(outputs: Sequence[tuple[str, Path, Callable[[Path], None]]]) -> None:
+    """Write each ``(option, path, writer)``, creating missing folders; on a failure remove
+    what was written and created, and raise :class:`ReportError` naming the option."""
+    written: list[Path] = []
+    made: list[Path] = []
+    for option, path, writer in outputs:
+        try:
+            missing = [d for d in [path.parent, *path.parent.parents] if not d.exists()]
+            for directory in reversed(missing):
+                directory.mkdir()
+                made.append(directory)
+            existed = path.exists()
+            writer(path)
+            if not existed:
+                written.append(path)
+        except OSError as e:
+            for done in written:
+                done.unlink(missing_ok=True)
+            for directory in reversed(made):
+                try:
+                    directory.rmdir()
+                except OSError:
+                    pass
+            raise ReportError(f"{option} {path}: cannot be written ({e.strerror or e}); "
+                              f"choose another path") from None
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog="Writes only --out and --csv. Documented in "
-                                            "docs/guide/sweeps.md (One table of a sweep).")
-    parser.add_argument("sweep_dir", type=Path, help="the multirun directory of one sweep")
-    parser.add_argument("--out", type=Path, help="also write the markdown table to this file")
-    parser.add_argument("--csv", type=Path, help="write the table as CSV to this file")
+                                     epilog=__doc__.split("\n\n", 1)[1] + "\nWrites only --out and "
+                                     "--csv. Documented in docs/guide/sweeps.md (One table of a sweep).",
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("directories", type=Path, nargs="+", metavar="DIR",
+                        help="the multirun directory of a sweep, or a run directory (several: "
+                             "their rows in the order given)")
+    parser.add_argument("--out", type=Path,
+                        help="also write the markdown table to this file (its folders created)")
+    parser.add_argument("--csv", type=Path,
+                        help="write the table as CSV to this file (its folders created)")
     args = parser.parse_args(argv)
     try:
-        rows = collect(args.sweep_dir)
+        outputs = [(option, path, writer) for option, path, writer in (
+            ("--out", args.out, None), ("--csv", args.csv, None)) if path is not None]
+        for option, path, _ in outputs:
+            check_output(option, path)
+        rows = collect_all(args.directories)
+        table = markdown_table(rows, args.directories)
+        write_outputs([(option, path, (lambda p: p.write_text(table, encoding="utf-8"))
+                        if option == "--out" else (lambda p: write_csv(rows, p)))
+                       for option, path, _ in outputs])
     except ReportError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    table = markdown_table(rows, args.sweep_dir)
     sys.stdout.write(table)
-    if args.out:
-        args.out.write_text(table, encoding="utf-8")
-    if args.csv:
-        write_csv(rows, args.csv)
     return 0
 
 

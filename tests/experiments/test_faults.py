@@ -252,6 +252,7 @@ def _full_disk(tmp_path: Path, reference: tuple[Path, float], size_kib: int) -> 
     if first_rc == 2:
         line = _one_error_line(first_err)
         assert "no space left" in line and f"hydra.run.dir={run_dir} resume=true" in line, line
+        assert f" while writing {run_dir}/" in line, line       # the file, not the directory
     else:       # the disk was large enough after all
         assert first_rc == 0, first_err[-2000:]
     if (out / "left").is_dir():
@@ -273,3 +274,64 @@ def test_a_full_disk_stops_the_run_in_one_line_and_the_resume_ends_where_it_woul
 @pytest.mark.parametrize("size_kib", _full_disk_sizes(5)[1:])
 def test_a_disk_full_at_more_seeded_points(tmp_path, reference, size_kib):
     _full_disk(tmp_path, reference, size_kib)
+
+
+def _on_a_small_disk(tmp_path: Path, size_kib: int, fill_kib: int = 0,
+                     again: str = "") -> tuple[int, str, Path]:
+    """The fit (spring1d, 2 iterations) into a run directory on a tmpfs of ``size_kib``
+    KiB, ``fill_kib`` of it taken first; then the space freed and the same command again.
+    Returns the first run's exit status, its stderr and the folder of what was left
+    (``left/``: the run directory after the first run, if any; ``rc2``, ``second.err`` of
+    the command again, with ``again`` added)."""
+    if not _private_mounts():
+        pytest.skip("this machine does not allow a tmpfs in a private mount namespace")
+    mount, out = tmp_path / "disk", tmp_path / "out"
+    mount.mkdir()
+    out.mkdir()
+    run_dir = mount / "run"
+    q = subprocess.list2cmdline
+    command = q([*_command(run_dir)[:3], "problem=spring1d", "problem.n=16", "solver.max_iter=2"])
+    script = "\n".join([
+        f"mount -t tmpfs -o size={size_kib}k tmpfs {mount}",
+        f"dd if=/dev/zero of={mount}/fill bs=1k count={fill_kib} 2>/dev/null" if fill_kib else "true",
+        f"{command} > {out}/first.out 2> {out}/first.err; echo $? > {out}/first.rc",
+        f"if [ -d {run_dir} ]; then cp -a {run_dir} {out}/left; fi",
+        f"rm -f {mount}/fill; mount -o remount,size=16m {mount}",
+        f"{command} {again} > {out}/second.out 2> {out}/second.err; echo $? > {out}/rc2",
+    ])
+    subprocess.run(["unshare", "-rm", "sh", "-c", script], cwd=REPO, env=_env(), check=True,
+                   timeout=600)
+    return int((out / "first.rc").read_text()), (out / "first.err").read_text(), out
+
+
+@pytest.mark.parametrize("size_kib,fill_kib,written", [(64, 64, LOCK_FILE), (8, 0, ".hydra/")])
+def test_a_disk_full_at_the_start_leaves_no_lock_and_the_next_run_proceeds(
+        tmp_path, size_kib, fill_kib, written):
+    """No room for the lock (a full disk), or for Hydra's ``.hydra/`` (8 KiB): one line
+    naming the file, no Hydra traceback, nothing left (no 0-byte lock that would block the
+    next run), and the same command runs once there is space."""
+    rc, err, out = _on_a_small_disk(tmp_path, size_kib, fill_kib=fill_kib)
+    run_dir = tmp_path / "disk" / "run"
+    line = _one_error_line(err)
+    assert rc == 2 and "no space left" in line, err
+    assert f"while writing {run_dir / written}" in line and "run the same command" in line
+    assert not (out / "left").exists(), "the run directory made for the lock is gone"
+    assert int((out / "rc2").read_text()) == 0, (out / "second.err").read_text()[-2000:]
+
+
+@pytest.mark.parametrize("size_kib", [20, 44])
+def test_a_disk_full_partway_is_one_line_naming_the_file(tmp_path, size_kib):
+    """A disk that fills during the fit (at 20 KiB as TensorBoard writes its event file's
+    header, at 44 KiB as it writes the iterations): exactly one ``error:`` line, naming a
+    file of the run directory and the resume command, no traceback (it is in fit.log)."""
+    rc, err, out = _on_a_small_disk(tmp_path, size_kib, again="resume=true")
+    run_dir = tmp_path / "disk" / "run"
+    assert rc == 2, err[-2000:]
+    line = _one_error_line(err)
+    assert "Exception in thread" not in err
+    assert f" while writing {run_dir}/" in line and f"hydra.run.dir={run_dir} resume=true" in line
+    named = line.split(" while writing ", 1)[1].split(";", 1)[0]
+    assert Path(named).parent in (run_dir, run_dir / "tb"), named
+    assert "Traceback" in (out / "left" / "fit.log").read_text()
+    assert not (out / "left" / LOCK_FILE).exists()
+    assert int((out / "rc2").read_text()) == 0, (out / "second.err").read_text()[-2000:]

@@ -16,6 +16,7 @@ import torch
 
 from helpers.capsule_animation import write_capsule
 from helpers.fit_app import REPO, run_fit_app
+from helpers.runs import tree_digest
 from torchfit.mesh.formats.folder import load_animation, write_animation
 from torchfit.problems import build_problem
 from torchfit.run import FitOptions, fit
@@ -138,6 +139,35 @@ def test_another_body_is_refused_with_one_line_and_nothing_written(fitted):
     assert len(errors) == 1 and errors[0].startswith("error: "), proc.stderr
     assert "not the fitted body" in errors[0] and "rest surface" in errors[0]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("into", ["the fit", "a simulation", "a params.pt"])
+def test_simulate_into_a_run_directory_of_a_fit_or_simulation_is_refused(fitted, tmp_path,
+                                                                          into):
+    """``hydra.run.dir=<the fitted run>`` (or a directory holding another simulation, or a
+    ``params.pt``): refused up front in one line saying to choose another
+    ``hydra.run.dir``; the directory is left byte-identical (no simulate.log, no .hydra/)."""
+    if into == "the fit":
+        target = fitted["run"]
+    else:
+        target = tmp_path / "taken"
+        (target / ".hydra").mkdir(parents=True)
+        (target / ".hydra" / "config.yaml").write_text("problem: {}\n")
+        name = "result.json" if into == "a simulation" else "params.pt"
+        (target / name).write_bytes(b'{"simulated_frames": 4}' if name == "result.json"
+                                    else b"not a checkpoint")
+    before = tree_digest(target)
+    stat = {p: p.stat().st_mtime_ns for p in target.rglob("*")}
+    proc = run_simulate_app(target, f"run={fitted['run']}")
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    errors = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(errors) == 1 and errors[0].startswith(f"error: hydra.run.dir={target.resolve()}"), \
+        proc.stderr
+    assert "choose another hydra.run.dir" in errors[0] and "problem.path" not in errors[0]
+    assert ("is the fitted run" in errors[0]) == (into == "the fit")
+    assert tree_digest(target) == before
+    assert {p: p.stat().st_mtime_ns for p in target.rglob("*")} == stat
+    assert not (target / "simulate.log").exists()
 
 
 def test_a_changed_parameterisation_is_refused(fitted):

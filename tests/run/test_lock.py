@@ -97,3 +97,60 @@ def test_the_lock_is_released_when_the_run_fails(tmp_path):
         fit(build_problem("spring1d", {"n": 8}), "gauss_newton", run_dir=tmp_path,
             callbacks=[boom], options=QUIET)
     assert not (tmp_path / LOCK_FILE).exists() and (tmp_path / "checkpoint.pt").is_file()
+
+
+# -- a full disk (issue 38) -----------------------------------------------------------------
+def test_a_lock_that_cannot_be_written_is_not_left_and_names_the_lock_file(tmp_path,
+                                                                          monkeypatch):
+    """ENOSPC as the lock's content is written (the file exists, its bytes do not fit):
+    no lock file and no directory left, the OSError names the lock, the next run takes it."""
+    import errno
+    import io
+
+    run_dir = tmp_path / "new" / "run"
+
+    class Full(io.StringIO):
+        def close(self):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    real_fdopen = os.fdopen
+    monkeypatch.setattr(os, "fdopen", lambda fd, *a, **k: (os.close(fd), Full())[1])
+    with pytest.raises(OSError) as full:
+        acquire(run_dir)
+    monkeypatch.setattr(os, "fdopen", real_fdopen)
+    assert full.value.errno == errno.ENOSPC and full.value.filename == str(run_dir / LOCK_FILE)
+    assert not (tmp_path / "new").exists(), "the directories made for the lock are gone"
+    acquire(run_dir)
+    assert (run_dir / LOCK_FILE).read_text() == f"{os.getpid()} {socket.gethostname()}\n"
+    release(run_dir)
+
+
+@pytest.mark.parametrize("content", [b"", b"1234", b"\x00\x00\x00\x00", b"not a lock\n"])
+def test_an_empty_or_torn_lock_is_stale_not_held(tmp_path, caplog, content):
+    """What a full disk left under an earlier version (a 0-byte lock) or a torn write:
+    taken over with a log line; the run proceeds."""
+    (tmp_path / LOCK_FILE).write_bytes(content)
+    with caplog.at_level(logging.WARNING, logger="torchfit.run"):
+        acquire(tmp_path)
+    try:
+        assert (tmp_path / LOCK_FILE).read_text() == f"{os.getpid()} {socket.gethostname()}\n"
+        assert any("does not say which run holds it" in r.getMessage() for r in caplog.records)
+    finally:
+        release(tmp_path)
+    assert not list(tmp_path.iterdir())
+
+
+def test_an_unreadable_lock_is_still_refused(tmp_path, monkeypatch):
+    """A lock this process may not read is not known to be stale: refused as before."""
+    (tmp_path / LOCK_FILE).write_text("1 h\n")
+    real = type(tmp_path).read_bytes
+
+    def denied(self):
+        if self.name == LOCK_FILE:
+            raise PermissionError(13, "Permission denied", str(self))
+        return real(self)
+
+    monkeypatch.setattr(type(tmp_path), "read_bytes", denied)
+    monkeypatch.setattr(type(tmp_path), "read_text", lambda self, **k: denied(self).decode())
+    with pytest.raises(RunLockedError, match="an unreadable lock"):
+        acquire(tmp_path)

@@ -201,3 +201,86 @@ def test_result_json_not_an_object_is_a_failed_row(tmp_path):
     assert rows[1][-1] == "discrepancy"
     assert rows[2][-1] == "failed: unreadable result.json (a JSON list, not an object)"
     assert rows[3][-1] == "failed: unreadable result.json (a JSON str, not an object)"
+
+
+# -- issue 38: run directories, output folders ------------------------------------------------
+def fake_run(run_dir: Path, overrides: list[str], res: dict | None) -> Path:
+    """A single run's directory as experiments/fit.py leaves it: Hydra writes ``num: ???``."""
+    (run_dir / ".hydra").mkdir(parents=True)
+    (run_dir / ".hydra" / "hydra.yaml").write_text(
+        "hydra:\n  run:\n    dir: " + str(run_dir) + "\n  job:\n    name: fit\n    num: ???\n"
+        "    id: ???\n  mode: RUN\n")
+    (run_dir / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(overrides))
+    if res is not None:
+        (run_dir / "result.json").write_text(json.dumps(res))
+    return run_dir
+
+
+def test_one_run_directory_is_a_one_row_table(tmp_path):
+    run = fake_run(tmp_path / "outputs" / "2026-12-01" / "10-00-00",
+                   ["problem=spring1d", "problem.n=16"], result(1.234e-2))
+    proc = report(run, "--csv", tmp_path / "r.csv")
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    rows = table_rows(proc.stdout)
+    assert rows[0][:3] == ["job", "problem", "n"]
+    assert len(rows) == 2 and rows[1][:3] == ["10-00-00", "spring1d", "16"]
+    assert rows[1][rows[0].index("k_err_rel_aligned")] == "1.23e-02"
+    assert rows[1][-1] == "discrepancy" and "1 job, 0 failed or unfinished." in proc.stdout
+    with open(tmp_path / "r.csv", newline="") as f:
+        assert [r["job"] for r in csv.DictReader(f)] == ["10-00-00"]
+
+
+def test_several_run_directories_in_the_order_given(tmp_path, fake_sweep):
+    first = fake_run(tmp_path / "b_first", ["solver.mu=1.0"], result(2e-2))
+    second = fake_run(tmp_path / "a_second", ["solver.mu=10.0"], None)   # killed, no result
+    proc = report(first, second, fake_sweep)
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    rows = table_rows(proc.stdout)
+    assert [r[0] for r in rows[1:]] == ["b_first", "a_second", "0", "1", "2", "3"]
+    assert rows[1][rows[0].index("mu")] == "1.0" and rows[1][-1] == "discrepancy"
+    assert rows[2][-1] == "failed: no result.json"
+    assert "6 jobs, 4 failed or unfinished." in proc.stdout
+    # one bad directory among them: one line, nothing on stdout
+    proc = report(first, tmp_path / "missing")
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.count("\n") == 1 and proc.stderr.startswith("error: ")
+    assert f"{tmp_path / 'missing'} does not exist" in proc.stderr
+
+
+def test_out_and_csv_into_folders_that_do_not_exist_are_created(fake_sweep, tmp_path):
+    out, out_csv = tmp_path / "new" / "deep" / "report.md", tmp_path / "other" / "r.csv"
+    proc = report(fake_sweep, "--out", out, "--csv", out_csv)
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    assert out.read_text() == proc.stdout
+    with open(out_csv, newline="") as f:
+        assert [r["job"] for r in csv.DictReader(f)] == ["0", "1", "2", "3"]
+
+
+@pytest.mark.parametrize("where,message", [
+    (lambda p: p, "is a folder; name a file in it"),
+    (lambda p: p / "result.json" / "report.md", "is a file, not a folder"),
+    (lambda p: p / "readonly" / "sub" / "report.md", "no permission to write"),
+])
+def test_an_output_that_cannot_be_written_is_one_line_and_nothing_written(tmp_path, where,
+                                                                          message):
+    run = fake_run(tmp_path / "run", ["problem.n=16"], result(1e-2))
+    (run / "readonly").mkdir()
+    (run / "readonly").chmod(0o500)
+    before = sorted(str(p) for p in tmp_path.rglob("*"))
+    try:
+        target = where(run)
+        if message == "no permission to write" and os.access(run / "readonly", os.W_OK):
+            pytest.skip("running as root: permissions are not enforced")
+        # a good --csv beside the bad --out: neither is written
+        proc = report(run, "--csv", tmp_path / "fine" / "r.csv", "--out", target)
+    finally:
+        (run / "readonly").chmod(0o700)
+    assert proc.returncode == 2 and proc.stdout == "", proc.stderr
+    assert proc.stderr.count("\n") == 1 and proc.stderr.startswith(f"error: --out {target}")
+    assert message in proc.stderr and "Traceback" not in proc.stderr
+    assert sorted(str(p) for p in tmp_path.rglob("*")) == before
+
+
+def test_help_says_what_it_takes():
+    proc = report("--help")
+    assert proc.returncode == 0 and "run directory" in proc.stdout and "--out" in proc.stdout

@@ -18,11 +18,12 @@ restores what an interrupted run lost, so that every step appears once.
 """
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence, TypeVar
 
 from torch import Tensor
 from torch.utils.tensorboard import SummaryWriter
@@ -86,6 +87,25 @@ def _hparams_summary_pb(tag: str, data: plugin_data_pb2.HParamsPluginData) -> su
     return summary
 
 
+_Method = TypeVar("_Method", bound=Callable[..., Any])
+
+
+def _names_its_file(method: _Method) -> _Method:
+    """An ``OSError`` without a file name from the writer (its thread's full disk, re-raised
+    at the next call) gets the event file's name: the app's one line says what was being
+    written."""
+    @functools.wraps(method)
+    def wrapper(self: "TensorBoardLogger", *args: Any, **kwargs: Any) -> Any:
+        try:
+            return method(self, *args, **kwargs)
+        except OSError as error:
+            if error.errno is None or error.filename:
+                raise
+            raise OSError(error.errno, error.strerror or str(error),
+                          str(self.event_file)) from error
+    return wrapper  # type: ignore[return-value]
+
+
 class TensorBoardLogger:
     """Callback writing one TensorBoard scalar per record entry and iteration.
 
@@ -136,7 +156,14 @@ class TensorBoardLogger:
         newest = max((p.name for p in self._old_files), default=None)
         deadline = time.monotonic() + max_wait_s
         while True:
-            writer = SummaryWriter(log_dir=str(self.logdir))
+            try:
+                writer = SummaryWriter(log_dir=str(self.logdir))
+            except OSError as error:        # a full disk as it writes the file's header
+                if error.errno is None or error.filename:
+                    raise
+                new = [f for f in event_files(self.logdir) if f not in self._old_files]
+                raise OSError(error.errno, error.strerror or str(error),
+                              str(new[-1] if new else self.logdir)) from error
             name = Path(writer._get_file_writer().event_writer._file_name).name
             if newest is None or name > newest:
                 return writer
@@ -150,6 +177,11 @@ class TensorBoardLogger:
             time.sleep(1.0 - time.time() % 1.0 + 0.01)
 
     # -- per iteration ------------------------------------------------------------------
+    @property
+    def event_file(self) -> Path:
+        """The event file this logger writes."""
+        return Path(self.writer._get_file_writer().event_writer._file_name)
+
     def step_of(self, record: IterationRecord) -> int:
         return self.step_offset + record.iteration
 
@@ -157,6 +189,7 @@ class TensorBoardLogger:
         """Whether ``step`` belongs to the iterations restored by :meth:`resume`."""
         return self.resumed_through is not None and step <= self.resumed_through
 
+    @_names_its_file
     def __call__(self, record: IterationRecord) -> None:
         if self.already_logged(self.step_of(record)):
             self._pending = None    # the checkpoint's iteration, logged by the first run
@@ -167,6 +200,7 @@ class TensorBoardLogger:
             self._pending = record
         return None
 
+    @_names_its_file
     def scalar(self, tag: str, value: float, step: int) -> bool:
         """Write one scalar (float32, see the module docstring); NaN and infinities, and a
         ``(tag, step)`` up to the resumed iteration that the event files found by
@@ -191,6 +225,7 @@ class TensorBoardLogger:
         if self._written % self.flush_every == 0:
             self.writer.flush()
 
+    @_names_its_file
     def resume(self, history_rows: Sequence[Mapping[str, Any]], last_iteration: int) -> int:
         """Continue the TensorBoard curves of an interrupted run in the same ``logdir``.
 
@@ -251,6 +286,7 @@ class TensorBoardLogger:
         self.writer.flush()
         return written
 
+    @_names_its_file
     def flush_pending(self) -> None:
         """Write the last iteration if ``log_every`` skipped it."""
         if self._pending is not None:
@@ -263,10 +299,12 @@ class TensorBoardLogger:
         return self._last_step
 
     # -- once per run ---------------------------------------------------------------------
+    @_names_its_file
     def log_config(self, text: str) -> None:
         """The resolved config (YAML) as text, shown in the Text dashboard."""
         self.writer.add_text("config", "```yaml\n" + text + "\n```", self.step_offset)
 
+    @_names_its_file
     def log_field(self, field: Tensor, truth: Tensor | None = None, name: str = "k",
                   chain: bool = False, step: int | None = None) -> None:
         """Histogram of the fitted (and true) field; for a chain, a fitted-vs-true plot."""
@@ -280,6 +318,7 @@ class TensorBoardLogger:
                                title=f"{name} per cell after {step} iterations")
             self.writer.add_figure(f"field/{name}_profile", fig, step, close=False)
 
+    @_names_its_file
     def log_hparams(self, hparams: Mapping[str, Any], metrics: Mapping[str, float]) -> None:
         """HParams session of this run: ``hparams`` (flattened config) vs final ``metrics``.
 
@@ -310,6 +349,7 @@ class TensorBoardLogger:
                                                     plugin_data_pb2.HParamsPluginData(
                                                         session_end_info=end)), step)
 
+    @_names_its_file
     def finish(self, problem: "InverseProblem", field: Tensor, metrics: Mapping[str, float],
                hparams: Mapping[str, Any] | None = None, guard: PlotGuard | None = None) -> None:
         """End of a run: pending iteration, histogram/plot of the fitted ``field``, hparams,
@@ -331,9 +371,11 @@ class TensorBoardLogger:
             return int(step)
         return self._last_step if self._last_step is not None else self.step_offset
 
+    @_names_its_file
     def flush(self) -> None:
         self.writer.flush()
 
+    @_names_its_file
     def close(self) -> None:
         if self._closed:
             return

@@ -8,7 +8,10 @@ refused at once with :class:`RunLockedError` (an ``OSError``: bad input, exit 2 
 naming the directory and the pid and host that hold it. A lock left by a process that no
 longer runs (SIGKILL, a crash of the interpreter) on this host is stale: the next run takes
 it over with a log line. A lock of another host cannot be checked and is refused; the
-message says which file to delete when no run uses it.
+message says which file to delete when no run uses it. A lock is written whole before it
+takes its name (:func:`_create`), so one that is empty or does not say ``pid host`` (left
+by a full disk, or an older version) is stale too; a lock that cannot be written (a full
+disk) is not left behind, and the ``OSError`` names the lock file.
 
 The lock is re-entrant within a process (the app holds it before Hydra writes ``.hydra/``,
 and :func:`~.fitting.fit` holds it again for the run), counted per resolved path. The
@@ -51,6 +54,20 @@ def _read(path: Path) -> tuple[int | None, str]:
         return None, "?"
 
 
+def _damaged(path: Path) -> bool:
+    """Whether the lock file can be read but does not say ``pid host`` (empty, torn or
+    garbage): left by a failure (a full disk) or an older version, never by a run that
+    holds it, since :func:`_create` puts a lock in place only once written whole."""
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        return True
+    except OSError:
+        return False        # gone, or not ours to read: not known to be stale
+    fields = text.split()
+    return not (len(fields) == 2 and fields[0].isdigit() and text.endswith("\n"))
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -66,13 +83,26 @@ def _alive(pid: int) -> bool:
 
 
 def _create(path: Path) -> bool:
-    """Create the lock file exclusively with our pid and host; ``False`` if it exists."""
+    """Create the lock file exclusively with our pid and host; ``False`` if it exists.
+
+    The content is written whole to a file of our own first, then hard-linked to the
+    lock's name (atomic, and exclusive also on NFS): a lock is never seen empty or torn. A
+    write that fails (a full disk: the ``OSError`` names the lock file) leaves nothing."""
+    own = path.with_name(f"{LOCK_FILE}.{_host()}.{os.getpid()}.{threading.get_ident()}")
     try:
-        fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        fd = os.open(own, os.O_CREAT | os.O_TRUNC | os.O_WRONLY, 0o644)
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(f"{os.getpid()} {_host()}\n")
+        os.link(own, path)
     except FileExistsError:
         return False
-    with os.fdopen(fd, "w", encoding="utf-8") as f:
-        f.write(f"{os.getpid()} {_host()}\n")
+    except OSError as error:
+        if error.errno is not None and error.filename != str(path):
+            raise OSError(error.errno, error.strerror or str(error), str(path)) from error
+        raise
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(own)
     return True
 
 
@@ -84,10 +114,14 @@ def _take_over_stale(path: Path, pid: int | None, host: str) -> bool:
         os.rename(path, aside)
     except FileNotFoundError:
         return True         # taken over and released by another run: try to create again
-    if _read(aside) == (pid, host):
+    if _read(aside) == (pid, host) and (pid is not None or _damaged(aside)):
         os.unlink(aside)
-        log.warning("run directory %s: taking over the lock of process %s on %s, which no "
-                    "longer runs", path.parent, pid, host)
+        if pid is None:
+            log.warning("run directory %s: taking over a lock that does not say which run "
+                        "holds it (empty or damaged: left by a full disk?)", path.parent)
+        else:
+            log.warning("run directory %s: taking over the lock of process %s on %s, which "
+                        "no longer runs", path.parent, pid, host)
         return True
     try:            # a live run's fresh lock: put it back
         os.link(aside, path)
@@ -115,10 +149,20 @@ def acquire(run_dir: str | Path) -> Path:
                 pass
         path = run_dir / LOCK_FILE
         for _ in range(5):
-            if _create(path):
+            try:
+                created_now = _create(path)
+            except OSError:         # a full disk: nothing left, the directories made go too
+                for directory in reversed(created):
+                    with contextlib.suppress(OSError):
+                        directory.rmdir()
+                raise
+            if created_now:
                 break
             pid, host = _read(path)
             if pid is None and not path.exists():
+                continue
+            if pid is None and _damaged(path):      # a full disk's leftover: not held
+                _take_over_stale(path, pid, host)
                 continue
             if pid is not None and host == _host() and pid != os.getpid() and not _alive(pid):
                 _take_over_stale(path, pid, host)

@@ -199,14 +199,13 @@ def simulate(run: str | Path, settings: Mapping[str, Any] | None = None,
     """
     start = time.perf_counter()
     fitted = read_fitted_run(run)
-    problem = build_fitted_body(fitted, dict(settings or {}))
-    theta = check_parameters(fitted, problem)
     run_path = None if run_dir is None else Path(run_dir).resolve()
     if run_path is not None:
+        check_run_dir(run_path, fitted.directory)
+    problem = build_fitted_body(fitted, dict(settings or {}))
+    theta = check_parameters(fitted, problem)
+    if run_path is not None:
         check_writable(run_path)
-        if (run_path / RESULT_FILE).exists():
-            raise FitConfigError(f"{run_path} already holds a result ({RESULT_FILE}); choose "
-                                 "another directory")
     if threads:
         set_threads(threads)
     if progress_lines:
@@ -232,6 +231,29 @@ def simulate(run: str | Path, settings: Mapping[str, Any] | None = None,
                                                 "settings": _plain(problem.cfg)})
             result.files.append(run_path / RESULT_FILE)
     return result
+
+
+#: files that make a directory a fit's or a simulation's: simulate never writes into one
+RUN_FILES = (RESULT_FILE, PARAMS_FILE)
+
+
+def check_run_dir(run_dir: str | Path, fitted_dir: str | Path | None = None,
+                  setting: str = "run_dir") -> None:
+    """Refuse (:class:`FitConfigError`, one line naming ``setting``) an output directory
+    that is the fitted run ``fitted_dir`` or holds a fit or a simulation (:data:`RUN_FILES`):
+    the simulation's ``result.json``, frames and logs would mix with (or replace) theirs."""
+    run_dir = Path(run_dir).expanduser().resolve()
+    fitted = None if fitted_dir is None else Path(fitted_dir).expanduser().resolve()
+    held = [name for name in RUN_FILES if (run_dir / name).exists()]
+    if fitted is not None and run_dir == fitted:
+        what = f"is the fitted run of run={fitted}"
+    elif held:
+        what = f"already holds a fit or a simulation ({', '.join(held)})"
+    else:
+        return
+    raise FitConfigError(f"{setting}={run_dir} {what}: a simulation writes its own "
+                         f"{RESULT_FILE}, frames and logs; choose another {setting} (a new or "
+                         f"empty directory), nothing was written")
 
 
 def build_fitted_body(fitted: FittedRun, overrides: dict[str, Any]) -> RiggedBody:

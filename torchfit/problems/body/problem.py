@@ -160,6 +160,8 @@ class RiggedBody(InverseProblem):
             where, message = Path(cfg.path).expanduser().absolute(), str(err)
             if message.startswith(f"{where} "):             # the sniffed file types' lines
                 message = message[len(str(where)) + 1:]
+            elif message.startswith(f"{where}: "):          # a reader's line on the file itself
+                message = message[len(str(where)) + 2:]
             raise ProblemConfigError(f"problem.path={where}: {message}") from err
 
     def build_model(self, cfg: RiggedBodyConfig) -> None:

@@ -84,3 +84,49 @@ def test_a_missing_extra_names_it(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "pygltflib", None)
     with pytest.raises(AnimationError, match=r"optional extra 'gltf'.*torchfit\[gltf\]"):
         load_gltf(tmp_path / "any.glb")
+
+
+def save_with_bin(gltf, path, bin_name: str = "tube.bin"):
+    """A ``.gltf`` whose buffer 0 is the file ``bin_name`` beside it (its uri
+    percent-encoded, as exporters write it)."""
+    from urllib.parse import quote
+
+    (path.parent / bin_name).write_bytes(gltf.binary_blob())
+    gltf.buffers[0].uri = quote(bin_name)
+    gltf.destroy_binary_blob()
+    gltf.save_json(str(path))
+    return path
+
+
+def test_an_external_bin_is_read_and_a_missing_one_is_one_line(tmp_path, monkeypatch):
+    from torchfit.mesh import read_animation
+
+    gltf, data = gltf_tube()
+    path = save_with_bin(gltf, tmp_path / "tube.gltf", "my tube.bin")
+    assert np.abs(read_animation(path).frames - expected_gltf_frames(
+        data, np.array([0.0, 0.5, 1.0]))).max() < 1e-7
+    (tmp_path / "my tube.bin").unlink()
+    monkeypatch.chdir(tmp_path)             # a relative problem.path: the line is absolute
+    with pytest.raises(AnimationError) as info:
+        read_animation("tube.gltf")
+    assert str(info.value) == (
+        f"{path}: its buffer 0 names my%20tube.bin, which is not there "
+        f"({tmp_path / 'my tube.bin'}); keep the .bin beside the .gltf or export a .glb "
+        "(one file)")
+
+
+def test_the_fit_app_names_the_setting_and_the_missing_bin(tmp_path):
+    from helpers.fit_app import run_fit_app
+
+    gltf, _ = gltf_tube()
+    path = save_with_bin(gltf, tmp_path / "tube.gltf")
+    (tmp_path / "tube.bin").unlink()
+    run = tmp_path / "run"
+    proc = run_fit_app(run, "problem=animation", f"problem.path={path}",
+                       f"problem.cache_dir={tmp_path / 'cache'}")
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert errors == [f"error: problem.path={path}: its buffer 0 names tube.bin, which is not "
+                      f"there ({tmp_path / 'tube.bin'}); keep the .bin beside the .gltf or "
+                      "export a .glb (one file)"]
+    assert not run.exists()

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 from pathlib import Path
 from typing import Any
+from urllib.parse import unquote
 
 import numpy as np
 
@@ -72,13 +73,30 @@ class _File:
         if index not in self._buffers:
             uri = self.gltf.buffers[index].uri
             if uri and not uri.startswith("data:"):
-                data = (self.path.parent / uri).read_bytes()
+                data = self._external(index, uri)
             else:
                 data = self.gltf.get_data_from_buffer_uri(uri)
             if data is None:
                 raise AnimationError(f"{self.path}: buffer {index} has no data")
             self._buffers[index] = data
         return self._buffers[index]
+
+    def _external(self, index: int, uri: str) -> bytes:
+        """The bytes of buffer ``index`` kept in a file beside the ``.gltf`` (``uri``
+        relative to it, percent-encoded or not); a missing or unreadable file is one line
+        naming the buffer, its uri and the path tried."""
+        gltf = self.path.absolute()
+        tried = gltf.parent / unquote(uri)
+        if not tried.exists() and (gltf.parent / uri).exists():
+            tried = gltf.parent / uri           # a file name that holds a literal '%'
+        try:
+            return tried.read_bytes()
+        except FileNotFoundError:
+            why = "which is not there"
+        except OSError as err:
+            why = f"which cannot be read ({err.strerror or err})"
+        raise AnimationError(f"{gltf}: its buffer {index} names {uri}, {why} ({tried}); keep "
+                             f"the .bin beside the .gltf or export a .glb (one file)")
 
     def accessor(self, index: int, normalized: bool = False) -> np.ndarray:
         """Accessor ``index`` as ``(count, width)`` (float64 for floats and normalised
