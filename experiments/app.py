@@ -16,6 +16,8 @@ Exit statuses of ``experiments/fit.py``, ``experiments/verify.py`` and
   but are invalid fail only their own job (``result.json`` says ``failed``); a sweep whose
   job directory name would exceed 255 bytes is refused naming the override that makes it
   long; a refused sweep leaves no ``multirun.yaml`` behind;
+* 3 (the fit app under torchrun): another rank stopped answering (killed, or its machine
+  went away): one line from rank 0 naming it and the command that resumes the run;
 * 130: interrupted (Ctrl-C); 143: terminated (SIGTERM, what a scheduler sends): both with
   the hint to resume.
 
@@ -47,6 +49,8 @@ from torchfit.errors import ConfigurationError
 
 #: Exceptions that mean "the input is wrong" (exit 2, one line, nothing left behind).
 BAD_INPUT = (ConfigurationError, OmegaConfBaseException, OSError)
+#: exit status of a torchrun job whose other rank stopped answering (the run resumable)
+RANK_LOST = 3
 
 
 def one_line(error: BaseException | str) -> str:

@@ -10,8 +10,9 @@
 
 The run directory's files are those of :mod:`torchfit.run` plus Hydra's ``.hydra/`` and
 ``fit.log`` (which has the progress table). Exit statuses: :mod:`app` (0 done, 1 the fit
-failed, 2 bad input or the directory in use by another run, and nothing written, 130
-interrupted, 143 terminated). In a multirun (``-m``) a job that fails writes
+failed, 2 bad input or the directory in use by another run, and nothing written, 3 under
+torchrun: another rank stopped answering, the run resumable, 130 interrupted, 143
+terminated). In a multirun (``-m``) a job that fails writes
 ``result.json`` with ``"status": "failed"`` and its ``error`` line, and returns ``+inf``
 (what a sweeper minimises is ``objective_metric``; Optuna aborts a study on NaN), so that
 the other jobs run.
@@ -21,11 +22,13 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import os
 import shlex
+import signal
 import sys
 import traceback
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:       # this checkout's experiments/ (and torchfit), installed or not
@@ -36,8 +39,9 @@ from experiments.cli import FIT_HELP, command_line  # noqa: E402
 if __name__ == "__main__":      # help, unreadable overrides, paths: before the heavy imports
     sys.argv[1:] = command_line(sys.argv[1:], FIT_HELP)
 
-from experiments.app import (BAD_INPUT, RunDirGuard, Terminated, checked_config, no_space,
-                             no_space_line, one_line, refuse, results_line, run_hydra_app)
+from experiments.app import (  # noqa: E402
+    BAD_INPUT, RANK_LOST, RunDirGuard, Terminated, checked_config, no_space, no_space_line,
+    one_line, refuse, results_line, run_hydra_app)
 
 import hydra  # noqa: E402
 import matplotlib  # noqa: E402
@@ -81,11 +85,65 @@ def prepare(cfg: DictConfig, run_dir: Path | None = None
 
 
 def resume_command(run_dir: Path) -> str:
-    """The command that continues the run in ``run_dir``."""
-    launcher = f"torchrun --nproc_per_node={distributed.world_size()}" if distributed.launched() \
-        else "python"
-    return f"{launcher} experiments/fit.py {shlex.quote(f'hydra.run.dir={run_dir}')} resume=true " \
+    """The command that continues the run in ``run_dir`` (under torchrun: this job's launch
+    and overrides, :func:`torchrun_resume_command`)."""
+    if distributed.launched():
+        return torchrun_resume_command(run_dir, sys.argv[1:])
+    return f"python experiments/fit.py {shlex.quote(f'hydra.run.dir={run_dir}')} resume=true " \
            "(and the same overrides)"
+
+
+def torchrun_resume_command(run_dir: Path, argv: list[str]) -> str:
+    """``torchrun ... experiments/fit.py hydra.run.dir=<run_dir> <argv's overrides>
+    resume=true``: the launch from torchrun's environment (one node: ``--standalone
+    --nproc_per_node=<ranks>``; several: their count and a reminder of the rendezvous
+    options, which the ranks do not see), or the one ``experiments/launch.py`` names
+    (``TORCHFIT_LAUNCH``); each override shell-quoted."""
+    nodes = int(os.environ.get("GROUP_WORLD_SIZE", "1"))
+    per_node = int(os.environ.get("LOCAL_WORLD_SIZE", str(distributed.world_size())))
+    launch = f"torchrun --standalone --nproc_per_node={per_node} experiments/fit.py" \
+        if nodes == 1 else f"torchrun --nnodes={nodes} --nproc_per_node={per_node} <the same " \
+                           "rendezvous options> experiments/fit.py"
+    launch = os.environ.get("TORCHFIT_LAUNCH") or launch
+    kept = [a for a in argv if not a.startswith(("hydra.run.dir=", "resume=", "+resume=",
+                                                 "++resume="))]
+    words = [f"hydra.run.dir={run_dir}", *kept, "resume=true"]
+    return f"{launch} {' '.join(shlex.quote(w) for w in words)}"
+
+
+def rank_lost(who: str, run_dir: Path) -> NoReturn:
+    """Rank 0 once ``who`` (``"rank 1 of 2"``) stopped answering: one line naming it, the
+    iteration and the resume command; the traceback to ``fit.log`` only; exit 3. Nothing is
+    lost: the checkpoint of the last finished iteration is written atomically. torchrun's
+    SIGTERM (it follows a worker's death within its monitor interval) is ignored from here."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    distributed.abandon()
+    _log_to_file(f"{who} stopped answering:\n{traceback.format_exc()}")
+    print(f"error: {who} stopped answering (killed, or its machine went away) "
+          f"{_when(run_dir)}; nothing of the run is lost: continue with: "
+          f"{resume_command(run_dir)}", file=sys.stderr, flush=True)
+    sys.exit(RANK_LOST)
+
+
+def _when(run_dir: Path) -> str:
+    """``during iteration N``: the one after the checkpoint's."""
+    import torch
+
+    try:
+        payload = torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=True)
+        iteration, finished = int(payload["iteration"]), bool(payload.get("finished"))
+    except Exception:  # noqa: BLE001  (none yet)
+        return "before the first iteration ended"
+    return "after the fit, while writing its outputs" if finished else \
+        f"during iteration {iteration + 1}"
+
+
+def _log_to_file(message: str) -> None:
+    """``message`` to the job's log files (Hydra's ``fit.log``), not to the console."""
+    record = log.makeRecord(log.name, logging.ERROR, __file__, 0, message, None, None)
+    for handler in logging.getLogger().handlers:
+        if isinstance(handler, logging.FileHandler):
+            handler.handle(record)
 
 
 @hydra.main(config_path="../conf", config_name="fit", version_base="1.3")
@@ -115,10 +173,18 @@ def main(cfg: DictConfig) -> float:
                          options=options, config=config, init=config["init"])
     except KeyboardInterrupt as interrupt:     # Ctrl-C, or SIGTERM (app.Terminated)
         terminated = isinstance(interrupt, Terminated)
+        lost = distributed.stopped_answering(None) if terminated else None
+        if lost is not None:        # torchrun stops rank 0 because another rank died
+            rank_lost(lost, run_dir)
         print(f"{'terminated (SIGTERM)' if terminated else 'interrupted'}; continue with: "
               f"{resume_command(run_dir)}", file=sys.stderr, flush=True)
         sys.exit(143 if terminated else 130)
     except Exception as error:  # noqa: BLE001  (reported as one line; the log has the rest)
+        if distributed.launched() and distributed.communication_failure(error):
+            # a collective lost its peer; torchrun's SIGTERM follows within its monitor
+            # interval (0.1 s): ignored while rank 0 finds which rank is gone and says so
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+            rank_lost(distributed.stopped_answering(error) or "a rank", run_dir)
         if no_space(error) and not multirun:
             # a fault, not bad input: what the run wrote stays (checkpoint, history) and the
             # same command with resume=true continues it once there is space

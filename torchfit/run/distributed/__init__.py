@@ -4,6 +4,8 @@ Rank 0 runs the fit; every other rank builds the same problem and serves the sim
 its poses (:mod:`.ranks`); the collectives (:mod:`.channel`), the Jacobian rows kept on
 their ranks (:mod:`.rows`) and the matrix-free path through autograd (:mod:`.graph`).
 """
-from .ranks import check_resume, launched, lead, rank, serve, stop, world_size
+from .ranks import (abandon, check_resume, communication_failure, launched, lead, rank, serve,
+                    stop, stopped_answering, world_size)
 
-__all__ = ["check_resume", "launched", "lead", "rank", "serve", "stop", "world_size"]
+__all__ = ["abandon", "check_resume", "communication_failure", "launched", "lead", "rank",
+           "serve", "stop", "stopped_answering", "world_size"]

@@ -28,9 +28,10 @@ job's).
 
 Checkpoints: rank 0's ``checkpoint.pt`` holds every rank's warm-start state (gathered,
 ``{"world_size", "blocks", "ranks"}``), scattered back on a resume; a resume must use the
-same number of processes (:func:`check_resume`). A worker that dies ends the job (torchrun
-stops the others; rank 0 reports which rank failed where it can) and ``resume=true``
-continues from the last checkpoint. Collectives time out after
+same number of processes (:func:`check_resume`). A worker that dies ends the job: rank 0
+tells a lost rank (:func:`stopped_answering`: a broken connection, a collective's timeout, or
+a worker process of this host gone when torchrun sends rank 0 its SIGTERM) from other
+failures, and ``resume=true`` continues from the last checkpoint. Collectives time out after
 ``TORCHFIT_DISTRIBUTED_TIMEOUT`` seconds (default 1800: a worker waits while rank 0 writes
 pictures or simulates the model comparison alone).
 
@@ -46,7 +47,11 @@ import contextlib
 import datetime
 import logging
 import os
+import re
+import signal
+import socket
 import sys
+import time
 import warnings
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -66,6 +71,13 @@ from ..options import FitConfigError
 #: solvers that run distributed (dense Jacobian or matrix-free)
 SOLVERS = ("levenberg_marquardt", "gauss_newton")
 _SHARED = False     # rank 0 has handed the settings to the workers (they serve commands)
+#: rank 0's: every rank's process ``(host, pid, start time)`` (:func:`identity`), from lead
+_PEERS: tuple[Any, ...] = ()
+#: what a collective raises when a peer's connection broke or it never answered (gloo)
+_LOST = re.compile(r"connection (reset|closed|refused)|closed by peer|broken pipe|timed out|"
+                   r"timeout|socket closed|end of file|ECONNRESET|EPIPE", re.IGNORECASE)
+
+
 def rank() -> int:
     """This process's rank under torchrun (0 outside it)."""
     return int(os.environ.get("RANK", "0"))
@@ -362,7 +374,7 @@ def split_frames(problem: PosedProblem) -> FrameSplit:
 def lead(problem: Any, config: dict[str, Any], multirun: bool = False) -> None:
     """Rank 0, after the settings are read: refuse what does not run distributed (one
     line), hand the settings to the workers and split the frames."""
-    global _SHARED
+    global _SHARED, _PEERS
     start_group()
     if multirun:
         raise FitConfigError("a sweep (-m) does not run under torchrun; launch one torchrun "
@@ -370,6 +382,9 @@ def lead(problem: Any, config: dict[str, Any], multirun: bool = False) -> None:
     check_supported(problem, config, dist.get_world_size())
     dist.broadcast_object_list([config], src=0)
     _SHARED = True
+    peers: list[Any] = [None] * dist.get_world_size()
+    dist.gather_object(identity(), peers, dst=0)        # to tell a rank that died
+    _PEERS = tuple(peers)
     digests: list[Any] = [None] * dist.get_world_size()
     dist.gather_object(problem.input_digests(), digests, dst=0)
     check_same_inputs(problem.input_digests(), digests)
@@ -377,6 +392,82 @@ def lead(problem: Any, config: dict[str, Any], multirun: bool = False) -> None:
     solver = config.get("solver", {})
     split.matrix_free = not 0 < int(problem.parameterization.n_params) <= \
         int(solver.get("dense_jacobian_max_params", 0))
+
+
+def identity() -> tuple[str, int, str]:
+    """This process: ``(host, pid, start time)`` (the start time in clock ticks after boot,
+    from ``/proc``; ``''`` where there is none), so that a reused pid is not taken for it."""
+    return socket.gethostname(), os.getpid(), _start_time(os.getpid()) or ""
+
+
+def _start_time(pid: int) -> str | None:
+    """The start time of process ``pid`` (``/proc/<pid>/stat`` field 22), ``None`` if it is
+    gone or a zombie (killed, not yet reaped by torchrun)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat[stat.rindex(")") + 2:].split()      # after the command name
+    return None if fields[0] in ("Z", "X") else fields[19]
+
+
+def _gone(peer: Any) -> bool:
+    """Whether a rank's process (:func:`identity`) is known to be gone: only a process of
+    this host can be looked at; one elsewhere counts as running."""
+    host, pid, started = peer
+    if host != socket.gethostname():
+        return False
+    if not Path("/proc/self/stat").exists():       # no /proc: the pid alone
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        except OSError:
+            pass
+        return False
+    now = _start_time(pid)
+    return now is None or bool(started) and now != started
+
+
+def communication_failure(error: BaseException) -> bool:
+    """Whether ``error`` (or what it was raised from) is a collective that lost its peer: a
+    connection reset or closed, a broken pipe, a timeout (gloo raises ``RuntimeError`` or
+    ``torch.distributed.DistError`` with these words)."""
+    while error is not None:
+        if isinstance(error, RuntimeError) and _LOST.search(str(error)):
+            return True
+        error = error.__cause__ or error.__context__
+    return False
+
+
+def stopped_answering(error: BaseException | None, wait: float = 1.0) -> str | None:
+    """Rank 0: ``"rank k of W"`` (or ``"a rank of W"`` where it cannot tell which) when the
+    run ended because a worker stopped answering, else ``None``.
+
+    ``error`` is what the fit raised: a :func:`communication_failure` is a lost rank (the
+    rank whose process of this host is gone, waiting up to ``wait`` s for the kernel to
+    mark it; with 2 ranks it is rank 1). ``None`` stands for torchrun's SIGTERM: it is a
+    lost rank only where a worker's process of this host is already gone (torchrun stops
+    rank 0 once another rank died; a job cancelled as a whole signals every rank, and the
+    workers outlive rank 0: :func:`serve` ignores SIGTERM)."""
+    size = world_size()
+    if size < 2 or rank() != 0:
+        return None
+    peers = list(enumerate(_PEERS))[1:]
+    lost = error is not None and communication_failure(error)
+    if error is not None and not lost:
+        return None
+    deadline = time.monotonic() + (wait if lost else 0.0)
+    while True:
+        gone = [r for r, peer in peers if peer is not None and _gone(peer)]
+        if gone:
+            return f"rank {gone[0]} of {size}"
+        if time.monotonic() >= deadline:
+            break
+        time.sleep(0.05)
+    if not lost:
+        return None
+    return f"rank 1 of {size}" if size == 2 else f"a rank of {size}"
 
 
 def check_same_inputs(mine: dict[str, str], ranks: list[Any]) -> None:
@@ -394,16 +485,30 @@ def check_same_inputs(mine: dict[str, str], ranks: list[Any]) -> None:
                              "mesh.npz is readable by every rank)")
 
 
+def abandon() -> None:
+    """Rank 0, once a rank stopped answering: :func:`stop` sends nothing and leaves the
+    group as it is (a collective with a lost peer fails or waits; torchrun ends the others,
+    which leave quietly after its SIGTERM)."""
+    global _ABANDONED
+    _ABANDONED = True
+
+
+_ABANDONED = False
+
+
 def stop() -> None:
     """Rank 0 at the end of the run, whatever the end (a refusal, a failure): the workers
     leave :func:`serve`."""
     global _SHARED
+    if _ABANDONED:
+        return
     try:
         start_group()
-        if _SHARED and not exchanging():
-            Channel([[]]).command(STOP)
-        else:
+        if not _SHARED:                 # the workers wait for the settings
             dist.broadcast_object_list([None], src=0)
+        elif not exchanging():          # they wait for a command (in an exchange: nothing
+            Channel([[]]).command(STOP)     # they would understand; they leave once rank 0
+                                            # has gone, after SIGTERM quietly)
     except Exception:  # noqa: BLE001  (a worker already gone: torchrun reports it)
         pass
     _SHARED = False
@@ -426,14 +531,25 @@ def serve(build: Callable[[dict[str, Any]], Any]) -> int:
     if config is None:          # rank 0 refused the settings or stopped before the fit
         dist.destroy_process_group()
         return 0
+    # a cancelled job signals every rank: the workers outlive rank 0, which tells this from
+    # a worker that died (:func:`stopped_answering`), says so and stops them
+    signal.signal(signal.SIGTERM, _note_terminated)
     try:
-        problem = build(config)
-    except Exception as err:  # noqa: BLE001
-        print(f"error: rank {rank}: building the problem failed: {err}", file=sys.stderr,
-              flush=True)
-        return 1
-    dist.gather_object(problem.input_digests(), dst=0)       # rank 0 compares them
-    split = split_frames(problem)
+        dist.gather_object(identity(), dst=0)
+        try:
+            problem = build(config)
+        except Exception as err:  # noqa: BLE001
+            if _TERMINATED:
+                return 143
+            print(f"error: rank {rank}: building the problem failed: {err}", file=sys.stderr,
+                  flush=True)
+            return 1
+        dist.gather_object(problem.input_digests(), dst=0)       # rank 0 compares them
+        split = split_frames(problem)
+    except Exception:  # noqa: BLE001  (rank 0 gone after SIGTERM: it said so)
+        if _TERMINATED:
+            return 143
+        raise
     channel = split.channel
     blocks: list[contextlib.ExitStack] = []
     while True:
@@ -441,6 +557,8 @@ def serve(build: Callable[[dict[str, Any]], Any]) -> int:
             header = channel.command(0)
             code = header[0]
         except Exception as err:  # noqa: BLE001  (rank 0 gone)
+            if _TERMINATED:     # the job was cancelled: rank 0 said so
+                return 143
             print(f"error: rank {rank}: rank 0 stopped answering ({str(err).splitlines()[0]})",
                   file=sys.stderr, flush=True)
             return 1
@@ -450,9 +568,19 @@ def serve(build: Callable[[dict[str, Any]], Any]) -> int:
         try:
             _answer(header, split, blocks)
         except Exception as err:  # noqa: BLE001
+            if _TERMINATED:
+                return 143
             print(f"error: rank {rank}: {str(err).splitlines()[0] if str(err) else err!r}",
                   file=sys.stderr, flush=True)
             return 1
+
+
+_TERMINATED = False     # a worker's: SIGTERM came (the whole job is being stopped)
+
+
+def _note_terminated(signum: int, frame: Any) -> None:
+    global _TERMINATED
+    _TERMINATED = True
 
 
 def _answer(header: list[int], split: FrameSplit, blocks: list[contextlib.ExitStack]) -> None:

@@ -1,0 +1,189 @@
+"""A torchrun rank that stops answering, and refusals under torchrun: one line from rank 0.
+
+Rank 0 tells a lost rank (a collective's broken connection, or torchrun's SIGTERM once a
+worker of this host is gone) from other failures and prints one ``error:`` line naming it
+and the command that resumes the run (exit 3); ``experiments/launch.py`` runs torchrun and
+ends a job that rank 0 reported with rank 0's status, without torchrun's summary."""
+from __future__ import annotations
+
+import json
+import os
+import re
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from helpers.capsule_animation import write_capsule
+from helpers.fit_app import REPO
+from torchfit.run.distributed import ranks
+
+TORCHRUN = Path(sys.executable).with_name("torchrun")
+GLOO = ("[/__w/pytorch/pytorch/third_party/gloo/gloo/transport/tcp/pair.cc:537] Read error "
+        "[127.0.0.1]:36739: Connection reset by peer. This is typically caused by a remote "
+        "worker hanging or bugs in the application.")
+
+
+def test_a_lost_peer_is_told_from_other_failures(monkeypatch):
+    assert ranks.communication_failure(RuntimeError(GLOO))
+    try:
+        try:
+            raise RuntimeError("[..] Timed out waiting 1800000ms for recv operation")
+        except RuntimeError as inner:
+            raise ValueError("wrapped") from inner
+    except ValueError as outer:
+        assert ranks.communication_failure(outer)
+    assert not ranks.communication_failure(RuntimeError("rank 1 of 2 failed (its error line "
+                                                        "is above)"))
+    assert not ranks.communication_failure(ValueError("connection reset"))   # not a collective
+    monkeypatch.setenv("RANK", "0")
+    monkeypatch.setenv("WORLD_SIZE", "3")
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    me, alive = ranks.identity(), ranks.identity()[:1] + (child.pid, ranks._start_time(child.pid))
+    monkeypatch.setattr(ranks, "_PEERS", [me, me, alive])
+    assert ranks.stopped_answering(None) is None        # SIGTERM, every worker running
+    assert ranks.stopped_answering(RuntimeError(GLOO), wait=0.1) == "a rank of 3"
+    assert ranks.stopped_answering(ValueError("bad")) is None
+    child.kill()
+    child.wait()
+    assert ranks.stopped_answering(None) == "rank 2 of 3"
+    assert ranks.stopped_answering(RuntimeError(GLOO)) == "rank 2 of 3"
+    monkeypatch.setattr(ranks, "_PEERS", [me, me, (me[0], me[1], "1")])   # a reused pid
+    assert ranks.stopped_answering(None) == "rank 2 of 3"
+
+
+def _settings(tmp_path: Path) -> list[str]:
+    folder = write_capsule(tmp_path / "capsule", "skeleton", "npz")
+    return ["problem=animation", f"problem.path={folder}",
+            f"problem.cache_dir={tmp_path / 'cache'}", "problem.tet_edge_length=0.12",
+            "problem.grid=[2,2,3]", "solver=levenberg_marquardt", "threads=1",
+            "solver.max_iter=4"]
+
+
+def _env() -> dict[str, str]:
+    return {k: v for k, v in os.environ.items() if k not in ("HYDRA_FULL_ERROR",
+                                                             "TORCHFIT_LAUNCH")}
+
+
+def _rank_pid(run_dir: Path, rank: int) -> int | None:
+    """The pid of the fit's process of ``rank`` (its environment and command line)."""
+    for proc in Path("/proc").iterdir():
+        try:
+            environ = (proc / "environ").read_bytes().split(b"\0")
+            cmdline = (proc / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if f"RANK={rank}".encode() in environ and f"hydra.run.dir={run_dir}".encode() in cmdline:
+            return int(proc.name)
+    return None
+
+
+def _theta(run: Path) -> torch.Tensor:
+    return torch.load(run / "params.pt", weights_only=False)["theta"]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds rank 1 in /proc")
+def test_rank_1_killed_mid_fit_is_one_line_with_the_resume_command(tmp_path):
+    """SIGKILL of rank 1 once iteration 1 is logged: rank 0 prints one ``error:`` line (rank
+    1 of 2, the iteration, the resume command), no traceback (it is in fit.log), exits 3;
+    the printed command resumes the run to the uninterrupted 2-rank run's theta bit for
+    bit."""
+    settings = _settings(tmp_path)
+    full = subprocess.run([str(TORCHRUN), "--standalone", "--nproc_per_node=2",
+                           "experiments/fit.py", f"hydra.run.dir={tmp_path / 'full'}",
+                           *settings], cwd=REPO, env=_env(), capture_output=True, text=True,
+                          timeout=600)
+    assert full.returncode == 0, full.stderr[-3000:]
+    run = tmp_path / "killed"
+    proc = subprocess.Popen([str(TORCHRUN), "--standalone", "--nproc_per_node=2",
+                             "experiments/fit.py", f"hydra.run.dir={run}", *settings],
+                            cwd=REPO, env=_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    killed = False
+    deadline = time.monotonic() + 300
+    while proc.poll() is None and time.monotonic() < deadline and not killed:
+        log = run / "fit.log"
+        if log.is_file() and re.search(r"progress\]\[INFO\] - +1 ", log.read_text()):
+            pid = _rank_pid(run, 1)
+            assert pid is not None
+            os.kill(pid, signal.SIGKILL)
+            killed = True
+        time.sleep(0.02)
+    out, err = proc.communicate(timeout=300)
+    assert killed, err[-3000:]
+    assert proc.returncode == 1         # torchrun's, for any failed rank
+    lines = [line for line in err.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1, err[-3000:]
+    match = re.fullmatch(r"error: rank 1 of 2 stopped answering \(killed, or its machine went "
+                         r"away\) during iteration (\d+); nothing of the run is lost: continue "
+                         r"with: (torchrun --standalone --nproc_per_node=2 experiments/fit\.py "
+                         r"hydra\.run\.dir=\S+ .* resume=true)", lines[0])
+    assert match, lines[0]
+    assert re.search(r"rank +: 0 \(local_rank: 0\)\n +exitcode +: 3 ", err)   # rank 0's status
+    assert "Traceback" not in out and "Connection reset" not in out + err
+    assert err.count("Traceback") == 1      # torchrun's own, before its summary
+    assert "stopped answering:\nTraceback" in (run / "fit.log").read_text()
+    command = shlex.split(match.group(2))
+    assert command[:4] == ["torchrun", "--standalone", "--nproc_per_node=2",
+                           "experiments/fit.py"]
+    assert command[4:] == [f"hydra.run.dir={run}", *settings, "resume=true"]
+    resumed = subprocess.run([str(TORCHRUN), *command[1:]], cwd=REPO, env=_env(),
+                             capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    result = json.loads((run / "result.json").read_text())
+    assert result["resumed_from_iteration"] == int(match.group(1)) - 1
+    assert torch.equal(_theta(tmp_path / "full"), _theta(run))
+
+
+@pytest.mark.slow
+def test_refusals_under_the_launcher_are_one_line_and_exit_2(tmp_path):
+    """``experiments/launch.py`` (what ``scripts/fit.sh --nproc_per_node=2`` runs): a problem
+    that does not run distributed and a resume of a checkpoint written by 1 process are
+    each exactly one line on standard error, exit 2, the directory as it was; raw torchrun
+    gives the same first line, then its summary (rank 0's ``exitcode: 2``) and exit 1."""
+    launch = [sys.executable, "experiments/launch.py", "--standalone", "--nproc_per_node=2"]
+    refused = subprocess.run([*launch, f"hydra.run.dir={tmp_path / 'chain'}",
+                              "problem=spring1d", "threads=1"], cwd=REPO, env=_env(),
+                             capture_output=True, text=True, timeout=300)
+    assert refused.returncode == 2, refused.stderr[-3000:]
+    assert refused.stderr.splitlines() == [
+        "error: problem spring1d / solver gauss_newton does not run distributed yet "
+        "(torchrun runs a quasistatic rigged body with levenberg_marquardt or gauss_newton); "
+        "run it as one process"]
+    assert not (tmp_path / "chain").exists()
+
+    run = tmp_path / "one"          # an earlier run's directory, its checkpoint 1 process's
+    (run / ".hydra").mkdir(parents=True)
+    for name in ("config.yaml", "hydra.yaml", "overrides.yaml"):     # what Hydra writes
+        (run / ".hydra" / name).write_text(f"# the earlier run's {name}\n")
+    (run / "fit.log").write_text("the earlier run's log\n")
+    torch.save({"simulation_state": {"anchor": 0}}, run / "checkpoint.pt")
+
+    def contents() -> dict[str, bytes]:
+        return {str(p.relative_to(run)): p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    before = contents()
+    settings = [f"hydra.run.dir={run}", *_settings(tmp_path), "resume=true"]
+    resumed = subprocess.run([*launch, *settings], cwd=REPO, env=_env(), capture_output=True,
+                             text=True, timeout=300)
+    assert resumed.returncode == 2, resumed.stderr[-3000:]
+    assert resumed.stderr.splitlines() == [
+        f"error: cannot resume: {run / 'checkpoint.pt'} was written by 1 process(es), this run "
+        "has 2; resume with torchrun --nproc_per_node=1 (or as one process)"]
+    assert contents() == before
+
+    raw = subprocess.run([str(TORCHRUN), "--standalone", "--nproc_per_node=2",
+                          "experiments/fit.py", *settings], cwd=REPO,
+                         env={**_env(), "OMP_NUM_THREADS": "1"}, capture_output=True,
+                         text=True, timeout=300)
+    assert raw.returncode == 1                  # torchrun's status for any failed rank
+    first = raw.stderr.splitlines()[0]
+    assert first == resumed.stderr.splitlines()[0]
+    assert [line for line in raw.stderr.splitlines() if line.startswith("error:")] == [first]
+    assert re.search(r"rank +: 0 \(local_rank: 0\)\n +exitcode +: 2 ", raw.stderr)
+    assert contents() == before
