@@ -1,0 +1,34 @@
+"""A resume from a checkpoint holding a NaN (issue 38) is refused by the app before it writes
+anything: exit 2, one ``error:`` line naming the file and the entry, every file of the run
+directory byte-identical (``.hydra/``, ``fit.log``), no new TensorBoard event file."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from helpers.fit_app import run_fit_app
+from helpers.runs import tree_digest
+
+
+@pytest.mark.slow       # two app runs (~21 s)
+def test_the_app_refuses_a_resume_from_a_checkpoint_with_nan_and_writes_nothing(tmp_path):
+    run_dir = tmp_path / "run"
+    done = run_fit_app(run_dir, "problem=spring1d", "solver.max_iter=2")
+    assert done.returncode == 0, done.stderr[-3000:]
+    payload = torch.load(run_dir / "checkpoint.pt", weights_only=True)
+    payload["theta"][5] = float("nan")              # as the probe damaged it
+    payload["solver_state"]["theta"][5] = float("nan")
+    torch.save(payload, run_dir / "checkpoint.pt")
+    before = tree_digest(run_dir)
+    entries = sorted(str(p.relative_to(run_dir)) for p in run_dir.rglob("*"))
+    resumed = run_fit_app(run_dir, "problem=spring1d", "solver.max_iter=4", "resume=true")
+    errors = [line for line in resumed.stderr.splitlines() if line.startswith("error: ")]
+    assert resumed.returncode == 2, resumed.stderr[-3000:]
+    assert "Traceback" not in resumed.stderr and len(errors) == 1, resumed.stderr[-3000:]
+    assert str(run_dir / "checkpoint.pt") in errors[0] and "theta: 1 of" in errors[0], errors[0]
+    assert "another run directory" in errors[0], errors[0]
+    assert tree_digest(run_dir) == before          # .hydra/, fit.log, tb/ untouched
+    assert sorted(str(p.relative_to(run_dir)) for p in run_dir.rglob("*")) == entries
+    assert len(list(Path(run_dir / "tb").glob("events.out.tfevents.*"))) == 1
