@@ -198,3 +198,13 @@ def test_a_tet_count_or_edge_length_too_large_for_memory_is_refused_before_tetwi
                    r"tetrahedra x 2 frames")
     assert "choose a larger value" in text and "nothing was tetrahedralised" in text
     assert time.perf_counter() - started < 10 and not (tmp_path / "tetmesh").exists()
+
+
+@pytest.mark.parametrize("settings, match", [
+    ({"max_flexion": 1000}, r"^problem.max_flexion=1000: must lie in \(0, 150\] degrees"),
+    ({"max_flexion": 0}, r"^problem.max_flexion=0: must lie in \(0, 150\]"),
+    ({"max_extension": 90}, r"^problem.max_extension=90: must lie in \[0, 90\)")])
+def test_the_arms_animation_settings_are_range_checked(tmp_path, settings, match):
+    """Issue 38: problem.max_flexion=1000 was accepted (the forearm turned through itself)."""
+    refused("arm3d", {**settings, "cache_dir": str(tmp_path)}, match)
+    assert not any(tmp_path.iterdir())          # no animation written
