@@ -33,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from torchfit.mesh import write_animation  # noqa: E402
 from torchfit.problems.body.procedural_arm import ArmShape, arm_animation  # noqa: E402
+from torchfit.problems.body.procedural_arm import MAX_FLEXION  # noqa: E402
 from torchfit.problems.body.procedural_arm import corrective_shapes  # noqa: E402
 
 
@@ -66,8 +67,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.folder is None and args.usd is None and args.gltf is None:
         parser.error("name a folder, --usd FILE or --gltf FILE")
-    if args.n_frames < 2 or not 0.0 < args.max_flexion <= 150.0:
-        parser.error("--n-frames must be at least 2 and --max-flexion in (0, 150] degrees")
+    if args.n_frames < 2 or not 0.0 < args.max_flexion <= MAX_FLEXION:
+        parser.error(f"--n-frames must be at least 2 and --max-flexion in (0, {MAX_FLEXION:g}] "
+                     "degrees")
     shape = ArmShape(n_frames=args.n_frames, max_flexion=args.max_flexion)
     data = arm_animation(shape)
     if args.float32_rest:

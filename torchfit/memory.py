@@ -6,8 +6,10 @@
   ``os.sysconf``); ``None`` (no check) where neither says.
 * :func:`check_allocation`: raises ``error`` (one line naming the setting, the size and the
   limit) when an estimate exceeds :func:`memory_limit`. An estimate is what the problem
-  will hold at once (a lower bound: the solver's work arrays come on top), so a refused
-  setting would have failed; an accepted one may still run short.
+  will hold at once (a lower bound: the solver's work arrays, the process itself, the
+  tetrahedralisation and the outputs come on top; the short arm's fit peaks at about 70
+  times its estimate above the bare process, docs/guide/resume.md), so a refused setting
+  would have failed; an accepted one may still run short.
 * :func:`npy_header`, :func:`npz_headers`: shape and dtype of a ``.npy`` file or of each
   array of a ``.npz`` without reading the data; :func:`load_npy` refuses (one line) a file
   that is not a ``.npy``, an object array, a file shorter than its header declares, or one

@@ -117,3 +117,29 @@ def test_a_failing_check_with_a_tolerance_and_the_helpers():
     assert frame_ranges(range(0, 20, 2), limit=3) == "0, 2, 4, ..."
     points = np.array([[[0.0, 0, 0], [2, 0, 0]]])
     assert size(points)[0] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("change", [None, "transposed", "inverted"])
+def test_with_weights_from_distance_the_skinning_is_checked_too(change):
+    """Issue 38: with ``weights: distance`` transposed bone rotations were fitted (the
+    skinning check ran only with a weights file)."""
+    animation = tube("x")
+    animation = dataclasses.replace(animation, skeleton=dataclasses.replace(
+        animation.skeleton, weights=None))
+    transforms = animation.skeleton.transforms.copy()
+    A, t = transforms[..., :3], transforms[..., 3]
+    if change is None:
+        report = check_animation(animation)
+        assert report.distance_weights and report.skinning_error < 0.01
+        assert "skinning the rest with weights from distance reproduces" in report.line()
+        return
+    if change == "transposed":
+        transforms[..., :3] = np.swapaxes(A, -1, -2)
+    else:
+        inverse = np.linalg.inv(A)
+        transforms[..., :3] = inverse
+        transforms[..., 3] = -np.einsum("fbij,fbj->fbi", inverse, t)
+    refused(with_transforms(animation, transforms),
+            "skinning the rest surface with weights from distance (weights: distance)",
+            "does not reproduce frames 1-4 (4 of 5) on bones tip",
+            f"likely cause: {change}")

@@ -176,3 +176,35 @@ def test_frames_given_as_a_glob_of_meshes_are_sized_before_they_are_read(monkeyp
     refused("animation", {"path": str(folder)},
             rf"\*\.obj: needs about .* for {len(files)} frame files x \d+ vertices, more than "
             r"the 100.0 KiB of TORCHFIT_MEMORY_LIMIT")
+
+
+def test_a_tet_count_or_edge_length_too_large_for_memory_is_refused_before_tetwild(
+        monkeypatch, tmp_path):
+    """Issue 38: problem.tet_count=1e9 ran pytetwild for minutes; now refused at once, the
+    largest count that fits named, no mesh built or cached."""
+    import time
+
+    monkeypatch.setenv("TORCHFIT_MEMORY_LIMIT", "1G")
+    started = time.perf_counter()
+    text = refused("arm3d", {"tet_count": 10 ** 9, "cache_dir": str(tmp_path),
+                             "frames": [0, 3]},
+                   r"^problem.tet_count=1000000000: needs about 636.3 GiB for 1e\+09 "
+                   r"tetrahedra x 2 frame\(s\), more than the 1.0 GiB of TORCHFIT_MEMORY_LIMIT")
+    assert "at most about 1.6e+06 tetrahedra over 2 frame(s); choose a smaller value" in text
+    assert time.perf_counter() - started < 5 and not any(tmp_path.iterdir())
+    text = refused("arm3d", {"tet_edge_length": 1e-4, "cache_dir": str(tmp_path),
+                             "frames": [0, 3]},
+                   r"^problem.tet_edge_length=0.0001: needs about .* TiB for at least .* "
+                   r"tetrahedra x 2 frames")
+    assert "choose a larger value" in text and "nothing was tetrahedralised" in text
+    assert time.perf_counter() - started < 10 and not (tmp_path / "tetmesh").exists()
+
+
+@pytest.mark.parametrize("settings, match", [
+    ({"max_flexion": 1000}, r"^problem.max_flexion=1000: must lie in \(0, 150\] degrees"),
+    ({"max_flexion": 0}, r"^problem.max_flexion=0: must lie in \(0, 150\]"),
+    ({"max_extension": 90}, r"^problem.max_extension=90: must lie in \[0, 90\)")])
+def test_the_arms_animation_settings_are_range_checked(tmp_path, settings, match):
+    """Issue 38: problem.max_flexion=1000 was accepted (the forearm turned through itself)."""
+    refused("arm3d", {**settings, "cache_dir": str(tmp_path)}, match)
+    assert not any(tmp_path.iterdir())          # no animation written

@@ -124,3 +124,42 @@ def test_a_rebuilt_tet_mesh_cache_entry_is_named_on_resume(tmp_path, cache):  # 
     rebuilt = arm(cache, frames=[0])
     with pytest.raises(ResumeError, match="another tet mesh than this one builds"):
         read_checkpoint(tmp_path, rebuilt, build_solver(rebuilt, {"name": "gauss_newton"}))
+
+
+@pytest.mark.parametrize("where, value", [("theta", float("nan")),
+                                          ("solver_state/theta", float("nan")),
+                                          ("solver_state/gradient", float("inf"))])
+def test_a_checkpoint_with_a_non_finite_tensor_is_refused_naming_it(tmp_path, where, value):
+    """Issue 38: NaN written into a checkpoint's theta was resumed (a traceback, exit 1)."""
+    problem = build_problem("spring1d", {"n": 8})
+    fit(problem, {"name": "gauss_newton", "max_iter": 2}, run_dir=tmp_path, options=QUIET)
+    payload = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
+    *parents, leaf = where.split("/")
+    holder = payload
+    for key in parents:
+        holder = holder[key]
+    holder[leaf][3] = value
+    torch.save(payload, tmp_path / "checkpoint.pt")
+    before = tree_digest(tmp_path)
+    with pytest.raises(ResumeError) as refused:
+        fit(problem, GN3, run_dir=tmp_path, resume=True, options=QUIET)
+    message = str(refused.value)
+    assert str(tmp_path / "checkpoint.pt") in message and "non-finite" in message, message
+    assert f"{where}: 1 of " in message and f"entry 3 is {value}" in message, message
+    assert "another run directory" in message, message
+    assert tree_digest(tmp_path) == before
+
+
+def test_first_non_finite_looks_into_nested_state_and_skips_plain_numbers():
+    from torchfit.run.checkpoint import first_non_finite
+
+    finite = {"theta": torch.ones(3), "steps": torch.arange(3), "inf_norm": float("inf"),
+              "rng": torch.zeros(4, dtype=torch.uint8), "none": None}
+    assert first_non_finite(finite) is None
+    nested = {**finite, "simulation_state": {"anchors": [torch.zeros(2, 2),
+                                                         torch.tensor([[0.0, 1.0],
+                                                                       [float("-inf"), 2.0]])]}}
+    assert first_non_finite(nested) == ("simulation_state/anchors/1: 1 of 4 entries, entry 2 "
+                                        "is -inf")
+    assert first_non_finite({"z": torch.tensor([1 + 1j, complex(0, float("nan"))])}) \
+        .startswith("z: 1 of 2 entries, entry 1 is")

@@ -16,7 +16,9 @@ continues from them exactly: the same ``theta`` bit for bit, the same metrics, `
 the budget of the whole run; a refused resume (:class:`ResumeError`) touches nothing.
 The checkpoint also records digests of the problem's input data
 (:meth:`~torchfit.problems.InverseProblem.input_digests`: a body's tet mesh and animation),
-and a resume on other data is refused naming what changed. A body's run keeps its mesh
+and a resume on other data is refused naming what changed; so is a checkpoint whose
+parameters, solver state, warm starts or validation state hold a NaN or an infinity
+(:func:`first_non_finite`: a damaged file, or one written by hand). A body's run keeps its mesh
 (``mesh.npz``, :meth:`torchfit.problems.BodyProblem.keep_mesh`); the app's resume builds the
 problem on it (:func:`torchfit.problems.body.run_mesh.resumed_mesh`, handed to
 :func:`torchfit.problems.build_problem`), so a resume needs no mesh cache. A directory that holds a run
@@ -142,6 +144,11 @@ def read_checkpoint(run_dir: Path, problem: InverseProblem, solver: Solver,
                                           for k in changed)
                               + "); give the run the inputs it ran on (the same mesh cache "
                               "entry, problem.path), or start again in another run directory")
+    bad = first_non_finite({k: payload.get(k) for k in CONTINUED})
+    if bad is not None:
+        raise ResumeError(f"cannot resume: {path} holds non-finite values ({bad}): a run "
+                          "cannot continue from them (the file was damaged or written by hand); "
+                          "start the run again in another run directory")
     iteration = int(payload["iteration"])
     rows = _read_rows(run_dir / HISTORY_FILE, iteration)
     if not rows or int(rows[-1]["iteration"]) != iteration:
@@ -152,6 +159,35 @@ def read_checkpoint(run_dir: Path, problem: InverseProblem, solver: Solver,
     return Resume(iteration, state, rows, bool(payload.get("finished", False)),
                   payload.get("stop_reason"), payload["simulation_state"],
                   payload.get("validation"))
+
+
+#: The entries of a checkpoint a resume continues from: their floating-point tensors must
+#: be finite (:func:`first_non_finite`; plain numbers such as a solver's ``inf`` "no residual
+#: yet" are not checked).
+CONTINUED = ("theta", "solver_state", "simulation_state", "validation")
+
+
+def first_non_finite(value: Any, where: str = "") -> str | None:
+    """Where the first floating-point or complex tensor in ``value`` (nested dicts, lists)
+    holds a NaN or infinity: ``"solver_state/theta: 1 of 64 entries, entry 3 is nan"``;
+    ``None`` where every one is finite."""
+    if isinstance(value, Tensor):
+        if not (value.is_floating_point() or value.is_complex()):
+            return None
+        bad = ~torch.isfinite(value)
+        if not bool(bad.any()):
+            return None
+        flat = bad.reshape(-1)
+        first = int(torch.nonzero(flat)[0, 0])
+        return (f"{where}: {int(flat.sum())} of {flat.numel()} entries, entry {first} is "
+                f"{value.reshape(-1)[first].item()}")
+    items = value.items() if isinstance(value, dict) else \
+        enumerate(value) if isinstance(value, (list, tuple)) else ()
+    for key, item in items:
+        found = first_non_finite(item, f"{where}/{key}" if where else str(key))
+        if found is not None:
+            return found
+    return None
 
 
 def check_fresh_start(run_dir: Path) -> None:

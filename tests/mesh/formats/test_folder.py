@@ -101,3 +101,41 @@ def test_the_manifest_up_axis_is_read_as_a_unit_vector_and_checked(tmp_path):
     with pytest.raises(AnimationError, match=r"up must be one of x, y, z, -x, -y, -z") as err:
         load_animation(folder)
     assert "\n" not in str(err.value) and "'north'" in str(err.value)
+
+
+@pytest.mark.parametrize("values, found", [
+    (np.array(["a", "b"]), r"holds text \(dtype <U1\)"),
+    ("complex", r"holds complex \(dtype complex128\)"),
+    (np.array([object(), 1.0], dtype=object), r"holds Python objects \(dtype object\)"),
+    ("bool", r"holds bool \(dtype bool\)")])
+def test_frames_that_are_not_real_numbers_are_refused_naming_file_key_and_dtype(
+        tmp_path, values, found):
+    """Issue 38: string frames were a traceback, complex ones lost their imaginary part."""
+    folder = write_capsule(tmp_path / "c", "skeleton", "npz")
+    frames = np.load(folder / "frames.npz")["frames"]
+    values = frames + 1e-3j if isinstance(values, str) and values == "complex" else \
+        frames > 0 if isinstance(values, str) else values
+    np.savez(folder / "frames.npz", frames=values)
+    expect_error(folder, rf"frames\.npz \((array 'frames'|frames\.npy)\): {found}")
+
+
+def test_weights_labels_and_bones_that_are_not_numbers_are_refused(tmp_path):
+    folder = write_capsule(tmp_path / "c", "skeleton", "npz")
+    n = len(np.load(folder / "frames.npz")["frames"][0])
+    np.save(folder / "weights.npy", np.ones((n, 2), dtype=np.complex64))
+    edit_manifest(folder, lambda s: s["skeleton"].update(weights="weights.npy"))
+    expect_error(folder, r"weights\.npy: holds complex \(dtype complex64\), but must hold "
+                         r"real numbers")
+    np.save(folder / "weights.npy", np.ones((n, 2), dtype=bool))
+    expect_error(folder, r"weights\.npy: holds bool \(dtype bool\)")
+    edit_manifest(folder, lambda s: s["skeleton"].update(weights="distance"))
+    with np.load(folder / "skeleton.npz") as data:
+        bones = {k: data[k] for k in data.files}
+    np.savez(folder / "skeleton.npz", **{**bones, "heads": bones["heads"].astype(str)})
+    expect_error(folder, r"skeleton\.npz \(heads\): holds text")
+    np.savez(folder / "skeleton.npz", **{**bones, "transforms": bones["transforms"] + 0j})
+    expect_error(folder, r"skeleton\.npz \(transforms\): holds complex")
+    np.savez(folder / "skeleton.npz", **bones)
+    np.save(folder / "regions.npy", np.array(["bone"] * n))
+    edit_manifest(folder, lambda s: s.update(regions={"labels": "regions.npy"}))
+    expect_error(folder, r"regions\.npy: holds text \(dtype <U4\), but must hold integers")

@@ -116,7 +116,7 @@ def test_every_set_up_step_is_on_the_console_with_its_counts(tmp_path, caplog, m
     assert len(lines) == len(expected), lines
     for line, start in zip(lines, expected):
         assert line.startswith(start), (line, start)
-    assert "skinning not checked" in lines[3]                  # distance weights
-    assert problem.rig_report.skinning_error is None
+    assert "with weights from distance reproduces" in lines[3]    # weights: distance
+    assert problem.rig_report.distance_weights and problem.rig_report.skinning_error < 0.05
     assert problem.rig_report.scale_ratios.shape == (3,)
     assert lines[-1].endswith(" s")

@@ -28,7 +28,9 @@ unit, or one of ``m``, ``cm``, ``mm``, ``in``). Example (what ``problem=arm3d`` 
 
 Every problem of ``problem=animation`` and ``problem=arm3d`` reads its data through
 :func:`load_animation`; :func:`write_animation` writes the format. Errors are one line
-(:class:`AnimationError`) naming the file, frame or vertex at fault.
+(:class:`AnimationError`) naming the file, frame or vertex at fault; an array that holds
+anything but numbers of its kind (text, objects, complex numbers, bools where numbers are
+meant: :func:`check_numbers`) is refused from its header, naming the file, key and dtype.
 """
 from __future__ import annotations
 
@@ -201,16 +203,42 @@ def _positive(value: Any, what: str, manifest: Path) -> float:
     return float(value)
 
 
-def _load_array(path: Path, key: str | None = None) -> np.ndarray:
-    """The array of a ``.npy`` (or ``key`` of a ``.npz``), its header checked first: numbers,
-    whole, 4 times its float64 size within the memory limit (it, its float64 copy, the
-    problem's tensor of it, the simulated frames of the same size)."""
+#: The dtype kinds (``numpy.dtype.kind``) an array of numbers may have, by what it holds:
+#: coordinates and weights are real numbers (float or integer), labels integers, driven
+#: vertices integer indices or a bool mask. Strings, objects, complex numbers (their
+#: imaginary part would be dropped), bools where numbers are meant, dates are refused.
+NUMBER_KINDS = {"real": "fiu", "integer": "iu", "index": "iub"}
+_KIND_NAMES = {"f": "floating point", "i": "integer", "u": "unsigned integer", "b": "bool",
+               "c": "complex", "U": "text", "S": "bytes", "O": "Python objects",
+               "V": "structured records", "M": "dates", "m": "time spans"}
+_WANTED = {"real": "real numbers (float or integer)", "integer": "integers",
+           "index": "integer indices or a bool mask"}
+
+
+def check_numbers(dtype: np.dtype, where: str, numbers: str = "real") -> None:
+    """Refuse (one :class:`AnimationError` line naming ``where``: the file and its key) an
+    array whose ``dtype`` is not of the kinds :data:`NUMBER_KINDS` allows for ``numbers``."""
+    dtype = np.dtype(dtype)
+    if dtype.kind not in NUMBER_KINDS[numbers]:
+        raise AnimationError(f"{where}: holds {_KIND_NAMES.get(dtype.kind, 'other values')} "
+                             f"(dtype {dtype}), but must hold {_WANTED[numbers]}; write it "
+                             "again from a numeric array, e.g. np.asarray(values, "
+                             f"dtype={'float' if numbers == 'real' else 'int'})")
+
+
+def _load_array(path: Path, key: str | None = None, numbers: str = "real") -> np.ndarray:
+    """The array of a ``.npy`` (or ``key`` of a ``.npz``), its header checked first: numbers
+    of the kinds ``numbers`` allows (:func:`check_numbers`), whole, 4 times its float64 size
+    within the memory limit (it, its float64 copy, the problem's tensor of it, the simulated
+    frames of the same size)."""
     headers = npz_headers(path, str(path), AnimationError) if path.suffix == ".npz" else \
         {None: npy_header(path, str(path), AnimationError)}
     name = key if key in headers else (next(iter(headers)) if len(headers) == 1 else "")
     if name == "":
         raise AnimationError(f"{path}: expected an array named '{key}' (found "
                              f"{', '.join(map(str, headers))})")
+    check_numbers(headers[name][1], f"{path}" + ("" if name is None else f" (array '{name}')"),
+                  numbers)
     check_allocation(str(path), 4 * array_bytes(headers[name][0], np.float64),
                      f"its array {headers[name][0]} of {headers[name][1]}", AnimationError)
     try:
@@ -321,9 +349,13 @@ def _read_skeleton(folder: Path, section: dict, manifest: Path, unit: float,
                        "skeleton bones", manifest)
     data = _read_bones(bones_path)
     try:
+        for key in ("heads", "tails", "transforms"):     # a ragged JSON list: ValueError
+            check_numbers(np.asarray(data[key]).dtype, f"{bones_path} ({key})")
         heads = np.asarray(data["heads"], dtype=np.float64)
         tails = np.asarray(data["tails"], dtype=np.float64)
         raw_transforms = np.asarray(data["transforms"], dtype=np.float64)
+    except AnimationError:
+        raise
     except (TypeError, ValueError) as err:
         raise AnimationError(f"{bones_path}: heads, tails and transforms must be numeric "
                              f"arrays ({err})") from err
@@ -375,7 +407,7 @@ def _read_driven(folder: Path, section: dict, manifest: Path, unit: float,
         source = f"{manifest} (driven.vertices)"
     else:
         path = _file(folder, spec, "driven vertices", manifest)
-        raw = _load_array(path, "vertices")
+        raw = _load_array(path, "vertices", "index")
         source = str(path)
     if raw.dtype == bool:
         if raw.shape != (n_vertices,):
@@ -407,7 +439,7 @@ def _read_regions(folder: Path, section: dict, manifest: Path,
     section = _check_keys(section, _REGION_KEYS, "regions", manifest)
     path = _file(folder, _require(section, "labels", "regions", manifest), "region labels",
                  manifest)
-    labels = _load_array(path, "labels")
+    labels = _load_array(path, "labels", "integer")
     if labels.shape != (n_vertices,) or not np.issubdtype(labels.dtype, np.integer):
         raise AnimationError(f"{path}: region labels must be integers, one per rest vertex "
                              f"({n_vertices},), got {labels.dtype} {labels.shape}")

@@ -31,8 +31,9 @@ import numpy as np
 
 from ...mesh import MeshError
 from ...mesh.formats.folder import Animation, load_animation, write_animation
-from .procedural_arm import (REGION_NAMES, ArmShape, arm_animation, arm_surface,
-                                   correctives, elbow_angles, elbow_region, region_labels)
+from .procedural_arm import (MAX_EXTENSION, MAX_FLEXION, REGION_NAMES, ArmShape,
+                             arm_animation, arm_surface,
+                             correctives, elbow_angles, elbow_region, region_labels)
 from ...mesh.tetwild.tetrahedralize import default_cache_dir
 from ..config import ProblemConfigError, require_setting
 from .problem import RiggedBody
@@ -81,8 +82,11 @@ class Arm3D(RiggedBody):
         require_setting(cfg.n_frames >= 1, cfg, "n_frames", "must be >= 1")
         for key in ("upper", "fore", "r_shoulder", "r_wrist"):
             require_setting(getattr(cfg, key) > 0, cfg, key, "must be positive (metres)")
-        require_setting(cfg.max_flexion > 0, cfg, "max_flexion", "must be positive (degrees)")
-        require_setting(cfg.max_extension >= 0, cfg, "max_extension", "must be >= 0 (degrees)")
+        require_setting(0 < cfg.max_flexion <= MAX_FLEXION, cfg, "max_flexion",
+                        f"must lie in (0, {MAX_FLEXION:g}] degrees (the elbow's bend at the "
+                        "animation's peak; beyond it the forearm runs into the upper arm)")
+        require_setting(0 <= cfg.max_extension < MAX_EXTENSION, cfg, "max_extension",
+                        f"must lie in [0, {MAX_EXTENSION:g}) degrees (past straight)")
         require_setting(cfg.noise_of_bulge >= 0, cfg, "noise_of_bulge", "must be >= 0")
         require_setting(len(cfg.rotate) == 3 and all(np.isfinite(cfg.rotate)), cfg, "rotate",
                         "must list three angles in degrees (about x, y, z), e.g. [0, 90, 0]")

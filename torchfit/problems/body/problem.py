@@ -22,6 +22,7 @@ import contextlib
 import dataclasses
 import logging
 import math
+import os
 from pathlib import Path
 from typing import Any, Callable, ContextManager, Protocol
 
@@ -63,6 +64,57 @@ log = logging.getLogger(__name__)
 #: largest distance (fraction of the bounding-box diagonal) of a surface vertex outside the
 #: tetrahedra before the tetrahedralisation is judged not to match the surface
 _MAX_OUTSIDE = 0.02
+#: what a body holds per tetrahedron and frame (F, stress, derivatives: 40 values) and per
+#: tet vertex and frame (9 values), in float64: the estimate of :func:`body_bytes`
+_VALUES_PER_CELL, _VALUES_PER_POINT = 40, 9
+#: tet vertices per tetrahedron of fTetWild's meshes (0.30 measured on the short arm)
+_POINTS_PER_CELL = 0.3
+
+
+def edge_count(cfg: RiggedBodyConfig, animation: Animation) -> tuple[str, float, int, str]:
+    """The setting, count of tetrahedra, frames and description :func:`check_tet_count`
+    checks before fTetWild runs: ``tet_count``, else the count ``tet_edge_length`` implies
+    (the body's volume filled with regular tetrahedra of that edge: a lower bound, fTetWild
+    makes about :data:`~torchfit.mesh.tetwild.size.TETS_PER_REGULAR` times more)."""
+    from ...mesh.tetwild.size import body_volume
+
+    frames = animation.n_frames
+    if cfg.tet_count is not None:
+        return (f"problem.tet_count={cfg.tet_count}", float(cfg.tet_count), frames,
+                f"{float(cfg.tet_count):.3g} tetrahedra x {frames} frames")
+    used = animation.rest_vertices[np.unique(animation.faces)]
+    edge = cfg.tet_edge_length * float(np.linalg.norm(used.max(axis=0) - used.min(axis=0)))
+    regular = edge ** 3 / (6.0 * math.sqrt(2.0))
+    cells = body_volume(animation.rest_vertices, animation.faces) / regular \
+        if regular > 0 else math.inf
+    return (f"problem.tet_edge_length={cfg.tet_edge_length}", cells, frames,
+            f"at least {cells:.3g} tetrahedra x {frames} frames")
+
+
+def body_bytes(cells: float, points: float, frames: int) -> float:
+    """Bytes a body of ``cells`` tetrahedra and ``points`` vertices holds over ``frames``
+    frames at once (a lower bound of the fit's memory: docs/guide/resume.md)."""
+    return frames * (cells * _VALUES_PER_CELL + points * _VALUES_PER_POINT) * 8.0
+
+
+def check_tet_count(setting: str, cells: float, frames: int, what: str) -> None:
+    """Refuse (one line naming ``setting`` and the largest count that fits) a count of
+    tetrahedra whose :func:`body_bytes` exceed the memory limit, before fTetWild runs."""
+    from ...memory import LIMIT_VARIABLE, memory_limit, size_text
+
+    nbytes = body_bytes(cells, _POINTS_PER_CELL * cells, frames)
+    limit = memory_limit()
+    if limit is None or nbytes <= limit:
+        return
+    largest = limit / body_bytes(1.0, _POINTS_PER_CELL, frames)
+    source = LIMIT_VARIABLE if os.environ.get(LIMIT_VARIABLE, "").strip() else \
+        "available memory"
+    change = "a larger value" if "edge_length" in setting else "a smaller value"
+    raise ProblemConfigError(f"{setting}: needs about {size_text(nbytes)} for {what}, more than "
+                             f"the {size_text(limit)} of {source}, which hold at most about "
+                             f"{largest:.2g} tetrahedra over {frames} frame(s); choose {change} "
+                             f"(or set {LIMIT_VARIABLE} on a machine with more memory); nothing "
+                             "was tetrahedralised")
 
 
 class RiggedBody(InverseProblem):
@@ -137,6 +189,10 @@ class RiggedBody(InverseProblem):
         self.check_source(cfg)
 
     def allocation(self, cfg: RiggedBodyConfig) -> list[tuple[str, float, str]]:
+        if cfg.tet_count is not None:      # before the animation is read or written
+            frames = len(cfg.frames) if cfg.frames else 1       # at least one
+            check_tet_count(f"problem.tet_count={cfg.tet_count}", float(cfg.tet_count), frames,
+                            f"{float(cfg.tet_count):.3g} tetrahedra x {frames} frame(s)")
         # a grid (the parameters, or the blocks truth): per node theta, its gradient, the
         # search direction, the truth and the blocks' index grids (about 8 values)
         if cfg.parameters != Layout.grid and not (cfg.target == Target.synthetic
@@ -183,12 +239,14 @@ class RiggedBody(InverseProblem):
         for text in animation.warnings:
             log.warning(f"{animation.path}: rest surface: {text}")
         self.n_frames = animation.n_frames
+        if self.kept_mesh is None:     # the count an edge length implies, before fTetWild
+            check_tet_count(*edge_count(cfg, animation))
         self.tet = self.tetrahedralize(cfg, animation)
         # per frame: each tetrahedron's F, stress, derivatives (40 values), vertex (9 values)
         cells, points = len(self.tet.cells), len(self.tet.points)
         check_allocation(f"problem.tet_edge_length={cfg.tet_edge_length} with "
-                         f"{animation.n_frames} frames", animation.n_frames * (
-                             cells * 40 + points * 9) * 8.0,
+                         f"{animation.n_frames} frames", body_bytes(cells, points,
+                                                                    animation.n_frames),
                          f"{cells} tetrahedra x {animation.n_frames} frames", ProblemConfigError)
         points, cells = self.tet.points, self.tet.cells
         self.mesh = SimplexMesh(points, cells)

@@ -34,6 +34,11 @@ import numpy as np
 from ...mesh.rig import Skeleton, axial_coordinates, blend, distance_weights, segment_distances
 
 REGION_NAMES = ("bone", "muscle", "fat")
+#: the largest elbow flexion the procedural arm animates (degrees): beyond it the forearm's
+#: surface runs into the upper arm's
+MAX_FLEXION = 150.0
+#: the largest extension past straight (degrees)
+MAX_EXTENSION = 90.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,6 +73,9 @@ class ArmShape:
             raise ValueError("the arm needs n_around >= 6 and n_along >= 6")
         if self.n_frames < 1:
             raise ValueError("the arm needs at least one frame")
+        if not (0 < self.max_flexion <= MAX_FLEXION and 0 <= self.max_extension < MAX_EXTENSION):
+            raise ValueError(f"the arm bends by max_flexion in (0, {MAX_FLEXION:g}] and "
+                             f"max_extension in [0, {MAX_EXTENSION:g}) degrees")
         if not 0 < self.bone_ratio < self.muscle_ratio < 1:
             raise ValueError("need 0 < bone_ratio < muscle_ratio < 1")
 
