@@ -187,6 +187,12 @@ class ResidualFunction:
         accuracy: relative accuracy of ``forward`` (e.g. a Newton tolerance), or ``None``
             for machine precision; derivative checks choose their finite-difference step
             from it.
+        product_consistency: relative agreement of the ``J^T w`` that ``forward``'s
+            autograd gives with its ``J v`` when the two are separate approximations
+            (a continuous adjoint against forward sensitivities, each accurate to an ODE
+            tolerance), or ``None`` when one is the exact transpose of the other; the
+            dot-product check takes its bound from it
+            (:func:`torchfit.verification.default_dot_tol`).
         products: ``theta (n,) -> ForwardProducts``: ``forward(theta)`` with explicit
             ``J v`` and ``J^T w`` (no autograd), or ``None``; it must agree with
             ``forward`` and its autograd products.
@@ -197,7 +203,8 @@ class ResidualFunction:
                  gauge: Callable[[Tensor], Tensor] | None = None,
                  jacobian: Callable[[Tensor], Tensor] | None = None,
                  accuracy: float | None = None,
-                 products: Callable[[Tensor], ForwardProducts] | None = None) -> None:
+                 products: Callable[[Tensor], ForwardProducts] | None = None,
+                 product_consistency: float | None = None) -> None:
         if data.dim() != 1:
             raise ValueError(f"data must be a flat vector, got shape {tuple(data.shape)}")
         if not bool(torch.isfinite(data).all()):
@@ -211,6 +218,7 @@ class ResidualFunction:
         self.jacobian = jacobian
         self.accuracy = accuracy
         self.products = products
+        self.product_consistency = product_consistency
 
     @property
     def size(self) -> int:

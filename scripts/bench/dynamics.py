@@ -1,6 +1,7 @@
 """Benchmark the two dynamics integrators at the same trajectory accuracy (JSON report).
 
     .venv/bin/python scripts/bench/dynamics.py --out bench_dynamics.json [--quick]
+    .venv/bin/python scripts/bench/dynamics.py --problems --jacobian --columns-one-by-one
 
 For each problem (``spring1d`` dynamic: 64 springs over 6 s; ``membrane2d`` dynamic: the
 48 x 12 corotated sheet over 1.2 s) a reference trajectory is integrated with BDF2 at a
@@ -17,6 +18,14 @@ step and the loosest dopri5 tolerance that meet it are chosen, and for each of t
   forward and gradient (what the trajectory keeps for the gradient);
 * ``jvp_s``: one forward-mode product ``J v`` at the simulated point;
 * ``error``: the trajectory's achieved error; ``stored_states``.
+
+``--jacobian`` adds the torchdiffeq path's dense Jacobian (the one-pass ``d positions /
+d params`` a Gauss-Newton or Levenberg-Marquardt iteration takes for few parameters) of
+``spring1d`` dynamic at its initial guess (66 columns, dopri5 at the problem's
+tolerances): ``after``, all columns in one augmented solve with the tangent right-hand
+side batched over columns (two reverse passes per evaluation); with
+``--columns-one-by-one`` also ``before``, the same solve with one reverse pass per column
+per evaluation (the code before 2026-12-01), and the ratio; both in one run.
 
 Run with one torch thread (set here): step-by-step integration is many small kernels.
 """
@@ -41,6 +50,7 @@ if str(REPO) not in sys.path:
 from benchtools import emit_report, machine_info  # noqa: E402
 from torchfit.linalg import counting  # noqa: E402
 from torchfit.physics.dynamics import make_integrator  # noqa: E402
+from torchfit.physics.dynamics.explicit import TorchdiffeqIntegrator  # noqa: E402
 from torchfit.problems import build_problem  # noqa: E402
 
 PROBLEMS = {
@@ -181,6 +191,56 @@ def bench_problem(key: str, target: float, quick: bool) -> dict[str, Any]:
     return report
 
 
+class _PerColumnTangents(TorchdiffeqIntegrator):
+    """The tangent right-hand side as it was before 2026-12-01: one reverse pass per column."""
+
+    @staticmethod
+    def _tangent_columns(value, p_leaf, y_leaf, V, S):
+        probe = torch.zeros_like(value, requires_grad=True)
+        g_p, g_y = torch.autograd.grad(value, (p_leaf, y_leaf), probe, create_graph=True,
+                                       allow_unused=True)
+        columns = []
+        for j in range(V.shape[1]):
+            pairing = sum((g * d).sum() for g, d in ((g_p, V[:, j]), (g_y, S[:, j]))
+                          if g is not None)
+            (column,) = torch.autograd.grad(pairing, probe, retain_graph=True, allow_unused=True)
+            columns.append(torch.zeros_like(value) if column is None else column)
+        return torch.stack(columns, dim=1)
+
+
+def bench_jacobian(one_by_one: bool) -> dict[str, Any]:
+    """The dense Jacobian of spring1d dynamic through torchdiffeq (module docstring)."""
+    problem = build_problem("spring1d", {"dynamic": True, "integrator": "torchdiffeq"})
+    cfg = problem.cfg
+    params = problem.parameterization(problem.theta0).detach()
+    directions = problem.parameterization.jacobian(problem.theta0).detach()
+    kinds = {"after": TorchdiffeqIntegrator}
+    if one_by_one:
+        kinds["before"] = _PerColumnTangents
+    out: dict[str, Any] = {"n_params": int(params.numel()), "method": cfg.ode_method.value,
+                           "rtol": cfg.ode_rtol, "atol": cfg.ode_atol}
+    columns = {}
+    for name, cls in kinds.items():
+        integrator = cls(problem.system, problem.output_times, method=cfg.ode_method.value,
+                         rtol=cfg.ode_rtol, atol=cfg.ode_atol)
+        integrator.solve(params)
+        before = integrator.evaluations
+        start = time.perf_counter()
+        columns[name] = integrator.jacobian(params, directions)
+        seconds = time.perf_counter() - start
+        evaluations = integrator.evaluations - before
+        out[name] = {"jacobian_s": seconds, "rhs_evaluations": evaluations,
+                     "ms_per_rhs": 1e3 * seconds / max(evaluations, 1)}
+        print(f"{name}: dense Jacobian ({params.numel()} columns) {seconds:.1f} s, "
+              f"{evaluations} right-hand sides, {out[name]['ms_per_rhs']:.2f} ms each",
+              file=sys.stderr, flush=True)
+    if one_by_one:
+        out["speedup"] = out["before"]["jacobian_s"] / out["after"]["jacobian_s"]
+        scale = float(columns["before"].abs().max())
+        out["max_difference_rel"] = float((columns["after"] - columns["before"]).abs().max()) / scale
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=None)
@@ -188,11 +248,17 @@ def main(argv: list[str] | None = None) -> None:
                         help="max position error / largest displacement (default 1e-3)")
     parser.add_argument("--problems", nargs="*", default=list(PROBLEMS))
     parser.add_argument("--quick", action="store_true", help="fewer candidate steps")
+    parser.add_argument("--jacobian", action="store_true",
+                        help="also the torchdiffeq dense Jacobian of spring1d dynamic")
+    parser.add_argument("--columns-one-by-one", action="store_true",
+                        help="with --jacobian: also the per-column tangent (before 2026-12-01)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    report = {"machine": machine_info(), "target_error": args.target,
-              "problems": {key: bench_problem(key, args.target, args.quick)
-                           for key in args.problems}}
+    report: dict[str, Any] = {"machine": machine_info(), "target_error": args.target,
+                              "problems": {key: bench_problem(key, args.target, args.quick)
+                                           for key in args.problems}}
+    if args.jacobian:
+        report["torchdiffeq_dense_jacobian"] = bench_jacobian(args.columns_one_by_one)
     emit_report(report, args.out)
 
 

@@ -425,12 +425,20 @@ class InverseProblem:
         products = self.forward_products if explicit_products and self.has_forward_products() \
             else None
         return ResidualFunction(self.forward, self.data, self.noise_level, gauge, jacobian,
-                                accuracy=self.simulation_accuracy(), products=products)
+                                accuracy=self.simulation_accuracy(), products=products,
+                                product_consistency=self.product_consistency())
 
     def theta_bounds(self) -> tuple[Tensor, Tensor] | None:
         """``(lower, upper)`` ``(n_params,)`` bounds on ``theta`` that the solver keeps
         (``torchfit.solvers.bounds``; ``-inf`` / ``inf`` entries: unbounded), or ``None``
         (the default: unbounded)."""
+        return None
+
+    def product_consistency(self) -> float | None:
+        """Relative agreement of the simulation's ``J^T w`` with its ``J v`` when they are
+        two approximations (each accurate to a solver tolerance), ``None`` (the default)
+        when the reverse product is the exact transpose of the forward one (to round-off);
+        the dot-product check's bound follows it."""
         return None
 
     def simulation_accuracy(self) -> float | None:

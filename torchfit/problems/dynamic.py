@@ -221,6 +221,18 @@ class DynamicMixin:
         dx = self.integrator.jacobian(physical, directions)
         return dx.reshape(dx.shape[0], -1, self.dim, dx.shape[-1])
 
+    def product_consistency(self) -> float | None:
+        """torchdiffeq with an adaptive method: ``ode_rtol`` (``J^T w`` is the continuous
+        adjoint, ``J v`` the forward sensitivities, each accurate to the tolerance: they
+        agree to a multiple of it, ``docs/notes/verification.md``). The implicit
+        integrator's discrete adjoint is the exact transpose of its tangents: ``None``. A
+        fixed-step method (``rk4`` ...) has no tolerance to name: ``None`` (its adjoint
+        differs by the method's truncation error; give ``dot_tol``)."""
+        if self.cfg.integrator == Integrator.torchdiffeq and \
+                self.cfg.ode_method.value in ADAPTIVE_METHODS:
+            return float(self.cfg.ode_rtol)
+        return None
+
     def simulation_accuracy(self) -> float | None:
         if self.cfg.integrator == Integrator.torchdiffeq and \
                 self.cfg.ode_method.value in ADAPTIVE_METHODS:

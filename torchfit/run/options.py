@@ -119,7 +119,9 @@ class VerifyOptions(ProcessOptions):
         at: ``initial`` (the problem's initial guess) or ``truth`` (its true parameters).
         perturbation: relative size of the seeded random offset of ``theta`` from there.
         taylor_tol: ``|rate - 2|`` allowed.
-        dot_tol: relative ``|<Jv, w> - <v, J^T w>|`` allowed.
+        dot_tol: relative ``|<Jv, w> - <v, J^T w>|`` allowed; ``None``: 1e-10 where
+            ``J^T w`` is the exact transpose of ``J v``, ``1000 rtol`` for torchdiffeq's
+            continuous adjoint (:func:`torchfit.verification.default_dot_tol`).
         fd_tol: relative ``|Jv - central FD|`` allowed; ``None``: ``max(1e-6, 100 a^(2/3))``
             with ``a`` the simulation's accuracy (Newton's rtol).
     """
@@ -128,14 +130,14 @@ class VerifyOptions(ProcessOptions):
     at: VerifyPoint = VerifyPoint.initial
     perturbation: float = 0.1
     taylor_tol: float = 0.05
-    dot_tol: float = 1e-10
+    dot_tol: float | None = None
     fd_tol: float | None = None
 
     def check(self) -> None:
         """Raise :class:`FitConfigError` naming the first invalid setting."""
         for name in ("taylor_tol", "dot_tol", "fd_tol"):
             value = getattr(self, name)
-            if name == "fd_tol" and value is None:
+            if name in ("fd_tol", "dot_tol") and value is None:
                 continue
             _need(isinstance(value, (int, float)) and math.isfinite(value) and value > 0,
                   f"{name}={value!r} must be a finite number > 0")

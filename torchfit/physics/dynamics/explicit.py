@@ -263,36 +263,55 @@ class TorchdiffeqIntegrator:
             raise self._unstable(solve.params, f"failed: its adjoint step collapsed ({error})") from None
         return torch.zeros_like(solve.params) if grad is None else grad
 
+    @staticmethod
+    def _tangent_columns(value: Tensor, p_leaf: Tensor, y_leaf: Tensor, V: Tensor,
+                         S: Tensor) -> Tensor:
+        """``(df/dparams) V + (df/dy) S`` ``(n_state, k)`` for ``V`` ``(n_params, k)`` and
+        ``S`` ``(n_state, k)``; ``value = f(t, y_leaf; p_leaf)`` with its graph.
+
+        Two reverse passes for all ``k`` columns: ``g(u) = (df/d(p, y))^T u`` with a probe
+        ``u``, then the batched derivative of ``<g(u), (v_j, s_j)>`` in ``u``
+        (``is_grads_batched``: ``torch.vmap`` over the second pass). Reverse mode because
+        this runs inside a custom Function's forward-mode rule, where forward-mode AD
+        cannot nest.
+        """
+        probe = torch.zeros_like(value, requires_grad=True)
+        g_p, g_y = torch.autograd.grad(value, (p_leaf, y_leaf), probe, create_graph=True,
+                                       allow_unused=True)
+        pairs = [(g, d) for g, d in ((g_p, V), (g_y, S)) if g is not None and g.requires_grad]
+        if not pairs:
+            return value.new_zeros(value.numel(), V.shape[1])
+        (columns,) = torch.autograd.grad([g for g, _ in pairs], probe,
+                                         [d.T.contiguous().to(g) for g, d in pairs],
+                                         is_grads_batched=True, allow_unused=True)
+        if columns is None:
+            return value.new_zeros(value.numel(), V.shape[1])
+        return columns.T
+
     def _sensitivities(self, params: Tensor, V: Tensor) -> Tensor:
-        """Forward sensitivities of the positions along the columns of ``V`` (n_params, k)."""
+        """Forward sensitivities of the positions along the columns of ``V`` (n_params, k).
+
+        One augmented solve: the state ``y`` (``2 n_free``) and its ``k`` tangent columns
+        ``S = dy/dparams V`` (``2 n_free x k``) integrated together by one ``odeint`` call,
+        ``S' = (df/dy) S + (df/dparams) V``; every right-hand side forms all ``k`` columns
+        in two reverse passes (:meth:`_tangent_columns`), whatever ``k``.
+        """
         from torchdiffeq import odeint
 
         times, prepended = self._times(params)
-        def f_of(p: Tensor):
-            return self._rhs(p, guard=False)
-
         n_state = 2 * self.system.free_dofs.numel()
         k = V.shape[1]
+        rhs = self._rhs
+        tangent_columns = self._tangent_columns
 
         def augmented(t: Tensor, z: Tensor) -> Tensor:
-            # (df/dy) s + (df/dparams) v by two reverse passes (forward-mode AD cannot nest
-            # inside a custom Function's jvp, which is where this runs)
             y, s = z[:n_state], z[n_state:].reshape(n_state, k)
             with torch.enable_grad():
                 p_leaf = params.detach().requires_grad_(True)
                 y_leaf = y.detach().requires_grad_(True)
-                value = f_of(p_leaf)(t, y_leaf)
-                probe = torch.zeros_like(value, requires_grad=True)
-                g_p, g_y = torch.autograd.grad(value, (p_leaf, y_leaf), probe, create_graph=True,
-                                               allow_unused=True)
-                columns = []
-                for j in range(k):
-                    pairing = sum((g * d).sum() for g, d in ((g_p, V[:, j]), (g_y, s[:, j]))
-                                  if g is not None)
-                    (column,) = torch.autograd.grad(pairing, probe, retain_graph=True,
-                                                    allow_unused=True)
-                    columns.append(torch.zeros_like(value) if column is None else column)
-            return torch.cat([value.detach(), torch.stack(columns, dim=1).reshape(-1).detach()])
+                value = rhs(p_leaf, guard=False)(t, y_leaf)
+                columns = tangent_columns(value, p_leaf, y_leaf, V, s)
+            return torch.cat([value.detach(), columns.reshape(-1).detach()])
 
         z0 = torch.cat([self._y0(params), params.new_zeros(n_state * k)])
         with torch.no_grad():
