@@ -5,6 +5,8 @@ manifest and the files are in the files' unit; ``unit`` converts them (metres pe
 unit, or one of ``m``, ``cm``, ``mm``, ``in``). Example (what ``problem=arm3d`` writes)::
 
     unit: 1.0
+    fps: 24                         # optional: frames per second (default 24; the time
+                                    # axis of problem.dynamic=true)
     rest: rest.obj                  # any surface trimesh reads: OBJ, PLY, OFF, STL
     frames: frames.npz              # (F, V, 3) array (key 'frames'), a .npy, or a glob of
                                     # meshes with the rest's vertex count and order,
@@ -46,8 +48,10 @@ from ..rig import DrivenSurface, Skeleton, check_transforms
 from ..simplicial import MeshError
 
 MANIFEST = "animation.yaml"
+#: frames per second of an animation that does not say (the folder format without ``fps``)
+DEFAULT_FPS = 24.0
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
-_TOP_KEYS = ("unit", "rest", "frames", "skeleton", "driven", "regions", "description")
+_TOP_KEYS = ("unit", "fps", "rest", "frames", "skeleton", "driven", "regions", "description")
 _SKELETON_KEYS = ("bones", "attach_radius", "weights")
 _DRIVEN_KEYS = ("vertices", "tolerance")
 _REGION_KEYS = ("labels", "names")
@@ -73,6 +77,8 @@ class Animation:
             (seams welded, :mod:`.seams`), or ``None``: the file's own vertices.
         file_faces: ``(T_file, 3)`` the file's faces on its own vertices, or ``None``.
         prim: the mesh prim a USD stage's animation was read from ("" otherwise).
+        fps: frames per second of ``frames`` (the folder's ``fps``, a USD stage's time
+            codes per second, a glTF animation's sampling or key rate; default 24).
     """
 
     path: Path
@@ -89,6 +95,7 @@ class Animation:
     file_vertices: np.ndarray | None = None
     file_faces: np.ndarray | None = None
     prim: str = ""
+    fps: float = DEFAULT_FPS
 
     @property
     def n_frames(self) -> int:
@@ -467,7 +474,18 @@ def load_animation(path: str | Path) -> Animation:
     if spec.get("regions") is not None:
         labels, region_names = _read_regions(folder, spec["regions"], manifest, rest.shape[0])
     return Animation(manifest, rest * unit, faces, frames * unit, unit, skeleton, driven,
-                     labels, region_names, names, surface_warnings(surface))
+                     labels, region_names, names, surface_warnings(surface),
+                     fps=_fps(spec.get("fps"), manifest))
+
+
+def _fps(value: Any, manifest: Path) -> float:
+    if value is None:
+        return DEFAULT_FPS
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0 \
+            or not np.isfinite(value):
+        raise AnimationError(f"{manifest}: fps must be a positive number of frames per "
+                             f"second, got {value!r}")
+    return float(value)
 
 
 # -- writing ------------------------------------------------------------------------------
@@ -483,8 +501,10 @@ def write_animation(folder: str | Path, rest_vertices: np.ndarray, faces: np.nda
                     frames: np.ndarray, *, skeleton: Skeleton | None = None,
                     driven: DrivenSurface | None = None,
                     region_labels: np.ndarray | None = None,
-                    region_names: list[str] | None = None, description: str = "") -> Path:
-    """Write an animation folder in the format above (lengths in metres, ``unit: 1.0``).
+                    region_names: list[str] | None = None, description: str = "",
+                    fps: float | None = None) -> Path:
+    """Write an animation folder in the format above (lengths in metres, ``unit: 1.0``;
+    ``fps`` written where given).
 
     The folder is written whole into a temporary sibling and renamed into place, so a
     killed process never leaves a half-written animation. Returns the manifest path.
@@ -502,6 +522,8 @@ def write_animation(folder: str | Path, rest_vertices: np.ndarray, faces: np.nda
         if description:
             manifest["description"] = description
         manifest.update({"unit": 1.0, "rest": "rest.obj", "frames": "frames.npz"})
+        if fps is not None:
+            manifest["fps"] = float(fps)
         if skeleton is not None:
             np.savez(tmp / "skeleton.npz", heads=skeleton.heads, tails=skeleton.tails,
                      transforms=skeleton.transforms, names=np.asarray(skeleton.names))
