@@ -197,3 +197,32 @@ def test_fit_and_simulate_apps_in_time(root, tmp_path):
     stage = Usd.Stage.Open(str(tmp_path / "sim" / "usd" / "frames.usda"))
     assert stage.GetTimeCodesPerSecond() == 30.0
     assert stage.GetEndTimeCode() == len(ANGLES) - 1
+
+
+def test_write_arm_adds_keyframed_jiggle(tmp_path):
+    """--jiggle overlays a damped oscillation after changes of speed on the folder's frames:
+    frame 0 and the frames before the first change are the plain arm's; the jiggle then
+    decays; the manifest carries --fps."""
+    import subprocess
+    import sys
+
+    from torchfit.problems.body.procedural_arm import ArmShape, arm_animation, keyframed_jiggle
+
+    jiggly = tmp_path / "jiggly"
+    done = subprocess.run([sys.executable, "scripts/write_arm.py", str(jiggly), "--n-frames",
+                           "24", "--jiggle", "1.0", "--fps", "30"], capture_output=True,
+                          text=True, cwd=Path(__file__).resolve().parents[3])
+    assert done.returncode == 0, done.stderr
+    plain = arm_animation(ArmShape(n_frames=24))["frames"]
+    b = load_animation(jiggly)
+    assert b.fps == 30.0
+    lag = torch.as_tensor(b.frames - plain).norm(dim=-1).amax(dim=-1)     # (F,)
+    assert float(lag[0]) == 0.0 and float(lag.max()) > 1e-3
+    # a uniform motion has no jiggle; a stop starts a decaying one
+    x = torch.linspace(0, 1, 40, dtype=torch.float64).numpy()
+    motion = (x[:, None, None] * 0.1).repeat(2, axis=1).repeat(3, axis=2)
+    motion[20:] = motion[20]
+    out = keyframed_jiggle(motion, torch.ones(2).numpy(), 24.0)
+    assert abs(out[:20] - motion[:20]).max() < 1e-15
+    after = abs(out[21:] - motion[21:]).max(axis=(1, 2))
+    assert after[:6].max() > 10 * after[-6:].max() > 0

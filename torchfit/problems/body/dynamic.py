@@ -272,7 +272,12 @@ class DynamicBody(DynamicMixin):
         return out
 
     def frame_errors(self, x: Tensor) -> dict[str, np.ndarray]:
-        return RiggedBody.frame_errors(self, x)                # type: ignore[arg-type]
+        """The body's per-frame report, with a synthetic truth also the position errors
+        of every output time (``u_err_inf``, ``u_err_2``: the motion pictures')."""
+        out = RiggedBody.frame_errors(self, x)                 # type: ignore[arg-type]
+        if self.x_true is not None:
+            out.update(DynamicMixin.frame_errors(self, x))
+        return out
 
     def frame_names(self) -> list[str]:
         return super(DynamicMixin, self).frame_names()         # the body's, not "t = ..."
