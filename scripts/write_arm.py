@@ -5,6 +5,7 @@ of docs/guide/formats.md).
     .venv/bin/python scripts/write_arm.py my_arm            # 48 frames, skeleton-driven
     .venv/bin/python scripts/write_arm.py my_arm --frames-as-meshes
     .venv/bin/python scripts/write_arm.py my_shot --n-frames 6 --max-flexion 90   # another shot
+    .venv/bin/python scripts/write_arm.py my_jiggle --jiggle 1.0   # keyframed secondary motion
     scripts/fit.sh problem=animation problem.path=my_arm
     .venv/bin/python scripts/write_arm.py --usd arm.usda --gltf arm.glb   # the same arm as a
     scripts/fit.sh problem=animation problem.path=arm.usda    # UsdSkel rig and as a glTF skin
@@ -12,6 +13,13 @@ of docs/guide/formats.md).
 The folder holds ``animation.yaml`` (the manifest), ``rest.obj``, the frames (``frames.npz``
 or ``frames/frame_000.obj`` ...), ``skeleton.npz`` (bone heads, tails and per-frame
 ``[A | t]`` transforms) and ``weights.npy`` (skinning weights per rest vertex).
+
+``--jiggle A`` adds hand-style secondary motion to the folder's frames (not to the rig): after
+every change of speed the flesh lags and overshoots in a damped oscillation
+(``--jiggle-frequency`` Hz, ``--jiggle-damping`` ratio; the bellies of bicep and tricep move
+most; :func:`torchfit.problems.body.procedural_arm.keyframed_jiggle`), the target that
+``problem.dynamic=true`` explains and the quasistatic body cannot. ``--fps`` goes in the
+manifest (default 24).
 
 ``--usd`` (extra ``usd``) and ``--gltf`` (extra ``gltf``) write the arm as a skinned mesh:
 joints shoulder, elbow and wrist tip, the weights, the elbow's animation and the bicep and
@@ -35,6 +43,7 @@ from torchfit.mesh import write_animation  # noqa: E402
 from torchfit.problems.body.procedural_arm import ArmShape, arm_animation  # noqa: E402
 from torchfit.problems.body.procedural_arm import MAX_FLEXION  # noqa: E402
 from torchfit.problems.body.procedural_arm import corrective_shapes  # noqa: E402
+from torchfit.problems.body.procedural_arm import flesh_weights, keyframed_jiggle  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -64,6 +73,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--float32-rest", action="store_true",
                         help="round the rest surface to float32 in every output (as USD and "
                              "glTF store it), so that the folder meshes like the files")
+    parser.add_argument("--jiggle", type=float, default=0.0,
+                        help="amplitude of keyframed secondary motion added to the folder's "
+                             "frames (1: the lag of a 6 Hz oscillator; 0: none)")
+    parser.add_argument("--jiggle-frequency", type=float, default=6.0, help="Hz (default 6)")
+    parser.add_argument("--jiggle-damping", type=float, default=0.2,
+                        help="damping ratio of the jiggle (default 0.2)")
+    parser.add_argument("--fps", type=float, default=24.0,
+                        help="frames per second written in the manifest (default 24)")
     args = parser.parse_args(argv)
     if args.folder is None and args.usd is None and args.gltf is None:
         parser.error("name a folder, --usd FILE or --gltf FILE")
@@ -86,16 +103,26 @@ def main(argv: list[str] | None = None) -> int:
             print(f"wrote {option}")
     if args.folder is None:
         return 0
+    if args.jiggle < 0 or args.jiggle_frequency <= 0 or not 0 <= args.jiggle_damping < 1 \
+            or args.fps <= 0:
+        parser.error("--jiggle must be >= 0, --jiggle-frequency and --fps > 0, "
+                     "--jiggle-damping in [0, 1)")
+    frames = data["frames"]
+    if args.jiggle > 0:
+        frames = keyframed_jiggle(frames, flesh_weights(shape, data["rest_vertices"]), args.fps,
+                                  args.jiggle, args.jiggle_frequency, args.jiggle_damping)
     manifest = write_animation(args.folder, data["rest_vertices"], data["faces"],
-                               data["frames"], skeleton=data["skeleton"],
-                               description="the procedural arm of torchfit's arm3d problem")
+                               frames, skeleton=data["skeleton"], fps=args.fps,
+                               description="the procedural arm of torchfit's arm3d problem" + (
+                                   f" with keyframed jiggle {args.jiggle:g}" if args.jiggle
+                                   else ""))
     if args.frames_as_meshes:
         import trimesh
         import yaml
 
         folder = args.folder / "frames"
         folder.mkdir()
-        for f, positions in enumerate(data["frames"]):
+        for f, positions in enumerate(frames):
             trimesh.Trimesh(positions, data["faces"], process=False).export(
                 str(folder / f"frame_{f:03d}.obj"))
         (args.folder / "frames.npz").unlink()

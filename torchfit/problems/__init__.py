@@ -13,6 +13,7 @@ from .poisson2d import Poisson2D, Poisson2DConfig
 from ..mesh.tetwild.store import KeptMesh
 from .body.problem import RiggedBody
 from .body.config import RiggedBodyConfig
+from .body.dynamic import DynamicArm3D, DynamicRiggedBody
 from .spring1d import DynamicSpring1D, Spring1D, Spring1DConfig
 
 
@@ -31,8 +32,8 @@ PROBLEMS: dict[str, ProblemEntry] = {
     "spring1d": ProblemEntry(Spring1DConfig, Spring1D, DynamicSpring1D),
     "poisson2d": ProblemEntry(Poisson2DConfig, Poisson2D),
     "membrane2d": ProblemEntry(Membrane2DConfig, Membrane2D, DynamicMembrane2D),
-    "arm3d": ProblemEntry(Arm3DConfig, Arm3D),
-    "animation": ProblemEntry(RiggedBodyConfig, RiggedBody),
+    "arm3d": ProblemEntry(Arm3DConfig, Arm3D, DynamicArm3D),
+    "animation": ProblemEntry(RiggedBodyConfig, RiggedBody, DynamicRiggedBody),
 }
 
 
@@ -56,7 +57,8 @@ def build_problem(name: str, cfg: Any = None, kept_mesh: KeptMesh | None = None
     return problem_class(config, kept_mesh=kept_mesh)
 
 
-__all__ = ["Arm3D", "Arm3DConfig", "BodyProblem", "DynamicMembrane2D", "DynamicSpring1D",
+__all__ = ["Arm3D", "Arm3DConfig", "BodyProblem", "DynamicArm3D", "DynamicMembrane2D",
+           "DynamicRiggedBody", "DynamicSpring1D",
            "FieldImageProblem", "FramedProblem", "InverseProblem", "Membrane2D",
            "Membrane2DConfig", "MeshProblem", "MotionProblem", "PROBLEMS", "PosedProblem", "Poisson2D",
            "Poisson2DConfig", "ProblemConfig", "ProblemConfigError", "ProblemEntry",

@@ -243,8 +243,10 @@ class BodyOutputs:
 
     def comparison_models(self) -> list[str]:
         """The constitutive models the comparison shows beside the fitted one (``linear``),
-        whose states :meth:`compare` needs for the homogeneous and the fitted field."""
-        return [] if self.problem.cfg.model.value == "linear" else ["linear"]
+        whose states :meth:`compare` needs for the homogeneous and the fitted field; none
+        for a body in time (``problem.dynamic=true``: the comparison is quasistatic)."""
+        cfg = self.problem.cfg
+        return [] if cfg.model.value == "linear" or getattr(cfg, "dynamic", False) else ["linear"]
 
     # -- end of the run ---------------------------------------------------------------
     def finish(self, final: Evaluation) -> list[Path]:

@@ -126,11 +126,13 @@ def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarra
     labels = {"youngs_modulus": units.unit, "youngsModulus": units.unit,
               "poissonsRatio": "1 (dimensionless)", "density": "kg/m^3"}
     material = {"youngsModulus": field, "poissonsRatio": np.full(len(cells), problem.cfg.nu),
-                "density": np.full(len(cells), DENSITY)}
+                "density": np.full(len(cells), float(problem.cfg.density) if getattr(
+                    problem.cfg, "dynamic", False) else DENSITY)}
     per_vertex = vertex_field(problem, field)
 
     def fill(partial: Path) -> None:
-        write_point_cache_usd(partial / "frames.usda", faces, surface, times=times, over=over)
+        write_point_cache_usd(partial / "frames.usda", faces, surface, times=times, over=over,
+                              fps=float(getattr(problem.animation, "fps", 24.0)))
         write_tet_mesh_usd(partial / "body.usda", np.asarray(problem.mesh.points), cells, fields,
                            material=material, custom=units.custom(), units=labels)
         if per_vertex is not None:

@@ -124,7 +124,7 @@ def _min_volume_ratios(problem: Any, theta: Tensor) -> list[tuple[int, float]]:
     """``(frame number, smallest volume ratio)`` of every fitted frame at ``theta``: an
     independent simulation (a state the problem holds already is found again)."""
     with torch.no_grad(), problem.independent_simulation():
-        x = problem.simulate(problem.field(theta))
+        x = problem.simulate(problem.simulation_input(theta))
     return list(zip(problem.frame_numbers(), np.asarray(problem.min_volume_ratio(x)).tolist()))
 
 

@@ -161,8 +161,9 @@ class RunOutputs:
         baseline = self.body.baseline
         if baseline is None:   # a resumed run missed iteration 0; an init= run started elsewhere
             baseline = self.evaluator.evaluate(self.problem.theta0, independent=True)
-        progress.info("simulating the linear model for the comparison (%d frames)",
-                      self.problem.n_frames)
+        if self.body.comparison_models():
+            progress.info("simulating the linear model for the comparison (%d frames)",
+                          self.problem.n_frames)
         others = {material: {model: self.evaluator.other_model(model, evaluation.field)
                              for model in self.body.comparison_models()}
                   for material, evaluation in (("homogeneous", baseline), ("fitted", final))}

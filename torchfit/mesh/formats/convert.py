@@ -50,7 +50,6 @@ SHAPE_TOLERANCE = 1e-7
 #: the written file, read back, reproduces the input's frames within this (metres)
 CHECK_TOLERANCE = 1e-6
 USD_OUT = (".usd", ".usda", ".usdc")
-DEFAULT_FPS = 24.0
 
 
 def output_kind(path: Path) -> str:
@@ -60,29 +59,6 @@ def output_kind(path: Path) -> str:
         raise AnimationError(f"{path}: convert writes .usd, .usda or .usdc stages, not a .usdz "
                              "package; write a .usdc and package it with usdzip")
     return "usd" if suffix in USD_OUT else "gltf" if suffix in GLTF_SUFFIXES else "folder"
-
-
-def source_rate(path: Path, kind: str, fps: float) -> float:
-    """The input's frame rate: ``fps`` where given, else the stage's time codes per second,
-    a glTF animation's median key spacing, or ``DEFAULT_FPS``."""
-    if fps > 0:
-        return fps
-    if kind == "usd":
-        from pxr import Usd
-
-        stage = Usd.Stage.Open(str(path))
-        return float(stage.GetTimeCodesPerSecond()) if stage else DEFAULT_FPS
-    if kind == "gltf":
-        import pygltflib
-
-        gltf = pygltflib.GLTF2().load(str(path))
-        for animation in gltf.animations or []:
-            for sampler in animation.samplers:
-                keys = gltf.accessors[sampler.input]
-                if keys.count > 1 and keys.min and keys.max and keys.max[0] > keys.min[0]:
-                    # float32 key times: 29.999998 is 30 (23.976 stays)
-                    return float(round((keys.count - 1) / (keys.max[0] - keys.min[0]), 3))
-    return DEFAULT_FPS
 
 
 def up_axis(path: Path, kind: str, given: str) -> str:
@@ -159,7 +135,7 @@ def _write(animation: Animation, out: Path, target: str, fps: float, up: str,
         labels = animation.region_labels
         write_animation(out, rest, faces, frames, skeleton=skeleton, driven=animation.driven,
                         region_labels=labels, region_names=animation.region_names or None,
-                        description=description)
+                        description=description, fps=fps)
         return 0
     if skeleton is None:                              # a point cache as a USD stage
         from pxr import Sdf, Usd, UsdGeom, Vt
@@ -212,7 +188,7 @@ def convert(source: Path, out: Path, prim: str = "", fps: float = 0.0, up: str =
     if fps < 0 or not np.isfinite(fps):
         raise AnimationError(f"--fps={fps}: give a positive frame rate (or leave it unset)")
     animation = read_animation(source, prim, fps if kind == "gltf" else 0.0, weld=False)
-    rate = source_rate(source, kind, fps)
+    rate = fps if fps > 0 else animation.fps
     axis = up_axis(source, kind, up)
     description = f"converted from {source.name}" + (f" ({animation.prim})" if animation.prim
                                                       else "") + f" at {rate:g} fps"

@@ -5,6 +5,8 @@ manifest and the files are in the files' unit; ``unit`` converts them (metres pe
 unit, or one of ``m``, ``cm``, ``mm``, ``in``). Example (what ``problem=arm3d`` writes)::
 
     unit: 1.0
+    fps: 24                         # optional: frames per second (default 24; the time
+                                    # axis of problem.dynamic=true)
     rest: rest.obj                  # any surface trimesh reads: OBJ, PLY, OFF, STL
     frames: frames.npz              # (F, V, 3) array (key 'frames'), a .npy, or a glob of
                                     # meshes with the rest's vertex count and order,
@@ -51,8 +53,10 @@ from ..rig import DrivenSurface, Skeleton, check_transforms
 from ..simplicial import MeshError
 
 MANIFEST = "animation.yaml"
+#: frames per second of an animation that does not say (the folder format without ``fps``)
+DEFAULT_FPS = 24.0
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
-_TOP_KEYS = ("unit", "rest", "frames", "skeleton", "driven", "regions", "up", "description")
+_TOP_KEYS = ("unit", "fps", "rest", "frames", "skeleton", "driven", "regions", "up", "description")
 #: the up axes a manifest may name (``up``), as unit vectors
 UP_AXES = {f"{sign}{name}": (1.0 if sign != "-" else -1.0) * np.eye(3)[i]
            for i, name in enumerate("xyz") for sign in ("", "+", "-")}
@@ -84,6 +88,8 @@ class Animation:
         up: ``(3,)`` the file's up direction (a unit vector in these coordinates: a USD
             stage's ``upAxis``, glTF's +Y, the manifest's ``up``), or ``None`` where the file
             says none; the pictures' camera stands the body on it.
+        fps: frames per second of ``frames`` (the folder's ``fps``, a USD stage's time
+            codes per second, a glTF animation's sampling or key rate; default 24).
     """
 
     path: Path
@@ -101,6 +107,7 @@ class Animation:
     file_faces: np.ndarray | None = None
     prim: str = ""
     up: np.ndarray | None = None
+    fps: float = DEFAULT_FPS
 
     @property
     def n_frames(self) -> int:
@@ -520,7 +527,17 @@ def load_animation(path: str | Path) -> Animation:
         labels, region_names = _read_regions(folder, spec["regions"], manifest, rest.shape[0])
     return Animation(manifest, rest * unit, faces, frames * unit, unit, skeleton, driven,
                      labels, region_names, names, surface_warnings(surface),
-                     up=_up(spec.get("up"), manifest))
+                     up=_up(spec.get("up"), manifest), fps=_fps(spec.get("fps"), manifest))
+
+
+def _fps(value: Any, manifest: Path) -> float:
+    if value is None:
+        return DEFAULT_FPS
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0 \
+            or not np.isfinite(value):
+        raise AnimationError(f"{manifest}: fps must be a positive number of frames per "
+                             f"second, got {value!r}")
+    return float(value)
 
 
 # -- writing ------------------------------------------------------------------------------
@@ -537,9 +554,10 @@ def write_animation(folder: str | Path, rest_vertices: np.ndarray, faces: np.nda
                     driven: DrivenSurface | None = None,
                     region_labels: np.ndarray | None = None,
                     region_names: list[str] | None = None, description: str = "",
-                    up: str | None = None) -> Path:
+                    up: str | None = None, fps: float | None = None) -> Path:
     """Write an animation folder in the format above (lengths in metres, ``unit: 1.0``;
-    ``up``: the manifest's up axis, one of :data:`UP_AXES`, or ``None``: none written).
+    ``up``: the manifest's up axis, one of :data:`UP_AXES`, or ``None``: none written;
+    ``fps`` written where given).
 
     The folder is written whole into a temporary sibling and renamed into place, so a
     killed process never leaves a half-written animation. Returns the manifest path.
@@ -561,6 +579,8 @@ def write_animation(folder: str | Path, rest_vertices: np.ndarray, faces: np.nda
             if up.strip().lower() not in UP_AXES:
                 raise ValueError(f"up must be one of x, y, z, -x, -y, -z, got {up!r}")
             manifest["up"] = up.strip().lower()
+        if fps is not None:
+            manifest["fps"] = float(fps)
         if skeleton is not None:
             np.savez(tmp / "skeleton.npz", heads=skeleton.heads, tails=skeleton.tails,
                      transforms=skeleton.transforms, names=np.asarray(skeleton.names))

@@ -21,7 +21,7 @@ from .errors import (DynamicsInputError, InvalidFieldError, NegativeDampingError
                      NonFiniteStateError, UnstableStepError)
 from .explicit import ADAPTIVE_METHODS, FIXED_METHODS, TorchdiffeqIntegrator
 from .implicit import ImplicitIntegrator
-from .system import DynamicSystem, KeyedMotion, check_output_times
+from .system import DynamicSystem, KeyedMotion, SplineMotion, check_output_times
 
 INTEGRATORS = ("torchdiffeq", "implicit")
 
@@ -47,4 +47,4 @@ def make_integrator(kind: str, system: DynamicSystem, output_times: Any, *, dt: 
 
 __all__ = ["ADAPTIVE_METHODS", "DynamicSystem", "DynamicsInputError", "FIXED_METHODS",
            "INTEGRATORS", "InvalidFieldError", "KeyedMotion", "NegativeDampingError",
-           "NonFiniteStateError", "UnstableStepError", "check_output_times", "make_integrator"]
+           "NonFiniteStateError", "SplineMotion", "UnstableStepError", "check_output_times", "make_integrator"]

@@ -9,9 +9,10 @@ acceleration as affine functions of the new position (variable-step BDF2 coeffic
 
 so the step is the root of the *step residual* (free dofs; Dirichlet dofs at ``x_D(t_{n+1})``)
 
-    R(x; p) = M (c0^2 x + b_a) + (alpha M + beta K0(k)) (c0 x + b_v) + R_el(x; k) - f_ext(t_{n+1})
+    R(x; p) = M (c0^2 x + b_a) + (alpha M + beta K0(k)) (c0 x + b_v - v_ref) + R_el(x; k) - f_ext(t_{n+1})
 
-with ``p = [k, alpha, beta, b_a, b_v, f_ext, c0^2, c0]``. :class:`StepModel` is an
+with ``p = [k, alpha, beta, b_a, b_v - v_ref, f_ext, c0^2, c0]`` (``v_ref(t_{n+1})``: the
+system's reference velocity, zero by default). :class:`StepModel` is an
 :class:`~torchfit.physics.EquilibriumModel` of it, and each step is solved by the generic
 :class:`~torchfit.physics.Equilibrium` (Newton with line search for a nonlinear material,
 one factorisation and one solve for a linear one). Derivatives are the equilibrium's own
@@ -321,7 +322,12 @@ class ImplicitIntegrator:
             raise NonFiniteStateError(
                 f"the state is not finite at t = {float(t_next):.6g}: the external force on "
                 f"vertex {dof // self.system.vertex_dim} (dof {dof}) is {float(force[dof])}")
-        p = self.model.pack(params, b_a, b_v, force, c0 * c0, c0)
+        # the damping acts on v - v_ref: b_v shifted by v_ref in p (its derivatives are b_v's)
+        if self.system.reference_velocity is not None:
+            shifted = b_v - self.system.damped_against(t_next)[0]
+        else:
+            shifted = b_v
+        p = self.model.pack(params, b_a, shifted, force, c0 * c0, c0)
         return p, self.system.fixed_positions(t_next), b_v
 
     def _advance(self, n: int, params: Tensor, state: tuple[Tensor, Tensor],

@@ -10,6 +10,9 @@
   ``beta`` (s); ``K0(k)`` is the stiffness at the rest shape (linear Rayleigh damping,
   the same matrix for every state; equal to ``dR_el/dx`` for linear models);
 * ``f_ext(t) = M g + loads(t)``: gravity and prescribed time-varying loads;
+* optionally a reference velocity ``v_ref(t)`` the damping acts against:
+  ``C (v - v_ref(t))`` (a rigged body's flesh damped relative to its rig, so that a rigid
+  swing of the limb is not braked as if by air; ``v_ref = 0`` by default);
 * Dirichlet dofs whose positions follow a prescribed trajectory ``x_D(t)`` (with its
   velocity ``v_D(t)``).
 
@@ -87,6 +90,82 @@ class KeyedMotion:
         return dw[:, None] * (values[upper] - values[lower])
 
 
+class SplineMotion:
+    """Values keyed at times and interpolated by the natural cubic spline through the keys
+    (C2, passes through every key; a rig's frames played at their frame rate). Before the
+    first key the value is the first key's, after the last the last key's (velocity zero
+    there). Vectorised over times.
+
+    Unlike :class:`KeyedMotion` the motion does not stop at every key: a rig sampled at
+    24 frames per second moves smoothly through its frames instead of halting 24 times a
+    second (which would shake the flesh at the frame rate).
+
+    Args:
+        key_times: ``(K,)`` strictly increasing times (s).
+        key_values: ``(K, n)`` values at the keys.
+    """
+
+    def __init__(self, key_times: Tensor, key_values: Tensor) -> None:
+        key_times = torch.as_tensor(key_times)
+        if key_times.dim() != 1 or key_values.dim() != 2 or key_values.shape[0] != key_times.numel():
+            raise DynamicsInputError(f"keys need times (K,) and values (K, n), got "
+                                     f"{tuple(key_times.shape)} and {tuple(key_values.shape)}")
+        if key_times.numel() > 1 and not bool((key_times[1:] > key_times[:-1]).all()):
+            raise DynamicsInputError(f"key times must increase strictly, got {key_times.tolist()}")
+        self.key_times = key_times.to(key_values)
+        self.key_values = key_values
+        self.second = self._second_derivatives()                 # (K, n)
+
+    def _second_derivatives(self) -> Tensor:
+        t, y = self.key_times, self.key_values
+        k = t.numel()
+        out = torch.zeros_like(y)
+        if k < 3:
+            return out
+        h = t[1:] - t[:-1]                                      # (K - 1,)
+        slope = (y[1:] - y[:-1]) / h[:, None]
+        rhs = 6.0 * (slope[1:] - slope[:-1])                    # (K - 2, n)
+        a = torch.diag(2.0 * (h[:-1] + h[1:]))
+        if k > 3:
+            a = a + torch.diag(h[1:-1], 1) + torch.diag(h[1:-1], -1)
+        out[1:-1] = torch.linalg.solve(a, rhs)
+        return out
+
+    def _segment(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        times = self.key_times.to(t)
+        k = times.numel()
+        upper = torch.searchsorted(times, t.contiguous(), right=True).clamp(1, k - 1)
+        lower = upper - 1
+        h = times[upper] - times[lower]
+        b = ((t - times[lower]) / h).clamp(0.0, 1.0)
+        inside = (t >= times[0]) & (t <= times[-1])
+        return lower, upper, h, b, inside
+
+    def __call__(self, t: Tensor) -> Tensor:
+        """Values ``(T, n)`` at times ``t`` ``(T,)``."""
+        y = self.key_values.to(t)
+        if y.shape[0] == 1:
+            return y.expand(t.numel(), -1)
+        m = self.second.to(t)
+        lower, upper, h, b, _ = self._segment(t)
+        a = 1.0 - b
+        hh = (h * h / 6.0)[:, None]
+        return a[:, None] * y[lower] + b[:, None] * y[upper] + \
+            hh * (((a ** 3 - a)[:, None]) * m[lower] + ((b ** 3 - b)[:, None]) * m[upper])
+
+    def velocity(self, t: Tensor) -> Tensor:
+        """Time derivative ``(T, n)`` at times ``t`` ``(T,)`` (zero outside the keys' span)."""
+        y = self.key_values.to(t)
+        if y.shape[0] == 1:
+            return torch.zeros(t.numel(), y.shape[1], dtype=t.dtype, device=t.device)
+        m = self.second.to(t)
+        lower, upper, h, b, inside = self._segment(t)
+        a = 1.0 - b
+        out = (y[upper] - y[lower]) / h[:, None] + (h / 6.0)[:, None] * (
+            -((3.0 * a * a - 1.0)[:, None]) * m[lower] + ((3.0 * b * b - 1.0)[:, None]) * m[upper])
+        return torch.where(inside[:, None], out, torch.zeros_like(out))
+
+
 def check_output_times(times: Tensor | list[float], t0: float = 0.0) -> Tensor:
     """``times`` as a float64 tensor if they are finite, increase strictly and start at or
     after ``t0``; else a one-line :class:`DynamicsInputError`."""
@@ -127,12 +206,16 @@ class DynamicSystem:
         vertex_dim: dofs per vertex (for messages naming a vertex).
         t0: start time.
         rest: ``(n_dofs,)`` rest positions, where ``K0`` is taken (default ``x0``).
+        reference_velocity: ``t (T,) -> (T, n_dofs)`` the velocity the damping acts
+            against (``C (v - v_ref)``), or ``None`` (``v_ref = 0``).
     """
 
     def __init__(self, elastic, n_field: int, mass: Tensor, fixed_dofs: Tensor, dirichlet,
                  loads: TimeFunction | None, gravity: Tensor, x0: Tensor, v0: Tensor | None = None,
-                 vertex_dim: int = 1, t0: float = 0.0, rest: Tensor | None = None) -> None:
+                 vertex_dim: int = 1, t0: float = 0.0, rest: Tensor | None = None,
+                 reference_velocity: TimeFunction | None = None) -> None:
         self.elastic = elastic
+        self.reference_velocity = reference_velocity
         self.n_dofs = int(elastic.n_dofs)
         self.n_field = int(n_field)
         self.vertex_dim = int(vertex_dim)
@@ -266,9 +349,16 @@ class DynamicSystem:
         """``M^-1 (f_int - C v + f_ext)`` ``(B, n_dofs)`` for full states ``x, v`` ``(B, n_dofs)``
         at one time ``t`` (a scalar tensor); differentiable in ``x``, ``v``, ``params``."""
         field, alpha, beta = self.split(params)
+        v = v - self.damped_against(t.reshape(1)).to(v)
         force = -self.elastic.residual(x, field) - alpha * self.mass.to(x) * v \
             - beta * self.stiffness_matvec(field, v) + self.external_force(t.reshape(1))
         return force / self.mass.to(x)
+
+    def damped_against(self, t: Tensor) -> Tensor:
+        """``v_ref(t)`` ``(T, n_dofs)`` (zeros without a reference velocity)."""
+        if self.reference_velocity is None:
+            return self.mass.new_zeros(t.numel(), self.n_dofs).to(t)
+        return self.reference_velocity(t).to(t)
 
     # -- scales and checks ------------------------------------------------------------------
     def max_frequency(self, field: Tensor, iterations: int = 60) -> float:

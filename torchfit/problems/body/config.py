@@ -9,6 +9,7 @@ from typing import List, Optional
 
 from ...settings import Choice
 from ..config import Backend, ProblemConfig
+from ..dynamic import Integrator, Scheme
 
 
 class ElasticModel(Choice):
@@ -126,3 +127,22 @@ class RiggedBodyConfig(ProblemConfig):
     # point where it is known) or the animated pose (false, the definition in docs/problems.md;
     # when it matters: docs/notes/arm3d.md#noticed-left-alone, several equilibria near full bend)
     warm_start: bool = True
+    # -- problem.dynamic=true (problems/body/dynamic.py, docs/guide/dynamics.md): the rig drives
+    # its tetrahedron vertices through time (the frames at the animation's fps, a natural cubic
+    # spline between them), the rest integrates M a = f_int(x; E) - C v; E in Pa, fitted with
+    # the Rayleigh damping C = alpha M + beta K0 --
+    dynamic: bool = False
+    integrator: Integrator = Integrator.implicit   # implicit only (the body is stiff)
+    scheme: Scheme = Scheme.bdf2           # bdf2 | backward_euler
+    substeps: int = 4                      # implicit steps per frame (dt = 1 / (fps substeps))
+    density: float = 1000.0                # kg/m^3 (soft tissue); lumped mass per vertex
+    # with E0_unit=relative the moduli (E0, E_blocks, E_regions, E_min/E_max when absolute)
+    # are factors of this modulus in pascals (soft tissue); with E0_unit=Pa they are pascals
+    E_reference: float = 1.0e4
+    alpha: float = 2.0                     # true mass damping (1/s), target=synthetic
+    beta: float = 0.004                    # true stiffness damping (s), target=synthetic
+    alpha0: float = 1.0                    # initial guess of alpha
+    beta0: float = 0.008                   # initial guess of beta
+    # 1 keeps every step's state and factor; c > 1 every c-th state (the rest recomputed);
+    # 0: ceil(sqrt(steps))
+    checkpoint_every: int = 1

@@ -51,7 +51,8 @@ from .report import (BODY_METRICS, body_metrics, describe_body, frame_report,
                           inverted_counts, min_volume_ratios, surface_distances, volume_change)
 from ..config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
                      resolve_backend, setting_error)
-from .held_out import NO_VALIDATION, split_frames
+from ..dynamic import check_dynamic_flag
+from .held_out import NO_VALIDATION, FrameSplit, split_frames
 from .model_comparison import ModelComparison
 from .bounds import bounds_warning, check_bounds, modulus_bounds, region_report, theta_bounds
 from .repeated_poses import distinct_poses
@@ -157,6 +158,7 @@ class RiggedBody(InverseProblem):
 
     # -- hooks of the template --------------------------------------------------------
     def check(self, cfg: RiggedBodyConfig) -> None:
+        check_dynamic_flag(self, cfg)
         require_setting(-1.0 < cfg.nu < 0.5, cfg, "nu", "must lie in (-1, 0.5) (Poisson ratio "
                         "of an isotropic material; 0.5 would be incompressible)")
         require_setting(cfg.E0 > 0, cfg, "E0", "must be a positive Young's modulus")
@@ -225,9 +227,9 @@ class RiggedBody(InverseProblem):
             animation = self.load(cfg)
             # every frame's motion (not the fitted subset's) settles the frame of a round body
             self.motion = animation.frames - animation.rest_vertices
-            self.frame_split = split_frames(cfg, animation.rest_vertices, animation.frames)
+            self.frame_split = self.split_frames(cfg, animation)
             fitted = cfg.frames if self.frame_split is None else self.frame_split.fitted
-            in_file = animation.n_frames
+            in_file, whole = animation.n_frames, animation
             if fitted is not None:
                 try:
                     animation = animation.select([int(f) for f in fitted])
@@ -235,6 +237,7 @@ class RiggedBody(InverseProblem):
                     raise setting_error("frames", cfg.frames, str(err)) from err
             progress.result = animation_summary(animation, in_file)
         self.rig_report = check_rig(cfg, animation)
+        rigged = self.driving_animation(whole, animation)
         self.animation = animation
         for text in animation.warnings:
             log.warning(f"{animation.path}: rest surface: {text}")
@@ -259,12 +262,12 @@ class RiggedBody(InverseProblem):
                       f"{count(len(cells))} tetrahedra"):
                 self.embedding: Embedding = embed_points(animation.rest_vertices, points, cells,
                                                          max_distance=_MAX_OUTSIDE * diagonal)
-            surface = (animation.rest_vertices, animation.faces, animation.frames)
+            surface = (rigged.rest_vertices, rigged.faces, rigged.frames)
             with step(f"attaching the rig to {count(len(points))} tetrahedron vertices in "
-                      f"{count(animation.n_frames)} frames") as progress:
-                drive = skeleton_drive(points, cells, animation.skeleton, *surface) \
-                    if animation.skeleton is not None else \
-                    surface_drive(points, animation.driven, *surface)
+                      f"{count(rigged.n_frames)} frames") as progress:
+                drive = skeleton_drive(points, cells, rigged.skeleton, *surface) \
+                    if rigged.skeleton is not None else \
+                    surface_drive(points, rigged.driven, *surface)
                 progress.result = f"{count(len(drive.vertices))} driven (prescribed)"
         except MeshError as err:
             raise ProblemConfigError(f"{animation.path}: {err}") from err
@@ -280,7 +283,7 @@ class RiggedBody(InverseProblem):
                                                    device=self.device)
         self.start_positions = torch.as_tensor(drive.start, dtype=self.dtype, device=self.device)
         # frames repeating a pose share one simulation (repeated_poses.py)
-        self.repeated_poses = distinct_poses(self.dirichlet_positions)
+        self.repeated_poses = self.pose_repeats()
         # warm starts (the last solution, at the solver's next point) keep going rather than
         # fall back to the animated pose: near full bend that cold start needs far more
         # Newton iterations (folds and inverted elements at the inner elbow)
@@ -302,6 +305,19 @@ class RiggedBody(InverseProblem):
         log.info("pictures: up (%s), %s", ", ".join(f"{c:.3g}" for c in up), source)
         self.view_axes = view_axes(animation.rest_vertices, animation.frames, up)
         self.joint_cells = self.joint_region(cfg)
+
+    def split_frames(self, cfg: RiggedBodyConfig, animation: Animation) -> FrameSplit | None:
+        """The fitted and validation frames of ``animation`` (every frame of the file)."""
+        return split_frames(cfg, animation.rest_vertices, animation.frames)
+
+    def driving_animation(self, whole: Animation, fitted: Animation) -> Animation:
+        """The frames the rig drives the body through: the fitted ones (each an
+        independent equilibrium); the dynamic body's are the whole shot up to its last."""
+        return fitted
+
+    def pose_repeats(self) -> tuple[Tensor, Tensor] | None:
+        """Frames repeating a pose share one simulation (:mod:`.repeated_poses`)."""
+        return distinct_poses(self.dirichlet_positions)
 
     def tetrahedralize(self, cfg: RiggedBodyConfig, animation: Animation) -> TetMesh:
         """The rest surface's tet mesh, built in the body's frame (the same tetrahedra for

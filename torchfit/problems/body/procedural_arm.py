@@ -270,3 +270,37 @@ def elbow_region(shape: ArmShape, points: np.ndarray, reach: float | None = None
     elbow = np.array([0.0, 0.0, shape.upper])
     reach = 1.5 * float(radius(shape, np.array([shape.upper]))[0]) if reach is None else reach
     return np.linalg.norm(np.asarray(points) - elbow, axis=1) <= reach
+
+
+def keyframed_jiggle(frames: np.ndarray, weights: np.ndarray, fps: float = 24.0,
+                     amplitude: float = 1.0, frequency: float = 6.0,
+                     damping_ratio: float = 0.2) -> np.ndarray:
+    """Hand-style secondary motion on top of ``frames`` ``(F, V, 3)`` (metres): after every
+    change of speed the flesh lags and overshoots in a damped oscillation, as an animator keys
+    overlapping action (a procedural layer, not a simulation: each vertex on its own).
+
+    Every frame's change of velocity ``dv_g = (x_{g+1} - 2 x_g + x_{g-1}) fps`` starts a lag
+    ``-amplitude w_v dv_g e^{-zeta omega tau} sin(omega_d tau) / omega_d`` at the frames
+    ``tau = (f - g) / fps > 0`` after it (``omega = 2 pi frequency``, ``omega_d = omega
+    sqrt(1 - zeta^2)``); ``weights`` ``(V,)`` in [0, 1] say how much flesh each vertex has.
+    Returns the frames with the jiggle added (frame 0 and uniform motion unchanged)."""
+    frames = np.asarray(frames, dtype=np.float64)
+    n = len(frames)
+    omega = 2.0 * math.pi * frequency
+    zeta = float(damping_ratio)
+    omega_d = omega * math.sqrt(max(1.0 - zeta * zeta, 1e-12))
+    out = frames.copy()
+    for g in range(1, n - 1):
+        dv = (frames[g + 1] - 2.0 * frames[g] + frames[g - 1]) * fps          # (V, 3)
+        tau = (np.arange(g + 1, n) - g) / fps
+        lag = np.exp(-zeta * omega * tau) * np.sin(omega_d * tau) / omega_d  # (k,)
+        out[g + 1:] -= amplitude * lag[:, None, None] * (weights[:, None] * dv)[None]
+    return out
+
+
+def flesh_weights(shape: ArmShape, rest: np.ndarray) -> np.ndarray:
+    """Per rest vertex ``(V,)`` in [0, 1]: how much the bicep and tricep bellies move (their
+    largest corrective displacement, normalised), at least 0.25 everywhere."""
+    bulge = np.linalg.norm(correctives(shape, rest, elbow_angles(shape)), axis=-1).max(axis=0)
+    peak = float(bulge.max()) or 1.0
+    return np.clip(0.25 + 0.75 * bulge / peak, 0.0, 1.0)

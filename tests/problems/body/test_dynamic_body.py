@@ -1,0 +1,228 @@
+"""``problem.dynamic=true`` on a rigged body (the capsule): contract, derivatives, slow
+motion against the quasistatic body, held-out later window, refusals, recovery."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+import torchfit
+from helpers.capsule_animation import write_capsule
+from torchfit.mesh import load_animation
+from torchfit.problems import ProblemConfigError, RiggedBody, build_problem
+from torchfit.problems.body.dynamic import DynamicRiggedBody
+
+#: six frames of the capsule's bend (0 to 30 degrees, then held)
+ANGLES = (0.0, 10.0, 20.0, 30.0, 30.0, 30.0)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def capsule(root: Path, fps: float | None = None, name: str = "capsule") -> Path:
+    folder = root / name
+    if not (folder / "animation.yaml").is_file():
+        write_capsule(folder, angles=ANGLES)
+        if fps is not None:
+            manifest = yaml.safe_load((folder / "animation.yaml").read_text())
+            manifest["fps"] = fps
+            (folder / "animation.yaml").write_text(yaml.safe_dump(manifest))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("dynamic_body")
+
+
+def settings(root: Path, **more) -> dict:
+    return {"path": str(capsule(root)), "cache_dir": str(root / "cache"), "tet_count": 600,
+            "grid": [2, 2, 3], "dynamic": True, "substeps": 2, **more}
+
+
+@pytest.fixture(scope="module")
+def synthetic(root) -> DynamicRiggedBody:
+    return build_problem("animation", settings(root, target="synthetic", frames=[0, 1, 2, 3]))
+
+
+def test_dynamic_flag_builds_the_body_in_time(synthetic, root):
+    problem = synthetic
+    assert isinstance(problem, DynamicRiggedBody) and not problem.scale_free
+    assert type(build_problem("animation", {**settings(root), "dynamic": False})) is RiggedBody
+    n_field = 2 * 2 * 3
+    assert problem.parameterization.n_params == n_field + 2
+    # moduli in pascals: the blocks truth is E_blocks times E_reference (1e4 Pa)
+    assert problem.cfg.E_blocks == pytest.approx([1.0e4, 4.0e4, 4.0e3])
+    assert problem.cfg.E0_unit.value == "Pa"
+    assert 1.0e4 < float(problem.field_true.max()) <= 4.0e4
+    assert float(problem.field(problem.theta0).mean()) == pytest.approx(1.0e4)
+    described = problem.describe()
+    assert described["fps"] == 24.0 and described["substeps"] == 2
+    assert described["steps"] == 3 * 2 and described["scheme"] == "bdf2"
+    # lumped mass: density times the tetrahedra's volume
+    volume = float(problem.mesh.signed_volumes().sum())
+    assert described["mass"] == pytest.approx(1000.0 * volume, rel=1e-12)
+    assert problem.x_true.shape == (4, problem.model.n_vertices, 3)
+    truth = problem.metrics(problem.true_theta())
+    assert truth["k_err_rel"] == pytest.approx(0.0, abs=1e-12)
+    assert truth["misfit"] == pytest.approx(0.0, abs=1e-12)
+    start = problem.metrics(problem.theta0)
+    assert start["alpha_damping_err_rel"] == pytest.approx(0.5)       # 1.0 against 2.0
+    assert start["k_err_rel_aligned"] > 0.1
+
+
+@pytest.mark.parametrize("scheme", ["bdf2", "backward_euler"])
+def test_dynamic_body_derivatives(root, scheme):
+    problem = build_problem("animation", settings(root, target="synthetic", frames=[0, 2, 3],
+                                                  scheme=scheme))
+    report = torchfit.verify(problem, at="truth", perturbation=0.1, dot_tol=1e-9)
+    assert abs(report.taylor.rate - 2.0) <= 0.05, report.format()
+    assert report.dot.rel_error <= 1e-9, report.format()
+    # the dense Jacobian (tangents forward in time) against the adjoint's J^T w
+    theta = problem.theta0
+    J = problem.forward_jacobian(theta)
+    w = torch.randn(J.shape[0], dtype=J.dtype, generator=torch.Generator().manual_seed(1))
+    theta_leaf = theta.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(problem.forward(theta_leaf), theta_leaf, w)
+    assert torch.allclose(J.T @ w, grad, rtol=1e-9, atol=1e-12 * float(grad.abs().max()))
+
+
+def test_slow_motion_is_the_quasistatic_body(root):
+    """The frame rate slowed 100x (0.24 fps): the motion in time is the frame-by-frame
+    equilibrium to 1e-4 of the displacement; at 24 fps it is not."""
+    common = {"cache_dir": str(root / "cache"), "tet_count": 1500, "grid": [2, 2, 3]}
+    slow = capsule(root, fps=0.24, name="capsule_slow")
+    quasistatic = build_problem("animation", {**common, "path": str(slow)})
+    differences = {}
+    for fps, folder in ((0.24, slow), (24.0, capsule(root, fps=24.0, name="capsule_24"))):
+        problem = build_problem("animation", {**common, "path": str(folder), "dynamic": True,
+                                              "substeps": 2, "alpha0": 2.0, "beta0": 1e-4})
+        assert problem.fps == fps
+        physical = problem.simulation_input(problem.theta0)
+        x = problem.simulate(physical)
+        xq = quasistatic.simulate(physical[:-2])
+        displacement = float((xq - problem.model.rest.points).norm(dim=-1).max())
+        differences[fps] = float((x - xq).norm(dim=-1).max()) / displacement
+    assert differences[0.24] < 1e-4, differences
+    assert differences[24.0] > 1e-2, differences
+
+
+def test_validation_is_a_later_window(root):
+    problem = build_problem("animation", settings(root, target="synthetic",
+                                                  validation_frames=[4, 5]))
+    assert problem.frame_numbers() == [0, 1, 2, 3]
+    validation = problem.validation_problem()
+    assert validation.frame_numbers() == [4, 5]
+    # the held-out frames are simulated from t = 0 through the fitted window
+    assert validation.dirichlet_positions.shape[0] == 6
+    x = validation.simulate(validation.true_simulation_input())
+    assert torch.allclose(x, validation.x_true)
+    with pytest.raises(ProblemConfigError, match="is not a later window: fitted frame 4"):
+        build_problem("animation", settings(root, frames=[0, 4], validation_frames=[2, 3]))
+
+
+@pytest.mark.parametrize("override, message", [
+    ({"substeps": 0}, "problem.substeps=0: must be an integer >= 1"),
+    ({"density": 0.0}, "problem.density=0.0: must be > 0"),
+    ({"density": -1000.0}, "problem.density=-1000.0: must be > 0"),
+    ({"integrator": "torchdiffeq"}, "torchdiffeq does not apply to a body"),
+    ({"validation_every": 2}, "hold out a later window"),
+    ({"E_reference": 0.0}, "problem.E_reference=0.0: must be a positive"),
+    ({"alpha0": -1.0, "transform": "identity"}, "is a negative damping coefficient"),
+])
+def test_dynamic_settings_are_refused_with_one_line(root, override, message):
+    with pytest.raises(ProblemConfigError, match=message) as err:
+        build_problem("animation", settings(root, **override))
+    assert "\n" not in str(err.value)
+
+
+def test_the_folder_format_carries_its_frame_rate(root):
+    folder = capsule(root, fps=30.0, name="capsule_30")
+    assert load_animation(folder).fps == 30.0
+    assert load_animation(capsule(root)).fps == 24.0
+    bad = root / "capsule_bad"
+    shutil.copytree(folder, bad)
+    manifest = yaml.safe_load((bad / "animation.yaml").read_text())
+    manifest["fps"] = -5
+    (bad / "animation.yaml").write_text(yaml.safe_dump(manifest))
+    with pytest.raises(Exception, match="fps must be a positive number"):
+        load_animation(bad)
+
+
+@pytest.mark.slow
+def test_synthetic_recovery_of_field_and_damping(synthetic):
+    """Levenberg-Marquardt on the dense Jacobian recovers the blocks field and damping."""
+    result = torchfit.fit(synthetic, {"name": "levenberg_marquardt", "max_iter": 15},
+                          options=torchfit.FitOptions(progress=False))
+    metrics = result.metrics
+    print({k: metrics[k] for k in ("k_err_rel", "k_err_rel_aligned", "alpha_damping_err_rel",
+                                   "beta_damping_err_rel")}, "iterations", result.iterations)
+    assert metrics["k_err_rel_aligned"] <= 1e-3, metrics
+    assert metrics["alpha_damping_err_rel"] <= 1e-3, metrics
+    assert metrics["beta_damping_err_rel"] <= 1e-3, metrics
+
+
+@pytest.mark.slow
+def test_fit_and_simulate_apps_in_time(root, tmp_path):
+    """The fit app fits the capsule in time (held-out later window) and simulate runs the
+    fitted material and damping on a new shot: OBJ frames, VTU, a USD point cache at the
+    shot's frame rate."""
+    from helpers.fit_app import run_fit_app
+    from pxr import Usd
+
+    from torchfit.run.simulating import simulate
+
+    fit = tmp_path / "fit"
+    done = run_fit_app(fit, "problem=animation", f"problem.path={capsule(root)}",
+                       f"problem.cache_dir={root / 'cache'}", "problem.tet_count=600",
+                       "problem.dynamic=true", "problem.substeps=2", "problem.grid=[2,2,3]",
+                       "problem.frames=[0,1,2,3]", "problem.validation_frames=[4,5]",
+                       "solver.max_iter=1")
+    assert done.returncode == 0, done.stderr[-2000:]
+    summary = yaml.safe_load((fit / "result.json").read_text())
+    assert summary["problem"]["dynamic"] is True and summary["problem"]["fps"] == 24.0
+    shot = capsule(root, fps=30.0, name="capsule_shot30")
+    result = simulate(fit, {"path": str(shot)}, tmp_path / "sim", progress_lines=False)
+    assert result.state.shape[0] == len(ANGLES)
+    assert len(list((tmp_path / "sim" / "frames").glob("*.obj"))) == len(ANGLES)
+    assert (tmp_path / "sim" / "body.vtu").is_file()
+    stage = Usd.Stage.Open(str(tmp_path / "sim" / "usd" / "frames.usda"))
+    assert stage.GetTimeCodesPerSecond() == 30.0
+    assert stage.GetEndTimeCode() == len(ANGLES) - 1
+
+
+def test_write_arm_adds_keyframed_jiggle(tmp_path):
+    """--jiggle overlays a damped oscillation after changes of speed on the folder's frames:
+    frame 0 and the frames before the first change are the plain arm's; the jiggle then
+    decays; the manifest carries --fps."""
+    import subprocess
+    import sys
+
+    from torchfit.problems.body.procedural_arm import ArmShape, arm_animation, keyframed_jiggle
+
+    jiggly = tmp_path / "jiggly"
+    done = subprocess.run([sys.executable, "scripts/write_arm.py", str(jiggly), "--n-frames",
+                           "24", "--jiggle", "1.0", "--fps", "30"], capture_output=True,
+                          text=True, cwd=Path(__file__).resolve().parents[3])
+    assert done.returncode == 0, done.stderr
+    plain = arm_animation(ArmShape(n_frames=24))["frames"]
+    b = load_animation(jiggly)
+    assert b.fps == 30.0
+    lag = torch.as_tensor(b.frames - plain).norm(dim=-1).amax(dim=-1)     # (F,)
+    assert float(lag[0]) == 0.0 and float(lag.max()) > 1e-3
+    # a uniform motion has no jiggle; a stop starts a decaying one
+    x = torch.linspace(0, 1, 40, dtype=torch.float64).numpy()
+    motion = (x[:, None, None] * 0.1).repeat(2, axis=1).repeat(3, axis=2)
+    motion[20:] = motion[20]
+    out = keyframed_jiggle(motion, torch.ones(2).numpy(), 24.0)
+    assert abs(out[:20] - motion[:20]).max() < 1e-15
+    after = abs(out[21:] - motion[21:]).max(axis=(1, 2))
+    assert after[:6].max() > 10 * after[-6:].max() > 0

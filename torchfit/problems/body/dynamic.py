@@ -1,0 +1,317 @@
+"""The rigged body in time (``problem.dynamic=true`` for ``animation`` and ``arm3d``).
+
+The rig drives its tetrahedron vertices through the shot: the driven positions of every
+frame ``0 .. f_last`` (the last fitted frame) at times ``f / fps`` (the animation's frame
+rate: the folder's ``fps``, a USD stage's time codes per second, a glTF's sampling or key
+rate; 24 by default), a natural cubic spline in time between frames
+(:class:`~torchfit.physics.dynamics.SplineMotion`). The other vertices integrate
+
+    ``M a = f_int(x; E) - (alpha M + beta K0(E)) (v - v_rig(t))``
+
+with the implicit integrator (BDF2 by default; ``problem.substeps`` steps per frame, so
+``dt = 1 / (fps substeps)``), lumped mass from ``problem.density`` (kg/m^3: a quarter of each
+tetrahedron's mass on each of its vertices), Rayleigh damping ``alpha`` (1/s), ``beta`` (s)
+(:mod:`torchfit.physics.dynamics`), damping the velocity relative to the rig's (``v_rig``:
+the skinned pose of every tetrahedron vertex, the same spline in time; a limb swung rigidly
+is not braked as by air, and slow motion is the quasistatic body). The same constitutive models (their residual is linear
+in ``E``), parameterisations (grid, region, tet), bounds and outputs as the quasistatic body.
+
+Start: at ``t = 0`` (frame 0) the body moves with the rig (``v = v_rig(0)``) in the quasistatic
+equilibrium of frame 0 for the homogeneous starting material ``E0`` (the rest shape when
+frame 0 is the rest pose, as the arm's); that state is data, not differentiated.
+
+Moduli are pascals (inertia fixes the scale: not scale-free): with ``problem.E0_unit=relative``
+(the default) ``E0``, ``E_blocks``, ``E_regions`` (and absolute bounds) are factors of
+``problem.E_reference``, with ``E0_unit=Pa`` pascals. Parameters: the body's field
+parameterisation and the two damping coefficients (:class:`~torchfit.params.FieldAndScalars`,
+``theta = [field..., alpha, beta]``). Data: the observed surface at the fitted frames.
+Validation: ``problem.validation_frames`` must be a later window than every fitted frame (the
+held-out future; :func:`dynamic_split`); ``validation_every`` is refused.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ...mesh.formats.folder import Animation
+from ...params import Parameterization
+from ...physics import NewtonOptions
+from ...physics.dynamics import DynamicSystem, SplineMotion, make_integrator
+from ..base import InverseProblem
+from ..config import Transform, make_config, require_setting, setting_error
+from ..dynamic import DynamicMixin, Integrator
+from .arm3d import Arm3D
+from .bounds import modulus_bounds, region_report, theta_bounds
+from .config import ModulusUnit, RiggedBodyConfig
+from .held_out import FrameSplit
+from .problem import RiggedBody
+
+_DAMPING = ("alpha", "beta")
+
+
+def in_pascals(cfg: RiggedBodyConfig) -> RiggedBodyConfig:
+    """``cfg`` with its moduli in pascals (``E0_unit=Pa``): with ``E0_unit=relative`` every
+    modulus setting times ``E_reference``; with ``Pa`` as it is."""
+    require_setting(math.isfinite(cfg.E_reference) and cfg.E_reference > 0, cfg,
+                    "E_reference", "must be a positive Young's modulus in pascals (soft "
+                    "tissue: 1e4)")
+    if cfg.E0_unit == ModulusUnit.Pa:
+        return cfg
+    s = float(cfg.E_reference)
+    changes: dict[str, Any] = {
+        "E0": cfg.E0 * s, "E_blocks": [v * s for v in cfg.E_blocks],
+        "E_regions": [v * s for v in cfg.E_regions], "E0_unit": ModulusUnit.Pa}
+    if not cfg.E_bounds_relative:
+        changes.update(E_min=cfg.E_min * s, E_max=cfg.E_max * s)
+    return dataclasses.replace(cfg, **changes)
+
+
+def check_body_dynamics(cfg: RiggedBodyConfig) -> None:
+    """The dynamic settings of a body (one-line :class:`ProblemConfigError` each)."""
+    require_setting(cfg.integrator == Integrator.implicit, cfg, "integrator",
+                    "torchdiffeq does not apply to a body: its stiffest tetrahedron's period "
+                    "is far below a frame, an explicit step must resolve it; use "
+                    "problem.integrator=implicit")
+    require_setting(isinstance(cfg.substeps, int) and not isinstance(cfg.substeps, bool)
+                    and cfg.substeps >= 1, cfg, "substeps", "must be an integer >= 1 "
+                    "(implicit steps per frame: dt = 1 / (fps substeps))")
+    require_setting(math.isfinite(cfg.density) and cfg.density > 0, cfg, "density",
+                    "must be > 0 (kg/m^3; soft tissue 1000): every vertex needs a positive "
+                    "lumped mass")
+    require_setting(isinstance(cfg.checkpoint_every, int) and cfg.checkpoint_every >= 0, cfg,
+                    "checkpoint_every", "must be an integer >= 0 (0: ceil(sqrt(steps)))")
+    for name in _DAMPING:
+        for key in (name, f"{name}0"):
+            value = getattr(cfg, key)
+            if cfg.transform == Transform.exp:
+                require_setting(math.isfinite(value) and value > 0, cfg, key,
+                                f"must be > 0 with problem.transform=exp ({name} = "
+                                "exp(theta)); use problem.transform=identity for 0")
+            else:
+                require_setting(math.isfinite(value) and value >= 0, cfg, key,
+                                f"is a negative damping coefficient: Rayleigh damping "
+                                f"C = alpha M + beta K needs {name} >= 0")
+    require_setting(not cfg.validation_every, cfg, "validation_every",
+                    "holds out every k-th pose, which a motion in time cannot skip; hold out "
+                    "a later window with problem.validation_frames=[...] (frames after every "
+                    "fitted frame)")
+    require_setting(not cfg.init_field, cfg, "init_field", "is not read by the dynamic body "
+                    "yet; start from problem.E0 (leave init_field empty)")
+
+
+def dynamic_split(cfg: RiggedBodyConfig, n_frames: int) -> FrameSplit | None:
+    """Fitted and held-out frames of the dynamic body: ``validation_frames`` a window later
+    than every fitted frame; with ``problem.frames=null`` the fit takes every frame before
+    it. ``None`` without validation."""
+    named = cfg.validation_frames
+    if named is None:
+        return None
+    validation = [int(f) for f in named]
+    bad = [f for f in validation if not 0 <= f < n_frames]
+    if not validation or bad:
+        raise setting_error("validation_frames", named, f"frame {bad[0]} is not a frame of the "
+                            f"animation (0..{n_frames - 1})" if bad else "lists no frame "
+                            "(null: no validation)")
+    if len(set(validation)) != len(validation):
+        raise setting_error("validation_frames", named, "lists a frame twice; list each frame "
+                            "once")
+    first = min(validation)
+    fitted = list(range(first)) if cfg.frames is None else [int(f) for f in cfg.frames]
+    late = [f for f in fitted if f >= first]
+    if late:
+        raise setting_error("validation_frames", named, f"is not a later window: fitted frame "
+                            f"{late[0]} is not before validation frame {first} (problem.dynamic"
+                            "=true holds out the future); fit earlier frames only")
+    if not fitted:
+        raise setting_error("validation_frames", named, "leaves no frame to fit before it "
+                            "(the fit takes the frames before the held-out window)")
+    return FrameSplit(fitted, sorted(validation), [], len(fitted) + len(validation))
+
+
+class DynamicBody(DynamicMixin):
+    """The hooks that make a rigged body move in time (module docstring); put before the
+    body's class in the bases."""
+
+    scale_free = False
+    # the motion goes through the trajectory's autograd Function (and forward_jacobian)
+    forward_products = InverseProblem.forward_products
+
+    cfg: RiggedBodyConfig
+
+    def __init__(self, cfg: Any = None, *, kept_mesh: Any = None, **overrides: Any) -> None:
+        config = make_config(self.config_class, cfg, overrides)   # type: ignore[attr-defined]
+        super().__init__(in_pascals(config), kept_mesh=kept_mesh)  # type: ignore[call-arg]
+
+    # -- building -------------------------------------------------------------------------
+    def check(self, cfg: RiggedBodyConfig) -> None:
+        super().check(cfg)                                     # type: ignore[misc]
+        check_body_dynamics(cfg)
+
+    def split_frames(self, cfg: RiggedBodyConfig, animation: Animation) -> FrameSplit | None:
+        return dynamic_split(cfg, animation.n_frames)
+
+    def driving_animation(self, whole: Animation, fitted: Animation) -> Animation:
+        """Every frame from 0 to the last fitted one: the rig's whole motion up to there."""
+        numbers = self.cfg.frames if self.frame_split is None else self.frame_split.fitted
+        last = whole.n_frames - 1 if numbers is None else max(int(f) for f in numbers)
+        return whole.select(list(range(last + 1)))
+
+    def pose_repeats(self) -> None:
+        """A pose met again in time is another state (velocity): no frame is shared."""
+        return None
+
+    def build_model(self, cfg: RiggedBodyConfig) -> None:
+        super().build_model(cfg)                               # type: ignore[misc]
+        fps = float(self.animation.fps)
+        require_setting(math.isfinite(fps) and fps > 0, cfg, "path", f"the animation's frame "
+                        f"rate is {fps:g}; give it a positive fps (the folder's 'fps')")
+        dt = 1.0 / (fps * cfg.substeps)
+        require_setting(math.isfinite(dt) and dt > 0, cfg, "substeps", f"gives the time step "
+                        f"{dt!r} s at {fps:g} fps, which the integrator cannot take; use fewer "
+                        "substeps")
+        self.fps, self.dt = fps, dt
+        dtype, device = self.dtype, self.device
+        n = self.model.n_vertices
+        cells = torch.as_tensor(self.mesh.cells, device=device)
+        volumes = torch.as_tensor(np.abs(self.mesh.signed_volumes()), dtype=dtype, device=device)
+        vertex_mass = torch.zeros(n, dtype=dtype, device=device).index_add(
+            0, cells.reshape(-1), (cfg.density * volumes / 4.0).repeat_interleave(4))
+        vertices = np.asarray(self.dirichlet_vertices, dtype=np.int64)
+        order = np.argsort(vertices, kind="stable")
+        keys = self.dirichlet_positions[:, torch.as_tensor(order, device=device)]  # (S, nd, 3)
+        fixed = torch.as_tensor((vertices[order][:, None] * 3 + np.arange(3)).reshape(-1))
+        key_times = torch.arange(keys.shape[0], dtype=dtype, device=device) / fps
+        rest = self.model.rest.points.to(dtype)
+        # the rig's motion of every tetrahedron vertex (the skinned pose): the damping acts
+        # on the velocity relative to it, and the body starts moving with it
+        rig = SplineMotion(key_times, self.start_positions.reshape(keys.shape[0], -1))
+        self.system = DynamicSystem(
+            self.model, self.model.n_cells, vertex_mass.repeat_interleave(3), fixed,
+            SplineMotion(key_times, keys.reshape(keys.shape[0], -1)), None,
+            torch.zeros(3 * n, dtype=dtype, device=device), self.initial_pose(cfg).reshape(-1),
+            rig.velocity(key_times[:1])[0], vertex_dim=3, rest=rest.reshape(-1),
+            reference_velocity=rig.velocity)
+        self.output_times = torch.as_tensor(self.frame_numbers(), dtype=torch.float64) / fps
+        newton = NewtonOptions(max_iter=cfg.newton_max_iter, rtol=cfg.newton_rtol,
+                               atol=cfg.newton_atol)
+        self.integrator = make_integrator(
+            "implicit", self.system, self.output_times, dt=dt, scheme=cfg.scheme.value,
+            backend=self.backend, newton=newton, checkpoint_every=cfg.checkpoint_every)
+
+    def initial_pose(self, cfg: RiggedBodyConfig) -> Tensor:
+        """Positions ``(n, 3)`` at ``t = 0``: the rest shape where frame 0 drives the rig to
+        its rest positions, else frame 0's equilibrium for the homogeneous ``E0``."""
+        rest = self.model.rest.points.to(self.dtype)
+        drive0 = self.dirichlet_positions[0]
+        at_rest = rest[torch.as_tensor(self.dirichlet_vertices, device=self.device)]
+        scale = float((rest.max(0).values - rest.min(0).values).norm())
+        if float((drive0 - at_rest).abs().max()) <= 1e-12 * scale:
+            return rest.clone()
+        E0 = torch.full((self.model.n_cells,), float(cfg.E0), dtype=self.dtype,
+                        device=self.device)
+        with torch.no_grad(), self.quasistatic.equilibrium.independent():
+            return self.quasistatic(E0, drive0[None], x_init=self.start_positions[:1])[0]
+
+    def build_parameterization(self, cfg: RiggedBodyConfig) -> Parameterization:
+        return self.damped(super().build_parameterization(cfg), cfg)   # type: ignore[misc]
+
+    # -- the forward model ------------------------------------------------------------------
+    def simulate(self, physical: Tensor) -> Tensor:
+        """Tetrahedron vertex positions ``(F, n, 3)`` at the fitted frames' times for
+        ``[E (n_tets,), alpha, beta]``."""
+        return self.positions(physical)
+
+    def forward_jacobian(self, theta: Tensor) -> Tensor:
+        """``d observe(simulate(map(theta))) / d theta`` ``(m, n_params)``: tangents forward
+        through time (one solve with ``n_params`` right-hand sides per step), the observed
+        rows of every output frame."""
+        with torch.no_grad():
+            theta = theta.detach()
+            physical = self.parameterization(theta)
+            directions = self.parameterization.jacobian(theta)         # (n_tets + 2, n)
+            dx = self.integrator.jacobian(physical, directions)       # (F, 3 n, n)
+            observe = self._observation_matrix(physical)               # type: ignore[attr-defined]
+            return torch.cat([torch.sparse.mm(observe, dx[f]) for f in range(dx.shape[0])])
+
+    def homogeneous_surface_error(self) -> float:
+        """Mean surface error of the homogeneous ``E0`` with the starting damping."""
+        if not hasattr(self, "_homogeneous_error"):
+            theta = self.parameterization.constant(self.initial_value(self.cfg), self.dtype,
+                                                   self.device)
+            with torch.no_grad():
+                x = self.simulate(self.simulation_input(theta))
+                self._homogeneous_error = float(self.surface_errors(x).mean())  # type: ignore[attr-defined]
+        return self._homogeneous_error
+
+    def simulate_model(self, model: str, E: Tensor, frames: list[int] | None = None) -> Tensor:
+        raise NotImplementedError("the model comparison is quasistatic: the dynamic body "
+                                  "has none")
+
+    # -- what the metrics and outputs report ---------------------------------------------
+    def metric_names(self) -> list[str]:
+        names = super().metric_names()                         # type: ignore[misc]
+        if self.field_true is not None and "k_err_rel_aligned" not in names:
+            names.insert(names.index("k_err_rel") + 1, "k_err_rel_aligned")
+        return names
+
+    def metrics(self, theta: Tensor, x: Tensor | None = None) -> dict[str, float]:
+        with torch.no_grad():
+            if x is None:
+                x = self.simulate(self.simulation_input(theta))
+            out = super().metrics(theta, x)                    # type: ignore[misc]
+            if self.field_true is not None:
+                field, truth = self.field(theta), self.field_true
+                scale = float(torch.dot(field, truth) / torch.dot(field, field))
+                out["k_err_rel_aligned"] = float(torch.linalg.vector_norm(
+                    scale * field - truth) / torch.linalg.vector_norm(truth))
+        return out
+
+    def frame_errors(self, x: Tensor) -> dict[str, np.ndarray]:
+        """The body's per-frame report, with a synthetic truth also the position errors
+        of every output time (``u_err_inf``, ``u_err_2``: the motion pictures')."""
+        out = RiggedBody.frame_errors(self, x)                 # type: ignore[arg-type]
+        if self.x_true is not None:
+            out.update(DynamicMixin.frame_errors(self, x))
+        return out
+
+    def frame_names(self) -> list[str]:
+        return super(DynamicMixin, self).frame_names()         # the body's, not "t = ..."
+
+    def theta_bounds(self) -> tuple[Tensor, Tensor] | None:
+        """The modulus bounds on the field's parameters; the damping coefficients unbounded
+        (positive by ``exp``; ``>= 0`` with ``identity``)."""
+        m = self.parameterization.n_field_params
+        bounds = theta_bounds(self.cfg, m, self.theta0)
+        if bounds is None:
+            return None
+        low = -math.inf if self.cfg.transform == Transform.exp else 0.0
+        tail = torch.tensor([[low, low], [math.inf, math.inf]], dtype=self.theta0.dtype,
+                            device=self.theta0.device)
+        return torch.cat([bounds[0], tail[0]]), torch.cat([bounds[1], tail[1]])
+
+    def region_summary(self, field: Tensor) -> dict[str, dict[str, float]]:
+        return region_report(field, self.mesh.signed_volumes(), self.tet_regions,  # type: ignore[attr-defined]
+                             self.region_names, self.parameterization.field_parameterization.basis,  # type: ignore[attr-defined]
+                             modulus_bounds(self.cfg))
+
+    def describe(self) -> dict[str, Any]:
+        out = super().describe()                               # type: ignore[misc]
+        out.update({"fps": self.fps, "substeps": int(self.cfg.substeps), "dt": self.dt,
+                    "density": float(self.cfg.density),
+                    "shot_frames": int(self.dirichlet_positions.shape[0]),
+                    "mass": float(self.system.mass.sum()) / 3.0})
+        return out
+
+
+class DynamicRiggedBody(DynamicBody, RiggedBody):
+    """``problem=animation problem.dynamic=true``: your rigged body in time."""
+
+
+class DynamicArm3D(DynamicBody, Arm3D):
+    """``problem=arm3d problem.dynamic=true``: the procedural arm in time."""
+
