@@ -48,7 +48,7 @@ def test_fit_prints_where_everything_is(tmp_path):
     assert result["config"]["problem"]["data"] == "dense"        # an Enum, written as its value
     lines = proc.stdout.splitlines()
     assert lines[-1] == f"tensorboard --logdir {run_dir / 'tb'}"
-    assert any(line.startswith("discrepancy after") for line in lines)
+    assert any("stopped by discrepancy after" in line for line in lines)
     assert "field.png" in lines[-2] and "error_curves.png" in lines[-2]
     log = (run_dir / "fit.log").read_text()
     assert "misfit" in log and "k_err_rel" in log, "the progress table goes to Hydra's log"
