@@ -58,6 +58,7 @@ from torchfit.reporting.results import write_json  # noqa: E402
 from torchfit.run import FitOptions, distributed, fit, fit_continued  # noqa: E402
 from torchfit.run.continuation import (FIRST_STAGE_DIR, continuation_applies,  # noqa: E402
                                        continuation_setting, first_stage_iterations)
+from torchfit.run.options import check_threads  # noqa: E402
 from torchfit.run.solver import solver_config  # noqa: E402
 
 register_configs()
@@ -75,7 +76,8 @@ def prepare(cfg: DictConfig, run_dir: Path | None = None
     continuation_setting(config["continuation"])        # checked before the (long) build
     first_stage_iterations(solver, config["continuation_first_max_iter"])
     threads = config.get("threads")
-    if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0:
+    check_threads(threads)
+    if threads:
         set_threads(threads)     # before the build: a synthetic target is simulated there
     kept = resumed_mesh(run_dir) if config["resume"] and run_dir is not None else None
     problem = build_problem(str(config["problem"].get("name")), dict(config["problem"]), kept)

@@ -57,6 +57,7 @@ def test_fit_prints_where_everything_is(tmp_path):
 #: Every bad input of issue 10 (and the ones that already passed): override(s), words the
 #: one error line must contain. Each case exits 2 and leaves no run directory.
 BAD_INPUT = [
+    (["threads=1000000000000"], ["threads", "4096"]),     # the settings probe's one fail
     (["problem.noise=inf"], ["problem.noise"]),
     (["problem.noise=nan"], ["problem.noise"]),
     (["problem.k0=inf"], ["problem.k0"]),

@@ -33,7 +33,7 @@ def test_fit_options_name_the_bad_setting(options, match):
     ({"perturbation": -0.5}, "perturbation"),
     ({"taylor_tol": float("nan")}, "taylor_tol"),
     ({"fd_tol": 0.0}, "fd_tol"),
-    ({"threads": -1}, r"threads=-1 must be an integer >= 0 \(0: default\)"),
+    ({"threads": -1}, r"threads=-1 must be an integer from 0 \(torch's default\) to 4096"),
 ])
 def test_verify_options_name_the_bad_setting(settings, match):
     with pytest.raises(FitConfigError, match=match):
@@ -52,3 +52,16 @@ def test_plain_settings_are_json_values():
 
     assert plain_settings(Settings()) == {"kind": "a", "sizes": [1, 2]}
     assert plain_settings({"x": float("nan")}) == {"x": None}
+
+
+def test_threads_are_an_integer_from_0_to_the_limit():
+    """``threads=1e12`` reached torch as an overflow (the settings probe's one fail)."""
+    import pytest as _pytest
+
+    from torchfit.run.options import MAX_THREADS, FitConfigError, check_threads
+
+    for good in (0, 1, MAX_THREADS):
+        check_threads(good)
+    for bad in (-1, MAX_THREADS + 1, 10 ** 12, 1.5, "2", True):
+        with _pytest.raises(FitConfigError, match="threads="):
+            check_threads(bad)

@@ -31,6 +31,17 @@ def _need(ok: bool, message: str) -> None:
         raise FitConfigError(message)
 
 
+#: more threads than this is a slip of the keyboard (torch takes a C int)
+MAX_THREADS = 4096
+
+
+def check_threads(value: Any) -> None:
+    """Refuse ``threads`` that is not an integer from 0 (torch's default) to
+    :data:`MAX_THREADS` (:class:`FitConfigError`, one line)."""
+    _need(_is_int(value) and 0 <= value <= MAX_THREADS,
+          f"threads={value!r} must be an integer from 0 (torch's default) to {MAX_THREADS}")
+
+
 def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
@@ -84,8 +95,8 @@ class FitOptions(ProcessOptions):
         """Raise :class:`FitConfigError` naming the first invalid option (``validated``: the
         run has a validation problem, whose keys ``objective_metric`` may name)."""
         _need(isinstance(self.progress, bool), f"progress={self.progress!r} must be true or false")
-        for key, low in (("log_every", 1), ("snapshot_every", 0), ("threads", 0),
-                         ("validation_patience", 0)):
+        check_threads(self.threads)
+        for key, low in (("log_every", 1), ("snapshot_every", 0), ("validation_patience", 0)):
             value = getattr(self, key)
             _need(_is_int(value) and value >= low, f"{key}={value!r} must be an integer >= {low}")
         _need(all(isinstance(i, int) and i >= 0 for i in self.snapshot_iterations),
@@ -147,8 +158,7 @@ class VerifyOptions(ProcessOptions):
         _need(isinstance(self.perturbation, (int, float)) and math.isfinite(self.perturbation)
               and self.perturbation >= 0,
               f"perturbation={self.perturbation!r} must be a finite number >= 0")
-        _need(_is_int(self.threads) and self.threads >= 0,
-              f"threads={self.threads!r} must be an integer >= 0 (0: default)")
+        check_threads(self.threads)
 
 
 def plain_settings(config: Any) -> dict[str, Any]:
