@@ -97,21 +97,29 @@ def test_dynamic_body_derivatives(root, scheme):
 
 def test_slow_motion_is_the_quasistatic_body(root):
     """The frame rate slowed 100x (0.24 fps): the motion in time is the frame-by-frame
-    equilibrium to 1e-4 of the displacement; at 24 fps it is not."""
+    equilibrium to 1e-4 of the displacement; slowed 1000x the lag shrinks with the frame
+    time (first order: the damping force C v, v ~ 1 / T); at 24 fps the flesh swings.
+
+    Lightly damped flesh (alpha = 0.2 / s, beta = 1e-4 s): the lag is about
+    alpha / (omega^2 T) + beta / T, and pytetwild's mesh (it varies run to run) sets the
+    softest mode omega; with alpha = 2 / s six meshes gave 2.4e-5 to 9.4e-4 at 0.24 fps."""
     common = {"cache_dir": str(root / "cache"), "tet_count": 1500, "grid": [2, 2, 3]}
     slow = capsule(root, fps=0.24, name="capsule_slow")
     quasistatic = build_problem("animation", {**common, "path": str(slow)})
     differences = {}
-    for fps, folder in ((0.24, slow), (24.0, capsule(root, fps=24.0, name="capsule_24"))):
+    for fps in (0.24, 0.024, 24.0):
+        folder = slow if fps == 0.24 else capsule(root, fps=fps, name=f"capsule_{fps:g}")
         problem = build_problem("animation", {**common, "path": str(folder), "dynamic": True,
-                                              "substeps": 2, "alpha0": 2.0, "beta0": 1e-4})
+                                              "substeps": 2, "alpha0": 0.2, "beta0": 1e-4})
         assert problem.fps == fps
+        assert problem.model.n_cells == quasistatic.model.n_cells   # one cached mesh
         physical = problem.simulation_input(problem.theta0)
         x = problem.simulate(physical)
         xq = quasistatic.simulate(physical[:-2])
         displacement = float((xq - problem.model.rest.points).norm(dim=-1).max())
         differences[fps] = float((x - xq).norm(dim=-1).max()) / displacement
     assert differences[0.24] < 1e-4, differences
+    assert differences[0.024] < 0.2 * differences[0.24], differences
     assert differences[24.0] > 1e-2, differences
 
 
