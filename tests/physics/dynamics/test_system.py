@@ -11,7 +11,7 @@ from torchfit.physics.dynamics import (DynamicsInputError, DynamicSystem, KeyedM
                                        NegativeDampingError, check_output_times, make_integrator)
 from torchfit.physics.dynamics.system import smootherstep
 
-from helpers.dynamics_systems import chain_system, one_line, one_thread  # noqa: F401 (autouse)
+from helpers.dynamics_systems import chain_system, one_line, one_thread, sheet_system  # noqa: F401 (autouse)
 
 
 def test_keyed_motion_is_c2_and_stops():
@@ -56,3 +56,23 @@ def test_density_must_be_positive():
                       KeyedMotion(torch.zeros(1), torch.zeros(1, 1)), None, torch.zeros(3),
                       torch.arange(3.0) / 2)
     assert "density must be > 0" in one_line(info.value)
+
+
+@pytest.mark.parametrize("make", [chain_system, sheet_system])
+def test_sparse_operators_are_the_element_sums(make):
+    """``K0(k) U`` and the element-column matrix ``B`` of the tangents' right-hand side, as
+    sparse products, equal the element loops they replace (scatter of einsum products)."""
+    system, params = make()
+    field = system.split(params)[0]
+    g = torch.Generator().manual_seed(3)
+    U = torch.randn(system.n_dofs, 5, dtype=params.dtype, generator=g)
+    columns = torch.stack([system.stiffness_matvec(field, U[:, j]) for j in range(5)], dim=1)
+    assert torch.allclose(system.stiffness_matmul(field, U), columns, rtol=1e-12, atol=1e-12)
+    # the kept K0 follows the field: a changed field is not served the old matrix
+    doubled = system.stiffness_matmul(2.0 * field, U)
+    assert torch.allclose(doubled, 2.0 * columns, rtol=1e-12, atol=1e-12)
+    forces = system.unit_element_forces(U[:, 0])                     # (n_field, d_el)
+    V = torch.randn(system.n_field, 4, dtype=params.dtype, generator=g)
+    loop = system.scatter_elements(forces[:, :, None] * V[:, None, :])
+    product = torch.sparse.mm(system.element_matrix(forces), V)
+    assert torch.allclose(product, loop, rtol=1e-12, atol=1e-12)

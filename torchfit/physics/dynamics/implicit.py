@@ -194,7 +194,8 @@ class StepParamDerivative:
         else:
             elastic = torch.stack([self._elastic_jvp(d_field[:, j]) for j in range(V.shape[1])],
                                   dim=-1)
-        damping = self.system.scatter_elements(self.unit_forces[:, :, None] * d_field[:, None, :])
+        damping = torch.sparse.mm(self.system.element_matrix(self.unit_forces),
+                                  d_field.contiguous())
         k0_dbv = self.system.stiffness_matmul(self.field, d_bv)
         out = elastic + self.beta * damping \
             + (self.mass * self.velocity)[:, None] * d_alpha[None, :] \

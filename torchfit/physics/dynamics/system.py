@@ -27,6 +27,7 @@ from typing import Any, Callable
 import torch
 from torch import Tensor
 
+from ...linalg.pattern import csr_matrix
 from .errors import DynamicsInputError, InvalidFieldError, NegativeDampingError, NonFiniteStateError
 
 #: times ``(T,)`` -> values ``(T, n)``
@@ -255,6 +256,8 @@ class DynamicSystem:
             unit = elastic.tangent_values(at[None].clone(),
                                           torch.ones(self.n_field, dtype=dtype, device=device))
         self.unit_stiffness = unit.reshape(self.n_field, d_el, d_el).to(dtype).contiguous()
+        self._rest_stiffness: tuple[Tensor, Tensor] | None = None   # (field, K0 CSR)
+        self._element_csr: tuple[Tensor, Tensor, Tensor] | None = None
         self._check_initial_state()
 
     # -- parameters ---------------------------------------------------------------------
@@ -303,10 +306,41 @@ class DynamicSystem:
         return out.index_add(-1, dofs.reshape(-1), forces.reshape(*u.shape[:-1], -1))
 
     def stiffness_matmul(self, field: Tensor, U: Tensor) -> Tensor:
-        """``K0(k) U`` ``(n_dofs, k)`` for ``U`` ``(n_dofs, k)`` (no graph; one sparse scatter)."""
-        local = U.T.contiguous()[:, self.element_dofs.to(U.device)]   # (k, n_field, d_el)
-        forces = torch.einsum("eab,keb->eak", self.unit_stiffness.to(U), local)
-        return self.scatter_elements(forces * field.detach().to(U)[:, None, None])
+        """``K0(k) U`` ``(n_dofs, k)`` for ``U`` ``(n_dofs, k)`` (no graph): one sparse product
+        with :meth:`rest_stiffness_matrix`."""
+        return torch.sparse.mm(self.rest_stiffness_matrix(field.detach().to(U)), U.contiguous())
+
+    def rest_stiffness_matrix(self, field: Tensor) -> Tensor:
+        """``K0(k)`` as a sparse CSR matrix ``(n_dofs, n_dofs)`` on the elastic tangent's
+        pattern (no graph). The last one is kept: every step of a trajectory, and every
+        column block of its tangents, has the same field."""
+        field = field.detach()
+        kept = self._rest_stiffness
+        if kept is not None and kept[0].shape == field.shape and kept[0].dtype == field.dtype \
+                and kept[0].device == field.device and torch.equal(kept[0], field):
+            return kept[1]
+        pattern = self.elastic.tangent_pattern
+        values = pattern.assemble(self.rest_stiffness_contributions(field))
+        matrix = csr_matrix(pattern.crow_indices.to(field.device),
+                            pattern.col_indices.to(field.device), values, pattern.shape)
+        self._rest_stiffness = (field.clone(), matrix)
+        return matrix
+
+    def element_matrix(self, forces: Tensor) -> Tensor:
+        """Element vectors ``(n_field, d_el)`` as the sparse CSR matrix ``(n_dofs, n_field)``
+        whose column ``e`` is element ``e``'s vector summed into its dofs: ``B @ V`` is
+        :meth:`scatter_elements` of ``forces[:, :, None] * V[:, None, :]`` without the
+        ``(n_field, d_el, k)`` intermediate."""
+        if self._element_csr is None or self._element_csr[0].device != forces.device:
+            dofs = self.element_dofs.reshape(-1).to(forces.device)
+            order = torch.argsort(dofs, stable=True)
+            cells = torch.arange(self.n_field, device=forces.device).repeat_interleave(
+                self.element_dofs.shape[1])[order]
+            counts = torch.bincount(dofs, minlength=self.n_dofs)
+            crow = torch.cat([counts.new_zeros(1), torch.cumsum(counts, 0)])
+            self._element_csr = (order, crow, cells.contiguous())
+        order, crow, cells = self._element_csr
+        return csr_matrix(crow, cells, forces.reshape(-1)[order], (self.n_dofs, self.n_field))
 
     def unit_element_forces(self, u: Tensor) -> Tensor:
         """``K0_e u`` per element at unit field, ``(..., n_field, d_el)`` (``dK0 u / dk``)."""
