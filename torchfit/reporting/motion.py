@@ -14,6 +14,9 @@ TensorBoard
 run directory
     ``time_errors.png`` and ``frames_strip.png`` (the same figures, last iteration).
 
+The strip is drawn for a chain (1-D) or a sheet (2-D); a 3-D body has no strip here: its
+frames are drawn by the body's own pictures (``frame_comparison.png``, the point cache).
+
 Damping coefficients and their errors (``alpha_damping``, ``beta_damping``,
 ``alpha_damping_err_rel``, ``beta_damping_err_rel``) are metrics of the problem: per-iteration scalars like every metric.
 Drawing failures go through the run's :class:`~.guard.PlotGuard`.
@@ -139,6 +142,9 @@ class MotionOutputs:
         self.times = problem.output_times.detach().cpu().numpy()
         self.history: dict[int, np.ndarray] = {}
         self._last_step: int | None = None
+        truth = problem.x_true
+        #: frames strips only for positions of 1 or 2 dimensions (module docstring)
+        self.strips = truth is not None and int(truth.shape[-1]) in (1, 2)
 
     def _errors(self, x: Tensor) -> np.ndarray:
         return np.asarray(self.problem.frame_errors(x)["u_err_inf"], dtype=np.float64)
@@ -176,8 +182,9 @@ class MotionOutputs:
     def _figures(self, step: int, evaluation: Evaluation) -> None:
         writer = self.tb.writer
         writer.add_figure("motion/time_errors", self._time_figure(step), step, close=False)
-        writer.add_figure("motion/frames_strip", self._strip(evaluation, step), step,
-                          close=False)
+        if self.strips:
+            writer.add_figure("motion/frames_strip", self._strip(evaluation, step), step,
+                              close=False)
 
     def finish(self, final: Evaluation) -> list[Path]:
         """Last iteration (``final``: the run's evaluation at its end): its per-time errors,
@@ -196,8 +203,10 @@ class MotionOutputs:
             return []
         self.run_dir.mkdir(parents=True, exist_ok=True)
         written: list[Path] = []
-        for name, draw in ((TIME_ERRORS_PNG, lambda: self._time_figure(step)),
-                           (FRAMES_STRIP_PNG, lambda: self._strip(final, step))):
+        drawings = [(TIME_ERRORS_PNG, lambda: self._time_figure(step))]
+        if self.strips:
+            drawings.append((FRAMES_STRIP_PNG, lambda: self._strip(final, step)))
+        for name, draw in drawings:
             figure = self.guard.run(name, draw)
             if figure is not None and self.guard.run(name, save_png, figure,
                                                      self.run_dir / name) is not False:

@@ -183,9 +183,10 @@ def test_synthetic_recovery_of_field_and_damping(synthetic):
 
 @pytest.mark.slow
 def test_fit_and_simulate_apps_in_time(root, tmp_path):
-    """The fit app fits the capsule in time (held-out later window) and simulate runs the
-    fitted material and damping on a new shot: OBJ frames, VTU, a USD point cache at the
-    shot's frame rate."""
+    """The fit app fits the capsule in time (synthetic target, held-out later window; its
+    motion outputs draw without failing: the error over time, no 2-D strip of a 3-D body)
+    and simulate runs the fitted material and damping on a new shot: OBJ frames, VTU, a USD
+    point cache at the shot's frame rate."""
     from helpers.fit_app import run_fit_app
     from pxr import Usd
 
@@ -196,8 +197,11 @@ def test_fit_and_simulate_apps_in_time(root, tmp_path):
                        f"problem.cache_dir={root / 'cache'}", "problem.tet_count=600",
                        "problem.dynamic=true", "problem.substeps=2", "problem.grid=[2,2,3]",
                        "problem.frames=[0,1,2,3]", "problem.validation_frames=[4,5]",
-                       "solver.max_iter=1")
+                       "problem.target=synthetic", "solver.max_iter=1")
     assert done.returncode == 0, done.stderr[-2000:]
+    log = (fit / "fit.log").read_text()
+    assert "could not draw" not in log, log[-2000:]
+    assert (fit / "time_errors.png").is_file() and not (fit / "frames_strip.png").exists()
     summary = yaml.safe_load((fit / "result.json").read_text())
     assert summary["problem"]["dynamic"] is True and summary["problem"]["fps"] == 24.0
     shot = capsule(root, fps=30.0, name="capsule_shot30")
