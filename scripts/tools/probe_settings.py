@@ -61,6 +61,12 @@ SMALL: dict[str, list[str]] = {
     "arm3d_short": ["problem.tet_edge_length=0.1", "problem.frames=[0,11]"],
     "animation": ["problem.tet_edge_length=0.1", "problem.frames=[0,1]"],
 }
+#: sections of a problem with a switch on (``name@switch``: the problem's settings probed with
+#: it, where settings unused without it come into play): the rigged bodies in time
+SWITCHED: dict[str, list[str]] = {
+    "arm3d@dynamic": ["problem.dynamic=true", "problem.substeps=1"],
+    "animation@dynamic": ["problem.dynamic=true", "problem.substeps=1"],
+}
 #: key components that name a file or folder: their bad value is a missing path
 PATH_WORDS = ("path", "dir", "file", "init", "data", "weights", "mesh", "cache")
 MISSING_PATH = "/nonexistent/torchfit_probe/missing"
@@ -87,7 +93,7 @@ class Case:
     @property
     def name(self) -> str:
         safe = "".join(c if c.isalnum() or c in "._-" else "_" for c in f"{self.key}={self.value}")
-        return f"{self.section.replace(':', '_')}__{safe}"[:120]
+        return f"{self.section.replace(':', '_').replace('@', '_')}__{safe}"[:120]
 
 
 # ---------------------------------------------------------------------------- settings
@@ -188,8 +194,10 @@ def cases_for(section: str, arm_path: str | None) -> list[Case]:
     elif section == "top":
         choose, prefix, small = ["problem=spring1d"], "", []
     else:
-        choose, prefix, small = [f"problem={section}"], "problem", list(SMALL.get(section, []))
-        if section == "animation":
+        problem = section.split("@", 1)[0]
+        choose, prefix = [f"problem={problem}"], "problem"
+        small = [*SMALL.get(problem, []), *SWITCHED.get(section, [])]
+        if problem == "animation":
             small.append(f"problem.path={arm_path or MISSING_PATH}")
     base = [*choose, "solver.max_iter=1", *small]
     cfg = _compose(base)
@@ -210,7 +218,7 @@ def cases_for(section: str, arm_path: str | None) -> list[Case]:
 def sections() -> list[str]:
     problems = sorted(p.stem for p in (REPO / "conf" / "problem").glob("*.yaml"))
     solvers = sorted(p.stem for p in (REPO / "conf" / "solver").glob("*.yaml"))
-    return [*problems, *(f"solver:{s}" for s in solvers), "top"]
+    return [*problems, *SWITCHED, *(f"solver:{s}" for s in solvers), "top"]
 
 
 # ---------------------------------------------------------------------------- outcomes

@@ -89,3 +89,15 @@ def test_a_short_run_on_spring1d(tmp_path):
     # problem.noise=-1 (the first case): refused in one line naming it, nothing written
     assert (first["key"], first["value"], first["outcome"]) == ("problem.noise", "-1", "PASS")
     assert "spring1d" in done.stdout and "PASS" in done.stdout
+
+
+def test_a_switched_section_probes_the_problem_with_its_switch_on():
+    """``arm3d@dynamic``: the arm's settings with ``problem.dynamic=true`` in every case (the
+    settings of the body in time come into play), the switch itself probed too."""
+    assert "arm3d@dynamic" in probe.sections()
+    cases = probe.cases_for("arm3d@dynamic", None)
+    assert {c.key for c in cases} >= {"problem.substeps", "problem.density", "problem.dynamic"}
+    substeps = next(c for c in cases if c.key == "problem.substeps")
+    assert "problem.dynamic=true" in substeps.overrides and "problem.substeps=1" not in \
+        substeps.overrides and substeps.overrides[-1].startswith("problem.substeps=")
+    assert "@" not in substeps.name and substeps.name.startswith("arm3d_dynamic__")
