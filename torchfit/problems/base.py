@@ -121,13 +121,17 @@ class MotionProblem(Protocol):
 
     ``output_times`` ``(K,)`` (s); ``frame_errors(x)`` per output time; ``x_true`` the
     noise-free motion ``(K, n_nodes, dim)``; ``simulation_input(theta)`` what
-    ``simulate`` takes (``[k..., alpha, beta]``).
+    ``simulate`` takes (``[k..., alpha, beta]``); ``time_integration(theta)`` how the motion
+    is integrated and its estimated error (``result.json``'s ``time_integration``).
     """
 
     output_times: Tensor
     integrator: Any
 
     def frame_errors(self, x: Tensor) -> dict[str, Any]:
+        ...
+
+    def time_integration(self, theta: Tensor) -> dict[str, Any]:
         ...
 
 

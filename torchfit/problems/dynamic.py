@@ -241,6 +241,36 @@ class DynamicMixin:
             return float(getattr(self.cfg, "newton_rtol", 1e-10))
         return None
 
+    def time_integration(self, theta: Tensor) -> dict[str, Any]:
+        """How the motion at ``theta`` is integrated and how accurately: ``integrator``,
+        ``scheme`` (implicit) or ``method`` (torchdiffeq), ``steps`` and ``dt`` (s) of the
+        implicit step; its error at the outputs estimated by step halving
+        (:meth:`~torchfit.physics.dynamics.implicit.ImplicitIntegrator.error_estimate`:
+        ``error_estimate`` in the positions' units, ``error_estimate_rel`` of the largest
+        displacement from the start, ``reference_steps``); torchdiffeq's adaptive methods
+        report their tolerances (``rtol``, ``atol``: the error they control) instead.
+        Costs one integration with twice the steps (implicit)."""
+        integrator = self.integrator
+        physical = self.simulation_input(theta.detach())  # type: ignore[attr-defined]
+        out: dict[str, Any] = {"integrator": integrator.name}
+        if integrator.name != "implicit":
+            out.update({"method": integrator.method, "rtol": float(self.cfg.ode_rtol),
+                        "atol": float(self.cfg.ode_atol)})
+            return out
+        estimate = integrator.error_estimate(physical)
+        with torch.no_grad():
+            x = integrator(physical.detach())
+        start = self.system.x0.to(x)
+        moved = (x - start[None]).reshape(x.shape[0], -1, self.system.vertex_dim)
+        largest = float(torch.linalg.vector_norm(moved, dim=-1).max())
+        out.update({"scheme": integrator.scheme, "steps": estimate["steps"],
+                    "dt": float(integrator.dt),
+                    "error_estimate": estimate["estimate"],
+                    "error_estimate_rel": estimate["estimate"] / largest if largest > 0 else 0.0,
+                    "largest_displacement": largest,
+                    "reference_steps": estimate["reference_steps"]})
+        return out
+
     def metric_names(self) -> list[str]:
         names = super().metric_names()  # type: ignore[misc]
         return names + ["alpha_damping", "beta_damping", "alpha_damping_err_rel",

@@ -289,9 +289,11 @@ class BodyOutputs:
                                   baseline, others)
         if compared is None:
             return [], {}
+        models = " and ".join([*self.comparison_models(), self.problem.cfg.model.value])
+        panels = f"animation | {models}, homogeneous and fitted"
         self.highlights.append(
-            f"pictures: {self.run_dir / COMPARISON_PNG} (animation | linear | fitted model "
-            f"at the most deformed frame), fitted field per region: {self.run_dir / REGIONS_JSON}, for "
+            f"pictures: {self.run_dir / COMPARISON_PNG} ({panels}, at the most deformed "
+            f"frame), fitted field per region: {self.run_dir / REGIONS_JSON}, for "
             f"ParaView: {self.run_dir / VTU_FILE}")
         return compared
 

@@ -44,7 +44,7 @@ from ..reporting.tensorboard import TensorBoardLogger, event_files
 from .checkpoint import Resume
 from .evaluator import Evaluator
 from .options import FitOptions
-from .result import FitResult, result_dict
+from .result import FitResult, result_dict, time_integration_text
 from .validation import result_values
 
 progress = logging.getLogger(PROGRESS_LOGGER)
@@ -132,6 +132,18 @@ class RunOutputs:
             _save_frames(run_dir / "frames.npz", problem, final)
             files.append(run_dir / "frames.npz")
         summary = result_dict(problem, result, self.config)
+        if isinstance(problem, MotionProblem):
+            try:
+                timing = problem.time_integration(final.theta)
+            except Exception as error:  # noqa: BLE001  (an estimate; the fit stands)
+                timing = None
+                progress.warning("could not estimate the integration error at the fitted "
+                            "parameters (%s: %s); the fit and its result files are not "
+                            "affected", type(error).__name__, error)
+            if timing is not None:
+                summary["time_integration"] = timing
+                result.highlights.insert(0, time_integration_text(
+                    timing, metres=isinstance(problem, BodyProblem)))
         if isinstance(problem, BodyProblem):
             summary["modulus_units"] = modulus_units(problem).as_dict()
         if comparison:

@@ -57,3 +57,40 @@ def test_cost_is_counted_and_stored_solutions_make_products_solve_only():
     # every segment recomputed from its checkpoint (one factorisation per step), then one
     # factorisation per step replayed, except the segment's last two (still cached)
     assert products.factorizations == 2 * steps - 2 * len(checkpointed.segments())
+
+
+@pytest.mark.parametrize("scheme", ["bdf2", "backward_euler"])
+def test_error_estimate_by_step_halving_predicts_the_true_error(scheme):
+    """Richardson's estimate (difference to the half step times 2^p / (2^p - 1)) against the
+    error to a reference 64 times finer: within a factor 1.5 for both schemes (it would be
+    off by 4/3 or 2 with the wrong order), and it shrinks as h^p."""
+    system, params = chain_system()
+    times = torch.linspace(0.05, 0.3, 6)
+    reference = make_integrator("implicit", system, times, dt=0.02 / 64, scheme=scheme)(params)
+    estimates = []
+    for dt in (0.025, 0.0125):         # 2 and 4 steps per output interval of 0.05 s
+        integrator = make_integrator("implicit", system, times, dt=dt, scheme=scheme)
+        report = integrator.error_estimate(params)
+        true_error = float((integrator(params) - reference).abs().max())
+        assert report["steps"] == integrator.n_steps
+        assert report["reference_steps"] == 2 * integrator.n_steps
+        assert true_error / 1.5 <= report["estimate"] <= 1.5 * true_error, (report, true_error)
+        estimates.append(report["estimate"])
+    order = 2 if scheme == "bdf2" else 1
+    assert estimates[0] / estimates[1] == pytest.approx(2 ** order, rel=0.25)
+
+
+def test_static_equilibrium_balances_the_external_force():
+    """At rest under gravity and loads at t0: the elastic force balances them on the free
+    dofs, the prescribed dof at its position; no inertia, no damping."""
+    system, params = chain_system()
+    integrator = make_integrator("implicit", system, torch.tensor([0.1]), dt=0.01)
+    x = integrator.static_equilibrium(params, system.x0)
+    field = system.split(params)[0]
+    residual = system.elastic.residual(x[None], field)[0] - system.external_force(
+        integrator.step_times[:1].to(x))[0]
+    free = system.free_dofs
+    assert float(residual[free].abs().max()) <= 1e-9 * float(system.external_force(
+        integrator.step_times[:1].to(x)).abs().max())
+    assert float(x[system.fixed_dofs].abs().max()) == 0.0       # the chain's top stays put
+    assert float((x - system.x0).abs().max()) > 1e-3              # it hangs lower than rest

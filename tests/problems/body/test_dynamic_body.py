@@ -148,11 +148,42 @@ def test_validation_is_a_later_window(root):
     ({"validation_every": 2}, "hold out a later window"),
     ({"E_reference": 0.0}, "problem.E_reference=0.0: must be a positive"),
     ({"alpha0": -1.0, "transform": "identity"}, "is a negative damping coefficient"),
+    ({"gravity": [0.0, -9.81]}, "problem.gravity=.*: must be null or three finite numbers"),
+    ({"gravity": [0.0, 0.0, float("nan")]}, "problem.gravity=.*must be finite"),
+    ({"gravity": [0.0, 0.0, -9.81], "dynamic": False}, "is read by the body in time only"),
 ])
 def test_dynamic_settings_are_refused_with_one_line(root, override, message):
     with pytest.raises(ProblemConfigError, match=message) as err:
         build_problem("animation", settings(root, **override))
     assert "\n" not in str(err.value)
+
+
+def test_under_gravity_the_body_starts_at_rest(root):
+    """problem.gravity: the body starts in its static equilibrium under gravity for E0 (it
+    sags below the rest shape) and, with the rig held still, stays there: no drop at t = 0;
+    in weightlessness it is the rest shape. The time report names the steps and the error
+    estimate."""
+    still = root / "capsule_still"
+    if not (still / "animation.yaml").is_file():
+        write_capsule(still, angles=(0.0, 0.0, 0.0, 0.0))
+    common = {"path": str(still), "cache_dir": str(root / "cache"), "tet_count": 600,
+              "grid": [2, 2, 3], "dynamic": True, "substeps": 2}
+    problem = build_problem("animation", {**common, "gravity": [0.0, -9.81, 0.0]})
+    rest = problem.model.rest.points
+    start = problem.system.x0.reshape(-1, 3)
+    sag = start - rest
+    mass = problem.system.mass.reshape(-1, 3)[:, 1]
+    assert float((mass * sag[:, 1]).sum() / mass.sum()) < -1e-5      # the centre of mass drops
+    assert float(sag[torch.as_tensor(problem.dirichlet_vertices)].abs().max()) == 0.0
+    x = problem.simulate(problem.simulation_input(problem.theta0))
+    drift = float((x - start[None]).norm(dim=-1).max())
+    assert drift <= 1e-6 * float(sag.norm(dim=-1).max()), drift
+    weightless = build_problem("animation", common)
+    assert torch.equal(weightless.system.x0.reshape(-1, 3), rest.to(weightless.system.x0))
+    report = problem.time_integration(problem.theta0)
+    assert report["steps"] == 3 * 2 and report["reference_steps"] == 12
+    assert report["fps"] == 24.0 and report["substeps"] == 2 and report["scheme"] == "bdf2"
+    assert 0.0 <= report["error_estimate"] <= 1e-6 * float(sag.norm(dim=-1).max())
 
 
 def test_the_folder_format_carries_its_frame_rate(root):
@@ -200,7 +231,11 @@ def test_fit_and_simulate_apps_in_time(root, tmp_path):
                        "problem.target=synthetic", "solver.max_iter=1")
     assert done.returncode == 0, done.stderr[-2000:]
     log = (fit / "fit.log").read_text()
-    assert "could not draw" not in log, log[-2000:]
+    assert "could not draw" not in log and "could not estimate" not in log, log[-2000:]
+    assert "in time: 24 fps x 2 substeps = 6 BDF2 steps of 20.8 ms; integration error about" \
+        in done.stdout, done.stdout
+    timing = yaml.safe_load((fit / "result.json").read_text())["time_integration"]
+    assert timing["reference_steps"] == 12 and 0.0 < timing["error_estimate_rel"] < 0.1
     assert (fit / "time_errors.png").is_file() and not (fit / "frames_strip.png").exists()
     summary = yaml.safe_load((fit / "result.json").read_text())
     assert summary["problem"]["dynamic"] is True and summary["problem"]["fps"] == 24.0

@@ -232,13 +232,15 @@ class ImplicitIntegrator:
         checkpoint_every: ``c`` (module docstring); 0 means ``ceil(sqrt(S))``.
         cache_size: trajectories kept (keyed by the parameters: ``J v`` and ``J^T w`` at
             a point already simulated do not integrate again).
+        split: every step of the ``dt`` grid cut into this many equal steps (the step
+            halving of :meth:`error_estimate`: ``refined``).
     """
 
     name = "implicit"
 
     def __init__(self, system: DynamicSystem, output_times: Tensor | list[float], dt: float,
                  scheme: str = "bdf2", backend: str = "scipy", newton: NewtonOptions | None = None,
-                 checkpoint_every: int = 1, cache_size: int = 2) -> None:
+                 checkpoint_every: int = 1, cache_size: int = 2, split: int = 1) -> None:
         if scheme not in SCHEMES:
             raise DynamicsInputError(f"unknown implicit scheme {scheme!r}; choose one of "
                                      f"{', '.join(SCHEMES)}")
@@ -250,9 +252,12 @@ class ImplicitIntegrator:
         self.system = system
         self.scheme = scheme
         self.dt = float(dt)
+        self.backend = backend
+        self.split = int(split)
         self.output_times = check_output_times(output_times, system.t0)
         self.model = StepModel(system)
         newton = dataclasses.replace(newton) if newton is not None else NewtonOptions()
+        self.newton = dataclasses.replace(newton)
         self._atol = newton.atol
         self.equilibrium = Equilibrium(self.model, system.fixed_dofs, backend=backend,
                                        newton=newton, cache_size=2,
@@ -262,13 +267,57 @@ class ImplicitIntegrator:
         self.cache_size = int(cache_size)
         self._cache: list[_Trajectory] = []
 
+    @property
+    def order(self) -> int:
+        """The scheme's order of accuracy (BDF2: 2, backward Euler: 1)."""
+        return 2 if self.scheme == "bdf2" else 1
+
+    def refined(self, factor: int = 2) -> "ImplicitIntegrator":
+        """The same integration (system, output times, scheme, backend, Newton settings) with
+        every step cut into ``factor`` equal ones and every state kept: the reference of an
+        error estimate (:meth:`error_estimate`)."""
+        return ImplicitIntegrator(self.system, self.output_times, self.dt,
+                                  scheme=self.scheme, backend=self.backend, newton=self.newton,
+                                  checkpoint_every=1, cache_size=1, split=self.split * factor)
+
+    def error_estimate(self, params: Tensor) -> dict[str, float]:
+        """The integration error of the outputs at ``params``, by step halving: with the
+        outputs ``x_h`` and ``x_{h/2}`` of this step and half of it, Richardson's estimate of
+        this integration's error is ``|x_h - x_{h/2}| 2^p / (2^p - 1)`` (``p``: :attr:`order`;
+        the largest over dofs and outputs). Costs one integration with twice the steps.
+
+        Returns ``{"difference", "estimate", "steps", "reference_steps"}`` (the units of the
+        positions)."""
+        with torch.no_grad():
+            coarse = self(params.detach())
+            fine_integrator = self.refined(2)
+            fine = fine_integrator(params.detach())
+        difference = float((coarse - fine).abs().max())
+        p = self.order
+        return {"difference": difference, "estimate": difference * 2 ** p / (2 ** p - 1),
+                "steps": int(self.n_steps), "reference_steps": int(fine_integrator.n_steps)}
+
+    def static_equilibrium(self, params: Tensor, x_init: Tensor) -> Tensor:
+        """Positions ``(n_dofs,)`` at rest in equilibrium at ``t0`` under the external force
+        (gravity, loads): ``R_el(x; k) = f_ext(t0)``, no inertia, no damping, the prescribed
+        dofs at ``x_D(t0)``; Newton from ``x_init`` (no graph: a start is data)."""
+        t0 = self.step_times[:1].to(x_init)
+        n = self.system.n_dofs
+        zeros = x_init.new_zeros(n)
+        p = self.model.pack(params.detach().to(x_init), zeros, zeros,
+                            self.system.external_force(t0)[0], 0.0, 0.0)
+        with torch.no_grad():
+            x = self.equilibrium(p, self.system.fixed_positions(t0), x_init.reshape(1, -1))[0]
+        self.system.check_state(x, float(t0[0]))
+        return x
+
     # -- the time grid --------------------------------------------------------------------
     def _build_grid(self) -> None:
         t0 = self.system.t0
         nodes = [t0] + [float(t) for t in self.output_times if float(t) > t0]
         times = [t0]
         for start, stop in zip(nodes[:-1], nodes[1:]):
-            m = max(1, math.ceil((stop - start) / self.dt - 1e-9))
+            m = max(1, math.ceil((stop - start) / self.dt - 1e-9)) * self.split
             times.extend(start + (stop - start) * (i + 1) / m for i in range(m))
             times[-1] = stop
         self.step_times = torch.tensor(times, dtype=torch.float64)

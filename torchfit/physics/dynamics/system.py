@@ -414,6 +414,14 @@ class DynamicSystem:
                 u = w
             return math.sqrt(max(value, 0.0))
 
+    def start_at(self, x0: Tensor) -> None:
+        """Start from positions ``x0`` ``(n_dofs,)`` (a state computed after the system, as
+        a static equilibrium under gravity); integrators built on it read it at their next
+        integration (clear their caches)."""
+        self.x0 = torch.as_tensor(x0, dtype=self.x0.dtype, device=self.x0.device).reshape(
+            self.n_dofs).clone()
+        self._check_initial_state()
+
     def _check_initial_state(self) -> None:
         for name, state in (("position", self.x0), ("velocity", self.v0)):
             bad = ~torch.isfinite(state)

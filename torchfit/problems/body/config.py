@@ -136,6 +136,10 @@ class RiggedBodyConfig(ProblemConfig):
     scheme: Scheme = Scheme.bdf2           # bdf2 | backward_euler
     substeps: int = 4                      # implicit steps per frame (dt = 1 / (fps substeps))
     density: float = 1000.0                # kg/m^3 (soft tissue); lumped mass per vertex
+    # gravity (m/s^2) in the animation's axes: [0, 0, -9.81] for a Z-up file, [0, -9.81, 0]
+    # for a Y-up one (glTF); null: none (the animated shapes already show the body as it
+    # hangs); the body starts at frame 0 in equilibrium under it for E0
+    gravity: Optional[List[float]] = None
     # with E0_unit=relative the moduli (E0, E_blocks, E_regions, E_min/E_max when absolute)
     # are factors of this modulus in pascals (soft tissue); with E0_unit=Pa they are pascals
     E_reference: float = 1.0e4

@@ -6,7 +6,7 @@ rate: the folder's ``fps``, a USD stage's time codes per second, a glTF's sampli
 rate; 24 by default), a natural cubic spline in time between frames
 (:class:`~torchfit.physics.dynamics.SplineMotion`). The other vertices integrate
 
-    ``M a = f_int(x; E) - (alpha M + beta K0(E)) (v - v_rig(t))``
+    ``M a = f_int(x; E) - (alpha M + beta K0(E)) (v - v_rig(t)) + M g``
 
 with the implicit integrator (BDF2 by default; ``problem.substeps`` steps per frame, so
 ``dt = 1 / (fps substeps)``), lumped mass from ``problem.density`` (kg/m^3: a quarter of each
@@ -16,9 +16,14 @@ the skinned pose of every tetrahedron vertex, the same spline in time; a limb sw
 is not braked as by air, and slow motion is the quasistatic body). The same constitutive models (their residual is linear
 in ``E``), parameterisations (grid, region, tet), bounds and outputs as the quasistatic body.
 
+``g`` is ``problem.gravity`` (m/s^2 in the animation's axes; none by default: the animated
+shapes already show the body as it hangs).
+
 Start: at ``t = 0`` (frame 0) the body moves with the rig (``v = v_rig(0)``) in the quasistatic
 equilibrium of frame 0 for the homogeneous starting material ``E0`` (the rest shape when
-frame 0 is the rest pose, as the arm's); that state is data, not differentiated.
+frame 0 is the rest pose, as the arm's), under gravity where it is given (the static
+equilibrium ``f_int(x; E0) + M g = 0`` with the driven vertices at frame 0); that state is
+data, not differentiated.
 
 Moduli are pascals (inertia fixes the scale: not scale-free): with ``problem.E0_unit=relative``
 (the default) ``E0``, ``E_blocks``, ``E_regions`` (and absolute bounds) are factors of
@@ -83,6 +88,11 @@ def check_body_dynamics(cfg: RiggedBodyConfig) -> None:
     require_setting(math.isfinite(cfg.density) and cfg.density > 0, cfg, "density",
                     "must be > 0 (kg/m^3; soft tissue 1000): every vertex needs a positive "
                     "lumped mass")
+    gravity = cfg.gravity
+    require_setting(gravity is None or (len(gravity) == 3 and all(
+        isinstance(g, (int, float)) and not isinstance(g, bool) and math.isfinite(g)
+        for g in gravity)), cfg, "gravity", "must be null or three finite numbers: the "
+        "acceleration in m/s^2 in the animation's axes ([0, 0, -9.81] Z-up, [0, -9.81, 0] Y-up)")
     require_setting(isinstance(cfg.checkpoint_every, int) and cfg.checkpoint_every >= 0, cfg,
                     "checkpoint_every", "must be an integer >= 0 (0: ceil(sqrt(steps)))")
     for name in _DAMPING:
@@ -190,10 +200,12 @@ class DynamicBody(DynamicMixin):
         # the rig's motion of every tetrahedron vertex (the skinned pose): the damping acts
         # on the velocity relative to it, and the body starts moving with it
         rig = SplineMotion(key_times, self.start_positions.reshape(keys.shape[0], -1))
+        gravity = torch.zeros(3, dtype=dtype, device=device) if cfg.gravity is None else \
+            torch.tensor([float(g) for g in cfg.gravity], dtype=dtype, device=device)
         self.system = DynamicSystem(
             self.model, self.model.n_cells, vertex_mass.repeat_interleave(3), fixed,
             SplineMotion(key_times, keys.reshape(keys.shape[0], -1)), None,
-            torch.zeros(3 * n, dtype=dtype, device=device), self.initial_pose(cfg).reshape(-1),
+            gravity.repeat(n), self.initial_pose(cfg).reshape(-1),
             rig.velocity(key_times[:1])[0], vertex_dim=3, rest=rest.reshape(-1),
             reference_velocity=rig.velocity)
         self.output_times = torch.as_tensor(self.frame_numbers(), dtype=torch.float64) / fps
@@ -202,6 +214,12 @@ class DynamicBody(DynamicMixin):
         self.integrator = make_integrator(
             "implicit", self.system, self.output_times, dt=dt, scheme=cfg.scheme.value,
             backend=self.backend, newton=newton, checkpoint_every=cfg.checkpoint_every)
+        if cfg.gravity is not None and bool(gravity.any()):
+            # at rest under gravity at t = 0 for E0: the body does not drop at the start
+            start = torch.cat([torch.full((self.model.n_cells,), float(cfg.E0), dtype=dtype,
+                                          device=device),
+                               torch.tensor([cfg.alpha0, cfg.beta0], dtype=dtype, device=device)])
+            self.system.start_at(self.integrator.static_equilibrium(start, self.system.x0))
 
     def initial_pose(self, cfg: RiggedBodyConfig) -> Tensor:
         """Positions ``(n, 3)`` at ``t = 0``: the rest shape where frame 0 drives the rig to
@@ -247,6 +265,13 @@ class DynamicBody(DynamicMixin):
                 x = self.simulate(self.simulation_input(theta))
                 self._homogeneous_error = float(self.surface_errors(x).mean())  # type: ignore[attr-defined]
         return self._homogeneous_error
+
+    def time_integration(self, theta: Tensor) -> dict[str, Any]:
+        """The dynamic problems' report (positions in metres) with the frame rate and the
+        substeps."""
+        out = super().time_integration(theta)
+        out.update({"fps": self.fps, "substeps": int(self.cfg.substeps)})
+        return out
 
     def simulate_model(self, model: str, E: Tensor, frames: list[int] | None = None) -> Tensor:
         raise NotImplementedError("the model comparison is quasistatic: the dynamic body "

@@ -162,6 +162,9 @@ class RiggedBody(InverseProblem):
         require_setting(-1.0 < cfg.nu < 0.5, cfg, "nu", "must lie in (-1, 0.5) (Poisson ratio "
                         "of an isotropic material; 0.5 would be incompressible)")
         require_setting(cfg.E0 > 0, cfg, "E0", "must be a positive Young's modulus")
+        require_setting(cfg.gravity is None or cfg.dynamic, cfg, "gravity", "is read by the "
+                        "body in time only (problem.dynamic=true); the frame-by-frame body "
+                        "has none (leave it null)")
         require_setting(cfg.grid is None or (len(cfg.grid) == 3 and all(
             int(n) >= 2 for n in cfg.grid)), cfg, "grid", "must list three node counts >= 2 "
             "(along the body's principal axes, the longest last) or be null (grid_nodes)")
