@@ -276,3 +276,16 @@ def test_write_arm_adds_keyframed_jiggle(tmp_path):
     assert abs(out[:20] - motion[:20]).max() < 1e-15
     after = abs(out[21:] - motion[21:]).max(axis=(1, 2))
     assert after[:6].max() > 10 * after[-6:].max() > 0
+
+
+def test_a_time_step_the_integrator_cannot_take_is_refused_in_one_line(root):
+    """A step whose Newton does not converge (here: one Newton iteration allowed, the bend
+    needs more) is refused when the problem is built, naming substeps, the step and its time:
+    one line, a ProblemConfigError (the app's exit 2)."""
+    with pytest.raises(ProblemConfigError) as err:
+        build_problem("animation", settings(root, frames=[0, 1, 2, 3], newton_max_iter=1))
+    line = str(err.value)
+    assert "\n" not in line
+    assert line.startswith("problem.substeps=2: the body cannot be integrated at 24 fps x 2 "
+                           "substeps (the implicit step to t = "), line
+    assert "did not converge" in line and line.endswith("raise problem.substeps")

@@ -30,7 +30,13 @@ class InvalidFieldError(SimulationError):
 
 class UnstableStepError(SimulationError):
     """An explicit integrator blew up (step above its stability limit) or its adaptive
-    step collapsed; the message names the integrator to use instead."""
+    step collapsed (the message names the integrator to use instead), or an implicit step's
+    Newton did not converge (the message names the step, its time and length: take shorter
+    steps). ``time`` (s) and ``step`` where known."""
+
+    def __init__(self, message: str, time: float | None = None, step: int | None = None) -> None:
+        super().__init__(message)
+        self.time, self.step = time, step
 
 
 class NonFiniteStateError(SimulationError):

@@ -49,8 +49,8 @@ import torch
 from torch import Tensor
 
 from ...linalg import SparsePattern
-from ..equilibrium import Equilibrium, NewtonOptions
-from .errors import DynamicsInputError, NonFiniteStateError
+from ..equilibrium import Equilibrium, NewtonConvergenceError, NewtonOptions
+from .errors import DynamicsInputError, NonFiniteStateError, UnstableStepError
 from .system import DynamicSystem, TrajectoryFunction, check_output_times
 
 SCHEMES = ("backward_euler", "bdf2")
@@ -393,7 +393,15 @@ class ImplicitIntegrator:
             self.coefficients[n][0] ** 2
         self.equilibrium.newton.atol = max(self._atol, 100.0 * torch.finfo(x.dtype).eps * inertia)
         with torch.no_grad():
-            x_new = self.equilibrium(p, fixed, predictor)[0]
+            try:
+                x_new = self.equilibrium(p, fixed, predictor)[0]
+            except NewtonConvergenceError as error:
+                t = float(self.step_times[n + 1])
+                raise UnstableStepError(
+                    f"the implicit step to t = {t:.6g} s (step {n + 1} of {self.n_steps}, "
+                    f"{1e3 * float(self.step_sizes[n]):.3g} ms) did not converge: the step is "
+                    f"too long for this motion and material; take shorter steps ("
+                    f"{' '.join(str(error).split())})", time=t, step=n + 1) from error
         self.system.check_state(x_new, float(self.step_times[n + 1]))
         v_new = self.coefficients[n][0] * x_new + b_v
         solution = self.equilibrium.solution(p, fixed, None) if keep else None

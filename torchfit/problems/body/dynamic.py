@@ -46,7 +46,7 @@ from torch import Tensor
 from ...mesh.formats.folder import Animation
 from ...params import Parameterization
 from ...physics import NewtonOptions
-from ...physics.dynamics import DynamicSystem, SplineMotion, make_integrator
+from ...physics.dynamics import DynamicSystem, SplineMotion, UnstableStepError, make_integrator
 from ..base import InverseProblem
 from ..config import Transform, make_config, require_setting, setting_error
 from ..dynamic import DynamicMixin, Integrator
@@ -155,7 +155,18 @@ class DynamicBody(DynamicMixin):
 
     def __init__(self, cfg: Any = None, *, kept_mesh: Any = None, **overrides: Any) -> None:
         config = make_config(self.config_class, cfg, overrides)   # type: ignore[attr-defined]
-        super().__init__(in_pascals(config), kept_mesh=kept_mesh)  # type: ignore[call-arg]
+        # a time step the integrator cannot take is bad input, refused before the fit: the
+        # build's simulations (a synthetic truth) and the start's (kept in the integrator's
+        # cache, where the fit's first evaluation finds it)
+        try:
+            super().__init__(in_pascals(config), kept_mesh=kept_mesh)  # type: ignore[call-arg]
+            with torch.no_grad():
+                self.positions(self.simulation_input(self.theta0))  # type: ignore[attr-defined]
+        except UnstableStepError as error:
+            fps = float(getattr(self, "fps", 0.0))
+            raise setting_error("substeps", config.substeps, f"the body cannot be integrated "
+                                f"at {fps:g} fps x {config.substeps} substeps ({error}); raise "
+                                "problem.substeps") from None
 
     # -- building -------------------------------------------------------------------------
     def check(self, cfg: RiggedBodyConfig) -> None:
