@@ -19,11 +19,13 @@ def _surface(frames: int = 3) -> np.ndarray:
     return np.stack([rest + 0.1 * f * np.array([1.0, -2.0, 0.5]) for f in range(frames)])
 
 
-def _problem(path: Path, names: list[str]) -> SimpleNamespace:
+def _problem(path: Path, names: list[str], numbers: list[int] | None = None) -> SimpleNamespace:
+    numbers = list(range(len(names))) if numbers is None else numbers
     return SimpleNamespace(animation=SimpleNamespace(path=path, faces=FACES, output_faces=FACES,
                                                      file_points=lambda points: points),
                            mesh=SimpleNamespace(points=POINTS, cells=CELLS),
-                           frame_names=lambda: names, tet_regions=np.array([0, 1]),
+                           frame_names=lambda: names, frame_numbers=lambda: numbers,
+                           tet_regions=np.array([0, 1]),
                            cfg=SimpleNamespace(nu=0.45, E0=1.0, E0_unit="relative"),
                            scale_free=True)
 
@@ -68,6 +70,13 @@ def test_usd_point_cache_and_tet_mesh_read_back(tmp_path):
     mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Simulated"))
     assert mesh.GetPointsAttr().GetTimeSamples() == [0.0, 1.0, 2.0]
     np.testing.assert_allclose(np.asarray(mesh.GetPointsAttr().Get(2.0)), surface[2], atol=1e-7)
+    # a subset of a folder's frames (problem.frames=[0,3,11]) keeps their places in the shot
+    subset = write_usd(tmp_path / "subset", _problem(tmp_path / "anim", ["a", "b", "c"],
+                                                     [0, 3, 11]), surface, field)
+    cache = Usd.Stage.Open(str(subset[0]))
+    points = UsdGeom.Mesh(cache.GetPrimAtPath("/Simulated")).GetPointsAttr()
+    assert points.GetTimeSamples() == [0.0, 3.0, 11.0]
+    assert (cache.GetStartTimeCode(), cache.GetEndTimeCode()) == (0.0, 11.0)
     tet_stage = Usd.Stage.Open(str(files[1]))
     tet = tet_stage.GetDefaultPrim()
     assert tet.GetTypeName() == "TetMesh"

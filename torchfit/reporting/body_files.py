@@ -115,7 +115,11 @@ def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarra
 
     source = Path(str(problem.animation.path))
     over = source if source.suffix.lower() in USD_SUFFIXES and source.is_file() else None
+    # the time codes of the frames written: a stage's own, else the animation's frame
+    # numbers (a subset of frames plays at its place in the shot, not packed from 0)
     times = _frame_times(problem.frame_names()) if over is not None else None
+    if times is None:
+        times = [float(n) for n in problem.frame_numbers()]
     surface, faces = file_surface(problem, surface)
     cells = np.asarray(problem.mesh.cells)
     units = modulus_units(problem)
