@@ -52,7 +52,7 @@ import torch
 from torch import Tensor
 
 from ..problems import InverseProblem
-from ..problems.base import BodyProblem
+from ..problems.base import BodyProblem, MotionProblem
 from ..records import IterationRecord
 from ..reporting.body import frame_spans
 from ..reporting.results import PARAMS_FILE
@@ -103,10 +103,14 @@ def first_stage_iterations(solver: SolverConfig, first_max_iter: Any) -> int:
 
 
 def continuation_applies(problem: InverseProblem) -> bool:
-    """Whether ``continuation=auto`` considers the continuation: a body fitted to an
-    animation whose targets are simulated with its own model (it has a true field). Whether
-    a frame is near a fold at the start is :func:`fit_continued`'s check."""
-    return isinstance(problem, BodyProblem) and problem.field_true is not None
+    """Whether ``continuation=auto`` considers the continuation: a quasistatic body fitted
+    to an animation whose targets are simulated with its own model (it has a true field).
+    Whether a frame is near a fold at the start is :func:`fit_continued`'s check. A body in
+    time (``problem.dynamic=true``) is an initial-value problem: each step starts from the
+    one before, so a material has one trajectory and no frame a choice of branches (what
+    the continuation is for); ``continuation=true`` still runs it."""
+    return isinstance(problem, BodyProblem) and not isinstance(problem, MotionProblem) \
+        and problem.field_true is not None
 
 
 def frames_near_fold(problem: InverseProblem, theta: Tensor, min_volume: float) -> list[int]:

@@ -77,6 +77,19 @@ def test_dynamic_flag_builds_the_body_in_time(synthetic, root):
     start = problem.metrics(problem.theta0)
     assert start["alpha_damping_err_rel"] == pytest.approx(0.5)       # 1.0 against 2.0
     assert start["k_err_rel_aligned"] > 0.1
+    # an initial-value problem has no branches to choose: continuation=auto leaves it alone
+    from torchfit.run.continuation import continuation_applies
+    assert not continuation_applies(problem)
+
+
+def test_fewer_frames_follow_the_same_trajectory(synthetic):
+    """The rig's spline runs through the whole shot, so the body fitted on its first frames
+    (a continuation's first stage, a shorter fit) moves exactly as the whole fit's body up
+    to there: the truth of frames 0, 1 is the full problem's, reproduced to round-off."""
+    first = synthetic.with_frames([0, 1])
+    assert first.dirichlet_positions.shape == synthetic.dirichlet_positions.shape
+    x = first.simulate(synthetic.true_simulation_input())
+    assert torch.allclose(x, synthetic.x_true[:2], rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("scheme", ["bdf2", "backward_euler"])

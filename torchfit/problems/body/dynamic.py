@@ -1,7 +1,7 @@
 """The rigged body in time (``problem.dynamic=true`` for ``animation`` and ``arm3d``).
 
 The rig drives its tetrahedron vertices through the shot: the driven positions of every
-frame ``0 .. f_last`` (the last fitted frame) at times ``f / fps`` (the animation's frame
+frame of the shot at times ``f / fps`` (the animation's frame
 rate: the folder's ``fps``, a USD stage's time codes per second, a glTF's sampling or key
 rate; 24 by default), a natural cubic spline in time between frames
 (:class:`~torchfit.physics.dynamics.SplineMotion`). The other vertices integrate
@@ -177,10 +177,13 @@ class DynamicBody(DynamicMixin):
         return dynamic_split(cfg, animation.n_frames)
 
     def driving_animation(self, whole: Animation, fitted: Animation) -> Animation:
-        """Every frame from 0 to the last fitted one: the rig's whole motion up to there."""
-        numbers = self.cfg.frames if self.frame_split is None else self.frame_split.fitted
-        last = whole.n_frames - 1 if numbers is None else max(int(f) for f in numbers)
-        return whole.select(list(range(last + 1)))
+        """Every frame of the shot: the rig's motion is input, known to the end, and the
+        spline through all of it makes the motion at a time the same whichever frames are
+        fitted (a fit of the first frames, a continuation's first stage, the held-out
+        window: each reproduces the others' trajectory up to its last frame; a spline
+        ending at the last fitted frame would bend differently there). The integration
+        stops at the last output frame."""
+        return whole
 
     def pose_repeats(self) -> None:
         """A pose met again in time is another state (velocity): no frame is shared."""
