@@ -25,9 +25,9 @@ process of its own (so that its memory is its own), after building the problem:
 
 The ratios of each variant to the first are printed in the same run.
 
-**Simulate** (``--simulate-frames N --run <fitted dynamic run>``): the procedural arm written
-with ``N`` frames (``scripts/write_arm.py``'s animation at 24 fps) and the run's fitted
-material simulated on it in time through :func:`torchfit.run.simulating.simulate` (every
+**Simulate** (``--simulate-frames N --run <fitted dynamic run>``): the procedural arm with
+``N`` frames at 24 fps (an ``arm3d`` run: ``problem.n_frames=N``; an ``animation`` run: the arm
+``scripts/write_arm.py`` writes) and the run's fitted material simulated on it in time through :func:`torchfit.run.simulating.simulate` (every
 output: OBJ frames, VTU, the USD point cache): wall time and peak memory.
 
 One torch thread (set here): step-by-step integration is many small kernels.
@@ -110,16 +110,25 @@ def iteration_variant(problem_name: str, checkpoint_every: int) -> dict[str, Any
 
 
 def simulate_shot(run: Path, n_frames: int) -> dict[str, Any]:
-    """``simulate`` of ``run`` on the arm written with ``n_frames`` frames (module docstring)."""
+    """``simulate`` of ``run`` on the arm with ``n_frames`` frames (module docstring): an
+    ``arm3d`` run makes its own (``problem.n_frames``, every frame), an ``animation`` run
+    reads the arm written by ``scripts/write_arm.py``."""
+    import yaml
+
     from torchfit.run.simulating import simulate
 
+    fitted = yaml.safe_load((run / ".hydra" / "config.yaml").read_text())["problem"]["name"]
     with tempfile.TemporaryDirectory() as tmp:
-        shot = Path(tmp) / "shot"
-        subprocess.run([sys.executable, str(REPO / "scripts" / "write_arm.py"), str(shot),
-                        "--n-frames", str(n_frames)], check=True, capture_output=True)
+        if fitted == "arm3d":
+            settings: dict[str, Any] = {"n_frames": n_frames, "frames": None}
+        else:
+            shot = Path(tmp) / "shot"
+            subprocess.run([sys.executable, str(REPO / "scripts" / "write_arm.py"), str(shot),
+                            "--n-frames", str(n_frames)], check=True, capture_output=True)
+            settings = {"path": str(shot), "frames": None}
         with PeakSampler() as peak:
             start = time.perf_counter()
-            result = simulate(run, {"path": str(shot)}, Path(tmp) / "sim", progress_lines=False)
+            result = simulate(run, settings, Path(tmp) / "sim", progress_lines=False)
             wall = time.perf_counter() - start
         written = sorted(p.name for p in (Path(tmp) / "sim").iterdir())
     return {"run": str(run), "frames": n_frames, "wall_s": wall, "peak_mb": peak.mb,
