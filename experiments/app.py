@@ -156,6 +156,11 @@ class RunDirGuard:
     def __init__(self, argv: list[str]) -> None:
         self.run_dir = next((Path(a.split("=", 1)[1]) for a in argv
                              if a.startswith("hydra.run.dir=")), None)
+        #: the job makes the directory (absent or empty before it): a refusal removes it
+        #: whole, whatever the job wrote before it was refused (a start that cannot be
+        #: simulated is found after the outputs opened)
+        self.fresh = self.run_dir is not None and (
+            not self.run_dir.exists() or (self.run_dir.is_dir() and not any(self.run_dir.iterdir())))
         self.snapshot()
 
     def snapshot(self) -> None:
@@ -173,6 +178,9 @@ class RunDirGuard:
         """Leave ``run_dir`` as it was before this job."""
         if self.saved and all(p.parent.parent.resolve() == run_dir.resolve() for p in self.saved):
             self.restore(run_dir)
+            return
+        if self.fresh and self.run_dir is not None and run_dir.resolve() == self.run_dir.resolve():
+            remove_job_directory(run_dir)
             return
         remove_if_only_hydra(run_dir)
 
@@ -198,6 +206,11 @@ def remove_if_only_hydra(run_dir: Path) -> None:
                                         (e.suffix == ".log" and e.is_file()))
                                    for e in run_dir.iterdir()):
         return
+    remove_job_directory(run_dir)
+
+
+def remove_job_directory(run_dir: Path) -> None:
+    """Delete ``run_dir``, a directory this job made, closing Hydra's handler of its log."""
     for handler in list(logging.getLogger().handlers):    # Hydra's handler of <job>.log
         filename = getattr(handler, "baseFilename", None)
         if filename and Path(filename).resolve().parent == run_dir.resolve():

@@ -31,7 +31,7 @@ from typing import Any, ClassVar, Iterable, NamedTuple, Optional
 
 from torch import Tensor
 
-from ..errors import ConfigurationError
+from ..errors import ConfigurationError, SimulationError
 from ..linalg import SolveCounters, counting
 from ..records import Callback, IterationRecord, SolveResult, StopReason
 from ..settings import check_values
@@ -39,6 +39,12 @@ from ..settings import check_values
 
 class SolverConfigError(ConfigurationError):
     """An invalid solver setting (or solver input); the message names it."""
+
+
+class UnsimulatedStart(SolverConfigError):
+    """The start cannot be simulated (a :class:`~torchfit.errors.SimulationError` there: a
+    time step the integrator cannot take, Newton failing at the initial guess): bad input,
+    refused in one line, where inside the fit the same error is a failed trial step."""
 
 
 def require(condition: bool, message: str) -> None:
@@ -253,7 +259,11 @@ class Solver(abc.ABC):
             self.iteration = 0
             self.clock = RunClock(spent)
             self._started = True
-            record = self.start(theta0)
+            try:
+                record = self.start(theta0)
+            except SimulationError as error:
+                raise UnsimulatedStart(f"the fit's start cannot be simulated: "
+                                       f"{' '.join(str(error).split())}") from error
             history.append(record)
             if emit(callbacks, record):
                 return self._finish(Stop(False, StopReason.interrupted), history)

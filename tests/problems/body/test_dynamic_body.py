@@ -291,14 +291,35 @@ def test_write_arm_adds_keyframed_jiggle(tmp_path):
     assert after[:6].max() > 10 * after[-6:].max() > 0
 
 
-def test_a_time_step_the_integrator_cannot_take_is_refused_in_one_line(root):
+def test_a_time_step_the_integrator_cannot_take_is_refused_in_one_line(root, tmp_path):
     """A step whose Newton does not converge (here: one Newton iteration allowed, the bend
-    needs more) is refused when the problem is built, naming substeps, the step and its time:
-    one line, a ProblemConfigError (the app's exit 2)."""
-    with pytest.raises(ProblemConfigError) as err:
-        build_problem("animation", settings(root, frames=[0, 1, 2, 3], newton_max_iter=1))
+    needs more) is an UnstableStepError naming the step, its time and the setting (a failed
+    trial inside a fit); at the fit's start the app refuses it: one error line, exit 2, and a
+    synthetic truth that cannot be integrated is refused when the problem is built."""
+    from helpers.fit_app import run_fit_app
+
+    from torchfit.physics.dynamics import UnstableStepError
+
+    problem = build_problem("animation", settings(root, frames=[0, 1, 2, 3], newton_max_iter=1))
+    with pytest.raises(UnstableStepError) as err:
+        problem.simulate(problem.simulation_input(problem.theta0))
     line = str(err.value)
-    assert "\n" not in line
-    assert line.startswith("problem.substeps=2: the body cannot be integrated at 24 fps x 2 "
-                           "substeps (the implicit step to t = "), line
-    assert "did not converge" in line and line.endswith("raise problem.substeps")
+    assert "\n" not in line and line.startswith("the implicit step to t = ")
+    assert "did not converge" in line
+    assert line.endswith("at 24 fps x 2 substeps: raise problem.substeps"), line
+    with pytest.raises(ProblemConfigError, match=r"^problem.substeps=2: the body cannot be "
+                       r"integrated \(the implicit step to t = .*raise problem.substeps\)$"):
+        build_problem("animation", settings(root, frames=[0, 1, 2, 3], newton_max_iter=1,
+                                            target="synthetic"))
+    run = tmp_path / "fit"
+    done = run_fit_app(run, "problem=animation", f"problem.path={capsule(root)}",
+                       f"problem.cache_dir={root / 'cache'}", "problem.tet_count=600",
+                       "problem.dynamic=true", "problem.substeps=2", "problem.grid=[2,2,3]",
+                       "problem.frames=[0,1,2,3]", "problem.newton_max_iter=1",
+                       "solver.max_iter=1")
+    lines = [ln for ln in done.stderr.splitlines() if ln.strip()]
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert lines[-1].startswith("error: the fit's start cannot be simulated: the implicit "
+                                "step to t = "), lines[-1]
+    assert lines[-1].endswith("raise problem.substeps")
+    assert not run.exists()          # the job made the directory: refused, nothing is left

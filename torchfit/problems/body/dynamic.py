@@ -155,18 +155,13 @@ class DynamicBody(DynamicMixin):
 
     def __init__(self, cfg: Any = None, *, kept_mesh: Any = None, **overrides: Any) -> None:
         config = make_config(self.config_class, cfg, overrides)   # type: ignore[attr-defined]
-        # a time step the integrator cannot take is bad input, refused before the fit: the
-        # build's simulations (a synthetic truth) and the start's (kept in the integrator's
-        # cache, where the fit's first evaluation finds it)
+        # a time step the integrator cannot take while building (a synthetic truth's
+        # simulation) is bad input; at the fit's start the solver refuses it likewise
         try:
             super().__init__(in_pascals(config), kept_mesh=kept_mesh)  # type: ignore[call-arg]
-            with torch.no_grad():
-                self.positions(self.simulation_input(self.theta0))  # type: ignore[attr-defined]
         except UnstableStepError as error:
-            fps = float(getattr(self, "fps", 0.0))
             raise setting_error("substeps", config.substeps, f"the body cannot be integrated "
-                                f"at {fps:g} fps x {config.substeps} substeps ({error}); raise "
-                                "problem.substeps") from None
+                                f"({error})") from None
 
     # -- building -------------------------------------------------------------------------
     def check(self, cfg: RiggedBodyConfig) -> None:
@@ -255,8 +250,15 @@ class DynamicBody(DynamicMixin):
     # -- the forward model ------------------------------------------------------------------
     def simulate(self, physical: Tensor) -> Tensor:
         """Tetrahedron vertex positions ``(F, n, 3)`` at the fitted frames' times for
-        ``[E (n_tets,), alpha, beta]``."""
-        return self.positions(physical)
+        ``[E (n_tets,), alpha, beta]``. A step whose Newton does not converge raises
+        :class:`UnstableStepError` naming the setting to raise (a failed trial inside a fit;
+        at its start a refusal)."""
+        try:
+            return self.positions(physical)
+        except UnstableStepError as error:
+            raise UnstableStepError(f"{error}; at {self.fps:g} fps x {self.cfg.substeps} "
+                                    "substeps: raise problem.substeps", error.time,
+                                    error.step) from error
 
     def forward_jacobian(self, theta: Tensor) -> Tensor:
         """``d observe(simulate(map(theta))) / d theta`` ``(m, n_params)``: tangents forward
@@ -271,13 +273,17 @@ class DynamicBody(DynamicMixin):
             return torch.cat([torch.sparse.mm(observe, dx[f]) for f in range(dx.shape[0])])
 
     def homogeneous_surface_error(self) -> float:
-        """Mean surface error of the homogeneous ``E0`` with the starting damping."""
+        """Mean surface error of the homogeneous ``E0`` with the starting damping (NaN where
+        it cannot be integrated)."""
         if not hasattr(self, "_homogeneous_error"):
             theta = self.parameterization.constant(self.initial_value(self.cfg), self.dtype,
                                                    self.device)
-            with torch.no_grad():
-                x = self.simulate(self.simulation_input(theta))
-                self._homogeneous_error = float(self.surface_errors(x).mean())  # type: ignore[attr-defined]
+            try:
+                with torch.no_grad():
+                    x = self.simulate(self.simulation_input(theta))
+                    self._homogeneous_error = float(self.surface_errors(x).mean())  # type: ignore[attr-defined]
+            except UnstableStepError:    # NaN here; the fit's start refuses it in one line
+                self._homogeneous_error = math.nan
         return self._homogeneous_error
 
     def time_integration(self, theta: Tensor) -> dict[str, Any]:
