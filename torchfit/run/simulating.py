@@ -59,6 +59,11 @@ FITTED_SETTINGS = ("name", "parameters", "grid", "transform", "model", "nu", "E0
 #: frames from the animation it is given: every frame unless ``problem.frames`` says)
 FIT_ONLY_SETTINGS = {"init_field": "", "frames": None, "validation_frames": None,
                      "validation_every": 0}
+#: settings ``simulate`` sets for itself (a user's override still wins): it takes no
+#: derivatives, so a body in time keeps no step's factorisation (``checkpoint_every=0``:
+#: about ``2 sqrt(S)`` states; with every step's factor a 240-frame shot of the short arm
+#: held 15 GB)
+SIMULATE_SETTINGS = {"checkpoint_every": 0}
 #: relative difference allowed between the fitted field and the one ``theta`` maps to here
 _FIELD_RTOL = 1e-9
 
@@ -273,7 +278,7 @@ def build_fitted_body(fitted: FittedRun, overrides: dict[str, Any]) -> RiggedBod
                                  f"parameterisation and material ({key} "
                                  f"{fitted.settings.get(key)!r} in {fitted.directory}); leave "
                                  "it out")
-    merged = {**fitted.settings, **FIT_ONLY_SETTINGS, **overrides}
+    merged = {**fitted.settings, **FIT_ONLY_SETTINGS, **SIMULATE_SETTINGS, **overrides}
     mesh_file = fitted.directory / RUN_MESH_FILE
     stored = None
     if mesh_file.is_file():

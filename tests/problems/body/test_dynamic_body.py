@@ -2,6 +2,7 @@
 motion against the quasistatic body, held-out later window, refusals, recovery."""
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -257,6 +258,9 @@ def test_fit_and_simulate_apps_in_time(root, tmp_path):
     assert result.state.shape[0] == len(ANGLES)
     assert len(list((tmp_path / "sim" / "frames").glob("*.obj"))) == len(ANGLES)
     assert (tmp_path / "sim" / "body.vtu").is_file()
+    # no derivatives in simulate: no step's factorisation is kept (checkpoint_every=0)
+    settings_used = json.loads((tmp_path / "sim" / "result.json").read_text())["settings"]
+    assert settings_used["checkpoint_every"] == 0
     stage = Usd.Stage.Open(str(tmp_path / "sim" / "usd" / "frames.usda"))
     assert stage.GetTimeCodesPerSecond() == 30.0
     assert stage.GetEndTimeCode() == len(ANGLES) - 1
