@@ -27,14 +27,26 @@ side batched over columns (two reverse passes per evaluation); with
 ``--columns-one-by-one`` also ``before``, the same solve with one reverse pass per column
 per evaluation (the code before 2026-12-01), and the ratio; both in one run.
 
+``--first-iteration gauss_newton levenberg_marquardt`` runs the fit app
+(``experiments/fit.py problem=spring1d problem.dynamic=true problem.integrator=torchdiffeq
+solver=<s> solver.max_iter=<n>``, one thread, a fresh run directory each) twice per solver,
+with ``problem.ode_trial_factor=0`` (no trial budget: the code before 2026-12-02) and at its
+default, and reports each run's iteration 0 (the start's simulation and dense Jacobian) and
+iteration 1 (the first step, its trials included) from ``result.json``'s history; a run
+past ``--run-timeout`` is stopped and reported as such. Both in one run.
+
 Run with one torch thread (set here): step-by-step integration is many small kernels.
 """
 from __future__ import annotations
 
 import argparse
 import gc
+import json
 import math
+import os
+import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -241,6 +253,47 @@ def bench_jacobian(one_by_one: bool) -> dict[str, Any]:
     return out
 
 
+def bench_first_iteration(solvers: list[str], iterations: int, timeout: float) -> dict[str, Any]:
+    """The chain's first fit iterations through torchdiffeq with and without the trial
+    budget (module docstring): ``{solver: {"no_budget" | "budget": {...}}}``."""
+    out: dict[str, Any] = {}
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    for solver in solvers:
+        out[solver] = {}
+        for label, factor in (("no_budget", "0"), ("budget", None)):
+            with tempfile.TemporaryDirectory(prefix="torchfit_bench_") as tmp:
+                command = [sys.executable, str(REPO / "experiments" / "fit.py"),
+                           "problem=spring1d", "problem.dynamic=true",
+                           "problem.integrator=torchdiffeq", f"solver={solver}",
+                           f"solver.max_iter={iterations}", "threads=1",
+                           f"hydra.run.dir={tmp}/run"]
+                if factor is not None:
+                    command.append(f"problem.ode_trial_factor={factor}")
+                start = time.perf_counter()
+                try:
+                    done = subprocess.run(command, cwd=REPO, env=env, capture_output=True,
+                                          text=True, timeout=timeout)
+                except subprocess.TimeoutExpired:
+                    row = {"stopped_after_s": timeout}
+                else:
+                    if done.returncode != 0:
+                        raise SystemExit(f"{' '.join(command)} failed:\n{done.stderr[-2000:]}")
+                    result = json.loads(Path(tmp, "run", "result.json").read_text())
+                    walls = [float(h["wall_time"]) for h in result["history"]]
+                    row = {"iteration_0_s": walls[0],
+                           "iteration_1_s": walls[1] - walls[0] if len(walls) > 1 else None,
+                           "fit_s": float(result["wall_s"]), "misfit": result["misfit"],
+                           "k_err_rel": result["k_err_rel"],
+                           "trial_factor": result["config"]["problem"]["ode_trial_factor"]}
+                row["process_s"] = time.perf_counter() - start
+            out[solver][label] = row
+            print(f"{solver} {label}: {row}", file=sys.stderr, flush=True)
+        before, after = out[solver]["no_budget"], out[solver]["budget"]
+        if before.get("iteration_1_s") and after.get("iteration_1_s"):
+            out[solver]["iteration_1_speedup"] = before["iteration_1_s"] / after["iteration_1_s"]
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=None)
@@ -252,6 +305,13 @@ def main(argv: list[str] | None = None) -> None:
                         help="also the torchdiffeq dense Jacobian of spring1d dynamic")
     parser.add_argument("--columns-one-by-one", action="store_true",
                         help="with --jacobian: also the per-column tangent (before 2026-12-01)")
+    parser.add_argument("--first-iteration", nargs="+", default=None, metavar="SOLVER",
+                        help="the torchdiffeq chain's first fit iterations with these solvers, "
+                             "with and without the trial budget")
+    parser.add_argument("--iterations", type=int, default=1,
+                        help="with --first-iteration: solver.max_iter (default 1)")
+    parser.add_argument("--run-timeout", type=float, default=3600.0,
+                        help="with --first-iteration: stop a run after this many seconds")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     report: dict[str, Any] = {"machine": machine_info(), "target_error": args.target,
@@ -259,6 +319,9 @@ def main(argv: list[str] | None = None) -> None:
                                            for key in args.problems}}
     if args.jacobian:
         report["torchdiffeq_dense_jacobian"] = bench_jacobian(args.columns_one_by_one)
+    if args.first_iteration:
+        report["torchdiffeq_first_iteration"] = bench_first_iteration(
+            args.first_iteration, args.iterations, args.run_timeout)
     emit_report(report, args.out)
 
 

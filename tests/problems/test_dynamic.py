@@ -153,6 +153,7 @@ def test_dynamic_settings_are_checked_one_line_each():
         "alpha": (-0.1, "negative damping coefficient"),
         "output_times": ([0.1, 0.3, 0.2], "must increase strictly"),
         "dt": (0.0, "problem.dt=0.0"),
+        "ode_trial_factor": (-1.0, "problem.ode_trial_factor=-1.0"),
     }
     for key, (value, needle) in bad.items():
         overrides = {**SMALL_CHAIN, key: value}

@@ -15,6 +15,7 @@ import torch
 
 from helpers.repeating_animation import write_tube
 from helpers.runs import load_params, scalar_steps
+from torchfit.physics.equilibrium import NewtonConvergenceError
 from torchfit.problems import build_problem
 from torchfit.records import IterationRecord
 from torchfit.reporting.evaluation import Evaluation
@@ -227,3 +228,33 @@ def test_patience_stops_the_run_and_a_resume_of_it_does_nothing(tube, tmp_path):
     again = fit(held_out(tube, **settings), {**SOLVER, "max_iter": 8}, run_dir=tmp_path,
                 resume=True, options=options)
     assert again.solve is None and again.validation == result.validation
+
+
+def test_a_failed_validation_simulation_does_not_end_the_fit(tube, tmp_path):
+    """The held-out frames fail to simulate at the first iterate away from the start (a
+    Newton failure there; rejected steps keep the start's material): the fit runs its iterations to the end, that iteration's validation errors are NaN and it is
+    not chosen, result.json names it, and the fit's iterates are those of a run without it."""
+    problem = held_out(tube)
+    validation = problem.validation_problem()
+    simulate, start, failed = validation.simulate, None, []
+
+    def failing_once(field):        # the first simulation away from the start's material
+        nonlocal start
+        start = field.clone() if start is None else start
+        if not failed and not torch.equal(field, start):
+            failed.append(True)
+            raise NewtonConvergenceError("frame 0: Newton stalled at |R| = 1e-3 (injected)")
+        return simulate(field)
+
+    validation.simulate = failing_once
+    problem.validation_problem = lambda: validation
+    result = fit(problem, SOLVER, run_dir=tmp_path / "run", options=QUIET)
+    saved = json.loads((tmp_path / "run" / "result.json").read_text())
+    assert result.iterations == SOLVER["max_iter"]
+    (failed_at,) = saved["validation"]["failed_iterations"]
+    assert failed_at > 0
+    errors = {row["iteration"]: row["validation/surface_err_mean"] for row in result.history}
+    assert math.isnan(errors.pop(failed_at)) and all(map(math.isfinite, errors.values()))
+    assert saved["validation"]["iteration"] != failed_at
+    reference = fit(held_out(tube), SOLVER, options=QUIET)
+    assert torch.equal(result.theta, reference.theta)

@@ -76,6 +76,10 @@ class DynamicSettings:
     dt: float = 0.01                    # s: implicit step, fixed explicit step
     ode_rtol: float = 1e-8              # torchdiffeq, adaptive methods
     ode_atol: float = 1e-10
+    # torchdiffeq, adaptive methods: a solver's trial point may take at most this many times
+    # the right-hand sides of the point derivatives were last taken at, else it is a failed
+    # trial (a stiffer trial, or a large beta, otherwise integrates for minutes); 0: no limit
+    ode_trial_factor: float = 4.0
     duration: float = 6.0               # s
     frames: int = 60                    # output times duration * (1..frames) / frames
     output_times: Optional[List[float]] = None   # or these (s, strictly increasing, > 0)
@@ -128,6 +132,9 @@ def check_dynamic_settings(cfg: Any) -> None:
                     "must be an integer >= 1 (output times)")
     require_setting(cfg.ode_rtol > 0, cfg, "ode_rtol", "must be > 0")
     require_setting(cfg.ode_atol > 0, cfg, "ode_atol", "must be > 0")
+    require_setting(math.isfinite(cfg.ode_trial_factor) and cfg.ode_trial_factor >= 0, cfg,
+                    "ode_trial_factor", "must be a number >= 0 (0: no limit on a trial's "
+                    "right-hand sides)")
     require_setting(isinstance(cfg.checkpoint_every, int) and cfg.checkpoint_every >= 0, cfg,
                     "checkpoint_every", "must be an integer >= 0 (0: ceil(sqrt(steps)))")
     for name in _DAMPING:
@@ -188,7 +195,7 @@ class DynamicMixin:
             cfg.integrator.value, self.system, self.output_times, dt=cfg.dt,
             method=cfg.ode_method.value, scheme=cfg.scheme.value, rtol=cfg.ode_rtol,
             atol=cfg.ode_atol, backend=backend, newton=newton,
-            checkpoint_every=cfg.checkpoint_every)
+            checkpoint_every=cfg.checkpoint_every, trial_factor=cfg.ode_trial_factor)
 
     def damped(self, field: Parameterization, cfg: Any) -> FieldAndScalars:
         return FieldAndScalars(field, _DAMPING, (cfg.alpha0, cfg.beta0), cfg.transform.value)

@@ -19,22 +19,32 @@ warm starts, apart from the fit's: the fit's iterates are unchanged), counted in
 the record as ``validation/<key>``. Its factorisations and solves are not the solver's: they
 are taken out of the counters the solver reports (:mod:`torchfit.linalg.counters`) and kept
 in :attr:`Evaluator.validation_cost`, so that a run's counts, and an exact resume's, are the
-fit's alone.
+fit's alone. A validation simulation that fails (a
+:class:`~torchfit.errors.SimulationError`: Newton or a time step that does not converge on
+the held-out frames at this material) does not end the fit: the evaluation's validation
+metrics are NaN (never chosen; an accepted iteration counts towards the patience), one
+warning line names the iteration and the cause, and :attr:`Evaluator.validation_failures`
+keeps them.
 """
 from __future__ import annotations
 
 import contextlib
+import logging
+import math
 import time
 from typing import Any, Callable
 
 import torch
 from torch import Tensor
 
+from ..errors import SimulationError
 from ..linalg.counters import counting
 from ..problems import InverseProblem
 from ..records import IterationRecord
 from ..reporting.evaluation import Evaluation
-from .validation import record_keys, validation_metrics
+from .validation import VALIDATION_METRICS, record_keys, validation_metrics
+
+log = logging.getLogger("torchfit.run")
 
 
 class Evaluator:
@@ -46,6 +56,8 @@ class Evaluator:
         validation: the problem on the frames held out of the fit, or ``None``.
         validation_simulations: how many times it was simulated.
         validation_cost: its ``factorizations``, ``solves`` and ``seconds``.
+        validation_failures: ``(iteration, message)`` of every validation simulation that
+            failed (its metrics NaN; the fit went on).
     """
 
     def __init__(self, problem: InverseProblem, validation: InverseProblem | None = None) -> None:
@@ -55,6 +67,7 @@ class Evaluator:
         self.simulations = 0
         self.validation_simulations = 0
         self.validation_cost = {"factorizations": 0, "solves": 0, "seconds": 0.0}
+        self.validation_failures: list[tuple[int | None, str]] = []
 
     def evaluate(self, theta: Tensor, record: IterationRecord | None = None, *,
                  independent: bool = False) -> Evaluation:
@@ -69,22 +82,31 @@ class Evaluator:
             state = problem.simulate(problem.simulation_input(theta)).detach()
         self.simulations += 1
         validation, per_frame = (None, None) if independent or self.validation is None else \
-            self.validate(theta)
+            self.validate(theta, None if record is None else record.iteration)
         return Evaluation(theta, field.detach(), state, problem.metrics(theta, state), record,
                           validation, per_frame)
 
-    def validate(self, theta: Tensor) -> tuple[dict[str, float], Any]:
+    def validate(self, theta: Tensor, iteration: int | None = None) -> tuple[dict[str, float], Any]:
         """The validation problem's metrics at ``theta`` (one simulation of its frames) and
-        its per-frame mean surface error ``(F_val,)`` (``None`` where it reports none)."""
+        its per-frame mean surface error ``(F_val,)`` (``None`` where it reports none); NaN
+        metrics and ``None`` where the simulation fails (module docstring)."""
         problem = self.validation
         assert problem is not None
         start = time.perf_counter()
         with torch.no_grad(), counting(isolated=True) as cost:    # not the solver's work
-            state = problem.simulate(problem.simulation_input(theta)).detach()
-            metrics = validation_metrics(problem.metrics(theta, state))
-            frame_errors = getattr(problem, "frame_errors", None)
-            per_frame = None if frame_errors is None else \
-                frame_errors(state).get("surface_err_mean")
+            try:        # metrics may simulate too (a baseline)
+                state = problem.simulate(problem.simulation_input(theta)).detach()
+                metrics = validation_metrics(problem.metrics(theta, state))
+                frame_errors = getattr(problem, "frame_errors", None)
+                per_frame = None if frame_errors is None else \
+                    frame_errors(state).get("surface_err_mean")
+            except SimulationError as error:
+                message = " ".join(str(error).split())
+                self.validation_failures.append((iteration, message))
+                log.warning("validation: the held-out frames could not be simulated at "
+                            "iteration %s (%s); their errors are NaN there and the fit goes on",
+                            "?" if iteration is None else iteration, message)
+                metrics, per_frame = {k: math.nan for k in VALIDATION_METRICS}, None
         self.validation_cost["factorizations"] += cost.factorizations
         self.validation_cost["solves"] += cost.solves
         self.validation_cost["seconds"] += time.perf_counter() - start

@@ -178,9 +178,11 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
     final = evaluator.final(solved.theta)
     if validation is not None:
         cost = evaluator.validation_cost
+        failed = [iteration for iteration, _ in evaluator.validation_failures]
         log.info("validation: %d simulations of the held-out frames (%d factorizations, %d "
-                 "solves, %.1f s) besides the fit", evaluator.validation_simulations,
-                 cost["factorizations"], cost["solves"], cost["seconds"])
+                 "solves, %.1f s) besides the fit%s", evaluator.validation_simulations,
+                 cost["factorizations"], cost["solves"], cost["seconds"],
+                 f"; {len(failed)} failed (iterations {failed}: NaN errors)" if failed else "")
     stop_reason = str(solved.stop_reason) if tracker is None else \
         tracker.stop_reason(str(solved.stop_reason))
     result = FitResult(solved.theta.detach(), final.field, final.metrics, solved.iterations,
@@ -188,6 +190,8 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
                        stop_reason, rows, run_path, [],
                        restart.iteration if restart else None, solved,
                        validation=None if tracker is None else tracker.summary(final))
+    if result.validation is not None:
+        result.validation["failed_iterations"] = [i for i, _ in evaluator.validation_failures]
     result.identifiability = identify(problem, getattr(solver, "lin", None), solved.theta)
     if not result.identifiability.determined:
         log.warning("%s", result.identifiability.warning())

@@ -1,11 +1,15 @@
-"""The torchdiffeq integrator: derivatives (dopri5 at a tight tolerance, rk4 on the sheet)
-and a blow-up that names the implicit integrator."""
+"""The torchdiffeq integrator: derivatives (dopri5 at a tight tolerance, rk4 on the sheet),
+a blow-up that names the implicit integrator, and a trial's budget of right-hand sides."""
 from __future__ import annotations
+
+import math
 
 import pytest
 import torch
 
 from torchfit.physics.dynamics import UnstableStepError, make_integrator
+from torchfit.physics.dynamics.explicit import fastest_rate
+from torchfit.physics.equilibrium import TrialBudgetExceeded
 
 from helpers.dynamics_systems import (chain_system, check_derivatives, one_line,
                                       one_thread, sheet_system)  # noqa: F401 (autouse)
@@ -70,3 +74,67 @@ def test_dense_jacobian_is_one_augmented_solve_equal_to_the_columns_one_by_one(m
     scale = float(alone.abs().max())
     assert together.shape == alone.shape == (4, system.n_dofs, 3)
     assert float((together - alone).abs().max()) <= 1e-7 * scale
+
+
+def _budgeted(factor: float):
+    system, params = chain_system(n=4, stiffness=10.0)
+    integrator = make_integrator("torchdiffeq", system, torch.linspace(0.1, 1.0, 5), dt=0.01,
+                                 method="dopri5", rtol=1e-8, atol=1e-10, trial_factor=factor)
+    return integrator, params
+
+
+def test_a_stiff_trial_stops_at_its_budget_of_right_hand_sides():
+    """A trial whose stiffness damping overdamps the stiffest mode (beta x 1e4: the fast
+    rate beta omega_max^2 sets dopri5's step) is cut at trial_factor x the anchor's
+    right-hand sides, not integrated to the end; the anchor's own parameters, and any point
+    before derivatives were taken, have no limit."""
+    integrator, params = _budgeted(3.0)
+    stiff = params.clone()
+    stiff[-1] = 20.0
+    assert integrator.trial_budget(stiff) is None          # no anchor yet
+    integrator.jacobian(params, torch.eye(params.numel(), dtype=params.dtype)[:, :1])
+    anchor = integrator.solve(params).evaluations
+    assert anchor > 50
+    assert integrator.trial_budget(params) is None
+    assert integrator.trial_budget(stiff) == math.ceil(3.0 * anchor)
+    before = integrator.evaluations
+    with pytest.raises(TrialBudgetExceeded) as info:
+        integrator(stiff)
+    spent = integrator.evaluations - before
+    assert spent == math.ceil(3.0 * anchor), (spent, anchor)
+    text = one_line(info.value)
+    assert "trial budget" in text and "overdamped by beta = 20" in text, text
+    # without a budget the same trial costs many times more
+    free = make_integrator("torchdiffeq", integrator.system, integrator.output_times, dt=0.01,
+                           method="dopri5", rtol=1e-8, atol=1e-10)
+    free(stiff)
+    assert free.evaluations > 10 * anchor, (free.evaluations, anchor)
+
+
+def test_an_accepted_trial_differentiates_beyond_the_budget_of_its_forward_pass():
+    """The budget limits the trial's forward integration only: its continuous adjoint
+    (through the same right-hand side, backward in time) runs unlimited, and the gradient
+    is the unbudgeted integrator's."""
+    integrator, params = _budgeted(1.2)
+    integrator.jacobian(params, torch.eye(params.numel(), dtype=params.dtype)[:, :1])
+    trial = (params * (1.0 + 1e-3)).requires_grad_(True)
+    budget, start = integrator.trial_budget(trial.detach()), integrator.evaluations
+    x = integrator(trial)
+    assert integrator.evaluations - start <= budget
+    (grad,) = torch.autograd.grad(x.square().sum(), trial)
+    assert integrator.evaluations - start > budget       # the adjoint went past it
+    free, _ = _budgeted(0.0)
+    trial_free = trial.detach().requires_grad_(True)
+    (grad_free,) = torch.autograd.grad(free(trial_free).square().sum(), trial_free)
+    assert torch.equal(grad, grad_free)
+
+
+def test_the_fast_rate_of_an_overdamped_mode():
+    """An underdamped stiffest mode oscillates at omega_max; an overdamped one decays at
+    the fast root of lambda^2 + (alpha + beta omega^2) lambda + omega^2, about the damping
+    rate alpha + beta omega^2 (less omega^2 over it) once that is large."""
+    assert fastest_rate(100.0, 0.5, 1e-3) == 100.0
+    damping = 0.5 + 0.05 * 100.0 ** 2
+    rate = fastest_rate(100.0, 0.5, 0.05)
+    assert abs(rate ** 2 - damping * rate + 100.0 ** 2) <= 1e-9 * damping ** 2
+    assert damping - 2 * 100.0 ** 2 / damping <= rate <= damping

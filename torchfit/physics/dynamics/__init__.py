@@ -29,16 +29,18 @@ INTEGRATORS = ("torchdiffeq", "implicit")
 def make_integrator(kind: str, system: DynamicSystem, output_times: Any, *, dt: float,
                     method: str = "dopri5", scheme: str = "bdf2", rtol: float = 1e-8,
                     atol: float = 1e-10, backend: str = "scipy", newton: Any = None,
-                    checkpoint_every: int = 1) -> TorchdiffeqIntegrator | ImplicitIntegrator:
+                    checkpoint_every: int = 1,
+                    trial_factor: float = 0.0) -> TorchdiffeqIntegrator | ImplicitIntegrator:
     """The integrator ``kind`` (``'torchdiffeq'`` or ``'implicit'``) of ``system``.
 
     ``dt`` is the implicit step and the fixed step of torchdiffeq's fixed-step methods;
-    ``method``, ``rtol``, ``atol`` are torchdiffeq's; ``scheme``, ``backend``, ``newton``,
+    ``method``, ``rtol``, ``atol``, ``trial_factor`` are torchdiffeq's; ``scheme``, ``backend``, ``newton``,
     ``checkpoint_every`` the implicit integrator's.
     """
     if kind == "torchdiffeq":
         return TorchdiffeqIntegrator(system, output_times, method=method, rtol=rtol, atol=atol,
-                                     step_size=dt if method in FIXED_METHODS else None)
+                                     step_size=dt if method in FIXED_METHODS else None,
+                                     trial_factor=trial_factor)
     if kind == "implicit":
         return ImplicitIntegrator(system, output_times, dt, scheme=scheme, backend=backend,
                                   newton=newton, checkpoint_every=checkpoint_every)

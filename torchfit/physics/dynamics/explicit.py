@@ -19,10 +19,20 @@ Both are accurate to the integration tolerance (not to round-off, as the implici
 integrator's discrete adjoint is): the dot-product test reaches ``1e-10`` with
 ``rtol = 1e-12``.
 
-Stability: explicit methods need ``h omega_max`` below a constant (``rk4``: 2.8;
-``omega_max`` is the stiffest mode, :meth:`~.system.DynamicSystem.max_frequency`). A
-fixed step that blows up, or an adaptive step that collapses, raises
-:class:`~.errors.UnstableStepError` naming ``integrator=implicit``.
+Stability: explicit methods need ``h`` times the fastest rate below a constant (``rk4``:
+2.8); the rate is ``omega_max`` (the stiffest mode,
+:meth:`~.system.DynamicSystem.max_frequency`) or, where stiffness damping overdamps it,
+``beta omega_max^2`` (:func:`fastest_rate`). A fixed step that blows up, or an adaptive step
+that collapses, raises :class:`~.errors.UnstableStepError` naming ``integrator=implicit``.
+
+Trial budget (adaptive methods, ``trial_factor > 0``): the point derivatives were last
+taken at is the *anchor* (a solver's accepted point); an integration at other parameters
+(a solver's trial) may evaluate the right-hand side at most ``trial_factor`` times as often
+as the anchor's integration did, and past that raises
+:class:`~torchfit.physics.equilibrium.TrialBudgetExceeded`, which solvers treat as a failed
+trial. A step that makes the material much stiffer, or ``beta`` much larger, makes the
+adaptive step collapse to the stability limit: without the budget one such trial runs for
+many minutes before the line search shortens it.
 """
 from __future__ import annotations
 
@@ -33,6 +43,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..equilibrium import TrialBudgetExceeded
 from .errors import DynamicsInputError, NonFiniteStateError, UnstableStepError
 from .system import DynamicSystem, TrajectoryFunction, check_output_times
 
@@ -46,12 +57,24 @@ STABILITY_LIMIT = {"rk4": 2.83, "dopri5": 3.3, "dopri8": 4.0, "bosh3": 1.7, "mid
 BLOWUP_FACTOR = 1e3
 
 
+def fastest_rate(omega_max: float, alpha: float, beta: float) -> float:
+    """The largest ``|lambda|`` (1/s) of the damped modes ``lambda^2 + (alpha + beta
+    omega^2) lambda + omega^2 = 0`` at the stiffest mode ``omega_max`` (rad/s): ``omega_max``
+    while underdamped, the fast root ``~ alpha + beta omega_max^2`` once overdamped. What an
+    explicit step must resolve (``h`` times it below the method's stability limit)."""
+    damping = alpha + beta * omega_max ** 2
+    if damping <= 2.0 * omega_max:
+        return omega_max
+    return 0.5 * (damping + math.sqrt(damping ** 2 - 4.0 * omega_max ** 2))
+
+
 @dataclasses.dataclass
 class _Solve:
     params: Tensor
     outputs: Tensor                 # (K, n_dofs)
     graph_out: Tensor | None = None     # odeint_adjoint's output (graph kept), free states
     graph_leaf: Tensor | None = None
+    evaluations: int = 0            # right-hand sides of the forward integration
 
 
 class TorchdiffeqIntegrator:
@@ -64,13 +87,17 @@ class TorchdiffeqIntegrator:
         rtol, atol: tolerances of the adaptive methods (forward and adjoint).
         step_size: step of the fixed-step methods (s); required for them.
         cache_size: solves kept, keyed by the parameters.
+        trial_factor: adaptive methods: an integration away from the anchor (the point
+            derivatives were last taken at) may evaluate the right-hand side at most this
+            many times as often as the anchor's did (module docstring); 0: no limit.
     """
 
     name = "torchdiffeq"
 
     def __init__(self, system: DynamicSystem, output_times: Tensor | list[float],
                  method: str = "dopri5", rtol: float = 1e-8, atol: float = 1e-10,
-                 step_size: float | None = None, cache_size: int = 2) -> None:
+                 step_size: float | None = None, cache_size: int = 2,
+                 trial_factor: float = 0.0) -> None:
         if method not in METHODS:
             raise DynamicsInputError(f"unknown torchdiffeq method {method!r}; choose one of "
                                      f"{', '.join(METHODS)}")
@@ -81,6 +108,9 @@ class TorchdiffeqIntegrator:
         for name, value in (("rtol", rtol), ("atol", atol)):
             if not (math.isfinite(value) and value > 0):
                 raise DynamicsInputError(f"{name} = {value!r} must be a positive number")
+        if not (math.isfinite(trial_factor) and trial_factor >= 0):
+            raise DynamicsInputError(f"trial_factor = {trial_factor!r} must be a number >= 0 "
+                                     "(0: no limit)")
         self.system = system
         self.method = method
         self.rtol, self.atol = float(rtol), float(atol)
@@ -89,6 +119,11 @@ class TorchdiffeqIntegrator:
         self.cache_size = int(cache_size)
         self._cache: list[_Solve] = []
         self.evaluations = 0
+        self.trial_factor = float(trial_factor)
+        self._anchor: tuple[Tensor, int] | None = None     # (params, right-hand sides)
+        # (evaluation count it may not reach, budget) during a trial's forward integration
+        # only: the adjoint integrates backward through the same right-hand side, unlimited
+        self._limit: tuple[int, int] | None = None
         rest = system.x0
         extent = float((rest.max() - rest.min()).abs()) if rest.numel() else 1.0
         self.blowup_distance = BLOWUP_FACTOR * max(extent, 1.0)
@@ -113,6 +148,8 @@ class TorchdiffeqIntegrator:
         rest = system.x0[free]
 
         def f(t: Tensor, y: Tensor) -> Tensor:
+            if self._limit is not None and self.evaluations >= self._limit[0]:
+                raise self._over_budget(params, float(t.detach()), self._limit[1])
             t1 = t.reshape(1).to(y)
             x = system.full(y[None, :n_free], system.fixed_positions(t1))
             v = system.full(y[None, n_free:], system.fixed_velocities(t1))
@@ -160,11 +197,13 @@ class TorchdiffeqIntegrator:
         n_free = self.system.free_dofs.numel()
         return self.system.full(states[:, :n_free], self.system.fixed_positions(times))
 
-    def _integrate(self, params: Tensor, adjoint: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    def _integrate(self, params: Tensor, adjoint: bool,
+                   budget: int | None = None) -> tuple[Tensor, Tensor | None, Tensor | None]:
         from torchdiffeq import odeint, odeint_adjoint
 
         times, prepended = self._times(params)
         y0 = self._y0(params)
+        self._limit = None if budget is None else (self.evaluations + budget, budget)
         try:
             if adjoint:
                 with torch.enable_grad():
@@ -179,6 +218,8 @@ class TorchdiffeqIntegrator:
                 states = states[1:] if prepended else states
         except AssertionError as error:       # torchdiffeq: "underflow in dt"
             raise self._unstable(params, f"failed: its adaptive step collapsed ({error})") from None
+        finally:
+            self._limit = None
         self._check(states.detach(), params)
         return states, leaf, prepended
 
@@ -192,36 +233,70 @@ class TorchdiffeqIntegrator:
             k = int(torch.nonzero(far)[0])
             raise self._unstable(params, f"blew up by t = {float(self.output_times[k]):.6g}")
 
-    def _unstable(self, params: Tensor, why: str) -> UnstableStepError:
-        field = self.system.split(params.detach())[0]
+    def _rates(self, params: Tensor) -> tuple[float, float, str]:
+        """``(omega_max, fastest rate, its words)`` at ``params``."""
+        field, alpha, beta = self.system.split(params.detach())
         omega = self.system.max_frequency(field)
+        rate = fastest_rate(omega, float(alpha), float(beta))
+        words = f"the stiffest mode, omega_max = {omega:.4g} rad/s"
+        if rate > omega:
+            words += (f", overdamped by beta = {float(beta):.4g} s: its fast rate is "
+                      f"{rate:.4g}/s")
+        return omega, rate, words
+
+    def _over_budget(self, params: Tensor, t: float, budget: int) -> TrialBudgetExceeded:
+        anchor = self._anchor[1] if self._anchor is not None else 0
+        words = self._rates(params)[2]
+        return TrialBudgetExceeded(
+            f"torchdiffeq/{self.method} reached its trial budget of {budget} right-hand sides "
+            f"by t = {t:.4g} s ({self.trial_factor:g} x the anchor's {anchor}; {words}): a "
+            "failed trial", budget)
+
+    def _unstable(self, params: Tensor, why: str) -> UnstableStepError:
+        omega, rate, words = self._rates(params)
         limit = STABILITY_LIMIT.get(self.method, 0.0)
         if self.method in FIXED_METHODS:
-            if limit > 0 and omega > 0:
-                detail = (f" (step {self.step_size:g} s; the stiffest mode, omega_max = "
-                          f"{omega:.4g} rad/s, needs a step below about {limit / omega:.3g} s)")
+            if limit > 0 and rate > 0:
+                detail = (f" (step {self.step_size:g} s; {words}, needs a step below about "
+                          f"{limit / rate:.3g} s)")
             else:
                 detail = (f" (step {self.step_size:g} s; {self.method} is unstable for an "
                           f"undamped oscillation at any step; omega_max = {omega:.4g} rad/s)")
         else:
-            detail = f" (stiffest mode omega_max = {omega:.4g} rad/s)"
+            detail = f" ({words})"
         return UnstableStepError(
             f"the explicit integrator torchdiffeq/{self.method} {why}{detail}; use "
             "problem.integrator=implicit (backward Euler or BDF2, unconditionally stable) or a "
             "smaller step")
 
     # -- public -------------------------------------------------------------------------------
+    def trial_budget(self, params: Tensor) -> int | None:
+        """Right-hand sides an integration at ``params`` may take (``None``: no limit): a
+        trial (not the anchor's parameters) of an adaptive method with ``trial_factor > 0``
+        gets ``trial_factor`` x the anchor's count."""
+        anchor = self._anchor
+        if self.trial_factor <= 0 or self.method in FIXED_METHODS or anchor is None or \
+                (anchor[0].shape == params.shape and torch.equal(anchor[0], params)):
+            return None
+        return max(1, math.ceil(self.trial_factor * anchor[1]))
+
+    def _take_anchor(self, solve: _Solve) -> None:
+        """Derivatives are taken at ``solve``: the trials' reference from now on."""
+        self._anchor = (solve.params, solve.evaluations)
+
     def solve(self, params: Tensor) -> _Solve:
-        """The forward integration at ``params`` (cached by value), with the adjoint graph."""
+        """The forward integration at ``params`` (cached by value), with the adjoint graph;
+        a trial's is limited by :meth:`trial_budget`."""
         params = params.detach()
         for i, solve in enumerate(self._cache):
             if solve.params.shape == params.shape and torch.equal(solve.params, params):
                 self._cache.append(self._cache.pop(i))
                 return solve
         self.system.check_params(params)
-        states, leaf, _ = self._integrate(params, adjoint=True)
+        before = self.evaluations
+        states, leaf, _ = self._integrate(params, adjoint=True, budget=self.trial_budget(params))
         outputs = self._positions(states.detach(), self.output_times.to(params))
-        solve = _Solve(params.clone(), outputs, states, leaf)
+        solve = _Solve(params.clone(), outputs, states, leaf, self.evaluations - before)
         self._cache.append(solve)
         while len(self._cache) > self.cache_size:
             self._cache.pop(0)
@@ -234,20 +309,23 @@ class TorchdiffeqIntegrator:
     def jacobian(self, params: Tensor, directions: Tensor) -> Tensor:
         """``(d positions / d params) V`` ``(K, n_dofs, k)`` by forward sensitivities."""
         params = params.detach()
-        self.solve(params)
+        self._take_anchor(self.solve(params))
         return self._sensitivities(params, directions.detach().to(params))
 
     def clear_cache(self) -> None:
         self._cache.clear()
+        self._anchor = None
 
     # -- the TrajectoryFunction protocol ---------------------------------------------------------
     def run(self, params: Tensor) -> _Solve:
         return self.solve(params)
 
     def adjoint(self, solve: _Solve, grad_outputs: Tensor) -> Tensor:
+        self._take_anchor(solve)
         return self._adjoint(solve, grad_outputs)
 
     def tangents(self, solve: _Solve, V: Tensor) -> Tensor:
+        self._take_anchor(solve)
         return self._sensitivities(solve.params, V)
 
     # -- derivatives ----------------------------------------------------------------------------
