@@ -16,6 +16,8 @@ from torchfit.solvers import SolverConfigError, SplitBregmanConfig, split_bregma
     (SplitBregmanConfig(mu_rel=0.0), "solver.mu_rel"),
     (SplitBregmanConfig(growth=1.0), "solver.growth"),
     (SplitBregmanConfig(inner_solver="newton"), "solver.inner_solver"),
+    (SplitBregmanConfig(power_iterations=0), "solver.power_iterations"),
+    (SplitBregmanConfig(power_iterations=10 ** 12), r"solver.power_iterations must be in \[1, 1000\]"),
 ])
 def test_bad_settings_are_named(config, match):
     problem = Spring1D(n=4)

@@ -13,6 +13,9 @@ from typing import Optional
 from ...settings import Choice
 from ..base import Need, Needs, SolverConfig, require
 
+#: the most products a norm estimate may take (``power_iterations``)
+MAX_POWER_ITERATIONS = 1000
+
 
 class InnerSolver(Choice):
     """The solver of the penalised least-squares problem of one outer iteration."""
@@ -119,8 +122,11 @@ class SplitBregmanConfig(SolverConfig):
         require(self.cg_rtol_factor >= 0,
                 f"solver.cg_rtol_factor must be >= 0 (0: fixed cg_rtol), got "
                 f"{self.cg_rtol_factor}")
-        require(self.power_iterations >= 1,
-                f"solver.power_iterations must be >= 1, got {self.power_iterations}")
+        # each iteration is a product J^T J v (a simulation's worth of work on a large body);
+        # the estimate converges geometrically, so thousands only cost: a bound, not a hang
+        require(1 <= self.power_iterations <= MAX_POWER_ITERATIONS,
+                f"solver.power_iterations must be in [1, {MAX_POWER_ITERATIONS}] (each is a "
+                f"J^T J product; default 20), got {self.power_iterations}")
         require(self.above_factor > 0,
                 f"solver.above_factor must be > 0, got {self.above_factor}")
         require(self.divergence_factor > 1,
