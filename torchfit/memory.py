@@ -67,14 +67,16 @@ def memory_limit() -> Optional[int]:
 
 
 def check_allocation(setting: str, nbytes: float, what: str,
-                     error: type[Exception] = MemoryLimitError) -> None:
-    """Raise ``error`` when ``nbytes`` (an estimate of ``what``) exceeds the limit."""
+                     error: type[Exception] = MemoryLimitError,
+                     advice: str = "choose a smaller value") -> None:
+    """Raise ``error`` when ``nbytes`` (an estimate of ``what``) exceeds the limit; the
+    line ends with ``advice`` (what to change)."""
     limit = memory_limit()
     if limit is not None and not nbytes <= limit:       # nan as well
         source = f"{LIMIT_VARIABLE}" if os.environ.get(LIMIT_VARIABLE, "").strip() else \
             "available memory"
         raise error(f"{setting}: needs about {size_text(nbytes)} for {what}, more than the "
-                    f"{size_text(limit)} of {source}; choose a smaller value (or set "
+                    f"{size_text(limit)} of {source}; {advice} (or set "
                     f"{LIMIT_VARIABLE} on a machine with more memory)")
 
 

@@ -95,18 +95,25 @@ def test_memory_limit_from_the_environment(monkeypatch):
 @pytest.mark.parametrize("name,settings,match", [
     ("spring1d", {"n": 10 ** 10}, r"^problem.n=10000000000: needs about 2.3 TiB for "
      r"10000000001 nodes x 3 frames, more than the 1.0 GiB of TORCHFIT_MEMORY_LIMIT"),
-    ("spring1d", {"dynamic": True, "dt": 1e-9}, r"^problem.dt=1e-09: needs about 7.1 TiB for "
-     r"6e\+09 time steps"),
-    ("spring1d", {"dynamic": True, "dt": 1e-5, "checkpoint_every": 0},  # sqrt(steps) stored
-     r"^problem.dt=1e-05: needs about 148.0 MiB for 6e\+05 time steps to t = 6 s and "
-     r"1.55e\+03 stored states of 65"),
+    ("spring1d", {"dynamic": True, "dt": 1e-9}, r"^problem.dt=1e-09 to problem.duration=6.0: "
+     r"needs about 1.4 TiB for 6e\+09 time steps to t = 6 s, .* choose a larger problem.dt or "
+     r"an earlier end time"),
+    ("spring1d", {"dynamic": True, "dt": 1e-5, "checkpoint_every": 0},  # the step grid
+     r"^problem.dt=1e-05 to problem.duration=6.0: needs about 146.5 MiB for 6e\+05 time steps"),
     ("spring1d", {"dynamic": True, "dt": 5e-324, "checkpoint_every": 0},   # not a crash
-     r"^problem.dt=5e-324: needs about inf TiB for inf time steps"),
+     r"^problem.dt=5e-324 to problem.duration=6.0: needs about inf TiB for inf time steps"),
+    ("spring1d", {"dynamic": True, "duration": 1e12},        # names the end time
+     r"^problem.dt=0.01 to problem.duration=1000000000000.0: needs about .* TiB for 1e\+14 "
+     r"time steps"),
+    ("spring1d", {"dynamic": True, "frames": 10 ** 12},
+     r"^problem.n=64 x problem.frames=1000000000000: needs about .* TiB for 65 nodes x "
+     r"1000000000000 output times"),
     ("poisson2d", {"N": 10 ** 5}, r"^problem.N=100000: needs about 2.9 TiB for 100000 x "
      r"100000 = 1e\+10 grid nodes"),
     ("membrane2d", {"nx": 10 ** 5, "ny": 10 ** 4}, r"^problem.nx=100000 problem.ny=10000: "
      r"needs about 447"),
-    ("membrane2d", {"dynamic": True, "dt": 1e-9}, r"^problem.dt=1e-09: needs about"),
+    ("membrane2d", {"dynamic": True, "dt": 1e-9}, r"^problem.dt=1e-09 to problem.duration=2.0: "
+     r"needs about"),
     ("arm3d", {"grid": [1000, 1000, 1000]}, r"^problem.grid=\[1000, 1000, 1000\]: needs "
      r"about 59.6 GiB for 1e\+09 grid nodes"),
 ])
@@ -115,6 +122,20 @@ def test_sizes_refused_before_allocation(monkeypatch, tmp_path, name, settings, 
     refused(name, {**settings, **({"cache_dir": str(tmp_path)} if name == "arm3d" else {})},
             match)
     assert not any(tmp_path.iterdir())          # the arm wrote no animation
+
+
+def test_a_checkpoint_interval_beyond_the_steps_stores_one_segment(monkeypatch):
+    """checkpoint_every larger than the steps keeps the start and one recomputed segment of
+    every step: the states of checkpoint_every = steps, not 10^12 (a legal setting)."""
+    from torchfit.problems.dynamic import time_steps_allocation
+    from torchfit.problems.spring1d import Spring1DConfig
+    steps = 600 + 60
+    huge = time_steps_allocation(Spring1DConfig(dynamic=True, checkpoint_every=10 ** 12), 65)
+    same = time_steps_allocation(Spring1DConfig(dynamic=True, checkpoint_every=steps), 65)
+    every = time_steps_allocation(Spring1DConfig(dynamic=True, checkpoint_every=1), 65)
+    assert huge[1][1] == same[1][1] == (2 + steps) * 65 * 16
+    assert huge[1][0] == "problem.checkpoint_every=1000000000000"
+    assert every[1][1] == (steps + 1) * 65 * 16
 
 
 def test_default_problems_fit_in_a_small_limit():
@@ -130,7 +151,7 @@ def test_default_problems_fit_in_a_small_limit():
         cls = entry.dynamic_class if settings.get("dynamic") else entry.problem_class
         cfg = make_config(entry.config_class, settings)
         sizes = cls.allocation(cls.__new__(cls), cfg)
-        assert sizes and all(nbytes < 2 ** 26 for _, nbytes, _ in sizes), (name, sizes)
+        assert sizes and all(entry[1] < 2 ** 26 for entry in sizes), (name, sizes)
 
 
 def _declaring_npz(path, shape):

@@ -293,8 +293,8 @@ class InverseProblem:
         cfg = make_config(self.config_class, cfg, overrides)
         validate_config(cfg)
         self.check(cfg)
-        for setting, nbytes, what in self.allocation(cfg):    # before anything is allocated
-            check_allocation(setting, nbytes, what, ProblemConfigError)
+        for setting, nbytes, what, *advice in self.allocation(cfg):   # before any allocation
+            check_allocation(setting, nbytes, what, ProblemConfigError, *advice)
         self.cfg = cfg
         self.device = check_device("device", cfg.device)
         self.dtype = dtype_of(cfg.dtype)
@@ -321,9 +321,10 @@ class InverseProblem:
         """The problem's own checks of ``cfg`` (after the generic ones); raise
         :class:`ProblemConfigError` via :func:`require_setting`."""
 
-    def allocation(self, cfg: Any) -> list[tuple[str, float, str]]:
+    def allocation(self, cfg: Any) -> list[tuple[Any, ...]]:
         """What the settings will allocate, known from ``cfg`` alone: ``(setting, bytes,
-        what)`` per size setting (a lower bound: the solver's work arrays come on top); each
+        what)`` per size setting (or ``(setting, bytes, what, advice)``: what to change, where
+        "choose a smaller value" is wrong) (a lower bound: the solver's work arrays come on top); each
         is refused when it exceeds :func:`torchfit.memory.memory_limit`. Sizes known only
         from files (a mesh, an animation) are checked where they are read."""
         return []

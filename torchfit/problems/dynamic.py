@@ -102,11 +102,13 @@ def check_dynamic_flag(problem: Any, cfg: Any) -> None:
                     "problem; build_problem picks the class that matches problem.dynamic")
 
 
-def time_steps_allocation(cfg: Any, n_dofs: int) -> list[tuple[str, float, str]]:
-    """What ``problem.dt`` allocates: the step grid (``steps``: each step's time,
-    coefficients and index, Python objects of about 256 bytes, implicit; a float tensor,
-    fixed-step torchdiffeq) and the states kept for the gradient (``steps / c + c`` states
-    ``(x, v)`` of ``n_dofs`` each, ``c`` = ``checkpoint_every`` or ``sqrt(steps)``).
+def time_steps_allocation(cfg: Any, n_dofs: int) -> list[tuple[str, float, str, str]]:
+    """What the time grid allocates, one entry per cause: the step grid (``steps``: each
+    step's time, coefficients and index, Python objects of about 256 bytes, implicit; a float
+    tensor, fixed-step torchdiffeq), named by the end time and ``problem.dt``, and the states
+    kept for the gradient (implicit: every state with ``c = 1``, else ``2 ceil(steps / c)``
+    checkpoints and a segment of ``min(c, steps)`` states ``(x, v)`` of ``n_dofs`` each, ``c`` = ``checkpoint_every`` or
+    ``sqrt(steps)``; explicit: 2), named by ``problem.checkpoint_every`` where it is set.
     Adaptive methods choose their steps: nothing known ahead."""
     implicit = cfg.integrator == Integrator.implicit
     if not implicit and str(cfg.ode_method) in ADAPTIVE_METHODS:
@@ -114,12 +116,21 @@ def time_steps_allocation(cfg: Any, n_dofs: int) -> list[tuple[str, float, str]]
     end = max(cfg.output_times) if cfg.output_times else cfg.duration
     steps = end / cfg.dt + cfg.frames           # inf for a subnormal dt: refused as well
     steps = math.ceil(steps) if math.isfinite(steps) else steps
+    horizon = "problem.output_times" if cfg.output_times else f"problem.duration={cfg.duration}"
+    grid = f"problem.dt={cfg.dt} to {horizon}"
+    advice = "choose a larger problem.dt or an earlier end time"
+    out = [(grid, steps * (256 if implicit else 16) if math.isfinite(steps) else math.inf,
+            f"{steps:.3g} time steps to t = {end:g} s", advice)]
+    if not math.isfinite(steps):
+        return out
     every = cfg.checkpoint_every or math.sqrt(steps)
-    kept = (steps / every + every if math.isfinite(steps) else math.inf) if implicit else 2
-    nbytes = steps * (256 if implicit else 16) + kept * n_dofs * 16 if math.isfinite(steps) \
-        else math.inf
-    return [(f"problem.dt={cfg.dt}", nbytes, f"{steps:.3g} time steps to t = {end:g} s and "
-             f"{kept:.3g} stored states of {n_dofs} degrees of freedom")]
+    # implicit: every state with c = 1, else two per segment and one segment recomputed
+    kept = (steps + 1 if every == 1 else min(steps + 1, 2 * math.ceil(steps / every))
+            + min(every, steps)) if implicit else 2
+    out.append((f"problem.checkpoint_every={cfg.checkpoint_every}" if implicit and
+                cfg.checkpoint_every else grid, kept * n_dofs * 16,
+                f"{kept:.3g} stored states of {n_dofs} degrees of freedom", advice))
+    return out
 
 
 def check_dynamic_settings(cfg: Any) -> None:

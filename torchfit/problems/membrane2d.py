@@ -60,6 +60,9 @@ from .dynamic import (DynamicMixin, DynamicSettings, check_dynamic_flag, check_d
                       time_steps_allocation)
 
 
+#: the largest ratio of a cell's width to its height (or the reverse) the sheet accepts
+_MAX_CELL_ASPECT = 1e6
+
 class Model(Choice):
     """Constitutive model of the sheet (``MATERIALS`` and ``ALIASES`` of
     :mod:`torchfit.physics.elasticity`)."""
@@ -171,6 +174,13 @@ class Membrane2D(InverseProblem):
                         "so that some vertex is free")
         for key in ("width", "height"):
             require_setting(getattr(cfg, key) > 0, cfg, key, "must be positive")
+        # a cell far longer than tall (or the reverse) is a degenerate triangle in float64
+        aspect = (cfg.width / cfg.nx) / (cfg.height / cfg.ny)
+        for key, bad in (("width", aspect > _MAX_CELL_ASPECT),
+                         ("height", aspect < 1.0 / _MAX_CELL_ASPECT)):
+            require_setting(not bad, cfg, key, f"makes cells {aspect:.3g} times as wide as "
+                            f"tall (problem.width / problem.nx over problem.height / "
+                            f"problem.ny); keep that ratio within [1e-6, 1e6]")
         require_setting(-1.0 < cfg.nu < 0.5, cfg, "nu", "must lie in (-1, 0.5) (Poisson ratio "
                         "of an isotropic material; 0.5 would be incompressible)")
         for key in ("E_background", "E_ink", "E0"):
@@ -184,7 +194,7 @@ class Membrane2D(InverseProblem):
                         f"problem.model={cfg.model}); set problem.newton_atol="
                         f"{_FLOAT32_NEWTON_ATOL:g} or more, or use problem.dtype=float64")
 
-    def allocation(self, cfg: Membrane2DConfig) -> list[tuple[str, float, str]]:
+    def allocation(self, cfg: Membrane2DConfig) -> list[tuple[Any, ...]]:
         # per vertex: two coordinates of rest, position, load, adjoint and work vectors, the
         # triangles' deformation gradients and the factor (about 60 values, a lower bound)
         vertices = (cfg.nx + 1) * (cfg.ny + 1)
@@ -357,7 +367,7 @@ class DynamicMembrane2D(DynamicMixin, Membrane2D):
         require_setting(all(b > a for a, b in zip(times[:-1], times[1:])), cfg, "motion_times",
                         "must increase strictly (s)")
 
-    def allocation(self, cfg: Membrane2DConfig) -> list[tuple[str, float, str]]:
+    def allocation(self, cfg: Membrane2DConfig) -> list[tuple[Any, ...]]:
         return [*super().allocation(cfg),
                 *time_steps_allocation(cfg, 2 * (cfg.nx + 1) * (cfg.ny + 1))]
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import List, Optional
+from typing import Any, List, Optional
 
 import torch
 from torch import Tensor
@@ -98,7 +98,7 @@ class Spring1D(InverseProblem):
         for key in ("k0", "k_background"):
             require_setting(getattr(cfg, key) > 0, cfg, key, "must be a positive stiffness")
 
-    def allocation(self, cfg: Spring1DConfig) -> list[tuple[str, float, str]]:
+    def allocation(self, cfg: Spring1DConfig) -> list[tuple[Any, ...]]:
         # per node and frame: load, position, adjoint, two work vectors; per node: the
         # stiffness, its gradient and the sparse factor (about 16 values)
         frames = len(cfg.loads)
@@ -189,9 +189,10 @@ class DynamicSpring1D(DynamicMixin, Spring1D):
         require_setting(all(b > a for a, b in zip(times[:-1], times[1:])), cfg, "load_times",
                         "must increase strictly (s)")
 
-    def allocation(self, cfg: Spring1DConfig) -> list[tuple[str, float, str]]:
+    def allocation(self, cfg: Spring1DConfig) -> list[tuple[Any, ...]]:
         frames = len(cfg.output_times) if cfg.output_times else cfg.frames
-        return [(f"problem.n={cfg.n}", (cfg.n + 1) * (5 * frames + 16) * 8.0,
+        outputs = "problem.output_times" if cfg.output_times else f"problem.frames={frames}"
+        return [(f"problem.n={cfg.n} x {outputs}", (cfg.n + 1) * (5 * frames + 16) * 8.0,
                  f"{cfg.n + 1} nodes x {frames} output times"),
                 *time_steps_allocation(cfg, cfg.n + 1)]
 
