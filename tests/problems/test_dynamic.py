@@ -16,6 +16,8 @@ from torchfit.problems.dynamic import DynamicSettings
 from torchfit.problems.membrane2d import DynamicMembrane2D, Membrane2D
 from torchfit.problems.spring1d import DynamicSpring1D, Spring1D
 
+from helpers.fit_app import run_fit_app
+
 #: a short chain: every dynamic feature, seconds to fit
 SMALL_CHAIN = {"dynamic": True, "n": 12, "duration": 2.0, "frames": 20, "dt": 0.02}
 #: a small sheet with the IPAM letters barely resolved: derivatives and outputs only
@@ -166,6 +168,28 @@ def test_dynamic_settings_are_checked_one_line_each():
         build_problem("spring1d", {**SMALL_CHAIN, "beta": 0.0})
     with pytest.raises(ProblemConfigError, match="integrator choice"):
         build_problem("spring1d", {**SMALL_CHAIN, "integrator": "verlet"})
+
+
+def test_a_true_material_or_start_the_integrator_cannot_step_is_refused_naming_it(tmp_path):
+    """A synthetic target whose true material the step cannot take (alpha = 1e12: Newton
+    stalls in the first step) is a ProblemConfigError naming the true-material settings; a
+    start that cannot be simulated (alpha0 = 1e12) is refused by the fit app in one line
+    naming the start's settings, exit 2, nothing written."""
+    sheet = {"dynamic": True, "nx": 16, "ny": 4, "duration": 0.2}
+    with pytest.raises(ProblemConfigError) as info:
+        build_problem("membrane2d", {**sheet, "alpha": 1e12})
+    text = str(info.value)
+    assert text.startswith("problem.E_background, problem.E_ink, problem.alpha, problem.beta: "
+                           "the synthetic target cannot be simulated") and "\n" not in text
+    run = tmp_path / "run"
+    proc = run_fit_app(run, "problem=membrane2d", *(f"problem.{k}={v}" for k, v in sheet.items()),
+                       "problem.alpha0=1e12", "solver.max_iter=1", timeout=600)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-2000:]
+    assert lines[0].startswith("error: the fit's start cannot be simulated") and \
+        lines[0].endswith("the start is set by problem.E0, problem.alpha0, problem.beta0 (or "
+                          "init=)"), lines[0]
+    assert not run.exists()
 
 
 def test_identity_transform_negative_damping_at_a_trial_point_is_a_simulation_error():

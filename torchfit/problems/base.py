@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..errors import SimulationError
 from ..memory import check_allocation
 from ..params import Parameterization
 from ..residual import ForwardProducts, ResidualFunction
@@ -276,6 +277,9 @@ class InverseProblem:
     scale_free: bool = False
     #: the config field holding the constant initial guess of the field
     initial_setting: ClassVar[str] = "k0"
+    #: the config fields of the synthetic target's true material (named where its
+    #: simulation fails)
+    truth_fields: ClassVar[tuple[str, ...]] = ()
     #: components per node of the state (``x`` is ``(F, n_nodes, dim)``)
     dim: ClassVar[int] = 1
 
@@ -306,7 +310,10 @@ class InverseProblem:
         if truth is not None:
             self.field_true = truth.to(device=self.device, dtype=self.dtype)
             with self.independent_simulation():    # the truth never seeds the fit's starts
-                self.x_true = self.simulate(self.true_simulation_input()).detach()
+                try:
+                    self.x_true = self.simulate(self.true_simulation_input()).detach()
+                except SimulationError as error:
+                    raise self.unsimulated_truth(error) from None
             clean, what = self.observe(self.x_true), "simulated target"
         else:
             self.field_true = None
@@ -345,6 +352,22 @@ class InverseProblem:
         """``theta0``: the constant field :meth:`initial_value` (a problem may start from a
         field of its own, e.g. a painted material layer)."""
         return self.parameterization.constant(self.initial_value(cfg), self.dtype, self.device)
+
+    def truth_settings(self) -> list[str]:
+        """The settings of the synthetic target's true material (``problem.<key>``)."""
+        return [f"problem.{key}" for key in self.truth_fields]
+
+    def unsimulated_truth(self, error: SimulationError) -> ProblemConfigError:
+        """The one-line refusal of a synthetic target whose simulation failed with ``error``
+        (naming :meth:`truth_settings`)."""
+        return ProblemConfigError(
+            f"{', '.join(self.truth_settings())}: the synthetic target cannot be simulated "
+            f"with this true material ({' '.join(str(error).split())}); choose a material the "
+            "simulation can reach")
+
+    def start_settings(self) -> list[str]:
+        """The settings of the fit's start (``problem.<key>``; ``init=`` comes on top)."""
+        return [f"problem.{self.initial_setting}"]
 
     def initial_value(self, cfg: Any) -> float:
         """The constant field ``theta0`` stands for (``cfg.<initial_setting>``)."""

@@ -116,7 +116,8 @@ def time_steps_allocation(cfg: Any, n_dofs: int) -> list[tuple[str, float, str, 
     end = max(cfg.output_times) if cfg.output_times else cfg.duration
     steps = end / cfg.dt + cfg.frames           # inf for a subnormal dt: refused as well
     steps = math.ceil(steps) if math.isfinite(steps) else steps
-    horizon = "problem.output_times" if cfg.output_times else f"problem.duration={cfg.duration}"
+    horizon = "problem.output_times" if cfg.output_times else \
+        f"problem.duration={cfg.duration} at problem.frames={cfg.frames}"
     grid = f"problem.dt={cfg.dt} to {horizon}"
     advice = "choose a larger problem.dt or an earlier end time"
     out = [(grid, steps * (256 if implicit else 16) if math.isfinite(steps) else math.inf,
@@ -213,6 +214,12 @@ class DynamicMixin:
 
     def true_damping(self) -> Tensor:
         return torch.tensor([self.cfg.alpha, self.cfg.beta], dtype=self.dtype, device=self.device)
+
+    def truth_settings(self) -> list[str]:
+        return [*super().truth_settings(), "problem.alpha", "problem.beta"]  # type: ignore[misc]
+
+    def start_settings(self) -> list[str]:
+        return [*super().start_settings(), "problem.alpha0", "problem.beta0"]  # type: ignore[misc]
 
     # -- the contract -------------------------------------------------------------------------
     def field(self, theta: Tensor) -> Tensor:

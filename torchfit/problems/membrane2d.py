@@ -161,6 +161,7 @@ class Membrane2D(InverseProblem):
     name = "membrane2d"
     field_name = "E"
     initial_setting = "E0"
+    truth_fields = ("E_background", "E_ink")
     dim = 2
     scale_free = True
     default_sheet_frame = 5            # bend by 20 degrees: the most telling frame to draw

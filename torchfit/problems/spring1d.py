@@ -78,6 +78,7 @@ class Spring1D(InverseProblem):
     field_name = "k"
     scale_free = False
     initial_setting = "k0"
+    truth_fields = ("k_background",)
     dim = 1
 
     def check(self, cfg: Spring1DConfig) -> None:

@@ -34,6 +34,7 @@ from ..reporting.results import (CHECKPOINT_FILE, PARAMS_FILE, RESULT_FILE,
                                  remove_stale_temporaries)
 from ..residual import warm_up_autograd
 from ..solvers import Solver, SolverConfig
+from ..solvers.base import UnsimulatedStart
 from .checkpoint import (Checkpointer, check_fresh_start, checkpointed_solve,
                          finished_outputs_readable, finished_result, read_checkpoint)
 from .directory import check_writable
@@ -164,9 +165,14 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
         # the equilibria the checkpointed process's next simulations start from
         problem.restore_simulation_state(restart.simulation)
     try:
-        solved = checkpointed_solve(restart) if finished else \
-            solver.solve(problem.residual(), problem.theta0 if start is None else start, chain,
-                         state=restart.state if restart else None)
+        try:
+            solved = checkpointed_solve(restart) if finished else \
+                solver.solve(problem.residual(), problem.theta0 if start is None else start,
+                             chain, state=restart.state if restart else None)
+        except UnsimulatedStart as error:       # name what sets the start
+            source = "init=" if start is not None else \
+                f"{', '.join(problem.start_settings())} (or init=)"
+            raise UnsimulatedStart(f"{error}; the start is set by {source}") from error
     finally:
         if checkpointer is not None:
             checkpointer.close()

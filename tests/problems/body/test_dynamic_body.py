@@ -312,7 +312,9 @@ def test_a_time_step_the_integrator_cannot_take_is_refused_in_one_line(root, tmp
     assert "did not converge" in line
     assert line.endswith("at 24 fps x 2 substeps: raise problem.substeps"), line
     with pytest.raises(ProblemConfigError, match=r"^problem.substeps=2: the body cannot be "
-                       r"integrated \(the implicit step to t = .*raise problem.substeps\)$"):
+                       r"integrated with the synthetic target's true material \(problem.E_blocks, "
+                       r"problem.E_regions, problem.alpha, problem.beta\): the implicit step to "
+                       r"t = .*raise problem.substeps$"):
         build_problem("animation", settings(root, frames=[0, 1, 2, 3], newton_max_iter=1,
                                             target="synthetic"))
     run = tmp_path / "fit"
@@ -325,5 +327,6 @@ def test_a_time_step_the_integrator_cannot_take_is_refused_in_one_line(root, tmp
     assert done.returncode == 2, done.stderr[-2000:]
     assert lines[-1].startswith("error: the fit's start cannot be simulated: the implicit "
                                 "step to t = "), lines[-1]
-    assert lines[-1].endswith("raise problem.substeps")
+    assert lines[-1].endswith("raise problem.substeps; the start is set by problem.E0, "
+                              "problem.init_field, problem.alpha0, problem.beta0 (or init=)")
     assert not run.exists()          # the job made the directory: refused, nothing is left

@@ -155,13 +155,17 @@ class DynamicBody(DynamicMixin):
 
     def __init__(self, cfg: Any = None, *, kept_mesh: Any = None, **overrides: Any) -> None:
         config = make_config(self.config_class, cfg, overrides)   # type: ignore[attr-defined]
-        # a time step the integrator cannot take while building (a synthetic truth's
-        # simulation) is bad input; at the fit's start the solver refuses it likewise
-        try:
-            super().__init__(in_pascals(config), kept_mesh=kept_mesh)  # type: ignore[call-arg]
-        except UnstableStepError as error:
-            raise setting_error("substeps", config.substeps, f"the body cannot be integrated "
-                                f"({error})") from None
+        super().__init__(in_pascals(config), kept_mesh=kept_mesh)  # type: ignore[call-arg]
+
+    def unsimulated_truth(self, error: Any) -> Any:
+        """A time step the integrator cannot take while simulating the synthetic truth is
+        bad input naming ``problem.substeps`` and the true material (at the fit's start the
+        solver refuses it likewise)."""
+        if not isinstance(error, UnstableStepError):
+            return super().unsimulated_truth(error)              # type: ignore[misc]
+        return setting_error("substeps", self.cfg.substeps, "the body cannot be integrated "
+                             f"with the synthetic target's true material "
+                             f"({', '.join(self.truth_settings())}): {error}")
 
     # -- building -------------------------------------------------------------------------
     def check(self, cfg: RiggedBodyConfig) -> None:

@@ -125,6 +125,7 @@ class RiggedBody(InverseProblem):
     name = "animation"
     field_name = "E"
     initial_setting = "E0"
+    truth_fields = ("E_blocks", "E_regions")
     dim = 3
     scale_free = True
     #: the problem wrote its animation folder itself (a run copies it as an example)
@@ -382,6 +383,9 @@ class RiggedBody(InverseProblem):
                                                  dtype=self.dtype, device=self.device)
         self._observed_corners = torch.as_tensor(self.mesh.cells[self.embedding.cells[observed]],
                                                  device=self.device)
+
+    def start_settings(self) -> list[str]:
+        return [*super().start_settings(), "problem.init_field"]
 
     def initial_parameters(self, cfg: RiggedBodyConfig) -> Tensor:
         """The constant ``E0``, or the field of ``problem.init_field`` projected on the
