@@ -54,6 +54,16 @@ def test_tet_edge_length_above_one(tmp_path):
     refused("arm3d", {"tet_edge_length": 2.0}, r"^problem.tet_edge_length=2.0")
 
 
+def test_tetwild_envelope_and_stop_energy_out_of_range(tmp_path):
+    """An envelope of 10^12 diagonals made no tetrahedra (the error named the file), a stop
+    energy of 10^12 a mesh Newton could not solve on (exit 1): both refused by name."""
+    folder = write_capsule(tmp_path / "c", "skeleton", "npz")
+    refused("animation", {"path": str(folder), "tet_epsilon": 1e12},
+            r"^problem.tet_epsilon=1000000000000.0: is the envelope .* must lie in \(0, 0.05\]")
+    refused("animation", {"path": str(folder), "tet_stop_energy": 1e12},
+            r"^problem.tet_stop_energy=1000000000000.0: must lie in \(0, 1000\]")
+
+
 def test_duplicate_frames_refused(tmp_path):
     folder = write_capsule(tmp_path / "c", "skeleton", "npz")
     refused("animation", {"path": str(folder), "frames": [1, 1]},

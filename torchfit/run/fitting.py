@@ -26,6 +26,7 @@ from typing import Any, Callable, Iterable, Mapping
 
 from torch import Tensor
 
+from ..errors import SimulationError
 from ..linalg import set_threads
 from ..problems import BodyProblem, InverseProblem
 from ..records import IterationRecord
@@ -131,7 +132,11 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
     if run_path is not None:
         for path in remove_stale_temporaries(run_path):
             log.warning("removed %s, left by a writer that was killed", path)
-    described = problem.describe()
+    try:
+        described = problem.describe()      # a body simulates its start here
+    except SimulationError as error:
+        raise _unsimulated_start(problem, start, UnsimulatedStart(
+            f"the fit's start cannot be simulated: {' '.join(str(error).split())}")) from error
     log.info("problem %s: %s parameters, %s data, noise level %s%s%s", described["name"],
              described["n_params"], described["n_data"], described["noise_level"],
              f"; starting from {init}" if start is not None and not isinstance(init, Tensor)
@@ -169,10 +174,8 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
             solved = checkpointed_solve(restart) if finished else \
                 solver.solve(problem.residual(), problem.theta0 if start is None else start,
                              chain, state=restart.state if restart else None)
-        except UnsimulatedStart as error:       # name what sets the start
-            source = "init=" if start is not None else \
-                f"{', '.join(problem.start_settings())} (or init=)"
-            raise UnsimulatedStart(f"{error}; the start is set by {source}") from error
+        except UnsimulatedStart as error:
+            raise _unsimulated_start(problem, start, error) from error
     finally:
         if checkpointer is not None:
             checkpointer.close()
@@ -214,6 +217,14 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
             checkpointer.commit(solved.iterations, solved.theta, final_state,
                                 stop_reason=stop_reason)
     return result
+
+
+def _unsimulated_start(problem: InverseProblem, start: Tensor | None,
+                       error: UnsimulatedStart) -> UnsimulatedStart:
+    """``error`` naming what sets the start: ``init=``, or the problem's start settings."""
+    source = "init=" if start is not None else \
+        f"{', '.join(problem.start_settings())} (or init=)"
+    return UnsimulatedStart(f"{error}; the start is set by {source}")
 
 
 def keep_the_start(result: FitResult, evaluator: Evaluator, start: Tensor) -> Any:

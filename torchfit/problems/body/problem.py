@@ -118,6 +118,11 @@ def check_tet_count(setting: str, cells: float, frames: int, what: str) -> None:
                              "was tetrahedralised")
 
 
+#: the widest fTetWild envelope accepted (a fraction of the bounding-box diagonal)
+MAX_TET_EPSILON = 0.05
+#: the highest fTetWild stop energy accepted (its default is 10)
+MAX_TET_STOP_ENERGY = 1000.0
+
 class RiggedBody(InverseProblem):
     """Fit Young's modulus so that the simulated body follows a rigged animation."""
 
@@ -182,6 +187,15 @@ class RiggedBody(InverseProblem):
                         "must be a positive number of tetrahedra (or null)")
         require_setting(cfg.tet_edge_length <= 1, cfg, "tet_edge_length", "is a fraction of "
                         "the bounding-box diagonal: must lie in (0, 1] (e.g. 0.05)")
+        # wider, fTetWild's envelope no longer follows the surface (a limb becomes a slab)
+        require_setting(cfg.tet_epsilon <= MAX_TET_EPSILON, cfg, "tet_epsilon", "is the "
+                        "envelope as a fraction of the bounding-box diagonal: must lie in (0, "
+                        f"{MAX_TET_EPSILON:g}] (default 1e-3)")
+        # fTetWild stops optimising once every element's AMIPS energy is below this (a
+        # regular tetrahedron has 3); far above, elements too distorted to simulate remain
+        require_setting(cfg.tet_stop_energy <= MAX_TET_STOP_ENERGY, cfg, "tet_stop_energy",
+                        f"must lie in (0, {MAX_TET_STOP_ENERGY:g}] (fTetWild's element energy "
+                        "where its optimisation stops; default 10)")
         check_newton_settings(cfg)
         check_bounds(cfg)
         require_setting(cfg.frames is None or len(cfg.frames) >= 1, cfg, "frames",
