@@ -242,3 +242,24 @@ def test_the_arms_animation_settings_are_range_checked(tmp_path, settings, match
     """Issue 38: problem.max_flexion=1000 was accepted (the forearm turned through itself)."""
     refused("arm3d", {**settings, "cache_dir": str(tmp_path)}, match)
     assert not any(tmp_path.iterdir())          # no animation written
+
+
+@pytest.mark.parametrize("settings, match", [
+    ({"upper": 1e12}, r"^problem.upper=1000000000000.0: must be at most 1000 times the "
+                      r"thinner radius"),
+    ({"fore": 100.0}, r"^problem.fore=100.0: must be at most 1000 times"),
+    ({"r_wrist": 1e12}, r"^problem.r_wrist=1000000000000.0: must be at most half the shorter "
+                        r"segment \(0.28 m"),
+    ({"r_shoulder": 0.2}, r"^problem.r_shoulder=0.2: must be at most half"),
+    ({"bicep_bulge": 1e12}, r"^problem.bicep_bulge=1000000000000.0: must be at most the "
+                            r"wrist's radius"),
+    ({"tricep_bulge": -0.5}, r"^problem.tricep_bulge=-0.5: must be at most the wrist's radius"),
+    ({"n_frames": 10 ** 12}, r"^problem.n_frames=1000000000000: needs about .* TiB for "
+                             r"1000000000000 frames of the arm's 1920 surface vertices"),
+])
+def test_the_procedural_arm_refuses_a_shape_it_cannot_mesh(tmp_path, settings, match):
+    """Each of these made the tetrahedralisation flatten the arm (no tetrahedra, the error
+    naming a cache file), a frame 10^11 times the rest's size, or an allocation of 7 TiB
+    (exit 1): refused by name before anything is written."""
+    refused("arm3d", {**settings, "cache_dir": str(tmp_path)}, match)
+    assert not any(tmp_path.iterdir())

@@ -36,6 +36,9 @@ from .procedural_arm import (MAX_EXTENSION, MAX_FLEXION, REGION_NAMES, ArmShape,
                              correctives, elbow_angles, elbow_region, region_labels)
 from ...mesh.tetwild.tetrahedralize import default_cache_dir
 from ..config import ProblemConfigError, require_setting
+
+#: the longest segment accepted, in radii of the arm's thinner end
+MAX_SLENDERNESS = 1000.0
 from .problem import RiggedBody
 from .config import RiggedBodyConfig
 
@@ -88,6 +91,21 @@ class Arm3D(RiggedBody):
         require_setting(0 <= cfg.max_extension < MAX_EXTENSION, cfg, "max_extension",
                         f"must lie in [0, {MAX_EXTENSION:g}) degrees (past straight)")
         require_setting(cfg.noise_of_bulge >= 0, cfg, "noise_of_bulge", "must be >= 0")
+        # a tube the tetrahedralisation can enclose: radii below half the shorter segment,
+        # segments below a thousand radii (thinner, the envelope flattens it), bulges within
+        # the wrist's radius (a corrective shape, not a new limb)
+        shorter, thinner = min(cfg.upper, cfg.fore), min(cfg.r_shoulder, cfg.r_wrist)
+        for key in ("r_shoulder", "r_wrist"):
+            require_setting(getattr(cfg, key) <= 0.5 * shorter, cfg, key, "must be at most half "
+                            f"the shorter segment ({shorter:g} m: problem.upper, problem.fore)")
+        for key in ("upper", "fore"):
+            require_setting(getattr(cfg, key) <= MAX_SLENDERNESS * thinner, cfg, key,
+                            f"must be at most {MAX_SLENDERNESS:g} times the thinner radius "
+                            f"({thinner:g} m: problem.r_shoulder, problem.r_wrist)")
+        for key in ("bicep_bulge", "tricep_bulge"):
+            require_setting(abs(getattr(cfg, key)) <= cfg.r_wrist, cfg, key, "must be at most "
+                            f"the wrist's radius in size ({cfg.r_wrist:g} m: problem.r_wrist; "
+                            "a corrective displacement, metres)")
         require_setting(len(cfg.rotate) == 3 and all(np.isfinite(cfg.rotate)), cfg, "rotate",
                         "must list three angles in degrees (about x, y, z), e.g. [0, 90, 0]")
         self.rotation = rotation_matrix(cfg.rotate)
@@ -95,6 +113,13 @@ class Arm3D(RiggedBody):
             require_setting(cfg.noise == 0, cfg, "noise", "give either problem.noise (metres) or "
                             "problem.noise_of_bulge (a fraction of the mean bulge), not both")
             cfg.noise = cfg.noise_of_bulge * mean_bulge_displacement(self.shape(cfg))
+
+    def allocation(self, cfg: Arm3DConfig) -> list[tuple[str, float, str]]:
+        # the written animation: every frame's surface, and its skinned copy, in float64
+        vertices = ArmShape.n_around * ArmShape.n_along
+        return [*super().allocation(cfg),
+                (f"problem.n_frames={cfg.n_frames}", cfg.n_frames * vertices * 3 * 8 * 2.0,
+                 f"{cfg.n_frames} frames of the arm's {vertices} surface vertices")]
 
     def shape(self, cfg: Arm3DConfig) -> ArmShape:
         return ArmShape(upper=cfg.upper, fore=cfg.fore, r_shoulder=cfg.r_shoulder,
