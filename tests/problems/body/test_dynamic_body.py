@@ -190,7 +190,9 @@ def test_under_gravity_the_body_starts_at_rest(root):
     sag = start - rest
     mass = problem.system.mass.reshape(-1, 3)[:, 1]
     assert float((mass * sag[:, 1]).sum() / mass.sum()) < -1e-5      # the centre of mass drops
-    assert float(sag[torch.as_tensor(problem.dirichlet_vertices)].abs().max()) == 0.0
+    # the driven vertices stay where the rig puts them at frame 0: the rest, to the round-off
+    # of skinning it (1.7e-18 m on one pytetwild mesh)
+    assert float(sag[torch.as_tensor(problem.dirichlet_vertices)].abs().max()) <= 1e-12
     x = problem.simulate(problem.simulation_input(problem.theta0))
     drift = float((x - start[None]).norm(dim=-1).max())
     assert drift <= 1e-6 * float(sag.norm(dim=-1).max()), drift
