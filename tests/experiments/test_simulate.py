@@ -73,7 +73,7 @@ def test_simulate_reproduces_the_init_route_on_another_animation(fitted):
                        f"problem.cache_dir={fitted['cache']}", f"init={fitted['run']}")
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = root / "sim"
-    proc = run_simulate_app(out, f"run={fitted['run']}", *new, "problem.cache_dir=",
+    proc = run_simulate_app(out, f"run={fitted['run']}", *new, "problem.cache_dir=", "threads=1",
                             env={"TORCHFIT_CACHE_DIR": str(root / "empty-cache")})
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "frame 4/4" in proc.stdout + proc.stderr
@@ -81,15 +81,20 @@ def test_simulate_reproduces_the_init_route_on_another_animation(fitted):
     assert not (root / "empty-cache" / "tetmesh").exists()      # nothing tetrahedralised
     ours, theirs = np.load(out / "frames.npz"), np.load(route / "frames.npz")
     scale = np.abs(theirs["positions"]).max()
-    # simulate runs on torch's default threads, where PARDISO's factorisation is not
-    # bit-reproducible, so the two routes' Newton solves end apart within Newton's
-    # tolerance: measured up to 2.4e-8 of the scale (CI, 2026-11-26), hence 1e-7
-    assert np.abs(ours["positions"] - theirs["positions"]).max() <= 1e-7 * scale
+    # simulate solves frame by frame and the route all frames at once, so round-off differs:
+    # they end apart within Newton's tolerance (measured 6.5e-9 of the scale with one thread
+    # each, 2026-12-02), hence 1e-7. On some pytetwild meshes round-off in a line search
+    # sends one route of a frame to another equilibrium (2.5e-3 m on 0.16 m in one suite
+    # run): such a frame must still be an equilibrium of the fitted material in both routes.
+    apart = np.abs(ours["positions"] - theirs["positions"]).reshape(4, -1).max(1) > 1e-7 * scale
+    assert apart.sum() <= 1, f"frames {np.flatnonzero(apart)} of 4 apart"
     result = json.loads((out / "result.json").read_text())
     compared = json.loads((route / "model_comparison.json").read_text())
-    np.testing.assert_allclose(result["per_frame"]["surface_err_mean"],
-                               compared["fitted"]["corotated"]["surface_err_mean_per_frame"],
+    np.testing.assert_allclose(np.asarray(result["per_frame"]["surface_err_mean"])[~apart],
+                               np.asarray(compared["fitted"]["corotated"]
+                                          ["surface_err_mean_per_frame"])[~apart],
                                rtol=1e-6, atol=1e-12)
+    assert_equilibria(fitted, [ours["positions"], theirs["positions"]])
     assert result["n_frames"] == 4 and len(result["per_frame"]["newton_iterations"]) == 4
     # OBJ on the user's vertices and faces, one per frame; VTU with per-frame displacement
     animation = load_animation(fitted["other"])
@@ -106,6 +111,24 @@ def test_simulate_reproduces_the_init_route_on_another_animation(fitted):
     np.testing.assert_allclose(vtu.points + vtu.point_data["displacement_003"],
                                ours["positions"][3], atol=1e-12)
     assert (out / "simulation.png").stat().st_size > 1000
+
+
+def assert_equilibria(fitted, states):
+    """Each of ``states`` ``(F, n, 3)`` is, in every frame, an equilibrium of the fitted
+    material on the other animation: its free residual at most 1e-7 of the one at the
+    animated pose (measured: simulate's up to 8e-11, the route's 1.2e-9, 2026-12-02)."""
+    sim = simulate(fitted["run"], {"path": str(fitted["other"]),
+                                   "cache_dir": str(fitted["cache"])}, progress_lines=False)
+    problem = sim.problem
+    equilibrium = problem.quasistatic.equilibrium
+    free = equilibrium.free_dofs
+    field = sim.field.to(torch.float64)
+    start = problem.start_positions.reshape(problem.n_frames, -1)
+    reference = problem.model.residual(start, field)[:, free].norm(dim=1)
+    for state in states:
+        x = torch.as_tensor(state, dtype=torch.float64).reshape(len(state), -1)
+        residual = problem.model.residual(x, field)[:, free].norm(dim=1)
+        assert (residual <= 1e-7 * reference).all(), (residual / reference).tolist()
 
 
 def test_simulate_on_the_fitted_animation_is_the_fits_cold_evaluation(fitted):

@@ -43,12 +43,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ...memory import check_allocation
 from ...mesh.formats.folder import Animation
 from ...params import Parameterization
 from ...physics import NewtonOptions
 from ...physics.dynamics import DynamicSystem, SplineMotion, UnstableStepError, make_integrator
 from ..base import InverseProblem
-from ..config import Transform, make_config, require_setting, setting_error
+from ..config import ProblemConfigError, Transform, make_config, require_setting, setting_error
 from ..dynamic import DynamicMixin, Integrator
 from .arm3d import Arm3D
 from .bounds import modulus_bounds, region_report, theta_bounds
@@ -197,6 +198,7 @@ class DynamicBody(DynamicMixin):
         require_setting(math.isfinite(dt) and dt > 0, cfg, "substeps", f"gives the time step "
                         f"{dt!r} s at {fps:g} fps, which the integrator cannot take; use fewer "
                         "substeps")
+        self.check_time_steps(cfg)
         self.fps, self.dt = fps, dt
         dtype, device = self.dtype, self.device
         n = self.model.n_vertices
@@ -233,6 +235,23 @@ class DynamicBody(DynamicMixin):
                                           device=device),
                                torch.tensor([cfg.alpha0, cfg.beta0], dtype=dtype, device=device)])
             self.system.start_at(self.integrator.static_equilibrium(start, self.system.x0))
+
+    def check_time_steps(self, cfg: RiggedBodyConfig) -> None:
+        """Refuse, naming ``problem.substeps``, a step grid whose size exceeds the memory
+        limit: ``substeps`` steps per frame up to the last fitted frame, each a Python object
+        of about 256 bytes, and the states ``(x, v)`` the gradient keeps (every one with
+        ``checkpoint_every = 1``, else two per segment and one segment); a lower bound, since
+        each kept step's factorisation comes on top."""
+        steps = max(self.frame_numbers()) * cfg.substeps
+        n_dofs = 3 * self.model.n_vertices
+        every = cfg.checkpoint_every or math.isqrt(max(steps, 1)) + 1
+        kept = steps + 1 if every == 1 else \
+            min(steps + 1, 2 * -(-steps // every)) + min(every, steps)
+        check_allocation(f"problem.substeps={cfg.substeps}", steps * 256.0 + kept * n_dofs * 16.0,
+                         f"{steps:.3g} implicit steps to frame {max(self.frame_numbers())} and "
+                         f"{kept:.3g} stored states of {n_dofs} degrees of freedom",
+                         ProblemConfigError, "choose fewer problem.substeps (for the stored "
+                         "states, a larger problem.checkpoint_every also helps)")
 
     def initial_pose(self, cfg: RiggedBodyConfig) -> Tensor:
         """Positions ``(n, 3)`` at ``t = 0``: the rest shape where frame 0 drives the rig to
