@@ -46,7 +46,8 @@ from ...steps import count, quiet, step
 from ..base import InverseProblem, array_digest
 from .grid import blocks_field, body_grid, grid_parameterization
 from .motion import most_deformed_frame, most_strained_cells, picture_up, view_axes
-from .setup import animation_summary, check_rig, first_simulation, tet_mesh, tet_options
+from .setup import (animation_summary, check_rig, check_tet_settings, first_simulation, tet_mesh,
+                    tet_options)
 from .report import (BODY_METRICS, body_metrics, describe_body, frame_report,
                           inverted_counts, min_volume_ratios, surface_distances, volume_change)
 from ..config import (Backend, ProblemConfigError, check_newton_settings, require_setting,
@@ -118,11 +119,6 @@ def check_tet_count(setting: str, cells: float, frames: int, what: str) -> None:
                              "was tetrahedralised")
 
 
-#: the widest fTetWild envelope accepted (a fraction of the bounding-box diagonal)
-MAX_TET_EPSILON = 0.05
-#: the highest fTetWild stop energy accepted (its default is 10)
-MAX_TET_STOP_ENERGY = 1000.0
-
 class RiggedBody(InverseProblem):
     """Fit Young's modulus so that the simulated body follows a rigged animation."""
 
@@ -181,21 +177,8 @@ class RiggedBody(InverseProblem):
                             "must list positive Young's moduli")
         require_setting(len(cfg.E_blocks) == 3, cfg, "E_blocks",
                         "must list three moduli: background, stiff block, soft block")
-        for key in ("tet_edge_length", "tet_epsilon", "tet_stop_energy", "rig_tolerance"):
-            require_setting(getattr(cfg, key) > 0, cfg, key, "must be positive")
-        require_setting(cfg.tet_count is None or cfg.tet_count >= 1, cfg, "tet_count",
-                        "must be a positive number of tetrahedra (or null)")
-        require_setting(cfg.tet_edge_length <= 1, cfg, "tet_edge_length", "is a fraction of "
-                        "the bounding-box diagonal: must lie in (0, 1] (e.g. 0.05)")
-        # wider, fTetWild's envelope no longer follows the surface (a limb becomes a slab)
-        require_setting(cfg.tet_epsilon <= MAX_TET_EPSILON, cfg, "tet_epsilon", "is the "
-                        "envelope as a fraction of the bounding-box diagonal: must lie in (0, "
-                        f"{MAX_TET_EPSILON:g}] (default 1e-3)")
-        # fTetWild stops optimising once every element's AMIPS energy is below this (a
-        # regular tetrahedron has 3); far above, elements too distorted to simulate remain
-        require_setting(cfg.tet_stop_energy <= MAX_TET_STOP_ENERGY, cfg, "tet_stop_energy",
-                        f"must lie in (0, {MAX_TET_STOP_ENERGY:g}] (fTetWild's element energy "
-                        "where its optimisation stops; default 10)")
+        require_setting(cfg.rig_tolerance > 0, cfg, "rig_tolerance", "must be positive")
+        check_tet_settings(cfg)
         check_newton_settings(cfg)
         check_bounds(cfg)
         require_setting(cfg.frames is None or len(cfg.frames) >= 1, cfg, "frames",

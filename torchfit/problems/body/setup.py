@@ -22,7 +22,7 @@ from ...mesh.tetwild.tetrahedralize import TetMesh, TetOptions, default_cache_di
 from ...physics.equilibrium.newton import newton_progress
 from ...steps import count, step
 from .frame import tetrahedralize_in_frame
-from ..config import ProblemConfigError
+from ..config import ProblemConfigError, require_setting
 
 #: seconds between two progress lines of the first simulation (at most one per iteration)
 FIRST_SIMULATION_BEAT_S = 5.0
@@ -75,6 +75,32 @@ def first_simulation(n_frames: int, n_tets: int, model: str) -> Iterator[None]:
         with newton_progress(report):
             yield
         progress.result = f"{count(n_frames)} frames in equilibrium"
+
+
+#: the widest fTetWild envelope accepted (a fraction of the bounding-box diagonal)
+MAX_TET_EPSILON = 0.05
+#: the highest fTetWild stop energy accepted (its default is 10)
+MAX_TET_STOP_ENERGY = 1000.0
+
+
+def check_tet_settings(cfg: Any) -> None:
+    """The ``tet_*`` settings :func:`tet_options` hands to fTetWild (one-line
+    :class:`ProblemConfigError` each)."""
+    for key in ("tet_edge_length", "tet_epsilon", "tet_stop_energy"):
+        require_setting(getattr(cfg, key) > 0, cfg, key, "must be positive")
+    require_setting(cfg.tet_count is None or cfg.tet_count >= 1, cfg, "tet_count",
+                    "must be a positive number of tetrahedra (or null)")
+    require_setting(cfg.tet_edge_length <= 1, cfg, "tet_edge_length", "is a fraction of "
+                    "the bounding-box diagonal: must lie in (0, 1] (e.g. 0.05)")
+    # wider, fTetWild's envelope no longer follows the surface (a limb becomes a slab)
+    require_setting(cfg.tet_epsilon <= MAX_TET_EPSILON, cfg, "tet_epsilon", "is the "
+                    "envelope as a fraction of the bounding-box diagonal: must lie in (0, "
+                    f"{MAX_TET_EPSILON:g}] (default 1e-3)")
+    # fTetWild stops optimising once every element's AMIPS energy is below this (a
+    # regular tetrahedron has 3); far above, elements too distorted to simulate remain
+    require_setting(cfg.tet_stop_energy <= MAX_TET_STOP_ENERGY, cfg, "tet_stop_energy",
+                    f"must lie in (0, {MAX_TET_STOP_ENERGY:g}] (fTetWild's element energy "
+                    "where its optimisation stops; default 10)")
 
 
 def tet_options(cfg: Any) -> TetOptions:
