@@ -102,6 +102,28 @@ def test_preconditioner_with_null_space_keeps_iterates_out_of_it():
     best = basis @ torch.linalg.lstsq(a @ basis, b[:, None]).solution[:, 0]
     assert abs(float(res.x.sum())) < 1e-12
     assert torch.allclose(res.x, best, atol=1e-9)
+    # CG ends at the 5th step (the subspace's dimension): there, on an AVX-512 CPU, s^T M s
+    # was 1.2e-15 (round-off), the next beta 4e13, and the iterates left the subspace
+    assert res.iterations <= 6 and res.stop_reason == "tolerance"
+    # the round-off floor scales with M: a preconditioner 1e-20 times smaller (moduli in
+    # pascals) stops at the same step with the same iterate
+    tiny = cgls(lambda v: a @ v, lambda w: a.T @ w, b, 6, max_iter=100,
+                preconditioner=lambda v: 1e-20 * centre(v))
+    assert tiny.iterations == res.iterations and torch.allclose(tiny.x, res.x, atol=1e-12)
+
+
+def test_a_small_preconditioner_does_not_stop_cgls_early():
+    """An SPD preconditioner of any scale keeps CGLS going to the least-squares solution
+    (the round-off test is relative to M's own gain)."""
+    torch.manual_seed(2)
+    a = torch.randn(40, 8) * torch.logspace(0, 3, 8)
+    b = torch.randn(40)
+    best = torch.linalg.lstsq(a, b[:, None]).solution[:, 0]
+    jacobi = 1.0 / (a * a).sum(0)
+    for scale in (1.0, 1e-20, 1e20):
+        res = cgls(lambda v: a @ v, lambda w: a.T @ w, b, 8, max_iter=100,
+                   preconditioner=lambda v: scale * jacobi * v)
+        assert torch.allclose(res.x, best, rtol=1e-9, atol=1e-12), scale
 
 
 def test_cgls_with_a_box_stops_on_its_boundary_along_the_last_update():
