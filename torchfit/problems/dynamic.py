@@ -102,6 +102,18 @@ def check_dynamic_flag(problem: Any, cfg: Any) -> None:
                     "problem; build_problem picks the class that matches problem.dynamic")
 
 
+#: bytes of one implicit step of the step grid (its time, coefficients and index: Python objects)
+IMPLICIT_STEP_BYTES = 256
+
+
+def stored_states(steps: float, every: float) -> float:
+    """States ``(x, v)`` the implicit integrator keeps for the gradient over ``steps`` steps
+    with checkpoint interval ``every``: all of them with ``every = 1``, else two per segment
+    and one segment recomputed."""
+    return steps + 1 if every == 1 else \
+        min(steps + 1, 2 * math.ceil(steps / every)) + min(every, steps)
+
+
 def time_steps_allocation(cfg: Any, n_dofs: int) -> list[tuple[str, float, str, str]]:
     """What the time grid allocates, one entry per cause: the step grid (``steps``: each
     step's time, coefficients and index, Python objects of about 256 bytes, implicit; a float
@@ -120,14 +132,13 @@ def time_steps_allocation(cfg: Any, n_dofs: int) -> list[tuple[str, float, str, 
         f"problem.duration={cfg.duration} at problem.frames={cfg.frames}"
     grid = f"problem.dt={cfg.dt} to {horizon}"
     advice = "choose a larger problem.dt or an earlier end time"
-    out = [(grid, steps * (256 if implicit else 16) if math.isfinite(steps) else math.inf,
+    out = [(grid, steps * (IMPLICIT_STEP_BYTES if implicit else 16) if math.isfinite(steps)
+            else math.inf,
             f"{steps:.3g} time steps to t = {end:g} s", advice)]
     if not math.isfinite(steps):
         return out
     every = cfg.checkpoint_every or math.sqrt(steps)
-    # implicit: every state with c = 1, else two per segment and one segment recomputed
-    kept = (steps + 1 if every == 1 else min(steps + 1, 2 * math.ceil(steps / every))
-            + min(every, steps)) if implicit else 2
+    kept = stored_states(steps, every) if implicit else 2
     out.append((f"problem.checkpoint_every={cfg.checkpoint_every}" if implicit and
                 cfg.checkpoint_every else grid, kept * n_dofs * 16,
                 f"{kept:.3g} stored states of {n_dofs} degrees of freedom", advice))

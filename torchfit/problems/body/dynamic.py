@@ -50,7 +50,7 @@ from ...physics import NewtonOptions
 from ...physics.dynamics import DynamicSystem, SplineMotion, UnstableStepError, make_integrator
 from ..base import InverseProblem
 from ..config import ProblemConfigError, Transform, make_config, require_setting, setting_error
-from ..dynamic import DynamicMixin, Integrator
+from ..dynamic import IMPLICIT_STEP_BYTES, DynamicMixin, Integrator, stored_states
 from .arm3d import Arm3D
 from .bounds import modulus_bounds, region_report, theta_bounds
 from .config import ModulusUnit, RiggedBodyConfig
@@ -242,16 +242,16 @@ class DynamicBody(DynamicMixin):
         of about 256 bytes, and the states ``(x, v)`` the gradient keeps (every one with
         ``checkpoint_every = 1``, else two per segment and one segment); a lower bound, since
         each kept step's factorisation comes on top."""
-        steps = max(self.frame_numbers()) * cfg.substeps
+        last = max(self.frame_numbers())
+        steps = last * cfg.substeps
         n_dofs = 3 * self.model.n_vertices
-        every = cfg.checkpoint_every or math.isqrt(max(steps, 1)) + 1
-        kept = steps + 1 if every == 1 else \
-            min(steps + 1, 2 * -(-steps // every)) + min(every, steps)
-        check_allocation(f"problem.substeps={cfg.substeps}", steps * 256.0 + kept * n_dofs * 16.0,
-                         f"{steps:.3g} implicit steps to frame {max(self.frame_numbers())} and "
-                         f"{kept:.3g} stored states of {n_dofs} degrees of freedom",
-                         ProblemConfigError, "choose fewer problem.substeps (for the stored "
-                         "states, a larger problem.checkpoint_every also helps)")
+        kept = stored_states(steps, cfg.checkpoint_every or max(1.0, math.sqrt(steps)))
+        check_allocation(f"problem.substeps={cfg.substeps}",
+                         steps * float(IMPLICIT_STEP_BYTES) + kept * n_dofs * 16.0,
+                         f"{steps:.3g} implicit steps to frame {last} and {kept:.3g} stored "
+                         f"states of {n_dofs} degrees of freedom", ProblemConfigError,
+                         "choose fewer problem.substeps (for the stored states, a larger "
+                         "problem.checkpoint_every also helps)")
 
     def initial_pose(self, cfg: RiggedBodyConfig) -> Tensor:
         """Positions ``(n, 3)`` at ``t = 0``: the rest shape where frame 0 drives the rig to
