@@ -177,6 +177,50 @@ def test_dynamic_settings_are_refused_with_one_line(root, override, message):
     assert "\n" not in str(err.value)
 
 
+def test_a_material_layer_starts_the_body_in_time_in_pascals(root, tmp_path):
+    """``problem.init_field`` in time: the layer's moduli become pascals by the unit it states
+    (``Pa`` as written, ``relative to problem.E0`` times E0 in Pa, none: the units of the
+    modulus settings), the damping starts at alpha0, beta0; an unknown unit is refused."""
+    pytest.importorskip("pxr")
+    import numpy as np
+
+    from torchfit.mesh.formats.usd.writer import write_tet_mesh_usd
+
+    base = build_problem("animation", settings(root, parameters="tet"))
+    points, cells = np.asarray(base.mesh.points), np.asarray(base.mesh.cells)
+    shape = 1.0 + 3.0 * (base.mesh.centroids()[:, 0] - points[:, 0].min()) / np.ptp(points[:, 0])
+
+    def layer(name: str, values: np.ndarray, unit: str | None) -> str:
+        material = {"youngsModulus": values, "poissonsRatio": np.full(len(cells), 0.45),
+                    "density": np.full(len(cells), 1000.0)}
+        return str(write_tet_mesh_usd(tmp_path / f"{name}.usda", points, cells,
+                                      material=material,
+                                      units=None if unit is None else {"youngsModulus": unit}))
+
+    def start(path: str, **more) -> tuple[np.ndarray, list[float]]:
+        problem = build_problem("animation", settings(root, parameters="tet", init_field=path,
+                                                      alpha0=3.0, beta0=0.01, **more))
+        field = problem.field(problem.theta0).numpy()
+        return field, [float(v) for v in problem.damping(problem.theta0)]
+
+    field, damping = start(layer("pa", 2.0e4 * shape, "Pa"))
+    assert np.abs(field / (2.0e4 * shape) - 1).max() < 1e-6            # float32 in the layer
+    assert damping == pytest.approx([3.0, 0.01], rel=1e-12)
+    # what a scale-free fit writes: factors of its E0, here times E0 = 2 x 1e4 Pa
+    field, _ = start(layer("relative", shape, "relative to problem.E0"), E0=2.0)
+    assert np.abs(field / (2.0e4 * shape) - 1).max() < 1e-6
+    # a painted layer states no unit: read as the modulus settings are
+    painted = layer("painted", shape, None)
+    field, _ = start(painted)                                          # factors of 1e4 Pa
+    assert np.abs(field / (1.0e4 * shape) - 1).max() < 1e-6
+    field, _ = start(painted, E0=5.0e3, E0_unit="Pa")                  # pascals
+    assert np.abs(field / shape - 1).max() < 1e-6
+    with pytest.raises(ProblemConfigError, match=r"problem.init_field=.*states the unit "
+                                                 r"'kPa', which torchfit does not read") as err:
+        start(layer("kilo", shape, "kPa"))
+    assert "\n" not in str(err.value)
+
+
 def test_under_gravity_the_body_starts_at_rest(root):
     """problem.gravity: the body starts in its static equilibrium under gravity for E0 (it
     sags below the rest shape) and, with the rig held still, stays there: no drop at t = 0;

@@ -30,7 +30,8 @@ Moduli are pascals (inertia fixes the scale: not scale-free): with ``problem.E0_
 ``problem.E_reference``, with ``E0_unit=Pa`` pascals. Parameters: the body's field
 parameterisation and the two damping coefficients (:class:`~torchfit.params.FieldAndScalars`,
 ``theta = [field..., alpha, beta]``). Data: the observed surface at the fitted frames.
-Validation: ``problem.validation_frames`` must be a later window than every fitted frame (the
+``problem.init_field`` starts the field from a material layer in pascals (its stated unit,
+:mod:`.init_field`). Validation: ``problem.validation_frames`` must be a later window than every fitted frame (the
 held-out future; :func:`dynamic_split`); ``validation_every`` is refused.
 """
 from __future__ import annotations
@@ -55,6 +56,7 @@ from .arm3d import Arm3D
 from .bounds import modulus_bounds, region_report, theta_bounds
 from .config import ModulusUnit, RiggedBodyConfig
 from .held_out import FrameSplit
+from .init_field import initial_field_theta
 from .problem import RiggedBody
 
 _DAMPING = ("alpha", "beta")
@@ -111,8 +113,6 @@ def check_body_dynamics(cfg: RiggedBodyConfig) -> None:
                     "holds out every k-th pose, which a motion in time cannot skip; hold out "
                     "a later window with problem.validation_frames=[...] (frames after every "
                     "fitted frame)")
-    require_setting(not cfg.init_field, cfg, "init_field", "is not read by the dynamic body "
-                    "yet; start from problem.E0 (leave init_field empty)")
 
 
 def dynamic_split(cfg: RiggedBodyConfig, n_frames: int) -> FrameSplit | None:
@@ -156,6 +156,9 @@ class DynamicBody(DynamicMixin):
 
     def __init__(self, cfg: Any = None, *, kept_mesh: Any = None, **overrides: Any) -> None:
         config = make_config(self.config_class, cfg, overrides)   # type: ignore[attr-defined]
+        # a material layer that states no unit is read in the units of the modulus settings
+        self.unitless_layer_factor = float(config.E_reference) \
+            if config.E0_unit == ModulusUnit.relative else 1.0
         super().__init__(in_pascals(config), kept_mesh=kept_mesh)  # type: ignore[call-arg]
 
     def unsimulated_truth(self, error: Any) -> Any:
@@ -266,6 +269,14 @@ class DynamicBody(DynamicMixin):
                         device=self.device)
         with torch.no_grad(), self.quasistatic.equilibrium.independent():
             return self.quasistatic(E0, drive0[None], x_init=self.start_positions[:1])[0]
+
+    def initial_parameters(self, cfg: RiggedBodyConfig) -> Tensor:
+        """The constant ``E0`` (pascals) or ``problem.init_field``'s layer in pascals
+        (:mod:`.init_field`: its stated unit, else that of the modulus settings), with the
+        damping at ``alpha0``, ``beta0``."""
+        if not cfg.init_field:
+            return super().initial_parameters(cfg)             # type: ignore[misc]
+        return initial_field_theta(self, cfg, self.unitless_layer_factor)
 
     def build_parameterization(self, cfg: RiggedBodyConfig) -> Parameterization:
         return self.damped(super().build_parameterization(cfg), cfg)   # type: ignore[misc]

@@ -35,12 +35,16 @@ class ModulusLayer:
 
     Attributes:
         kind: ``"vertex"`` (values per mesh point) or ``"tet"`` (values per tetrahedron).
-        values: ``(V,)`` or ``(m,)`` Young's moduli as written (units: the layer's
-            ``customData``; a fit is scale-free, so they are a starting shape).
+        values: ``(V,)`` or ``(m,)`` Young's moduli as written (in ``unit``; a
+            quasistatic fit is scale-free, so they are a starting shape).
         points: ``(V, 3)`` or ``(n, 3)`` rest points of the prim, metres (``None`` where the
             layer holds no points, e.g. an ``over`` without the user's stage).
         cells: ``(m, 4)`` tetrahedra of a TetMesh, else ``None``.
         prim: the prim's path.
+        unit: the values' unit as the layer says it (``customData`` ``torchfit:units`` on
+            the attribute, or ``torchfit:youngsModulusUnits`` on it or its prim, as torchfit
+            writes them): ``"Pa"``, ``"relative to problem.E0"``, or ``""`` where the layer
+            says none (a painted one).
     """
 
     kind: str
@@ -48,6 +52,12 @@ class ModulusLayer:
     points: np.ndarray | None
     cells: np.ndarray | None
     prim: str
+    unit: str = ""
+
+    @property
+    def relative(self) -> bool:
+        """Whether the values are factors of a homogeneous modulus (``relative ...``)."""
+        return self.unit.startswith("relative")
 
 
 def read_modulus_layer(path: str | Path) -> ModulusLayer:
@@ -97,9 +107,20 @@ def read_modulus_layer(path: str | Path) -> ModulusLayer:
             if is_tet:
                 cells = np.array(UsdGeom.TetMesh(prim).GetTetVertexIndicesAttr().Get(),
                                  dtype=np.int64).reshape(-1, 4)
-            return ModulusLayer(kind, values, points, cells, str(prim.GetPath()))
+            return ModulusLayer(kind, values, points, cells, str(prim.GetPath()),
+                                _unit(primvar.GetAttr(), prim))
     raise AnimationError(f"{path}: no prim carries primvars:youngsModulus (per vertex of a "
                          "mesh or per tetrahedron of a TetMesh)")
+
+
+def _unit(attribute, prim) -> str:
+    """The unit the layer writes for ``attribute`` (:attr:`ModulusLayer.unit`)."""
+    for holder, key in ((attribute, "torchfit:units"), (attribute, "torchfit:youngsModulusUnits"),
+                        (prim, "torchfit:youngsModulusUnits")):
+        value = holder.GetCustomDataByKey(key)
+        if isinstance(value, str) and value.strip():
+            return value.strip()
+    return ""
 
 
 def layer_cell_values(layer: ModulusLayer, where: str, *, file_rest: np.ndarray,
