@@ -27,8 +27,10 @@ def one_thread():
     torch.set_num_threads(threads)
 
 
-def chain_system(n: int = 6, stiffness: float = 30.0, loads=None, x0=None) -> tuple[DynamicSystem, torch.Tensor]:
-    """A hanging chain of ``n`` springs released at rest length, with an eased end load."""
+def chain_system(n: int = 6, stiffness: float = 30.0, loads=None, x0=None,
+                 density_scale: float | None = None) -> tuple[DynamicSystem, torch.Tensor]:
+    """A hanging chain of ``n`` springs released at rest length, with an eased end load;
+    ``density_scale``: the parameters end with it (a density-scaled system)."""
     nodes = torch.arange(n + 1)
     springs = ScalarSpringNetwork(torch.stack([nodes[:-1], nodes[1:]], 1),
                             torch.full((n,), 1.0 / n, dtype=DT), torch.zeros(1, n + 1, dtype=DT))
@@ -40,9 +42,11 @@ def chain_system(n: int = 6, stiffness: float = 30.0, loads=None, x0=None) -> tu
     system = DynamicSystem(springs, n, torch.full((n + 1,), 1.0 / n, dtype=DT), torch.tensor([0]),
                            KeyedMotion(torch.zeros(1, dtype=DT), torch.zeros(1, 1, dtype=DT)),
                            loads, torch.full((n + 1,), 9.81, dtype=DT),
-                           rest if x0 is None else x0, vertex_dim=1)
+                           rest if x0 is None else x0, vertex_dim=1,
+                           density_scaled=density_scale is not None)
     k = stiffness * (1.0 + 0.5 * torch.sin(torch.arange(n, dtype=DT)))
-    return system, torch.cat([k, torch.tensor([0.8, 2e-3], dtype=DT)])
+    scale = [] if density_scale is None else [density_scale]
+    return system, torch.cat([k, torch.tensor([0.8, 2e-3, *scale], dtype=DT)])
 
 
 def sheet_system(material: str = "corotated") -> tuple[DynamicSystem, torch.Tensor]:

@@ -263,7 +263,7 @@ class BodyOutputs:
         steps = [
             ("simulated frames (OBJ)", self._write_frames, (x,)),
             ("body.vtu", self._write_vtu, (x, field)),
-            ("USD frames and tet mesh", self._write_usd, (x, field)),
+            ("USD frames and tet mesh", self._write_usd, (x, field, final.theta)),
             ("regions.json", self._write_regions, (field,)),
             ("TensorBoard meshes", self._write_meshes, (x, field)),
             ("frame_errors.png", self._write_frame_errors, (final,)),
@@ -314,9 +314,9 @@ class BodyOutputs:
         return [write_body_vtu(self.run_dir / VTU_FILE, np.asarray(problem.mesh.points),
                                problem.mesh.cells, _numpy(x), cell_data)]
 
-    def _write_usd(self, x: Tensor, field: Tensor) -> list[Path]:
+    def _write_usd(self, x: Tensor, field: Tensor, theta: Tensor) -> list[Path]:
         return write_usd(self.run_dir, self.problem, _numpy(self.problem.surface(x)),
-                         _numpy(field))
+                         _numpy(field), self.problem.material_density(theta))
 
     def _write_regions(self, field: Tensor) -> list[Path]:
         problem = self.problem

@@ -104,9 +104,12 @@ def _frame_times(names: Sequence[str]) -> list[float] | None:
         return None
 
 
-def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarray) -> list[Path]:
+def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarray,
+              density: tuple[float, str] | None = None) -> list[Path]:
     """``usd/frames.usda`` and ``usd/body.usda`` (module docstring); nothing, with a log
-    line, where ``usd-core`` is not installed."""
+    line, where ``usd-core`` is not installed. ``density``: the material's density (kg/m^3)
+    and where it comes from (the problem's :meth:`material_density`); ``None``: the assumed
+    :data:`DENSITY`."""
     if importlib.util.find_spec("pxr") is None:
         progress.info("no USD output: install the extra torchfit[usd] (usd-core) for it")
         return []
@@ -129,22 +132,23 @@ def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarra
         fields["region"] = np.asarray(problem.tet_regions, dtype=np.int32)
     labels = {"youngs_modulus": units.unit, "youngsModulus": units.unit,
               "poissonsRatio": "1 (dimensionless)", "density": "kg/m^3"}
+    density_value, density_source = (DENSITY, DENSITY_SOURCE) if density is None else density
     material = {"youngsModulus": field, "poissonsRatio": np.full(len(cells), problem.cfg.nu),
-                "density": np.full(len(cells), float(problem.cfg.density) if getattr(
-                    problem.cfg, "dynamic", False) else DENSITY)}
+                "density": np.full(len(cells), float(density_value))}
+    custom = {**units.custom(), "torchfit:densitySource": density_source}
     per_vertex = vertex_field(problem, field)
 
     def fill(partial: Path) -> None:
         write_point_cache_usd(partial / "frames.usda", faces, surface, times=times, over=over,
                               fps=float(getattr(problem.animation, "fps", 24.0)))
         write_tet_mesh_usd(partial / "body.usda", np.asarray(problem.mesh.points), cells, fields,
-                           material=material, custom=units.custom(), units=labels)
+                           material=material, custom=custom, units=labels)
         if per_vertex is not None:
             animation = problem.animation
             write_vertex_field_usd(partial / MATERIAL_FILE, "youngsModulus", per_vertex,
                                    over=over, prim=animation.prim if over is not None else "",
                                    rest=animation.file_points(animation.rest_vertices),
-                                   faces=faces, custom=units.custom(), units=labels)
+                                   faces=faces, custom=custom, units=labels)
 
     folder = run_dir / USD_DIR
     write_folder(folder, fill)
@@ -173,8 +177,7 @@ class ModulusUnits:
     def custom(self) -> dict[str, str | float]:
         """``customData`` for USD prims and attributes."""
         data: dict[str, str | float] = {"torchfit:youngsModulusUnits": self.unit,
-                                        "torchfit:E0": self.E0,
-                                        "torchfit:densitySource": DENSITY_SOURCE}
+                                        "torchfit:E0": self.E0}
         if self.unit != "Pa":
             data["torchfit:toPascals"] = TO_PASCALS
         return data

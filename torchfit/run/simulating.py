@@ -228,7 +228,8 @@ def simulate(run: str | Path, settings: Mapping[str, Any] | None = None,
                                   iterations, seconds, 0.0, run_path)
         if run_path is not None:
             run_path.mkdir(parents=True, exist_ok=True)
-            result.files = write_frames(run_path, problem, state, field)
+            result.files = write_frames(run_path, problem, state, field,
+                                        problem.material_density(theta))
             worst = int(np.argmax(errors["surface_err_mean"]))
             result.files.append(comparison_picture(run_path, problem, state, worst,
                                                    problem.frame_names()))

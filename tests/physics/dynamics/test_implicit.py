@@ -80,6 +80,43 @@ def test_error_estimate_by_step_halving_predicts_the_true_error(scheme):
     assert estimates[0] / estimates[1] == pytest.approx(2 ** order, rel=0.25)
 
 
+@pytest.mark.parametrize("checkpoint_every", [1, 4])
+def test_density_scale_derivatives_and_its_reductions(checkpoint_every):
+    """A density scale ``s`` among the parameters (mass ``s M``: inertia, mass damping and
+    weight): Taylor rate 2 and the dot test with it; ``s = 1`` is the unscaled system to
+    round-off; without loads, ``s`` and the field both doubled is the same motion (every term
+    of the step residual doubles), so the scale is what the data see of the density."""
+    from torchfit.physics.dynamics import KeyedMotion
+
+    times = torch.linspace(0.05, 0.3, 6)
+    system, params = chain_system(density_scale=1.3)
+    integrator = make_integrator("implicit", system, times, dt=0.01,
+                                 checkpoint_every=checkpoint_every)
+    taylor, dot = check_derivatives(integrator, params)
+    assert abs(taylor.rate - 2.0) <= 0.05, taylor.rate
+    assert dot.rel_error <= 1e-10, dot.rel_error
+    # the scale's own column is not zero: the data see it
+    column = integrator.jacobian(params, torch.eye(len(params), dtype=params.dtype)[:, -1:])
+    assert float(column.abs().max()) > 1e-3
+    plain_system, plain = chain_system()
+    unit = torch.cat([plain, torch.ones(1, dtype=plain.dtype)])
+    x_plain = make_integrator("implicit", plain_system, times, dt=0.01)(plain)
+    assert float((integrator(unit) - x_plain).abs().max()) <= 1e-12
+    n = system.n_field
+    quiet = KeyedMotion(torch.zeros(1, dtype=params.dtype),
+                        torch.zeros(1, n + 1, dtype=params.dtype))
+    still, base = chain_system(loads=quiet, density_scale=1.0)
+    doubled = base.clone()
+    doubled[:n] *= 2.0
+    doubled[-1] = 2.0
+    still_integrator = make_integrator("implicit", still, times, dt=0.01)
+    x_base, x_doubled = still_integrator(base), still_integrator(doubled)
+    assert float((x_base - still.x0).abs().max()) > 1e-2               # it falls
+    assert float((x_doubled - x_base).abs().max()) <= 1e-10
+    with pytest.raises(Exception, match="density scale = -1 must be positive"):
+        still_integrator(torch.cat([base[:-1], torch.tensor([-1.0], dtype=base.dtype)]))
+
+
 def test_static_equilibrium_balances_the_external_force():
     """At rest under gravity and loads at t0: the elastic force balances them on the free
     dofs, the prescribed dof at its position; no inertia, no damping."""

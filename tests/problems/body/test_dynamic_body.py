@@ -2,6 +2,7 @@
 motion against the quasistatic body, held-out later window, refusals, recovery."""
 from __future__ import annotations
 
+import importlib.util
 import json
 import shutil
 from pathlib import Path
@@ -107,6 +108,53 @@ def test_dynamic_body_derivatives(root, scheme):
     theta_leaf = theta.clone().requires_grad_(True)
     (grad,) = torch.autograd.grad(problem.forward(theta_leaf), theta_leaf, w)
     assert torch.allclose(J.T @ w, grad, rtol=1e-9, atol=1e-12 * float(grad.abs().max()))
+
+
+def test_a_density_scale_among_the_parameters(root, tmp_path):
+    """``problem.fit_density=true`` under gravity: theta ends with the density scale (start
+    1: ``problem.density``), its derivatives verify (Taylor rate 2, dot test, the dense
+    Jacobian against the adjoint), the truth's scale is reported, and the written material's
+    density is ``problem.density`` times the fitted scale."""
+    problem = build_problem("animation", settings(
+        root, target="synthetic", frames=[0, 2, 3], fit_density=True, density_scale=1.5,
+        gravity=[0.0, 0.0, -9.81]))
+    n_field = 2 * 2 * 3
+    assert problem.parameterization.n_params == n_field + 3
+    assert problem.parameterization.scalar_names == ("alpha", "beta", "density_scale")
+    assert float(problem.theta0[-1]) == 0.0                          # exp(0) = 1
+    assert problem.metrics(problem.true_theta())["density_scale_err_rel"] == \
+        pytest.approx(0.0, abs=1e-12)
+    assert problem.metrics(problem.theta0)["density_scale_err_rel"] == pytest.approx(1 / 3)
+    report = torchfit.verify(problem, at="truth", perturbation=0.1, dot_tol=1e-9)
+    assert abs(report.taylor.rate - 2.0) <= 0.05, report.format()
+    assert report.dot.rel_error <= 1e-9, report.format()
+    theta = problem.theta0
+    J = problem.forward_jacobian(theta)
+    assert float(J[:, -1].abs().max()) > 0                             # the data see it
+    w = torch.randn(J.shape[0], dtype=J.dtype, generator=torch.Generator().manual_seed(2))
+    theta_leaf = theta.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(problem.forward(theta_leaf), theta_leaf, w)
+    assert torch.allclose(J.T @ w, grad, rtol=1e-9, atol=1e-12 * float(grad.abs().max()))
+    density, source = problem.material_density(problem.true_theta())
+    assert density == pytest.approx(1500.0, rel=1e-12) and "fitted" in source
+    if importlib.util.find_spec("pxr") is not None:      # the layer an artist gets
+        from pxr import Usd, UsdGeom
+
+        from torchfit.reporting.body_files import write_usd
+        truth = problem.true_theta()
+        with torch.no_grad():
+            x = problem.simulate(problem.simulation_input(truth))
+        write_usd(tmp_path, problem, problem.surface(x).numpy(), problem.field(truth).numpy(),
+                  problem.material_density(truth))
+        stage = Usd.Stage.Open(str(tmp_path / "usd" / "body.usda"))
+        tet = stage.GetDefaultPrim()
+        written = UsdGeom.PrimvarsAPI(tet).GetPrimvar("density").Get()
+        assert list(written) == pytest.approx([1500.0] * len(written))
+        assert "fitted" in tet.GetCustomDataByKey("torchfit:densitySource")
+    plain = build_problem("animation", settings(root))
+    assert plain.material_density(plain.theta0)[0] == 1000.0
+    with pytest.raises(ProblemConfigError, match="problem.density_scale=0.0: must be > 0"):
+        build_problem("animation", settings(root, fit_density=True, density_scale=0.0))
 
 
 def test_slow_motion_is_the_quasistatic_body(root):

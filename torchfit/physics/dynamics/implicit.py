@@ -9,10 +9,11 @@ acceleration as affine functions of the new position (variable-step BDF2 coeffic
 
 so the step is the root of the *step residual* (free dofs; Dirichlet dofs at ``x_D(t_{n+1})``)
 
-    R(x; p) = M (c0^2 x + b_a) + (alpha M + beta K0(k)) (c0 x + b_v - v_ref) + R_el(x; k) - f_ext(t_{n+1})
+    R(x; p) = s M (c0^2 x + b_a - g) + (alpha s M + beta K0(k)) (c0 x + b_v - v_ref) + R_el(x; k) - f(t_{n+1})
 
-with ``p = [k, alpha, beta, b_a, b_v - v_ref, f_ext, c0^2, c0]`` (``v_ref(t_{n+1})``: the
-system's reference velocity, zero by default). :class:`StepModel` is an
+with ``p = [k, alpha, beta, (s,) b_a, b_v - v_ref, f, c0^2, c0]`` (``v_ref(t_{n+1})``: the
+system's reference velocity, zero by default; ``g`` gravity, ``f`` the loads; ``s`` the
+density scale where the system has one, else 1). :class:`StepModel` is an
 :class:`~torchfit.physics.EquilibriumModel` of it, and each step is solved by the generic
 :class:`~torchfit.physics.Equilibrium` (Newton with line search for a nonlinear material,
 one factorisation and one solve for a linear one). Derivatives are the equilibrium's own
@@ -86,8 +87,13 @@ class StepModel:
         coefficients = torch.tensor([c_a, c_v], dtype=params.dtype, device=params.device)
         return torch.cat([params, b_a, b_v, force, coefficients])
 
+    def mass(self, p: Tensor) -> Tensor:
+        """``s M`` ``(n_dofs,)``: the lumped mass at ``p``'s density scale."""
+        return self.system.mass_scale(p) * self.system.mass.to(p)
+
     def unpack(self, p: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """``(k, alpha, beta, b_a, b_v, f, c_a, c_v)`` of ``p``."""
+        """``(k, alpha, beta, b_a, b_v, f, c_a, c_v)`` of ``p`` (the density scale:
+        :meth:`mass`)."""
         m, n = self.system.n_params, self.n_dofs
         field, alpha, beta = self.system.split(p[:m])
         b_a, b_v, force = p[m:m + n], p[m + n:m + 2 * n], p[m + 2 * n:m + 3 * n]
@@ -96,9 +102,9 @@ class StepModel:
     def residual(self, x: Tensor, p: Tensor) -> Tensor:
         """``R(x; p)`` ``(F, n_dofs)`` for positions ``(F, n_dofs)``."""
         field, alpha, beta, b_a, b_v, force, c_a, c_v = self.unpack(p)
-        mass = self.system.mass.to(x)
+        mass = self.mass(p).to(x)
         v = c_v * x + b_v
-        return mass * (c_a * x + b_a) + alpha * mass * v + \
+        return mass * (c_a * x + b_a - self.system.gravity.to(x)) + alpha * mass * v + \
             beta * self.system.stiffness_matvec(field, v) + \
             self.system.elastic.residual(x, field) - force
 
@@ -111,7 +117,7 @@ class StepModel:
         else:
             elastic = self.system.elastic.tangent_values(x, field)
         elastic = elastic + (beta * c_v) * self.system.rest_stiffness_contributions(field)[None]
-        diagonal = ((c_a + alpha * c_v) * self.system.mass.to(elastic))[None]
+        diagonal = ((c_a + alpha * c_v) * self.mass(p).to(elastic))[None]
         return torch.cat([elastic, diagonal.expand(elastic.shape[0], -1)], dim=1)
 
     def param_derivative(self, x: Tensor, p: Tensor) -> "StepParamDerivative":
@@ -126,19 +132,27 @@ class StepParamDerivative:
         self.model = model
         system = model.system
         self.system = system
-        (self.field, self.alpha, self.beta, _, b_v, _, _, c_v) = model.unpack(p)
+        (self.field, self.alpha, self.beta, b_a, b_v, _, c_a, c_v) = model.unpack(p)
         self.x = x
         self.velocity = c_v * x[0] + b_v                               # (n,)
-        self.mass = system.mass.to(x)
+        self.mass = model.mass(p).to(x)                                # s M
+        # dR/ds: M (a - g) + alpha M v, the inertia, weight and mass damping per unit scale
+        self.scaled = system.density_scaled
+        unit_mass = system.mass.to(x)
+        self.mass_rate = unit_mass * (c_a * x[0] + b_a - system.gravity.to(x)) + \
+            self.alpha * unit_mass * self.velocity
         self.k0_velocity = system.stiffness_matvec(self.field, self.velocity)
         self.unit_forces = system.unit_element_forces(self.velocity)   # (n_field, d_el)
         elastic_derivative = getattr(system.elastic, "param_derivative", None)
         self.elastic = elastic_derivative(x, self.field) if elastic_derivative else None
 
     def _split(self, v: Tensor) -> tuple[Tensor, ...]:
+        """``(d_field, d_alpha, d_beta, d_ba, d_bv, d_force, d_scale)`` of ``v`` (``d_scale``
+        ``None`` without a density scale)."""
         m, n = self.system.n_params, self.model.n_dofs
         nf = self.system.n_field
-        return (v[:nf], v[nf], v[nf + 1], v[m:m + n], v[m + n:m + 2 * n], v[m + 2 * n:m + 3 * n])
+        return (v[:nf], v[nf], v[nf + 1], v[m:m + n], v[m + n:m + 2 * n], v[m + 2 * n:m + 3 * n],
+                v[nf + 2] if self.scaled else None)
 
     def _elastic_jvp(self, d_field: Tensor) -> Tensor:
         if self.elastic is not None:
@@ -162,12 +176,14 @@ class StepParamDerivative:
 
     def jvp(self, v: Tensor) -> Tensor:
         """``(dR/dp) v`` ``(1, n_dofs)`` for ``v`` ``(n_params,)``."""
-        d_field, d_alpha, d_beta, d_ba, d_bv, d_force = self._split(v.to(self.x))
+        d_field, d_alpha, d_beta, d_ba, d_bv, d_force, d_scale = self._split(v.to(self.x))
         out = self._elastic_jvp(d_field) \
             + self.beta * self.system.scatter_elements(self.unit_forces * d_field[:, None]) \
             + d_alpha * self.mass * self.velocity + d_beta * self.k0_velocity \
             + self.mass * d_ba + self.alpha * self.mass * d_bv \
             + self.beta * self.system.stiffness_matvec(self.field, d_bv) - d_force
+        if d_scale is not None:
+            out = out + d_scale * self.mass_rate
         return out[None]
 
     def vjp(self, w: Tensor) -> Tensor:
@@ -180,12 +196,13 @@ class StepParamDerivative:
         g_ba = self.mass * w
         g_bv = self.alpha * self.mass * w + self.beta * self.system.stiffness_matvec(self.field, w)
         zeros = w.new_zeros(2)
-        return torch.cat([g_field, g_alpha[None], g_beta[None], g_ba, g_bv, -w, zeros])
+        g_scale = [(w * self.mass_rate).sum()[None]] if self.scaled else []
+        return torch.cat([g_field, g_alpha[None], g_beta[None], *g_scale, g_ba, g_bv, -w, zeros])
 
     def matmul(self, V: Tensor) -> Tensor:
         """``(dR/dp) V`` ``(1, n_dofs, k)`` for ``V`` ``(n_params, k)``."""
         V = V.to(self.x)
-        d_field, d_alpha, d_beta, d_ba, d_bv, d_force = self._split(V)
+        d_field, d_alpha, d_beta, d_ba, d_bv, d_force, d_scale = self._split(V)
         if self.elastic is not None and callable(getattr(self.elastic, "matmul", None)):
             elastic = self.elastic.matmul(d_field)[0]
         elif self.elastic is not None:
@@ -202,6 +219,8 @@ class StepParamDerivative:
             + self.k0_velocity[:, None] * d_beta[None, :] \
             + self.mass[:, None] * d_ba + self.alpha * self.mass[:, None] * d_bv \
             + self.beta * k0_dbv - d_force
+        if d_scale is not None:
+            out = out + self.mass_rate[:, None] * d_scale[None, :]
         return out[None]
 
 
@@ -306,7 +325,7 @@ class ImplicitIntegrator:
         n = self.system.n_dofs
         zeros = x_init.new_zeros(n)
         p = self.model.pack(params.detach().to(x_init), zeros, zeros,
-                            self.system.external_force(t0)[0], 0.0, 0.0)
+                            self.system.loads_at(t0)[0], 0.0, 0.0)
         with torch.no_grad():
             x = self.equilibrium(p, self.system.fixed_positions(t0), x_init.reshape(1, -1))[0]
         self.system.check_state(x, float(t0[0]))
@@ -367,7 +386,7 @@ class ImplicitIntegrator:
             b_a = b_a + c2 * v_prev
         b_a = c0 * b_v + b_a
         t_next = self.step_times[n + 1:n + 2].to(x)
-        force = self.system.external_force(t_next)[0]
+        force = self.system.loads_at(t_next)[0]           # the weight is in the residual
         if not bool(torch.isfinite(force).all()):
             dof = int(torch.nonzero(~torch.isfinite(force))[0])
             raise NonFiniteStateError(

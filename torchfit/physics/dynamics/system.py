@@ -209,13 +209,18 @@ class DynamicSystem:
         rest: ``(n_dofs,)`` rest positions, where ``K0`` is taken (default ``x0``).
         reference_velocity: ``t (T,) -> (T, n_dofs)`` the velocity the damping acts
             against (``C (v - v_ref)``), or ``None`` (``v_ref = 0``).
+        density_scaled: the parameters end with a density scale ``s`` (> 0): the mass is
+            ``s M`` (inertia, the mass damping ``alpha s M`` and the weight ``s M g``),
+            ``params = [k, alpha, beta, s]``; without it ``s = 1``.
     """
 
     def __init__(self, elastic, n_field: int, mass: Tensor, fixed_dofs: Tensor, dirichlet,
                  loads: TimeFunction | None, gravity: Tensor, x0: Tensor, v0: Tensor | None = None,
                  vertex_dim: int = 1, t0: float = 0.0, rest: Tensor | None = None,
-                 reference_velocity: TimeFunction | None = None) -> None:
+                 reference_velocity: TimeFunction | None = None,
+                 density_scaled: bool = False) -> None:
         self.elastic = elastic
+        self.density_scaled = bool(density_scaled)
         self.reference_velocity = reference_velocity
         self.n_dofs = int(elastic.n_dofs)
         self.n_field = int(n_field)
@@ -263,8 +268,15 @@ class DynamicSystem:
     # -- parameters ---------------------------------------------------------------------
     @property
     def n_params(self) -> int:
-        """Length of the physical parameter vector ``[k, alpha, beta]``."""
-        return self.n_field + 2
+        """Length of the physical parameter vector ``[k, alpha, beta]`` (``[k, alpha, beta,
+        s]`` with a density scale)."""
+        return self.n_field + 2 + int(self.density_scaled)
+
+    def mass_scale(self, params: Tensor) -> Tensor:
+        """The density scale ``s`` of ``params`` (a scalar tensor; 1 without one)."""
+        if self.density_scaled:
+            return params[self.n_field + 2]
+        return params.new_ones(())
 
     def split(self, params: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``(k (n_field,), alpha (), beta ())`` of ``params``."""
@@ -276,8 +288,14 @@ class DynamicSystem:
         negative or not finite (:class:`NegativeDampingError`)."""
         if params.shape != (self.n_params,):
             raise ValueError(f"dynamics parameters must have shape ({self.n_params},) "
-                             f"(field of {self.n_field}, alpha, beta), got {tuple(params.shape)}")
+                             f"(field of {self.n_field}, alpha, beta"
+                             f"{', density scale' if self.density_scaled else ''}), got "
+                             f"{tuple(params.shape)}")
         field, alpha, beta = (p.detach() for p in self.split(params))
+        scale = float(self.mass_scale(params.detach()))
+        if not (math.isfinite(scale) and scale > 0):
+            raise InvalidFieldError(f"the density scale = {scale:g} must be positive and "
+                                    "finite (the mass is the scale times the density's)")
         for name, value, unit in (("alpha", alpha, "1/s"), ("beta", beta, "s")):
             if not (math.isfinite(float(value)) and float(value) >= 0):
                 raise NegativeDampingError(
@@ -364,12 +382,18 @@ class DynamicSystem:
         """Contributions of ``K0(k)`` on the elastic tangent pattern, ``(n_contrib,)``."""
         return (self.unit_stiffness.to(field) * field[:, None, None]).reshape(-1)
 
-    def external_force(self, t: Tensor) -> Tensor:
-        """``M g + loads(t)``, ``(T, n_dofs)`` at times ``t`` ``(T,)``."""
-        force = (self.mass * self.gravity).to(t)[None, :].expand(t.numel(), -1)
-        if self.loads is not None:
-            force = force + self.loads(t).to(t)
-        return force
+    def external_force(self, t: Tensor, scale: Tensor | float = 1.0) -> Tensor:
+        """``s M g + loads(t)``, ``(T, n_dofs)`` at times ``t`` ``(T,)`` (``s``: the
+        density scale)."""
+        force = (scale * (self.mass * self.gravity).to(t))[None, :].expand(t.numel(), -1)
+        return force + self.loads_at(t)
+
+    def loads_at(self, t: Tensor) -> Tensor:
+        """``loads(t)`` ``(T, n_dofs)`` (zeros without loads): the external force besides
+        the weight."""
+        if self.loads is None:
+            return t.new_zeros(t.numel(), self.n_dofs)
+        return self.loads(t).to(t)
 
     def fixed_positions(self, t: Tensor) -> Tensor:
         """Dirichlet positions ``(T, n_fixed)`` at times ``t``."""
@@ -383,10 +407,12 @@ class DynamicSystem:
         """``M^-1 (f_int - C v + f_ext)`` ``(B, n_dofs)`` for full states ``x, v`` ``(B, n_dofs)``
         at one time ``t`` (a scalar tensor); differentiable in ``x``, ``v``, ``params``."""
         field, alpha, beta = self.split(params)
+        mass = self.mass_scale(params) * self.mass.to(x)
         v = v - self.damped_against(t.reshape(1)).to(v)
-        force = -self.elastic.residual(x, field) - alpha * self.mass.to(x) * v \
-            - beta * self.stiffness_matvec(field, v) + self.external_force(t.reshape(1))
-        return force / self.mass.to(x)
+        force = -self.elastic.residual(x, field) - alpha * mass * v \
+            - beta * self.stiffness_matvec(field, v) + \
+            self.external_force(t.reshape(1), self.mass_scale(params))
+        return force / mass
 
     def damped_against(self, t: Tensor) -> Tensor:
         """``v_ref(t)`` ``(T, n_dofs)`` (zeros without a reference velocity)."""

@@ -136,6 +136,10 @@ class RiggedBodyConfig(ProblemConfig):
     scheme: Scheme = Scheme.bdf2           # bdf2 | backward_euler
     substeps: int = 4                      # implicit steps per frame (dt = 1 / (fps substeps))
     density: float = 1000.0                # kg/m^3 (soft tissue); lumped mass per vertex
+    # fit a density scale s too (the mass s M; theta's last entry, starting at 1): without
+    # gravity it moves with the modulus scale, with gravity the weight tells them apart
+    fit_density: bool = False
+    density_scale: float = 1.0             # the true density scale s, target=synthetic
     # gravity (m/s^2) in the animation's axes: [0, 0, -9.81] for a Z-up file, [0, -9.81, 0]
     # for a Y-up one (glTF); null: none (the animated shapes already show the body as it
     # hangs); the body starts at frame 0 in equilibrium under it for E0

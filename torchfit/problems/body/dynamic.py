@@ -46,7 +46,7 @@ from torch import Tensor
 
 from ...memory import check_allocation
 from ...mesh.formats.folder import Animation
-from ...params import Parameterization
+from ...params import FieldAndScalars, Parameterization
 from ...physics import NewtonOptions
 from ...physics.dynamics import DynamicSystem, SplineMotion, UnstableStepError, make_integrator
 from ..base import InverseProblem
@@ -91,6 +91,13 @@ def check_body_dynamics(cfg: RiggedBodyConfig) -> None:
     require_setting(math.isfinite(cfg.density) and cfg.density > 0, cfg, "density",
                     "must be > 0 (kg/m^3; soft tissue 1000): every vertex needs a positive "
                     "lumped mass")
+    require_setting(isinstance(cfg.fit_density, bool), cfg, "fit_density", "must be true or "
+                    "false (a density scale among the parameters)")
+    require_setting(isinstance(cfg.density_scale, (int, float))
+                    and not isinstance(cfg.density_scale, bool)
+                    and math.isfinite(cfg.density_scale) and cfg.density_scale > 0, cfg,
+                    "density_scale", "must be > 0 (the synthetic truth's density is "
+                    "problem.density times it)")
     gravity = cfg.gravity
     require_setting(gravity is None or (len(gravity) == 3 and all(
         isinstance(g, (int, float)) and not isinstance(g, bool) and math.isfinite(g)
@@ -225,7 +232,7 @@ class DynamicBody(DynamicMixin):
             SplineMotion(key_times, keys.reshape(keys.shape[0], -1)), None,
             gravity.repeat(n), self.initial_pose(cfg).reshape(-1),
             rig.velocity(key_times[:1])[0], vertex_dim=3, rest=rest.reshape(-1),
-            reference_velocity=rig.velocity)
+            reference_velocity=rig.velocity, density_scaled=cfg.fit_density)
         self.output_times = torch.as_tensor(self.frame_numbers(), dtype=torch.float64) / fps
         newton = NewtonOptions(max_iter=cfg.newton_max_iter, rtol=cfg.newton_rtol,
                                atol=cfg.newton_atol)
@@ -236,7 +243,7 @@ class DynamicBody(DynamicMixin):
             # at rest under gravity at t = 0 for E0: the body does not drop at the start
             start = torch.cat([torch.full((self.model.n_cells,), float(cfg.E0), dtype=dtype,
                                           device=device),
-                               torch.tensor([cfg.alpha0, cfg.beta0], dtype=dtype, device=device)])
+                               torch.tensor(self.scalar_starts(cfg), dtype=dtype, device=device)])
             self.system.start_at(self.integrator.static_equilibrium(start, self.system.x0))
 
     def check_time_steps(self, cfg: RiggedBodyConfig) -> None:
@@ -279,7 +286,37 @@ class DynamicBody(DynamicMixin):
         return initial_field_theta(self, cfg, self.unitless_layer_factor)
 
     def build_parameterization(self, cfg: RiggedBodyConfig) -> Parameterization:
-        return self.damped(super().build_parameterization(cfg), cfg)   # type: ignore[misc]
+        return FieldAndScalars(super().build_parameterization(cfg),  # type: ignore[misc]
+                               self.scalar_names(cfg), self.scalar_starts(cfg),
+                               cfg.transform.value)
+
+    @staticmethod
+    def scalar_names(cfg: RiggedBodyConfig) -> tuple[str, ...]:
+        """The scalars beside the field: the damping, and the density scale where fitted."""
+        return (*_DAMPING, *(("density_scale",) if cfg.fit_density else ()))
+
+    @staticmethod
+    def scalar_starts(cfg: RiggedBodyConfig) -> tuple[float, ...]:
+        """Their starts: ``alpha0``, ``beta0`` (and the density scale 1: ``problem.density``)."""
+        return (cfg.alpha0, cfg.beta0, *((1.0,) if cfg.fit_density else ()))
+
+    def material_density(self, theta: Tensor) -> tuple[float, str] | None:
+        """``problem.density`` (kg/m^3), times the fitted density scale where it is fitted."""
+        if not self.cfg.fit_density:
+            return float(self.cfg.density), "problem.density (the body in time's mass)"
+        scale = float(self.damping(theta)[2])
+        return float(self.cfg.density) * scale, (f"fitted: problem.density x the fitted density "
+                                                 f"scale {scale:.6g}")
+
+    def true_damping(self) -> Tensor:
+        """The true scalars: ``alpha``, ``beta`` (and ``density_scale`` where fitted)."""
+        values = [self.cfg.alpha, self.cfg.beta, *(
+            [self.cfg.density_scale] if self.cfg.fit_density else [])]
+        return torch.tensor(values, dtype=self.dtype, device=self.device)
+
+    def truth_settings(self) -> list[str]:
+        return [*super().truth_settings(), *(                  # type: ignore[misc]
+            ["problem.density_scale"] if self.cfg.fit_density else [])]
 
     # -- the forward model ------------------------------------------------------------------
     def simulate(self, physical: Tensor) -> Tensor:
@@ -336,6 +373,8 @@ class DynamicBody(DynamicMixin):
         names = super().metric_names()                         # type: ignore[misc]
         if self.field_true is not None and "k_err_rel_aligned" not in names:
             names.insert(names.index("k_err_rel") + 1, "k_err_rel_aligned")
+        if self.cfg.fit_density:
+            names += ["density_scale", "density_scale_err_rel"]
         return names
 
     def metrics(self, theta: Tensor, x: Tensor | None = None) -> dict[str, float]:
@@ -348,6 +387,10 @@ class DynamicBody(DynamicMixin):
                 scale = float(torch.dot(field, truth) / torch.dot(field, field))
                 out["k_err_rel_aligned"] = float(torch.linalg.vector_norm(
                     scale * field - truth) / torch.linalg.vector_norm(truth))
+            if self.cfg.fit_density:
+                fitted = float(self.damping(theta)[2])
+                out["density_scale"] = fitted
+                out["density_scale_err_rel"] = abs(fitted / float(self.cfg.density_scale) - 1)
         return out
 
     def frame_errors(self, x: Tensor) -> dict[str, np.ndarray]:
@@ -369,7 +412,8 @@ class DynamicBody(DynamicMixin):
         if bounds is None:
             return None
         low = -math.inf if self.cfg.transform == Transform.exp else 0.0
-        tail = torch.tensor([[low, low], [math.inf, math.inf]], dtype=self.theta0.dtype,
+        k = self.parameterization.n_scalars
+        tail = torch.tensor([[low] * k, [math.inf] * k], dtype=self.theta0.dtype,
                             device=self.theta0.device)
         return torch.cat([bounds[0], tail[0]]), torch.cat([bounds[1], tail[1]])
 
@@ -381,7 +425,7 @@ class DynamicBody(DynamicMixin):
     def describe(self) -> dict[str, Any]:
         out = super().describe()                               # type: ignore[misc]
         out.update({"fps": self.fps, "substeps": int(self.cfg.substeps), "dt": self.dt,
-                    "density": float(self.cfg.density),
+                    "density": float(self.cfg.density), "fit_density": bool(self.cfg.fit_density),
                     "shot_frames": int(self.dirichlet_positions.shape[0]),
                     "mass": float(self.system.mass.sum()) / 3.0})
         return out

@@ -384,6 +384,11 @@ class RiggedBody(InverseProblem):
     def start_settings(self) -> list[str]:
         return [*super().start_settings(), "problem.init_field"]
 
+    def material_density(self, theta: Tensor) -> tuple[float, str] | None:
+        """The density (kg/m^3) written with the fitted material and where it comes from;
+        ``None``: a quasistatic body does not determine it (the outputs assume one)."""
+        return None
+
     def initial_parameters(self, cfg: RiggedBodyConfig) -> Tensor:
         """The constant ``E0``, or the field of ``problem.init_field`` projected on the
         parameters (:func:`.init_field.initial_field_theta`)."""
