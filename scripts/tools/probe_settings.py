@@ -317,7 +317,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--timeout", type=float, default=20.0, help="seconds per case")
     ap.add_argument("--arm-path", help="an animation folder for problem=animation "
-                    "(scripts/write_arm.py <folder> --n-frames 2)")
+                    "(scripts/write_arm.py <folder> --n-frames 16: frames 0 and 1 are 0 and "
+                    "40 degrees, one implicit step apart in the section in time; with "
+                    "--n-frames 2 the elbow bends 120 degrees in that step, which Newton "
+                    "cannot take on some meshes)")
     ap.add_argument("--out", type=Path, help="JSON of every case")
     ap.add_argument("--list", action="store_true", help="print the sections and case counts")
     args = ap.parse_args(argv)

@@ -136,8 +136,9 @@ class RiggedBodyConfig(ProblemConfig):
     scheme: Scheme = Scheme.bdf2           # bdf2 | backward_euler
     substeps: int = 4                      # implicit steps per frame (dt = 1 / (fps substeps))
     density: float = 1000.0                # kg/m^3 (soft tissue); lumped mass per vertex
-    # fit a density scale s too (the mass s M; theta's last entry, starting at 1): without
-    # gravity it moves with the modulus scale, with gravity the weight tells them apart
+    # fit a density scale s too (the mass s M; theta's last entry, starting at 1): the motion
+    # sees E / rho only (the weight too scales with s), so beside a free modulus scale it is
+    # one direction with it; it tells the density where the moduli's scale is held
     fit_density: bool = False
     density_scale: float = 1.0             # the true density scale s, target=synthetic
     # gravity (m/s^2) in the animation's axes: [0, 0, -9.81] for a Z-up file, [0, -9.81, 0]
