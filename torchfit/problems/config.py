@@ -129,8 +129,11 @@ def require_setting(condition: bool, cfg: Any, key: str, allowed: str) -> None:
 
 # -- generic validation ---------------------------------------------------------------
 def check_newton_settings(cfg: Any) -> None:
-    """``newton_rtol >= 0``, ``newton_atol > 0``, ``newton_max_iter >= 1`` (elastic problems)."""
-    require_setting(cfg.newton_rtol >= 0, cfg, "newton_rtol", "must be >= 0")
+    """``0 <= newton_rtol < 1``, ``newton_atol > 0``, ``newton_max_iter >= 1`` (elastic
+    problems)."""
+    require_setting(0 <= cfg.newton_rtol < 1, cfg, "newton_rtol", "must be in [0, 1): the "
+                    "fraction of the starting residual Newton reduces it to (1e-10); at 1 or "
+                    "more Newton takes no step and the predictor passes as the equilibrium")
     require_setting(cfg.newton_atol > 0, cfg, "newton_atol", "must be > 0")
     require_setting(cfg.newton_max_iter >= 1, cfg, "newton_max_iter", "must be >= 1")
 

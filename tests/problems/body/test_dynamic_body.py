@@ -210,6 +210,8 @@ def test_validation_is_a_later_window(root):
     ({"substeps": 10**12}, r"problem.substeps=1000000000000: needs about .* for 5e\+12 "
                            r"implicit steps to frame 5 .*choose fewer problem.substeps"),
     ({"density": 0.0}, "problem.density=0.0: must be > 0"),
+    # accepted before: Newton then took no step (the sweep in time, 2026-12-02)
+    ({"newton_rtol": 1e12}, r"problem.newton_rtol=1000000000000.0: must be in \[0, 1\)"),
     ({"density": -1000.0}, "problem.density=-1000.0: must be > 0"),
     ({"integrator": "torchdiffeq"}, "torchdiffeq does not apply to a body"),
     ({"validation_every": 2}, "hold out a later window"),
