@@ -3,13 +3,17 @@ product to 1e-10) with every state kept and checkpointed, on the chain and the c
 sheet; its counted cost."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
 from torchfit.linalg.counters import counting
-from torchfit.physics.dynamics import make_integrator
+from torchfit.mesh import rectangle_triangles
+from torchfit.physics.dynamics import DynamicSystem, KeyedMotion, make_integrator
+from torchfit.physics.elasticity import SimplicialElasticity
+from torchfit.physics.equilibrium import NewtonConvergenceError
 
-from helpers.dynamics_systems import (chain_system, check_derivatives,
+from helpers.dynamics_systems import (DT, chain_system, check_derivatives,
                                       one_thread, residual_of, sheet_system)  # noqa: F401 (autouse)
 
 
@@ -131,3 +135,47 @@ def test_static_equilibrium_balances_the_external_force():
         integrator.step_times[:1].to(x)).abs().max())
     assert float(x[system.fixed_dofs].abs().max()) == 0.0       # the chain's top stays put
     assert float((x - system.x0).abs().max()) > 1e-3              # it hangs lower than rest
+
+def hanging_strip(youngs_modulus: float):
+    """A corotated 1 m x 0.1 m strip (8 x 2 cells, unit density) held at its left edge, under
+    gravity across it: at 1000 Pa its linear tip deflection would be 1.5 m; it hangs."""
+    mesh = rectangle_triangles(8, 2, 1.0, 0.1)
+    model = SimplicialElasticity(torch.from_numpy(mesh.points), torch.from_numpy(mesh.cells),
+                                 "corotated", nu=0.3)
+    left = mesh.boundary_vertices("left")
+    fixed = torch.as_tensor((left[:, None] * 2 + np.arange(2)).reshape(-1))
+    rest = model.rest.points.to(DT)
+    mass = torch.zeros(model.n_vertices, dtype=DT).index_add(
+        0, torch.as_tensor(mesh.cells.reshape(-1)),
+        (model.rest.volumes.to(DT) / 3.0).repeat_interleave(3)).repeat_interleave(2)
+    gravity = torch.tensor([0.0, -9.81], dtype=DT).repeat(model.n_vertices)
+    held = KeyedMotion(torch.zeros(1, dtype=DT), rest[torch.as_tensor(left)].reshape(1, -1))
+    system = DynamicSystem(model, model.n_cells, mass, fixed, held, None, gravity,
+                           rest.reshape(-1), vertex_dim=2)
+    params = torch.cat([torch.full((model.n_cells,), youngs_modulus, dtype=DT),
+                        torch.zeros(2, dtype=DT)])
+    return system, params
+
+
+def test_a_large_sag_is_found_by_load_increments():
+    """Newton from the rest shape cannot take the strip's whole weight at once (its residual
+    stalls); in increments it reaches the hanging equilibrium, balanced to the whole load's
+    tolerance. With no room to cut the increment the failure is raised."""
+    system, params = hanging_strip(1000.0)
+    t0 = torch.zeros(1, dtype=DT)
+    zeros = torch.zeros(system.n_dofs, dtype=DT)
+    integrator = make_integrator("implicit", system, torch.tensor([0.1]), dt=0.05)
+    with pytest.raises(NewtonConvergenceError):                  # the whole weight at once
+        integrator.equilibrium(integrator.model.pack(params, zeros, zeros, zeros, 0.0, 0.0),
+                               system.fixed_positions(t0), system.x0[None])
+    x = integrator.static_equilibrium(params, system.x0)
+    assert integrator.static_increments > 1
+    weight = system.external_force(t0)[0]
+    residual = system.elastic.residual(x[None], system.split(params)[0])[0] - weight
+    free = system.free_dofs
+    assert float(residual[free].norm()) <= 1e-9 * float(weight[free].norm())
+    assert float(x.reshape(-1, 2)[:, 1].min()) < -0.3                # the tip hangs 0.37 m low
+    assert torch.equal(x[system.fixed_dofs], system.x0[system.fixed_dofs])
+    with pytest.raises(NewtonConvergenceError):
+        make_integrator("implicit", system, torch.tensor([0.1]), dt=0.05).static_equilibrium(
+            params, system.x0, min_fraction=0.25)

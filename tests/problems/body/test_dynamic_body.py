@@ -275,18 +275,20 @@ def test_under_gravity_the_body_starts_at_rest(root):
     """problem.gravity: the body starts in its static equilibrium under gravity for E0 (it
     sags below the rest shape) and, with the rig held still, stays there: no drop at t = 0;
     in weightlessness it is the rest shape. The time report names the steps and the error
-    estimate."""
+    estimate. Gravity along the capsule's axis, the line of the few tetrahedron vertices its
+    bones drive: across it the body swings round that line on some pytetwild meshes (2 in 8
+    at E0 = 1e4 Pa), which a body too soft to hold itself shows on every mesh: refused."""
     still = root / "capsule_still"
     if not (still / "animation.yaml").is_file():
         write_capsule(still, angles=(0.0, 0.0, 0.0, 0.0))
     common = {"path": str(still), "cache_dir": str(root / "cache"), "tet_count": 600,
               "grid": [2, 2, 3], "dynamic": True, "substeps": 2}
-    problem = build_problem("animation", {**common, "gravity": [0.0, -9.81, 0.0]})
+    problem = build_problem("animation", {**common, "gravity": [0.0, 0.0, -9.81]})
     rest = problem.model.rest.points
     start = problem.system.x0.reshape(-1, 3)
     sag = start - rest
-    mass = problem.system.mass.reshape(-1, 3)[:, 1]
-    assert float((mass * sag[:, 1]).sum() / mass.sum()) < -1e-5      # the centre of mass drops
+    mass = problem.system.mass.reshape(-1, 3)[:, 2]
+    assert float((mass * sag[:, 2]).sum() / mass.sum()) < -1e-5      # the centre of mass drops
     # the driven vertices stay where the rig puts them at frame 0: the rest, to the round-off
     # of skinning it (1.7e-18 m on one pytetwild mesh)
     assert float(sag[torch.as_tensor(problem.dirichlet_vertices)].abs().max()) <= 1e-12
@@ -299,6 +301,11 @@ def test_under_gravity_the_body_starts_at_rest(root):
     assert report["steps"] == 3 * 2 and report["reference_steps"] == 12
     assert report["fps"] == 24.0 and report["substeps"] == 2 and report["scheme"] == "bdf2"
     assert 0.0 <= report["error_estimate"] <= 1e-6 * float(sag.norm(dim=-1).max())
+    with pytest.raises(ProblemConfigError) as refused:              # 30 Pa: it cannot hang
+        build_problem("animation", {**common, "gravity": [0.0, -9.81, 0.0], "E0": 0.003})
+    message = str(refused.value)
+    assert "\n" not in message and message.startswith("problem.gravity=[0.0, -9.81, 0.0]: ")
+    assert "E0 = 30 Pa" in message and "raise problem.E0" in message
 
 
 def test_the_folder_format_carries_its_frame_rate(root):

@@ -138,9 +138,11 @@ class StepParamDerivative:
         self.mass = model.mass(p).to(x)                                # s M
         # dR/ds: M (a - g) + alpha M v, the inertia, weight and mass damping per unit scale
         self.scaled = system.density_scaled
-        unit_mass = system.mass.to(x)
-        self.mass_rate = unit_mass * (c_a * x[0] + b_a - system.gravity.to(x)) + \
-            self.alpha * unit_mass * self.velocity
+        self.mass_rate: Tensor | None = None        # without a density scale: not read
+        if self.scaled:
+            unit_mass = system.mass.to(x)
+            self.mass_rate = unit_mass * (c_a * x[0] + b_a - system.gravity.to(x)) + \
+                self.alpha * unit_mass * self.velocity
         self.k0_velocity = system.stiffness_matvec(self.field, self.velocity)
         self.unit_forces = system.unit_element_forces(self.velocity)   # (n_field, d_el)
         elastic_derivative = getattr(system.elastic, "param_derivative", None)
@@ -285,6 +287,7 @@ class ImplicitIntegrator:
         self.checkpoint_every = checkpoint_every or max(1, math.ceil(math.sqrt(self.n_steps)))
         self.cache_size = int(cache_size)
         self._cache: list[_Trajectory] = []
+        self.static_increments = 0      # the loaded solves of the last static_equilibrium
 
     @property
     def order(self) -> int:
@@ -317,17 +320,62 @@ class ImplicitIntegrator:
         return {"difference": difference, "estimate": difference * 2 ** p / (2 ** p - 1),
                 "steps": int(self.n_steps), "reference_steps": int(fine_integrator.n_steps)}
 
-    def static_equilibrium(self, params: Tensor, x_init: Tensor) -> Tensor:
+    def static_equilibrium(self, params: Tensor, x_init: Tensor, min_fraction: float = 1 / 1024,
+                           max_increments: int = 128) -> Tensor:
         """Positions ``(n_dofs,)`` at rest in equilibrium at ``t0`` under the external force
         (gravity, loads): ``R_el(x; k) = f_ext(t0)``, no inertia, no damping, the prescribed
-        dofs at ``x_D(t0)``; Newton from ``x_init`` (no graph: a start is data)."""
+        dofs at ``x_D(t0)``; Newton from ``x_init`` (no graph: a start is data).
+
+        Where Newton cannot take the whole load from ``x_init`` at once (a soft body whose
+        sag is large: its residual stalls on the way), the load is applied in increments,
+        each solve starting from the last equilibrium and converged to the tolerance of the
+        whole load's (``newton.rtol`` times its residual at ``x_init``): the increment grows
+        by half after a success and halves after a failure. Below ``min_fraction`` of the
+        load, or after ``max_increments`` solves, the last failure is raised.
+        :attr:`static_increments` counts the loaded solves of the last call (1: the whole
+        load at once)."""
         t0 = self.step_times[:1].to(x_init)
-        n = self.system.n_dofs
-        zeros = x_init.new_zeros(n)
-        p = self.model.pack(params.detach().to(x_init), zeros, zeros,
-                            self.system.loads_at(t0)[0], 0.0, 0.0)
-        with torch.no_grad():
-            x = self.equilibrium(p, self.system.fixed_positions(t0), x_init.reshape(1, -1))[0]
+        fixed = self.system.fixed_positions(t0)
+        zeros = x_init.new_zeros(self.system.n_dofs)
+        params = params.detach().to(x_init)
+        gravity = self.system.gravity.to(x_init)
+        loads = self.system.loads_at(t0)[0]
+
+        def loaded(fraction: float) -> Tensor:
+            # the step residual without inertia is s M (b_a - g) + R_el - f: b_a = (1 - l) g
+            # leaves the weight's fraction l
+            return self.model.pack(params, (1.0 - fraction) * gravity, zeros,
+                                   fraction * loads, 0.0, 0.0)
+
+        def solve(fraction: float, start: Tensor) -> Tensor:
+            self.static_increments += 1
+            with torch.no_grad():
+                return self.equilibrium(loaded(fraction), fixed, start.reshape(1, -1))[0]
+
+        self.static_increments = 0
+        try:
+            x = solve(1.0, x_init)
+        except NewtonConvergenceError:
+            newton = self.equilibrium.newton
+            start = x_init.detach().clone().reshape(1, -1)
+            start[:, self.system.fixed_dofs.to(start.device)] = fixed
+            whole = self.model.residual(start, loaded(1.0))[0][self.system.free_dofs]
+            floor = newton.atol
+            newton.atol = max(floor, newton.rtol * float(torch.linalg.vector_norm(whole)))
+            try:
+                x, done, increment = start[0], 0.0, 0.25
+                while done < 1.0:
+                    target = min(1.0, done + increment)
+                    try:
+                        x = solve(target, x)
+                    except NewtonConvergenceError:
+                        if increment <= min_fraction or self.static_increments >= max_increments:
+                            raise
+                        increment /= 2
+                        continue
+                    done, increment = target, 1.5 * increment
+            finally:
+                newton.atol = floor
         self.system.check_state(x, float(t0[0]))
         return x
 

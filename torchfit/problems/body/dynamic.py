@@ -47,7 +47,7 @@ from torch import Tensor
 from ...memory import check_allocation
 from ...mesh.formats.folder import Animation
 from ...params import FieldAndScalars, Parameterization
-from ...physics import NewtonOptions
+from ...physics import NewtonConvergenceError, NewtonOptions
 from ...physics.dynamics import DynamicSystem, SplineMotion, UnstableStepError, make_integrator
 from ..base import InverseProblem
 from ..config import ProblemConfigError, Transform, make_config, require_setting, setting_error
@@ -244,7 +244,23 @@ class DynamicBody(DynamicMixin):
             start = torch.cat([torch.full((self.model.n_cells,), float(cfg.E0), dtype=dtype,
                                           device=device),
                                torch.tensor(self.scalar_starts(cfg), dtype=dtype, device=device)])
-            self.system.start_at(self.integrator.static_equilibrium(start, self.system.x0))
+            try:
+                rest_under_gravity = self.integrator.static_equilibrium(start, self.system.x0)
+            except NewtonConvergenceError as error:
+                # Seen on a capsule held by 4 tetrahedron vertices near its axis with gravity
+                # across it: the centre of mass above the held line, the body would swing
+                # round it; no equilibrium near the rest shape for Newton to find.
+                raise ProblemConfigError(
+                    f"problem.gravity={list(cfg.gravity)}: the body has no equilibrium at rest "
+                    f"under gravity at the first frame for the start E0 = {cfg.E0:g} Pa (Newton "
+                    f"from the rest shape, the load in up to "
+                    f"{self.integrator.static_increments} increments: "
+                    f"{' '.join(str(error).split(': ', 1)[-1].split(';')[0].split())}); the rig "
+                    f"holds it by {len(self.dirichlet_vertices)} tetrahedron vertices, so it "
+                    "may sag or swing far from its rest shape: raise problem.E0, drive more of "
+                    "the body (a larger attach radius, torchfit:attachRadius) or set "
+                    "problem.gravity=null") from error
+            self.system.start_at(rest_under_gravity)
 
     def check_time_steps(self, cfg: RiggedBodyConfig) -> None:
         """Refuse, naming ``problem.substeps``, a step grid whose size exceeds the memory
