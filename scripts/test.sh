@@ -11,7 +11,7 @@ Run torchfit's test suite (pytest, from the repository root) in the project's vi
 environment, creating or updating it first (scripts/_venv.sh). Writes nothing but pytest's
 cache.
 
-  scripts/test.sh                         # everything, what CI runs (about 30 minutes)
+  scripts/test.sh                         # everything, what CI runs (about 36 minutes on 2 cores)
   scripts/test.sh -m "not slow"           # the fast part
   scripts/test.sh tests/experiments -x    # one folder, stop at the first failure
   scripts/test.sh -k simulate --durations=10

@@ -1,5 +1,5 @@
-"""The suite's fixtures: float64 and a fixed seed for every test, the vendored test vectors,
-a real TensorBoard server. Helpers that tests import are in ``tests/helpers/``."""
+"""The suite's fixtures: float64, a fixed seed and one torch thread for every test, the vendored
+test vectors, a real TensorBoard server. Helpers that tests import are in ``tests/helpers/``."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -18,6 +18,18 @@ def _float64_and_seed():
     torch.set_default_dtype(torch.float64)
     torch.manual_seed(0)
     yield
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    # The tests' problems are small: torch's intra-op pool costs more than it gains on them,
+    # and its spinning threads slow everything on an oversubscribed 2-core machine (the 96x24
+    # membrane's 40 LM iterations: 157 s with 2 threads, 90 s with 1, 2026-12-02). A test of
+    # threading sets its own count; the processes a test starts choose theirs.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 @pytest.fixture

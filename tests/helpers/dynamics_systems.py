@@ -3,7 +3,6 @@ derivative checks, the one-thread fixture and the one-line error check."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import torch
 
 from torchfit.mesh import rectangle_triangles
@@ -15,16 +14,6 @@ from torchfit.verification import dot_product_test, random_direction, taylor_tes
 
 
 DT = torch.float64
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Step-by-step integrations are many small kernels: one torch thread (as the dynamic
-    presets run) avoids the intra-op pool's overhead on a shared machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def chain_system(n: int = 6, stiffness: float = 30.0, loads=None, x0=None,

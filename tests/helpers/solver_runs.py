@@ -6,20 +6,9 @@ from __future__ import annotations
 import math
 import time
 
-import pytest
 import torch
 
 from torchfit.solvers import ResidualFunction, gauss_newton, split_bregman
-
-
-@pytest.fixture
-def one_torch_thread():
-    """Small vectors: one torch thread is faster and immune to an oversubscribed CPU (a test
-    module turns it on for all its tests with ``pytestmark``)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def distinct(points: list[torch.Tensor]) -> int:

@@ -26,14 +26,6 @@ SMALL_SHEET = {"dynamic": True, "nx": 12, "ny": 3, "duration": 0.4, "frames": 4,
                "backend": "scipy"}
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def test_dynamic_flag_selects_the_dynamic_problem_and_its_contract():
     problem = build_problem("spring1d", SMALL_CHAIN)
     assert isinstance(problem, DynamicSpring1D) and isinstance(problem, Spring1D)

@@ -12,7 +12,7 @@ from torchfit.physics.dynamics.explicit import fastest_rate
 from torchfit.physics.equilibrium import TrialBudgetExceeded
 
 from helpers.dynamics_systems import (chain_system, check_derivatives, one_line,
-                                      one_thread, sheet_system)  # noqa: F401 (autouse)
+                                      sheet_system)
 
 
 def test_torchdiffeq_derivatives_dopri5_tight_tolerance():

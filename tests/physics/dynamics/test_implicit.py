@@ -14,7 +14,7 @@ from torchfit.physics.elasticity import SimplicialElasticity
 from torchfit.physics.equilibrium import NewtonConvergenceError
 
 from helpers.dynamics_systems import (DT, chain_system, check_derivatives,
-                                      one_thread, residual_of, sheet_system)  # noqa: F401 (autouse)
+                                      residual_of, sheet_system)
 
 
 @pytest.mark.parametrize("scheme,checkpoint_every", [("bdf2", 1), ("bdf2", 4),

@@ -10,8 +10,7 @@ import torch
 
 from torchfit.physics.dynamics import NonFiniteStateError, make_integrator
 
-from helpers.dynamics_systems import (DT, chain_system, one_line,
-                                      one_thread)  # noqa: F401 (autouse)
+from helpers.dynamics_systems import DT, chain_system, one_line
 
 
 def test_jacobian_columns_equal_jvps_for_both_integrators():

@@ -11,7 +11,7 @@ from torchfit.physics.dynamics import (DynamicsInputError, DynamicSystem, KeyedM
                                        NegativeDampingError, check_output_times, make_integrator)
 from torchfit.physics.dynamics.system import smootherstep
 
-from helpers.dynamics_systems import chain_system, one_line, one_thread, sheet_system  # noqa: F401 (autouse)
+from helpers.dynamics_systems import chain_system, one_line, sheet_system
 
 
 def test_keyed_motion_is_c2_and_stops():

@@ -21,14 +21,6 @@ from torchfit.problems.body.dynamic import DynamicRiggedBody
 ANGLES = (0.0, 10.0, 20.0, 30.0, 30.0, 30.0)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def capsule(root: Path, fps: float | None = None, name: str = "capsule") -> Path:
     folder = root / name
     if not (folder / "animation.yaml").is_file():

@@ -10,10 +10,8 @@ from torchfit.solvers import SplitBregman, SplitBregmanConfig
 
 from helpers.solver_resume import check_resume, fresh, roundtrip, run_with_snapshots
 from helpers.solver_runs import FlakyResidual, underestimated_noise
-from helpers.solver_runs import one_torch_thread  # noqa: F401  (the fixture of pytestmark)
 
 
-pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _resume_all(make, residual_factory, theta0, every=5, limit=600, extra=None, prepare=None):

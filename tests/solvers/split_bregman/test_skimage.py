@@ -45,10 +45,8 @@ import torch
 from torchfit.params import per_grid_cell
 from torchfit.solvers import GroupTV, ResidualFunction, SplitBregmanConfig, split_bregman
 
-from helpers.solver_runs import one_torch_thread  # noqa: F401  (the fixture of pytestmark)
 
 
-pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture

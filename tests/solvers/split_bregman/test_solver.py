@@ -17,10 +17,8 @@ from torchfit.solvers.total_variation import check_difference_operator
 
 from helpers.solver_resume import fresh
 from helpers.solver_runs import CountingResidual, FlakyResidual, timed_fit
-from helpers.solver_runs import one_torch_thread  # noqa: F401  (the fixture of pytestmark)
 
 
-pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # -- acceptance: spring1d ------------------------------------------------------------------

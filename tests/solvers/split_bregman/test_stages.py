@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 
-import pytest
 import torch
 
 from torchfit.problems import Spring1D, Spring1DConfig
@@ -15,10 +14,8 @@ from torchfit.solvers.split_bregman.stages import (StageEnd, StageSearch, at_fix
                                                    fixed_weight_stop)
 
 from helpers.solver_runs import underestimated_noise
-from helpers.solver_runs import one_torch_thread  # noqa: F401  (the fixture of pytestmark)
 
 
-pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_stronger_tv_is_searched_when_the_first_stage_already_fits_the_noise():

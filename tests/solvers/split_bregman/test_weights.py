@@ -12,10 +12,8 @@ from torchfit.solvers.split_bregman.weights import (adapted_beta, admm_stalled, 
                                                     spectral_beta)
 
 from helpers.solver_runs import timed_fit
-from helpers.solver_runs import one_torch_thread  # noqa: F401  (the fixture of pytestmark)
 
 
-pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_data_bregman_fits_clean_data_exactly_at_a_moderate_weight():
