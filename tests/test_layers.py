@@ -1,5 +1,32 @@
-"""The import graph of torchfit/ (lazy imports included): no cycle, and every arrow points down
-docs/architecture.md's table of layers. One test for the whole package."""
+"""The import graph of torchfit/ (lazy imports included): no cycle, every arrow points down
+docs/architecture.md's table of layers, and an import across parts goes through a face. One
+test for the whole package.
+
+The faces (issue 46, item 3: "the faces are the door"):
+
+* a *part* is a package of torchfit, each directory with an ``__init__.py``
+  (``torchfit``, ``torchfit.linalg``, ``torchfit.linalg.backends``, ``torchfit.mesh``,
+  ``torchfit.mesh.formats``, ``torchfit.mesh.formats.usd``, ...); its *face* is its
+  ``__init__.py``, and what the face offers is its ``__all__``. Each top-level module
+  (``torchfit.errors``, ``torchfit.records``, ..., ``torchfit.verification``,
+  ``torchfit.config``) is a face of its own;
+* a module belongs to the package of its directory (an ``__init__.py`` to its own package),
+  and is *inside* package P when that package is P or a subpackage of P;
+* an import *passes a face* when a module not inside package P names a module of P (not P
+  itself, nor a subpackage, nor a top-level module). ``from P import name`` names P's face
+  where ``name`` is in P's ``__all__``, else P's module ``name`` where there is one;
+  ``import P.m`` and ``from P.m import name`` name the module ``P.m``.
+
+So a module imports the modules of its own package and of the packages above it directly
+(its siblings; a subpackage its parent's modules: the parent's face re-exports the
+subpackage, so a subpackage importing that face would import itself), and everything else
+through faces: another layer, a sibling subpackage, and its own package's subpackages (the
+face of ``mesh`` imports ``.tetwild``, not ``.tetwild.tetrahedralize``). Every import that
+passes a face is in :data:`PAST_A_FACE` with the reason it stays, and the list only shrinks
+(an entry that no import needs any more fails the test). The apps (``experiments/*.py``)
+import only the faces in :data:`APP_FACES`: the package, the run, the Hydra schemas, the
+errors.
+"""
 from __future__ import annotations
 
 import ast
@@ -108,6 +135,252 @@ def test_no_private_name_crosses_a_module():
                 crossing += [f"{name} imports {a.name} from {node.module}" for a in node.names
                              if a.name.startswith("_") and not a.name.startswith("__")]
     assert not crossing, crossing
+
+
+# -- the faces --------------------------------------------------------------------------------
+REPO = PACKAGE.parent
+#: what the apps (experiments/*.py, thin adapters: config in, exit status out) may import
+APP_FACES = {"torchfit", "torchfit.run", "torchfit.run.distributed", "torchfit.config",
+             "torchfit.errors"}
+
+RECOMPOSED = "being recomposed (issue 46, items 1-2)"
+NOT_YET = "not yet through the face (issue 46, item 3)"
+#: (importer, imported module) -> why this import passes the face of the imported module's
+#: package. Only shrinks: an entry no import needs fails the test.
+PAST_A_FACE: dict[tuple[str, str], str] = {
+    ("torchfit.config", "torchfit.run.options"): NOT_YET,
+    ("torchfit.mesh.formats.convert", "torchfit.mesh.formats.gltf.writer"): NOT_YET,
+    ("torchfit.mesh.formats.convert", "torchfit.mesh.formats.usd.writer"): NOT_YET,
+    ("torchfit.mesh.formats.readers", "torchfit.mesh.formats.gltf.reader"): NOT_YET,
+    ("torchfit.mesh.formats.readers", "torchfit.mesh.formats.usd.reader"): NOT_YET,
+    ("torchfit.mesh.rig_check", "torchfit.mesh.formats.folder"): NOT_YET,
+    ("torchfit.physics.dynamics.system", "torchfit.linalg.pattern"): NOT_YET,
+    ("torchfit.physics.equilibrium.adjoint", "torchfit.linalg.counters"): NOT_YET,
+    ("torchfit.physics.equilibrium.equilibrium", "torchfit.linalg.backends.cudss"): NOT_YET,
+    ("torchfit.problems", "torchfit.mesh.tetwild.store"): RECOMPOSED,
+    ("torchfit.problems", "torchfit.problems.body.arm3d"): RECOMPOSED,
+    ("torchfit.problems", "torchfit.problems.body.config"): RECOMPOSED,
+    ("torchfit.problems", "torchfit.problems.body.dynamic"): RECOMPOSED,
+    ("torchfit.problems", "torchfit.problems.body.problem"): RECOMPOSED,
+    ("torchfit.problems.body.arm3d", "torchfit.mesh.formats.folder"): RECOMPOSED,
+    ("torchfit.problems.body.arm3d", "torchfit.mesh.tetwild.tetrahedralize"): RECOMPOSED,
+    ("torchfit.problems.body.dynamic", "torchfit.mesh.formats.folder"): RECOMPOSED,
+    ("torchfit.problems.body.frame", "torchfit.mesh.tetwild.tetrahedralize"): RECOMPOSED,
+    ("torchfit.problems.body.init_field", "torchfit.mesh.formats.usd.material"): RECOMPOSED,
+    ("torchfit.problems.body.problem", "torchfit.mesh.embedding"): RECOMPOSED,
+    ("torchfit.problems.body.problem", "torchfit.mesh.formats.folder"): RECOMPOSED,
+    ("torchfit.problems.body.problem", "torchfit.mesh.formats.readers"): RECOMPOSED,
+    ("torchfit.problems.body.problem", "torchfit.mesh.rig"): RECOMPOSED,
+    ("torchfit.problems.body.problem", "torchfit.mesh.tetwild.size"): RECOMPOSED,
+    ("torchfit.problems.body.problem", "torchfit.mesh.tetwild.store"): RECOMPOSED,
+    ("torchfit.problems.body.problem", "torchfit.mesh.tetwild.tetrahedralize"): RECOMPOSED,
+    ("torchfit.problems.body.procedural_arm", "torchfit.mesh.rig"): RECOMPOSED,
+    ("torchfit.problems.body.run_mesh", "torchfit.mesh.tetwild.store"): RECOMPOSED,
+    ("torchfit.problems.body.setup", "torchfit.mesh.formats.folder"): RECOMPOSED,
+    ("torchfit.problems.body.setup", "torchfit.mesh.rig_check"): RECOMPOSED,
+    ("torchfit.problems.body.setup", "torchfit.mesh.tetwild.store"): RECOMPOSED,
+    ("torchfit.problems.body.setup", "torchfit.mesh.tetwild.tetrahedralize"): RECOMPOSED,
+    ("torchfit.problems.body.setup", "torchfit.physics.equilibrium.newton"): RECOMPOSED,
+    ("torchfit.problems.config", "torchfit.linalg.backends.amg"): RECOMPOSED,
+    ("torchfit.problems.config", "torchfit.linalg.backends.choice"): RECOMPOSED,
+    ("torchfit.problems.config", "torchfit.linalg.backends.cudss"): RECOMPOSED,
+    ("torchfit.problems.config", "torchfit.linalg.backends.pardiso_mkl"): RECOMPOSED,
+    ("torchfit.reporting.body", "torchfit.mesh.embedding"): NOT_YET,
+    ("torchfit.reporting.body", "torchfit.problems.base"): NOT_YET,
+    ("torchfit.reporting.body_files", "torchfit.mesh.formats.usd.writer"): NOT_YET,
+    ("torchfit.reporting.body_files", "torchfit.problems.base"): NOT_YET,
+    ("torchfit.reporting.field_snapshots", "torchfit.problems.base"): NOT_YET,
+    ("torchfit.reporting.figures", "torchfit.problems.base"): NOT_YET,
+    ("torchfit.reporting.motion", "torchfit.problems.base"): NOT_YET,
+    ("torchfit.run.checkpoint", "torchfit.reporting.results"): NOT_YET,
+    ("torchfit.run.continuation", "torchfit.problems.base"): NOT_YET,
+    ("torchfit.run.continuation", "torchfit.reporting.body"): NOT_YET,
+    ("torchfit.run.continuation", "torchfit.reporting.results"): NOT_YET,
+    ("torchfit.run.distributed.channel", "torchfit.linalg.counters"): RECOMPOSED,
+    ("torchfit.run.evaluator", "torchfit.linalg.counters"): NOT_YET,
+    ("torchfit.run.evaluator", "torchfit.reporting.evaluation"): NOT_YET,
+    ("torchfit.run.fitting", "torchfit.reporting.progress"): NOT_YET,
+    ("torchfit.run.fitting", "torchfit.reporting.results"): NOT_YET,
+    ("torchfit.run.fitting", "torchfit.solvers.base"): NOT_YET,
+    ("torchfit.run.identifiability", "torchfit.linalg.estimators"): NOT_YET,
+    ("torchfit.run.options", "torchfit.problems.base"): NOT_YET,
+    ("torchfit.run.options", "torchfit.reporting.results"): NOT_YET,
+    ("torchfit.run.outputs", "torchfit.problems.base"): NOT_YET,
+    ("torchfit.run.outputs", "torchfit.reporting.body"): NOT_YET,
+    ("torchfit.run.outputs", "torchfit.reporting.body_files"): NOT_YET,
+    ("torchfit.run.outputs", "torchfit.reporting.evaluation"): NOT_YET,
+    ("torchfit.run.outputs", "torchfit.reporting.field_snapshots"): NOT_YET,
+    ("torchfit.run.outputs", "torchfit.reporting.figures"): NOT_YET,
+    ("torchfit.run.outputs", "torchfit.reporting.guard"): NOT_YET,
+    ("torchfit.run.outputs", "torchfit.reporting.identifiability"): NOT_YET,
+    ("torchfit.run.outputs", "torchfit.reporting.motion"): NOT_YET,
+    ("torchfit.run.outputs", "torchfit.reporting.progress"): NOT_YET,
+    ("torchfit.run.outputs", "torchfit.reporting.results"): NOT_YET,
+    ("torchfit.run.outputs", "torchfit.reporting.tensorboard"): NOT_YET,
+    ("torchfit.run.simulating", "torchfit.problems.body.run_mesh"): NOT_YET,
+    ("torchfit.run.simulating", "torchfit.reporting.body_files"): NOT_YET,
+    ("torchfit.run.simulating", "torchfit.reporting.progress"): NOT_YET,
+    ("torchfit.run.simulating", "torchfit.reporting.results"): NOT_YET,
+    ("torchfit.run.simulating", "torchfit.reporting.simulation"): NOT_YET,
+    ("torchfit.run.start", "torchfit.reporting.results"): NOT_YET,
+    ("torchfit.run.validation", "torchfit.reporting.evaluation"): NOT_YET,
+    ("torchfit.run.validation", "torchfit.reporting.results"): NOT_YET,
+    ("torchfit.run.verifying", "torchfit.reporting.results"): NOT_YET,
+    ("torchfit.solvers", "torchfit.solvers.split_bregman.settings"): NOT_YET,
+    ("torchfit.solvers", "torchfit.solvers.split_bregman.solver"): NOT_YET,
+    ("torchfit.solvers.levenberg_marquardt", "torchfit.linalg.estimators"): NOT_YET,
+    ("torchfit.solvers.registry", "torchfit.solvers.split_bregman.settings"): NOT_YET,
+    ("torchfit.solvers.registry", "torchfit.solvers.split_bregman.solver"): NOT_YET,
+    ("torchfit.solvers.split_bregman.weights", "torchfit.linalg.estimators"): NOT_YET,
+}
+
+#: (app, imported module) -> why an app imports a module outside :data:`APP_FACES`
+APP_PAST_A_FACE: dict[tuple[str, str], str] = {
+    ("experiments.app", "torchfit.run.directory"): NOT_YET,
+    ("experiments.app", "torchfit.run.lock"): NOT_YET,
+    ("experiments.cli", "torchfit.problems"): NOT_YET,
+    ("experiments.cli", "torchfit.solvers"): NOT_YET,
+    ("experiments.fit", "torchfit.linalg"): NOT_YET,
+    ("experiments.fit", "torchfit.problems"): NOT_YET,
+    ("experiments.fit", "torchfit.problems.body.run_mesh"): NOT_YET,
+    ("experiments.fit", "torchfit.reporting.results"): NOT_YET,
+    ("experiments.fit", "torchfit.run.continuation"): NOT_YET,
+    ("experiments.fit", "torchfit.run.options"): NOT_YET,
+    ("experiments.fit", "torchfit.run.solver"): NOT_YET,
+    ("experiments.simulate", "torchfit.run.simulating"): NOT_YET,
+    ("experiments.verify", "torchfit.linalg"): NOT_YET,
+    ("experiments.verify", "torchfit.problems"): NOT_YET,
+}
+
+
+def packages(mods: dict[str, Path]) -> set[str]:
+    return {name for name, path in mods.items() if path.name == "__init__.py"}
+
+
+def package_of(module: str, pkgs: set[str]) -> str:
+    return module if module in pkgs else module.rsplit(".", 1)[0]
+
+
+def exports(mods: dict[str, Path]) -> dict[str, set[str]]:
+    """package -> the names in its face's ``__all__``."""
+    out = {}
+    for name in packages(mods):
+        found: set[str] = set()
+        for node in ast.parse(mods[name].read_text()).body:
+            if isinstance(node, ast.Assign) and any(
+                    isinstance(t, ast.Name) and t.id == "__all__" for t in node.targets):
+                found = set(ast.literal_eval(node.value))
+        out[name] = found
+    return out
+
+
+def named_modules(name: str, path: Path, mods: dict[str, Path],
+                  offered: dict[str, set[str]]) -> set[str]:
+    """The modules of torchfit the imports of ``path`` (module ``name``; an app where ``name``
+    is not in ``mods``) name, resolved as the docstring says."""
+    package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+
+    def known(target: str) -> str:
+        while target and target not in mods:
+            target = target.rsplit(".", 1)[0] if "." in target else ""
+        return target
+
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {known(a.name) for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                module = ".".join(base + ([node.module] if node.module else []))
+            else:
+                module = node.module or ""
+            source = known(module)
+            for alias in node.names:
+                if source == module and alias.name in offered.get(source, set()):
+                    found.add(source)                       # the face's export
+                elif f"{module}.{alias.name}" in mods:
+                    found.add(f"{module}.{alias.name}")     # a submodule (or subpackage)
+                else:
+                    found.add(source)
+    return {target for target in found if target and target != name}
+
+
+def past_faces(importers: dict[str, Path], mods: dict[str, Path]) -> set[tuple[str, str]]:
+    """(importer, module) for every import of ``importers`` that passes a face."""
+    pkgs, offered = packages(mods), exports(mods)
+    out = set()
+    for name, path in importers.items():
+        inside = package_of(name, pkgs) if name in mods else ""
+        for target in named_modules(name, path, mods, offered):
+            if target in pkgs or target.rsplit(".", 1)[0] == "torchfit":
+                continue                                    # a face
+            owner = package_of(target, pkgs)
+            if inside == owner or inside.startswith(owner + "."):
+                continue                                    # inside its own package
+            out.add((name, target))
+    return out
+
+
+def apps() -> dict[str, Path]:
+    return {f"experiments.{p.stem}": p for p in sorted((REPO / "experiments").glob("*.py"))}
+
+
+def app_imports(mods: dict[str, Path]) -> set[tuple[str, str]]:
+    """(app, module of torchfit) for every import of an app outside :data:`APP_FACES`."""
+    offered = exports(mods)
+    return {(name, target) for name, path in apps().items()
+            for target in named_modules(name, path, mods, offered)
+            if target.startswith("torchfit") and target not in APP_FACES}
+
+
+def test_imports_across_parts_name_the_package():
+    found = past_faces(modules(), modules())
+    new = sorted(found - set(PAST_A_FACE))
+    stale = sorted(set(PAST_A_FACE) - found)
+    assert not new, "imports past a package's face (name the package, export the name from " \
+        "its __init__.py's __all__): " + ", ".join(f"{m} -> {t}" for m, t in new)
+    assert not stale, "PAST_A_FACE entries no import needs any more (drop them): " + \
+        ", ".join(f"{m} -> {t}" for m, t in stale)
+    assert all(why.strip() for why in PAST_A_FACE.values()), "every entry says why"
+
+
+def test_the_apps_import_the_run():
+    found = app_imports(modules())
+    new = sorted(found - set(APP_PAST_A_FACE))
+    stale = sorted(set(APP_PAST_A_FACE) - found)
+    assert not new, f"apps importing past {sorted(APP_FACES)}: " + \
+        ", ".join(f"{m} -> {t}" for m, t in new)
+    assert not stale, "APP_PAST_A_FACE entries no import needs any more (drop them): " + \
+        ", ".join(f"{m} -> {t}" for m, t in stale)
+
+
+def test_the_face_rule_can_fail(tmp_path):
+    root = tmp_path / "torchfit"
+    for package in ("", "a", "a/sub", "b"):
+        (root / package).mkdir(exist_ok=True)
+    files = {
+        "__init__.py": "",
+        "errors.py": "",
+        "a/__init__.py": "from .inner import Thing\n__all__ = ['Thing']\n",
+        "a/inner.py": "from ..errors import Error\nfrom .sub.deep import x\n",
+        "a/sub/__init__.py": "from .deep import x\n__all__ = ['x']\n",
+        "a/sub/deep.py": "from ..inner import Thing\n",          # its parent's module: inside
+        "b/__init__.py": "",
+        "b/user.py": ("from ..a import Thing\nfrom ..a.inner import Thing\n"
+                      "from ..a import sub\nimport torchfit.a.sub.deep\n"),
+    }
+    for file, text in files.items():
+        (root / file).write_text(text)
+    mods = {}
+    for path in root.rglob("*.py"):
+        parts = list(path.relative_to(tmp_path).with_suffix("").parts)
+        if parts[-1] == "__init__" and len(parts) > 1:
+            parts = parts[:-1]
+        mods[".".join(parts)] = path
+    assert past_faces(mods, mods) == {("torchfit.a.inner", "torchfit.a.sub.deep"),
+                                      ("torchfit.b.user", "torchfit.a.inner"),
+                                      ("torchfit.b.user", "torchfit.a.sub.deep")}
 
 
 def test_the_checks_can_fail():
