@@ -56,14 +56,14 @@ def bench_case(edge_length: float, model: str, frames: int, cache: str,
            "n_params": problem.parameterization.n_params, "n_data": int(problem.data.numel()),
            "build_problem_s": build_s, "tetrahedralize_s": problem.tet.build_seconds,
            "tet_cache_hit": problem.tet.from_cache}
-    eq = problem.quasistatic.equilibrium
+    eq = problem.poses.quasistatic.equilibrium
     theta = problem.theta0.clone()
 
     eq.clear_cache()
     leaf = theta.clone().requires_grad_(True)
     t, y, counts = timed(lambda: problem.forward(leaf))
     out["simulate"] = {"s": t, "counts": counts,
-                       "newton_iterations": list(problem.quasistatic.last_newton_iterations)}
+                       "newton_iterations": list(problem.poses.quasistatic.last_newton_iterations)}
     w = torch.randn(y.shape, generator=torch.Generator().manual_seed(0), dtype=y.dtype)
     t, _, counts = timed(lambda: torch.autograd.grad(y, leaf, w))
     out["backward"] = {"s": t, "counts": counts,

@@ -156,7 +156,7 @@ def measure(integrator, params: torch.Tensor, reference: torch.Tensor, scale: fl
 def bench_problem(key: str, target: float, quick: bool) -> dict[str, Any]:
     spec = PROBLEMS[key]
     problem = build_problem(spec["name"], spec["cfg"])
-    params = problem.true_simulation_input()
+    params = problem.time.true_input(problem.field_true)
     dts = spec["dts"][:2] if quick else spec["dts"]
     reference_dt = dts[-1] / 16
     with torch.no_grad():      # nothing kept for a gradient: checkpoints only

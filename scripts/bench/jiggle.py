@@ -97,7 +97,7 @@ def test_window(mode: str, arm: Path, run: Path, cache: Path, fitted: list[int],
     for name, theta in (("start", problem.theta0), ("chosen", chosen.to(problem.theta0))):
         with torch.no_grad():
             x = problem.simulate(problem.simulation_input(theta))
-            out[f"test_{name}_mm"] = 1e3 * float(problem.surface_errors(x).mean())
+            out[f"test_{name}_mm"] = 1e3 * float(problem.observation.surface_errors(x, problem.x_true).mean())
     out["test_reduction"] = out["test_start_mm"] / out["test_chosen_mm"]
     return out
 

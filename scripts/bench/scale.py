@@ -104,7 +104,7 @@ def lm_iteration(problem, theta0, state, config) -> dict[str, Any]:
     from benchtools import timed
     from torchfit.run.solver import build_solver
 
-    problem.restore_simulation_state(state)
+    problem.warm_starts.restore_warm_start_state(state, problem.device)
     solver = build_solver(problem, config)
     seconds, result, counts = timed(lambda: solver.solve(problem.residual(), theta0, []))
     history = result.history
@@ -137,7 +137,7 @@ def measure(problem, job: dict[str, Any], n_ranks: int,
     from benchtools import timed
     from torchfit.solvers import LevenbergMarquardtConfig
 
-    poses = problem.repeated_poses
+    poses = problem.poses.repeated_poses
     n_sim = int(poses[0].numel()) if poses is not None else int(problem.n_frames)
     n_params = int(problem.parameterization.n_params)
     out: dict[str, Any] = {
@@ -150,15 +150,15 @@ def measure(problem, job: dict[str, Any], n_ranks: int,
         "split": "poses", **(known or {})}
     theta0 = problem.theta0.detach().clone()
     # nothing simulated yet may answer from the cache (describe() simulates the baseline)
-    problem.quasistatic.equilibrium.clear_cache()
+    problem.poses.quasistatic.equilibrium.clear_cache()
     load = loadavg()
     with torch.no_grad():
         t, _, counts = timed(lambda: problem.forward(theta0))
-    newton = [int(i) for i in problem.quasistatic.last_newton_iterations]
+    newton = [int(i) for i in problem.poses.quasistatic.last_newton_iterations]
     out["simulate"] = {"s": t, "counts": counts, "per_simulated_frame_s": t / n_sim,
                        "newton_iterations_rank0": newton, "loadavg": load}
     save_partial(job, out)
-    state = problem.simulation_state()
+    state = problem.warm_starts.warm_start_state()
     load = loadavg()
     t, jacobian, counts = timed(lambda: problem.forward_jacobian(theta0))
     shape = tuple(jacobian.shape)

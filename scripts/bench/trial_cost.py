@@ -54,7 +54,7 @@ def write_bent_capsule(folder: Path, angles: list[float]) -> Path:
 
 def run(problem_name: str, settings: dict, variant: dict, max_iter: int) -> dict:
     problem = build_problem(problem_name, settings)
-    newton = problem.quasistatic.equilibrium.newton
+    newton = problem.poses.quasistatic.equilibrium.newton
     for key, value in variant.items():
         setattr(newton, key, value)
     solver = LevenbergMarquardt(LevenbergMarquardtConfig(max_iter=max_iter, max_step=1.0))

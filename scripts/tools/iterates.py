@@ -43,6 +43,10 @@ RUNS: dict[str, list[str]] = {
     "arm3d_short": ["threads=1"],
     # the arm's synthetic target: unbounded by default (problem.bounds), its iterates unchanged
     "arm3d_short_synthetic": ["problem.target=synthetic", "threads=1"],
+    # added with the body's recomposition (issue 46): the body in time and the sheet in time
+    "arm3d_short_dynamic": ["problem=arm3d_short_dynamic", "solver.max_iter=3"],
+    "membrane2d_dynamic": ["problem=membrane2d_dynamic", "problem.nx=16", "problem.ny=4",
+                           "solver.max_iter=3"],
 }
 _WALL_KEYS = {"wall_time", "wall_s", "solver_wall_s", "setup_s"}
 

@@ -120,7 +120,7 @@ def assert_equilibria(fitted, states):
     sim = simulate(fitted["run"], {"path": str(fitted["other"]),
                                    "cache_dir": str(fitted["cache"])}, progress_lines=False)
     problem = sim.problem
-    equilibrium = problem.quasistatic.equilibrium
+    equilibrium = problem.poses.quasistatic.equilibrium
     free = equilibrium.free_dofs
     field = sim.field.to(torch.float64)
     start = problem.start_positions.reshape(problem.n_frames, -1)
@@ -137,7 +137,7 @@ def test_simulate_on_the_fitted_animation_is_the_fits_cold_evaluation(fitted):
     and the errors the fit reports for them."""
     result = simulate(fitted["run"], {"cache_dir": str(fitted["cache"])}, progress_lines=False)
     problem = result.problem
-    with torch.no_grad(), problem.independent_simulation():
+    with torch.no_grad(), problem.warm_starts.independent():
         cold = problem.simulate(result.field)
     scale = float(cold.abs().max())
     assert float((result.state - cold).abs().max()) <= 1e-8 * scale

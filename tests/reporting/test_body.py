@@ -42,7 +42,7 @@ def test_simulated_frames_are_obj_files_on_the_users_vertices(capsule_run):
     problem, result, run, _ = capsule_run
     files = sorted((run / "frames").glob("frame_*.obj"))
     assert [f.name for f in files] == ["frame_000.obj", "frame_001.obj", "frame_002.obj"]
-    surface = problem.surface(problem.simulate(result.field)).numpy()
+    surface = problem.observation.surface(problem.simulate(result.field)).numpy()
     for f, path in enumerate(files):
         mesh = trimesh.load(str(path), process=False, maintain_order=True)
         assert np.array_equal(mesh.faces, problem.animation.faces)

@@ -34,8 +34,8 @@ def between(problem) -> float:
     """A threshold between frame 3's and frame 11's smallest volume ratio at the start
     (half frame 3's: frame 11's may be far below 0, an inverted tetrahedron)."""
     # independent: a solution the test made would warm-start the fit's first simulation
-    with torch.no_grad(), problem.independent_simulation():
-        ratios = problem.min_volume_ratio(problem.simulate(problem.field(problem.theta0)))
+    with torch.no_grad(), problem.warm_starts.independent():
+        ratios = problem.report.min_volume_ratio(problem.simulate(problem.field(problem.theta0)))
     numbers = problem.frame_numbers()
     bent, mild = ratios[numbers.index(11)], ratios[numbers.index(3)]
     assert bent < 0.5 * mild < 0.5, ratios    # full bend compresses the inner elbow most
@@ -172,8 +172,8 @@ def test_auto_splits_a_synthetic_body_only_where_a_frame_is_near_a_fold(tmp_path
     smallest volume ratio puts it in the second stage (the first stage gets
     FIRST_STAGE_ITER_FACTOR x max_iter iterations), one below every ratio is one run."""
     problem = capsule(tmp_path, target="synthetic")
-    with torch.no_grad(), problem.independent_simulation():
-        ratios = problem.min_volume_ratio(problem.simulate(problem.field(problem.theta0)))
+    with torch.no_grad(), problem.warm_starts.independent():
+        ratios = problem.report.min_volume_ratio(problem.simulate(problem.field(problem.theta0)))
     assert problem.frame_numbers() == [0, 1, 2] and ratios[2] < ratios[1] < 1, ratios
     folding = float(0.5 * (ratios[1] + ratios[2]))
     one_iteration = {**LM, "max_iter": 1}

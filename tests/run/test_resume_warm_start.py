@@ -1,5 +1,5 @@
 """Exact resume of a warm-started problem: the checkpoint carries the equilibria the next
-iteration's Newton starts from (``problem.simulation_state()``), so a run stopped after any
+iteration's Newton starts from (``problem.warm_starts.warm_start_state()``), so a run stopped after any
 iteration and resumed in a fresh process (a fresh problem, a cold solution cache) goes on
 bit for bit as the uninterrupted one.
 
@@ -73,7 +73,7 @@ def test_the_checkpoint_holds_the_warm_start_anchor(cache, tmp_path):  # noqa: F
     assert state["anchor"] == 0
     anchor = state["solutions"][0]
     assert torch.equal(anchor["params"], problem.field(saved["theta"]))
-    equilibrium = problem.quasistatic.equilibrium
+    equilibrium = problem.poses.quasistatic.equilibrium
     assert anchor["x"].shape == (1, equilibrium.model.n_dofs)
     assert anchor["reference"].shape == (1,)
 

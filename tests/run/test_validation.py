@@ -27,14 +27,23 @@ SOLVER = {"name": "levenberg_marquardt", "max_iter": 3}
 QUIET = FitOptions(progress=False, threads=1)
 
 
+class FakeWarmStarts:
+    """What the tracker asks of a validation problem's warm starts."""
+
+    def warm_start_state(self):
+        return {"anchor": torch.tensor([1.0])}
+
+    def restore_warm_start_state(self, state, device=None):
+        self.restored = state
+
+
 class FakeValidation:
     """What the tracker asks of a validation problem."""
 
-    def simulation_state(self):
-        return {"anchor": torch.tensor([1.0])}
+    device = torch.device("cpu")
 
-    def restore_simulation_state(self, state):
-        self.restored = state
+    def __init__(self):
+        self.warm_starts = FakeWarmStarts()
 
 
 def track(errors, accepted=None, patience=2, tracker=None, start=0):
@@ -76,7 +85,7 @@ def test_the_tracker_continues_exactly_from_its_state():
     state = first.state_dict()
     again = ValidationTracker(None, FakeValidation(), None, 3)
     again.load_state_dict(state, 2)
-    assert torch.equal(again.validation.restored["anchor"], torch.tensor([1.0]))
+    assert torch.equal(again.validation.warm_starts.restored["anchor"], torch.tensor([1.0]))
     # the checkpoint's record comes again first (the resumed solver's iteration 2): not
     # judged twice
     again, stopped_again = track(errors[2:], patience=3, tracker=again, start=2)

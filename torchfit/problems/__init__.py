@@ -5,22 +5,26 @@ import dataclasses
 from typing import Any
 
 from .body.arm3d import Arm3D, Arm3DConfig
-from .base import (BodyProblem, FieldImageProblem, FramedProblem, InverseProblem, MeshProblem,
-                   MotionProblem, PosedProblem)
+from .base import NO_WARM_STARTS, InverseProblem, has_forward_jacobian, has_forward_products
+from .dynamic import QUASISTATIC, TimeIntegration
+from .protocols import (BodyProblem, BodySimulation, EmbeddedSurfaceProblem, FieldImageProblem,
+                        FramedProblem, MeshProblem, MotionProblem, PosedProblem, PoseEquilibrium,
+                        PoseSimulation, TimeModel, WarmStarts)
 from .config import ProblemConfig, ProblemConfigError, make_config
 from .membrane2d import DynamicMembrane2D, Membrane2D, Membrane2DConfig
 from .poisson2d import Poisson2D, Poisson2DConfig
 from ..mesh.tetwild.store import KeptMesh
+from .body.run_mesh import keep_mesh
 from .body.problem import RiggedBody
 from .body.config import RiggedBodyConfig
-from .body.dynamic import DynamicArm3D, DynamicRiggedBody
 from .spring1d import DynamicSpring1D, Spring1D, Spring1DConfig
 
 
 @dataclasses.dataclass(frozen=True)
 class ProblemEntry:
     """A registered problem: its config dataclass (the Hydra schema), its class, and the
-    class of its motion (``problem.dynamic=true``) where it has one."""
+    class of its motion (``problem.dynamic=true``) where it has one (a body is one class:
+    its simulation in time is a collaborator, not a class)."""
 
     config_class: type[ProblemConfig]
     problem_class: type[InverseProblem]
@@ -32,8 +36,8 @@ PROBLEMS: dict[str, ProblemEntry] = {
     "spring1d": ProblemEntry(Spring1DConfig, Spring1D, DynamicSpring1D),
     "poisson2d": ProblemEntry(Poisson2DConfig, Poisson2D),
     "membrane2d": ProblemEntry(Membrane2DConfig, Membrane2D, DynamicMembrane2D),
-    "arm3d": ProblemEntry(Arm3DConfig, Arm3D, DynamicArm3D),
-    "animation": ProblemEntry(RiggedBodyConfig, RiggedBody, DynamicRiggedBody),
+    "arm3d": ProblemEntry(Arm3DConfig, Arm3D, Arm3D),
+    "animation": ProblemEntry(RiggedBodyConfig, RiggedBody, RiggedBody),
 }
 
 
@@ -57,9 +61,11 @@ def build_problem(name: str, cfg: Any = None, kept_mesh: KeptMesh | None = None
     return problem_class(config, kept_mesh=kept_mesh)
 
 
-__all__ = ["Arm3D", "Arm3DConfig", "BodyProblem", "DynamicArm3D", "DynamicMembrane2D",
-           "DynamicRiggedBody", "DynamicSpring1D",
-           "FieldImageProblem", "FramedProblem", "InverseProblem", "Membrane2D",
-           "Membrane2DConfig", "MeshProblem", "MotionProblem", "PROBLEMS", "PosedProblem", "Poisson2D",
-           "Poisson2DConfig", "ProblemConfig", "ProblemConfigError", "ProblemEntry",
-           "RiggedBody", "RiggedBodyConfig", "Spring1D", "Spring1DConfig", "build_problem"]
+__all__ = ["Arm3D", "Arm3DConfig", "BodyProblem", "BodySimulation", "DynamicMembrane2D",
+           "DynamicSpring1D", "EmbeddedSurfaceProblem", "FieldImageProblem", "FramedProblem",
+           "InverseProblem", "Membrane2D", "Membrane2DConfig", "MeshProblem", "MotionProblem",
+           "NO_WARM_STARTS", "PROBLEMS", "PoseEquilibrium", "PoseSimulation", "PosedProblem",
+           "Poisson2D", "Poisson2DConfig", "ProblemConfig", "ProblemConfigError", "ProblemEntry",
+           "QUASISTATIC", "RiggedBody", "RiggedBodyConfig", "Spring1D", "Spring1DConfig",
+           "TimeIntegration", "TimeModel", "WarmStarts", "build_problem",
+           "has_forward_jacobian", "has_forward_products", "keep_mesh"]

@@ -13,8 +13,15 @@ observation and the metrics of docs/problems.md. It contains no solver logic: so
 :meth:`~InverseProblem.true_field` -> ``x_true = simulate(truth)`` -> ``observe`` (or
 :meth:`~InverseProblem.measured_data` for user targets) -> finite-target check ->
 seeded noise -> ``data``. A new problem writes its physics and its data, nothing else.
-The protocols (:class:`FieldImageProblem`, ...) say what the reporting layer may ask of a
-problem beyond the template.
+
+Two collaborators every problem has (:mod:`.protocols`): :attr:`InverseProblem.time`, how its
+frames relate in time (independent equilibria by default; a problem in motion builds a
+:class:`~torchfit.problems.dynamic.TimeIntegration` in :meth:`~InverseProblem.build_model`,
+which appends the damping to the parameters and reports it), and
+:attr:`InverseProblem.warm_starts`, what its simulations carry over from one another (none
+by default; a Newton solver's :class:`~torchfit.physics.Equilibrium`). The protocols of
+:mod:`.protocols` (:class:`~.protocols.FieldImageProblem`, ...) say what the reporting layer
+may ask of a problem beyond the template.
 
 Nothing here relies on torch's default dtype: tensors are made in ``problem.dtype``
 (``float64`` unless ``problem.dtype=float32``).
@@ -24,8 +31,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import math
-from typing import (Any, Callable, ClassVar, ContextManager, Protocol, Sequence,
-                    runtime_checkable)
+from typing import Any, Callable, ClassVar, ContextManager, Sequence
 
 import numpy as np
 import torch
@@ -37,6 +43,8 @@ from ..params import Parameterization
 from ..residual import ForwardProducts, ResidualFunction
 from .config import (ProblemConfig, ProblemConfigError, check_device, dtype_of, make_config,
                      validate_config)
+from .dynamic import QUASISTATIC
+from .protocols import TimeModel, WarmStarts
 
 
 # -- data helpers -----------------------------------------------------------------------
@@ -93,160 +101,35 @@ def node_frame_index(n_frames: int, nodes: Sequence[int] | Tensor, dim: int) -> 
     return frame, node
 
 
-# -- hooks the reporting layer looks for --------------------------------------------------
-@runtime_checkable
-class FieldImageProblem(Protocol):
-    """A problem whose field can be drawn as a 2-D image (poisson2d, membrane2d)."""
+class NoWarmStarts:
+    """:class:`~.protocols.WarmStarts` of simulations that carry nothing over: each depends
+    on its input alone (a linear solve, an integration from the initial state)."""
 
-    def field_image(self, field: Tensor) -> Any:
-        """``(n_field,)`` values -> ``(H, W)`` array, row 0 at the top."""
+    def independent(self) -> ContextManager[None]:
+        return contextlib.nullcontext()
 
+    def warm_start_state(self) -> dict[str, Any]:
+        return {}
 
-@runtime_checkable
-class FramedProblem(Protocol):
-    """A problem with several frames (load cases, animation frames) and per-frame errors."""
-
-    n_frames: int
-    default_sheet_frame: int
-
-    def frame_errors(self, x: Tensor) -> dict[str, Any]:
-        """``{'u_err_inf': (F,), 'u_err_2': (F,)}`` of the state ``x`` against the truth."""
-
-    def frame_names(self) -> list[str]:
-        """One short label per frame."""
+    def restore_warm_start_state(self, state: dict[str, Any], device: Any = None) -> None:
+        """Nothing to restore."""
 
 
-@runtime_checkable
-class MotionProblem(Protocol):
-    """A dynamic problem (``problem.dynamic=true``): frames are output times.
-
-    ``output_times`` ``(K,)`` (s); ``frame_errors(x)`` per output time; ``x_true`` the
-    noise-free motion ``(K, n_nodes, dim)``; ``simulation_input(theta)`` what
-    ``simulate`` takes (``[k..., alpha, beta]``); ``time_integration(theta)`` how the motion
-    is integrated and its estimated error (``result.json``'s ``time_integration``).
-    """
-
-    output_times: Tensor
-    integrator: Any
-
-    def frame_errors(self, x: Tensor) -> dict[str, Any]:
-        ...
-
-    def time_integration(self, theta: Tensor) -> dict[str, Any]:
-        ...
+#: the warm starts of a problem whose simulations carry nothing over (the default)
+NO_WARM_STARTS = NoWarmStarts()
 
 
-@runtime_checkable
-class MeshProblem(Protocol):
-    """A problem on a simplicial mesh (``mesh.points``, ``mesh.cells``, ``mesh.extent``)."""
-
-    mesh: Any
-
-
-@runtime_checkable
-class BodyProblem(Protocol):
-    """A 3-D body fitted to an animation (``arm3d``, ``animation``): what
-    :class:`torchfit.reporting.body.BodyOutputs` draws and exports.
-
-    ``animation`` has ``faces`` ``(T, 3)`` and ``path``; ``surface(x)`` maps tet positions
-    ``(F, n, 3)`` to the user's surface vertices ``(F, V, 3)``; ``clean_surface()`` is the
-    noise-free target surface ``(F, V, 3)`` and ``surface_error_field(x)`` the distance of
-    every surface vertex to it ``(F, V)``; ``simulate_model(model, E)`` simulates the same
-    body with another constitutive model; ``region_summary(field)`` summarises a field per
-    region; ``with_frames(numbers)`` is the same problem on some of its frames with the same
-    targets there, and ``min_volume_ratio(x)`` ``(F,)`` how close each frame is to a fold
-    (:func:`torchfit.run.fit_continued` fits the frames far from one first).
-
-    What the outputs need besides: ``full_bend_frame``, the reference frame (the most
-    deformed one) that pictures and the model comparison show; ``tet_regions``, a region
-    label per tetrahedron ``(n_tets,)`` or ``None``; ``writes_animation``, whether the
-    problem wrote its animation folder itself (the run directory gets a copy).
-    """
-
-    animation: Any
-    mesh: Any
-    full_bend_frame: int
-    tet_regions: Any
-    region_names: list[str]
-    observed_vertices: Tensor
-    writes_animation: bool
-    #: what the joint region's volume change is called (``elbow`` on the arm)
-    joint_label: str
-    #: the pictures' camera, rows ``right, depth, up`` (unit axes ``(3, 3)``; up: the
-    #: file's up axis, else the body's: :func:`~.body.motion.picture_up`), or ``None``
-    view_axes: Any
-    #: where the documentation explains a fold of this body (``None``: nowhere)
-    fold_docs: str | None
-
-    def surface(self, x: Tensor) -> Tensor:
-        ...
-
-    def clean_surface(self) -> Tensor:
-        ...
-
-    def surface_error_field(self, x: Tensor) -> Tensor:
-        ...
-
-    def independent_simulation(self) -> ContextManager[None]:
-        ...
-
-    def frame_numbers(self) -> list[int]:
-        ...
-
-    def with_frames(self, numbers: list[int]) -> Any:
-        ...
-
-    def min_volume_ratio(self, x: Tensor) -> Any:
-        ...
-
-    def simulate_model(self, model: str, E: Tensor, frames: Any = None) -> Tensor:
-        ...
-
-    def region_summary(self, field: Tensor) -> dict[str, Any]:
-        ...
-
-    def keep_mesh(self, run_dir: Any) -> Any:
-        ...
+def has_forward_jacobian(problem: "InverseProblem") -> bool:
+    """Whether ``problem``'s class implements :meth:`~InverseProblem.forward_jacobian` or
+    :meth:`~InverseProblem.simulate_jacobian` (the one-pass Jacobian the solvers may use)."""
+    cls = type(problem)
+    return cls.forward_jacobian is not InverseProblem.forward_jacobian or \
+        cls.simulate_jacobian is not InverseProblem.simulate_jacobian
 
 
-@runtime_checkable
-class EmbeddedSurfaceProblem(Protocol):
-    """A body whose user surface is embedded in its tet mesh: ``embedding.cells`` ``(V,)``
-    the tetrahedron of each surface vertex and ``embedding.weights`` ``(V, 4)`` its
-    barycentric weights there (what the per-vertex material layer samples the field with)."""
-
-    mesh: Any
-    embedding: Any
-
-
-@runtime_checkable
-class PosedProblem(Protocol):
-    """A problem whose frames are independent poses (a quasistatic rigged body): what a
-    distributed run needs to split them over ranks.
-
-    ``simulated_poses()`` the frames simulated (each distinct pose once: an index ``(P,)``,
-    or every frame); ``repeated_poses`` ``(first frames (P,), pose of each frame (F,))`` or
-    ``None``; ``pose_jacobian(theta)`` ``(P, rows, n_params)`` of the simulated poses;
-    ``plug(simulation, jacobian)`` the seam the run plugs its split into (the problem's
-    pose simulation, and where its ``forward_jacobian`` comes from); ``quasistatic`` the
-    pose simulation in use; ``input_digests()`` what every rank must share.
-    """
-
-    n_frames: int
-    repeated_poses: Any
-    quasistatic: Any
-
-    def simulated_poses(self) -> Any:
-        ...
-
-    def pose_jacobian(self, theta: Tensor) -> Tensor:
-        ...
-
-    def plug(self, simulation: Any, jacobian: Any = None) -> None:
-        ...
-
-    def input_digests(self) -> dict[str, str]:
-        ...
+def has_forward_products(problem: "InverseProblem") -> bool:
+    """Whether ``problem``'s class implements :meth:`~InverseProblem.forward_products`."""
+    return type(problem).forward_products is not InverseProblem.forward_products
 
 
 # -- the problem ----------------------------------------------------------------------------
@@ -256,8 +139,9 @@ class InverseProblem:
     Subclasses set :attr:`config_class` and implement the hooks :meth:`build_model`,
     :meth:`build_parameterization`, :meth:`build_observation`, :meth:`true_field`,
     :meth:`simulate`, :meth:`observe` (and optionally :meth:`check`,
-    :meth:`measured_data`, :meth:`observation_index`). The protocols above
-    (:class:`FieldImageProblem`, ...) are opt-in: the base defines none of their members.
+    :meth:`measured_data`, :meth:`observation_index`). The protocols of
+    :mod:`.protocols` (:class:`~.protocols.FieldImageProblem`, ...) are opt-in: the base
+    defines none of their members.
 
     Attributes (set by the template):
         cfg: the validated config.
@@ -282,6 +166,18 @@ class InverseProblem:
     truth_fields: ClassVar[tuple[str, ...]] = ()
     #: components per node of the state (``x`` is ``(F, n_nodes, dim)``)
     dim: ClassVar[int] = 1
+    #: problems whose parameters mean the same thing share a family (``None``: the name)
+    parameter_family: ClassVar[str | None] = None
+    #: how the frames relate in time (a problem in motion sets its own in build_model)
+    time: TimeModel = QUASISTATIC
+    #: what the simulations carry over from one another (a Newton solver's equilibrium)
+    warm_starts: WarmStarts = NO_WARM_STARTS
+    #: report ``k_err_rel_aligned`` (the error after the best scale) though the data fix
+    #: the scale (the body in time: its scale is fixed by inertia, weakly)
+    aligned_error: ClassVar[bool] = False
+    #: the metrics a problem reports besides the generic ones (its :meth:`metrics` adds
+    #: them), listed before the time model's
+    extra_metric_names: ClassVar[tuple[str, ...]] = ()
 
     cfg: Any
     device: torch.device
@@ -303,15 +199,15 @@ class InverseProblem:
         self.device = check_device("device", cfg.device)
         self.dtype = dtype_of(cfg.dtype)
         self.build_model(cfg)
-        self.parameterization = self.build_parameterization(cfg)
+        self.parameterization = self.time.parameterization(self.build_parameterization(cfg))
         self.build_observation(cfg)
         self.theta0 = self.initial_parameters(cfg)
         truth = self.true_field(cfg)
         if truth is not None:
             self.field_true = truth.to(device=self.device, dtype=self.dtype)
-            with self.independent_simulation():    # the truth never seeds the fit's starts
+            with self.warm_starts.independent():   # the truth never seeds the fit's starts
                 try:
-                    self.x_true = self.simulate(self.true_simulation_input()).detach()
+                    self.x_true = self.simulate(self.time.true_input(self.field_true)).detach()
                 except SimulationError as error:
                     raise self.unsimulated_truth(error) from None
             clean, what = self.observe(self.x_true), "simulated target"
@@ -351,11 +247,13 @@ class InverseProblem:
     def initial_parameters(self, cfg: Any) -> Tensor:
         """``theta0``: the constant field :meth:`initial_value` (a problem may start from a
         field of its own, e.g. a painted material layer)."""
-        return self.parameterization.constant(self.initial_value(cfg), self.dtype, self.device)
+        return self.parameterization.constant(float(getattr(cfg, self.initial_setting)),
+                                              self.dtype, self.device)
 
     def truth_settings(self) -> list[str]:
-        """The settings of the synthetic target's true material (``problem.<key>``)."""
-        return [f"problem.{key}" for key in self.truth_fields]
+        """The settings of the synthetic target's true material (``problem.<key>``; the
+        time model's scalars after the field's)."""
+        return [f"problem.{key}" for key in self.truth_fields] + self.time.truth_settings()
 
     def unsimulated_truth(self, error: SimulationError) -> ProblemConfigError:
         """The one-line refusal of a synthetic target whose simulation failed with ``error``
@@ -366,12 +264,9 @@ class InverseProblem:
             "simulation can reach")
 
     def start_settings(self) -> list[str]:
-        """The settings of the fit's start (``problem.<key>``; ``init=`` comes on top)."""
-        return [f"problem.{self.initial_setting}"]
-
-    def initial_value(self, cfg: Any) -> float:
-        """The constant field ``theta0`` stands for (``cfg.<initial_setting>``)."""
-        return float(getattr(cfg, self.initial_setting))
+        """The settings of the fit's start (``problem.<key>``, the time model's scalars
+        after the field's; ``init=`` comes on top)."""
+        return [f"problem.{self.initial_setting}", *self.time.start_settings()]
 
     def true_field(self, cfg: Any) -> Tensor | None:
         """The true field ``(n_field,)``, or ``None`` when the data are the user's."""
@@ -411,19 +306,13 @@ class InverseProblem:
         method). Only then does :meth:`residual` hand it to the solvers, which use it when
         ``n_params`` is small (``solver.dense_jacobian_max_params``).
         """
-        if not self.has_forward_jacobian():
+        if not has_forward_jacobian(self):
             raise NotImplementedError(f"{type(self).__name__} has no one-pass Jacobian")
         with torch.no_grad():
             theta = theta.detach()
             field = self.parameterization(theta)
             directions = self.parameterization.jacobian(theta)
             return _observe_columns(self.observe, self.simulate_jacobian(field, directions))
-
-    def has_forward_jacobian(self) -> bool:
-        """Whether the subclass implements :meth:`forward_jacobian` or :meth:`simulate_jacobian`."""
-        cls = type(self)
-        return cls.forward_jacobian is not InverseProblem.forward_jacobian or \
-            cls.simulate_jacobian is not InverseProblem.simulate_jacobian
 
     # -- optional: explicit derivative products (no autograd graph) -------------------
     def forward_products(self, theta: Tensor) -> ForwardProducts:
@@ -435,10 +324,6 @@ class InverseProblem:
         autograd products (each problem's tests compare them)."""
         raise NotImplementedError(f"{type(self).__name__} has no explicit products")
 
-    def has_forward_products(self) -> bool:
-        """Whether the subclass implements :meth:`forward_products`."""
-        return type(self).forward_products is not InverseProblem.forward_products
-
     # -- shared -----------------------------------------------------------------------
     def forward(self, theta: Tensor) -> Tensor:
         """``observe(simulate(map(theta)))``, ``(m,)``."""
@@ -449,12 +334,13 @@ class InverseProblem:
         :meth:`forward_products` where implemented; ``explicit_products=False`` keeps the
         autograd products, the reference the explicit ones are checked against)."""
         gauge = self.parameterization.scale_direction if self.scale_free else None
-        jacobian = self.forward_jacobian if self.has_forward_jacobian() else None
-        products = self.forward_products if explicit_products and self.has_forward_products() \
+        jacobian = self.forward_jacobian if has_forward_jacobian(self) else None
+        products = self.forward_products if explicit_products and has_forward_products(self) \
             else None
         return ResidualFunction(self.forward, self.data, self.noise_level, gauge, jacobian,
-                                accuracy=self.simulation_accuracy(), products=products,
-                                product_consistency=self.product_consistency())
+                                accuracy=self.time.accuracy(self.simulation_accuracy()),
+                                products=products,
+                                product_consistency=self.time.product_consistency())
 
     def theta_bounds(self) -> tuple[Tensor, Tensor] | None:
         """``(lower, upper)`` ``(n_params,)`` bounds on ``theta`` that the solver keeps
@@ -462,21 +348,17 @@ class InverseProblem:
         (the default: unbounded)."""
         return None
 
-    def product_consistency(self) -> float | None:
-        """Relative agreement of the simulation's ``J^T w`` with its ``J v`` when they are
-        two approximations (each accurate to a solver tolerance), ``None`` (the default)
-        when the reverse product is the exact transpose of the forward one (to round-off);
-        the dot-product check's bound follows it."""
-        return None
-
     def simulation_accuracy(self) -> float | None:
-        """Relative accuracy of :meth:`simulate` (``None``: machine precision); problems
-        solved by Newton to a tolerance say so, for the finite-difference check."""
+        """Relative accuracy of :meth:`simulate` with independent frames (``None``: machine
+        precision); problems solved by Newton to a tolerance say so, for the
+        finite-difference check. In time :attr:`time` decides
+        (:meth:`~.protocols.TimeModel.accuracy`)."""
         return None
 
     def field(self, theta: Tensor) -> Tensor:
-        """The fitted field at ``theta`` (what metrics, images and ``field.npy`` show)."""
-        return self.parameterization(theta.detach())
+        """The fitted field at ``theta`` (what metrics, images and ``field.npy`` show; in time
+        without the damping)."""
+        return self.time.field(self.parameterization(theta.detach()))
 
     def simulation_input(self, theta: Tensor) -> Tensor:
         """What :meth:`simulate` takes at ``theta`` (no graph): the parameterisation's
@@ -484,14 +366,10 @@ class InverseProblem:
         that are not part of the field (dynamics: ``[k, alpha, beta]``)."""
         return self.parameterization(theta.detach())
 
-    def true_simulation_input(self) -> Tensor:
-        """:meth:`simulation_input` of the truth (the true field by default)."""
-        assert self.field_true is not None
-        return self.field_true
-
     def true_theta(self) -> Tensor:
         """``theta`` of the truth (``parameterization.inverse`` of its simulation input)."""
-        return self.parameterization.inverse(self.true_simulation_input())
+        assert self.field_true is not None
+        return self.parameterization.inverse(self.time.true_input(self.field_true))
 
     def metric_names(self) -> list[str]:
         """Keys of docs/problems.md's metric table that :meth:`metrics` reports, in its order."""
@@ -500,16 +378,18 @@ class InverseProblem:
             names += ["u_err_inf", "u_err_2"]
         if self.field_true is not None:
             names += ["k_err_inf", "k_err_2", "k_err_rel"]
-            if self.scale_free:
+            if self.scale_free or self.aligned_error:
                 names.append("k_err_rel_aligned")
-        return names
+        return names + list(self.extra_metric_names) + self.time.metric_names()
 
     def metrics(self, theta: Tensor, x: Tensor | None = None) -> dict[str, float]:
-        """The metrics of docs/problems.md at ``theta`` (state errors on every node and frame)."""
+        """The metrics of docs/problems.md at ``theta`` (state errors on every node and frame;
+        the time model's after the field's)."""
         with torch.no_grad():
             field = self.field(theta)
+            physical = self.simulation_input(theta)
             if x is None:
-                x = self.simulate(self.simulation_input(theta))
+                x = self.simulate(physical)
             out: dict[str, float] = {
                 "misfit": float(torch.linalg.vector_norm(self.observe(x) - self.data))}
             if self.x_true is not None:
@@ -523,37 +403,12 @@ class InverseProblem:
                 out["k_err_inf"] = float(dk.abs().max())
                 out["k_err_2"] = float(torch.linalg.vector_norm(dk))
                 out["k_err_rel"] = out["k_err_2"] / truth_norm
-                if self.scale_free:
+                if self.scale_free or self.aligned_error:
                     scale = float(torch.dot(field, truth) / torch.dot(field, field))
                     out["k_err_rel_aligned"] = float(
                         torch.linalg.vector_norm(scale * field - truth)) / truth_norm
+            out.update(self.time.metrics(physical))
         return out
-
-    def independent_simulation(self) -> ContextManager[None]:
-        """A context whose simulations start cold and seed no later warm start: the
-        synthetic target, baselines of reports. A problem whose simulation warm-starts
-        from earlier solutions overrides it (where a frame has several equilibria, a
-        warm start from the truth's would put the fit on the truth's branch). Default:
-        nothing to isolate."""
-        return contextlib.nullcontext()
-
-    def simulation_state(self) -> dict[str, Any]:
-        """What the next simulations depend on besides their input, as tensors (a run's
-        checkpoint keeps it): a problem whose simulations warm-start from earlier solutions
-        returns those (:meth:`Equilibrium.warm_start_state`). Default: ``{}``, every
-        simulation depends on its input alone."""
-        return {}
-
-    def restore_simulation_state(self, state: dict[str, Any]) -> None:
-        """Put back what :meth:`simulation_state` returned (in another process, for a resume):
-        the next simulations then start exactly where they did there. Default: nothing to
-        restore."""
-
-    def bound_warning(self, at_lower: int, at_upper: int) -> str | None:
-        """One line to warn with where many of the fitted parameters ended on the bounds
-        of :meth:`theta_bounds` (``at_lower``, ``at_upper`` of them), naming the setting
-        that moves them; ``None`` (the default: nothing to say)."""
-        return None
 
     def validation_problem(self) -> "InverseProblem | None":
         """The same problem on the frames held out of its fit, simulated for validation at
@@ -573,19 +428,14 @@ class InverseProblem:
         refuses a run whose meaning differs even where the counts agree. The problem
         (problems of one family share parameters), the spatial dimension, and whether the
         damping is appended (dynamic)."""
-        return {"problem": self.parameter_family, "dim": int(self.dim),
+        return {"problem": self.parameter_family or self.name, "dim": int(self.dim),
                 "dynamic": bool(getattr(self.cfg, "dynamic", False))}
-
-    #: problems whose parameters mean the same thing share a family (default: the name)
-    @property
-    def parameter_family(self) -> str:
-        return self.name
 
     def describe(self) -> dict[str, object]:
         """Sizes for logs and result files."""
         return {"name": self.name, "n_params": self.parameterization.n_params,
                 "n_data": int(self.data.numel()), "noise_level": self.noise_level,
-                "scale_free": self.scale_free}
+                "scale_free": self.scale_free, **self.time.describe()}
 
 
 def array_digest(*arrays: Any) -> str:

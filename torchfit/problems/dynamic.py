@@ -1,24 +1,26 @@
-"""The dynamic variants of the problems (``problem.dynamic=true``): their settings and hooks.
+"""Problems in motion (``problem.dynamic=true``): their settings and their time model.
 
-A dynamic problem fits the per-element field together with the Rayleigh damping
-coefficients ``alpha`` (1/s) and ``beta`` (s) to positions at output times. Its
-parameterisation is a :class:`~torchfit.params.FieldAndScalars` (``theta = [field...,
-alpha, beta]``), its simulation input the physical vector ``[k..., alpha, beta]``, its
-:meth:`~DynamicMixin.field` the stiffness field alone (what ``k_err_*`` measure, what the
-pictures show). Inertia fixes the stiffness scale: never scale-free.
+A problem in motion fits the per-element field together with the Rayleigh damping
+coefficients ``alpha`` (1/s) and ``beta`` (s) to positions at output times. It is another
+problem (its own class, built by ``build_problem`` when ``problem.dynamic=true``) whose
+:attr:`~torchfit.problems.base.InverseProblem.time` is a :class:`TimeIntegration`: the
+parameterisation a :class:`~torchfit.params.FieldAndScalars` (``theta = [field..., alpha,
+beta]``), the simulation input the physical vector ``[k..., alpha, beta]``, the problem's
+``field`` the stiffness field alone (what ``k_err_*`` measure, what the pictures show), the
+damping's truth, metrics and description added to the problem's. Inertia fixes the
+stiffness scale: never scale-free. Problems whose frames are independent have
+:data:`QUASISTATIC`.
 
 :class:`DynamicSettings` holds the settings every dynamic problem has (mixed into the
 problem's config, so the keys are ``problem.dt``, ``problem.scheme``, ...);
-:func:`check_dynamic_settings` checks them. ``build_problem`` builds the problem's dynamic
-class when ``problem.dynamic=true`` (:func:`check_dynamic_flag`: each class refuses the
-other value).
+:func:`check_dynamic_settings` checks them (:func:`check_dynamic_flag`: each class refuses
+the other value of ``problem.dynamic``).
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import math
-from typing import Any, ContextManager, List, Optional
+from typing import Any, List, Optional
 
 import numpy as np
 import torch
@@ -93,10 +95,10 @@ class DynamicSettings:
     checkpoint_every: int = 1
 
 
-def check_dynamic_flag(problem: Any, cfg: Any) -> None:
-    """``problem.dynamic`` matches the class: the static problem refuses ``true``, its
-    dynamic class ``false`` (:func:`torchfit.problems.build_problem` picks the class)."""
-    dynamic = isinstance(problem, DynamicMixin)
+def check_dynamic_flag(problem: Any, cfg: Any, dynamic: bool) -> None:
+    """``problem.dynamic`` matches the class (``dynamic``: the class is the problem in
+    motion): the static problem refuses ``true``, its dynamic class ``false``
+    (:func:`torchfit.problems.build_problem` picks the class)."""
     require_setting(bool(cfg.dynamic) == dynamic, cfg, "dynamic",
                     f"{type(problem).__name__} is the {'dynamic' if dynamic else 'static'} "
                     "problem; build_problem picks the class that matches problem.dynamic")
@@ -185,77 +187,180 @@ def output_times(cfg: Any) -> Tensor:
     return torch.arange(1, cfg.frames + 1, dtype=torch.float64) * (cfg.duration / cfg.frames)
 
 
-class DynamicMixin:
-    """Hooks shared by the dynamic problems (put before the problem class in the bases).
+class Quasistatic:
+    """The :class:`~.protocols.TimeModel` of independent frames (load cases, poses): the
+    simulation input is the field itself, nothing is added to the problem's settings,
+    metrics or description, and a simulation is as accurate as the problem says."""
 
-    The problem sets ``self.system`` (a :class:`DynamicSystem`) in ``build_model`` and calls
-    :meth:`build_integrator`; :meth:`build_parameterization` wraps its field
-    parameterisation with the damping scalars.
-    """
+    in_time = False
 
-    scale_free = False
-    cfg: Any
-    system: DynamicSystem
+    def parameterization(self, field: Parameterization) -> Parameterization:
+        return field
 
-    def independent_simulation(self) -> ContextManager[None]:
-        """Nothing to isolate: every simulation integrates from the initial state (each
-        step's Newton starts from the step before, within that simulation)."""
-        return contextlib.nullcontext()
+    def field(self, physical: Tensor) -> Tensor:
+        return physical
 
-    def simulation_state(self) -> dict[str, Any]:
-        """Nothing carries over between simulations (each integrates from the initial
-        state), so a checkpoint needs no simulation state."""
-        return {}
+    def scalars(self, physical: Tensor) -> Tensor:
+        return physical[:0]
 
-    def restore_simulation_state(self, state: dict[str, Any]) -> None:
-        """Nothing to restore (:meth:`simulation_state`)."""
-
-    # -- building ---------------------------------------------------------------------------
-    def build_integrator(self, cfg: Any, backend: str, newton: NewtonOptions | None = None) -> None:
-        self.output_times = output_times(cfg)
-        self.n_frames = int(self.output_times.numel())
-        self.integrator = make_integrator(
-            cfg.integrator.value, self.system, self.output_times, dt=cfg.dt,
-            method=cfg.ode_method.value, scheme=cfg.scheme.value, rtol=cfg.ode_rtol,
-            atol=cfg.ode_atol, backend=backend, newton=newton,
-            checkpoint_every=cfg.checkpoint_every, trial_factor=cfg.ode_trial_factor)
-
-    def damped(self, field: Parameterization, cfg: Any) -> FieldAndScalars:
-        return FieldAndScalars(field, _DAMPING, (cfg.alpha0, cfg.beta0), cfg.transform.value)
-
-    def true_damping(self) -> Tensor:
-        return torch.tensor([self.cfg.alpha, self.cfg.beta], dtype=self.dtype, device=self.device)
+    def true_input(self, field_true: Tensor) -> Tensor:
+        return field_true
 
     def truth_settings(self) -> list[str]:
-        return [*super().truth_settings(), "problem.alpha", "problem.beta"]  # type: ignore[misc]
+        return []
 
     def start_settings(self) -> list[str]:
-        return [*super().start_settings(), "problem.alpha0", "problem.beta0"]  # type: ignore[misc]
+        return []
 
-    # -- the contract -------------------------------------------------------------------------
-    def field(self, theta: Tensor) -> Tensor:
-        return self.parameterization.split(self.parameterization(theta.detach()))[0]
+    def metric_names(self) -> list[str]:
+        return []
 
-    def damping(self, theta: Tensor) -> Tensor:
-        """``(alpha, beta)`` at ``theta``."""
-        return self.parameterization.split(self.parameterization(theta.detach()))[1]
+    def metrics(self, physical: Tensor) -> dict[str, float]:
+        return {}
 
-    def true_simulation_input(self) -> Tensor:
-        return torch.cat([self.field_true, self.true_damping()])
+    def describe(self) -> dict[str, Any]:
+        return {}
 
-    def positions(self, physical: Tensor) -> Tensor:
-        """Positions ``(K, n_nodes, dim)`` at the output times for ``[k..., alpha, beta]``."""
-        if physical.shape != (self.system.n_params,):
-            raise ProblemConfigError(
-                f"the dynamic simulation takes [field ({self.system.n_field}), alpha, beta], shape "
-                f"({self.system.n_params},), got {tuple(physical.shape)}")
-        x = self.integrator(physical)
-        return x.reshape(x.shape[0], -1, self.dim)
+    def accuracy(self, static: float | None) -> float | None:
+        return static
 
-    def simulate_jacobian(self, physical: Tensor, directions: Tensor) -> Tensor:
-        """``(d positions / d [k, alpha, beta]) V``: ``(K, n_nodes, dim, k)``."""
-        dx = self.integrator.jacobian(physical, directions)
-        return dx.reshape(dx.shape[0], -1, self.dim, dx.shape[-1])
+    def product_consistency(self) -> float | None:
+        return None
+
+
+#: the time model of every problem whose frames are independent (the default)
+QUASISTATIC = Quasistatic()
+
+
+@dataclasses.dataclass(frozen=True)
+class Scalars:
+    """The scalars a problem in motion fits beside its field: their names (``alpha``,
+    ``beta``, the body's ``density_scale``), starts, true values and transform (``exp`` or
+    ``identity``, as the field's)."""
+
+    names: tuple[str, ...]
+    starts: tuple[float, ...]
+    truths: tuple[float, ...]
+    transform: str
+
+    @classmethod
+    def damping(cls, cfg: Any) -> "Scalars":
+        """Rayleigh damping: ``alpha``, ``beta`` from ``alpha0``, ``beta0`` (truth
+        ``alpha``, ``beta``)."""
+        return cls(_DAMPING, (cfg.alpha0, cfg.beta0), (cfg.alpha, cfg.beta),
+                   cfg.transform.value)
+
+
+class TimeIntegration:
+    """The :class:`~.protocols.TimeModel` of a problem in motion: its frames are output
+    times of one integration of a :class:`~torchfit.physics.dynamics.DynamicSystem`.
+
+    The simulation input is ``[field..., scalars...]`` (:class:`Scalars`: the Rayleigh
+    damping, for the body also a density scale) through a
+    :class:`~torchfit.params.FieldAndScalars`; :meth:`positions` integrates it to the output
+    times ``(K, n_nodes, dim)`` and :meth:`jacobian` gives its tangents. Inertia fixes the
+    stiffness scale: a problem in motion is never scale-free. Nothing carries over from one
+    simulation to the next (each integrates from the initial state): its problem keeps the
+    default :data:`~torchfit.problems.base.NO_WARM_STARTS`.
+
+    Args:
+        cfg: the problem's settings (``integrator``, ``ode_method``, ``ode_rtol``,
+            ``ode_atol``; ``newton_rtol`` where the model is nonlinear).
+        system: the dynamic system integrated.
+        integrator: its integrator (:func:`~torchfit.physics.dynamics.make_integrator`).
+        output_times: ``(K,)`` seconds.
+        dim: components per node of the state.
+        scalars: the scalars beside the field.
+    """
+
+    in_time = True
+
+    def __init__(self, cfg: Any, system: DynamicSystem, integrator: Any, output_times: Tensor,
+                 dim: int, scalars: Scalars) -> None:
+        self.cfg, self.system, self.integrator = cfg, system, integrator
+        self.output_times, self.dim, self.scalar_spec = output_times, int(dim), scalars
+
+    @classmethod
+    def from_settings(cls, cfg: Any, system: DynamicSystem, dim: int, backend: str,
+                      newton: NewtonOptions | None = None) -> "TimeIntegration":
+        """The integration :class:`DynamicSettings` describe (``problem.integrator``,
+        ``scheme``, ``ode_method``, ``dt``, tolerances, output times), damping fitted."""
+        times = output_times(cfg)
+        integrator = make_integrator(
+            cfg.integrator.value, system, times, dt=cfg.dt, method=cfg.ode_method.value,
+            scheme=cfg.scheme.value, rtol=cfg.ode_rtol, atol=cfg.ode_atol, backend=backend,
+            newton=newton, checkpoint_every=cfg.checkpoint_every,
+            trial_factor=cfg.ode_trial_factor)
+        return cls(cfg, system, integrator, times, dim, Scalars.damping(cfg))
+
+    # -- the time model ------------------------------------------------------------------
+    def parameterization(self, field: Parameterization) -> FieldAndScalars:
+        spec = self.scalar_spec
+        return FieldAndScalars(field, spec.names, spec.starts, spec.transform)
+
+    def field(self, physical: Tensor) -> Tensor:
+        return physical[:self.system.n_field]
+
+    def scalars(self, physical: Tensor) -> Tensor:
+        """The scalars ``(alpha, beta[, density scale])`` of a simulation input."""
+        return physical[self.system.n_field:]
+
+    def true_input(self, field_true: Tensor) -> Tensor:
+        truths = torch.tensor(self.scalar_spec.truths, dtype=field_true.dtype,
+                              device=field_true.device)
+        return torch.cat([field_true, truths])
+
+    def truth_settings(self) -> list[str]:
+        return [f"problem.{name}" for name in self.scalar_spec.names]
+
+    def start_settings(self) -> list[str]:
+        return [f"problem.{name}0" for name in _DAMPING]
+
+    def metric_names(self) -> list[str]:
+        names = ["alpha_damping", "beta_damping", "alpha_damping_err_rel",
+                 "beta_damping_err_rel"]
+        if "density_scale" in self.scalar_spec.names:
+            names += ["density_scale", "density_scale_err_rel"]
+        return names
+
+    def metrics(self, physical: Tensor) -> dict[str, float]:
+        """The fitted damping and its relative error to the truth (the absolute value where
+        the truth is 0); a fitted density scale and its relative error."""
+        fitted, truths = self.scalars(physical.detach()), self.scalar_spec.truths
+        out: dict[str, float] = {}
+        for i, name in enumerate(_DAMPING):
+            truth = torch.tensor(truths[i], dtype=fitted.dtype, device=fitted.device)
+            out[f"{name}_damping"] = float(fitted[i])
+            out[f"{name}_damping_err_rel"] = float(abs(fitted[i] - truth) / abs(truth)) \
+                if float(truth) != 0 else float(abs(fitted[i]))
+        if "density_scale" in self.scalar_spec.names:
+            scale = float(fitted[self.scalar_spec.names.index("density_scale")])
+            out["density_scale"] = scale
+            out["density_scale_err_rel"] = abs(
+                scale / float(truths[self.scalar_spec.names.index("density_scale")]) - 1)
+        return out
+
+    def describe(self) -> dict[str, Any]:
+        integrator = self.integrator
+        out: dict[str, Any] = {"dynamic": True, "integrator": integrator.name,
+                               "output_times": int(self.output_times.numel()),
+                               "stored_states": int(integrator.stored_states)}
+        if integrator.name == "implicit":
+            out.update({"scheme": integrator.scheme, "steps": int(integrator.n_steps),
+                        "checkpoint_every": int(integrator.checkpoint_every)})
+        else:
+            out.update({"method": integrator.method})
+        return out
+
+    def accuracy(self, static: float | None) -> float | None:
+        """torchdiffeq's adaptive methods: ``ode_rtol``; a nonlinear model: Newton's
+        ``newton_rtol`` per step; else machine precision (``None``)."""
+        if self.cfg.integrator == Integrator.torchdiffeq and \
+                self.cfg.ode_method.value in ADAPTIVE_METHODS:
+            return float(self.cfg.ode_rtol)
+        if not self.system.elastic.linear:
+            return float(getattr(self.cfg, "newton_rtol", 1e-10))
+        return None
 
     def product_consistency(self) -> float | None:
         """torchdiffeq with an adaptive method: ``ode_rtol`` (``J^T w`` is the continuous
@@ -269,25 +374,43 @@ class DynamicMixin:
             return float(self.cfg.ode_rtol)
         return None
 
-    def simulation_accuracy(self) -> float | None:
-        if self.cfg.integrator == Integrator.torchdiffeq and \
-                self.cfg.ode_method.value in ADAPTIVE_METHODS:
-            return float(self.cfg.ode_rtol)
-        if not self.system.elastic.linear:
-            return float(getattr(self.cfg, "newton_rtol", 1e-10))
-        return None
+    # -- the motion ----------------------------------------------------------------------
+    def positions(self, physical: Tensor) -> Tensor:
+        """Positions ``(K, n_nodes, dim)`` at the output times for ``[field..., scalars...]``."""
+        if physical.shape != (self.system.n_params,):
+            raise ProblemConfigError(
+                f"the dynamic simulation takes [field ({self.system.n_field}), "
+                f"{', '.join(self.scalar_spec.names)}], shape ({self.system.n_params},), got "
+                f"{tuple(physical.shape)}")
+        x = self.integrator(physical)
+        return x.reshape(x.shape[0], -1, self.dim)
 
-    def time_integration(self, theta: Tensor) -> dict[str, Any]:
-        """How the motion at ``theta`` is integrated and how accurately: ``integrator``,
+    def jacobian(self, physical: Tensor, directions: Tensor) -> Tensor:
+        """``(d positions / d physical) directions``: ``(K, n_nodes, dim, k)``."""
+        dx = self.integrator.jacobian(physical, directions)
+        return dx.reshape(dx.shape[0], -1, self.dim, dx.shape[-1])
+
+    def frame_errors(self, x: Tensor, x_true: Tensor) -> dict[str, np.ndarray]:
+        """Position errors per output time against the noise-free truth ``x_true``."""
+        du = (x.detach() - x_true).reshape(x.shape[0], -1)
+        return {"u_err_inf": du.abs().amax(dim=1).cpu().numpy(),
+                "u_err_2": torch.linalg.vector_norm(du, dim=1).cpu().numpy()}
+
+    def frame_names(self) -> list[str]:
+        return [f"t = {float(t):.3g} s" for t in self.output_times]
+
+    def report(self, physical: Tensor) -> dict[str, Any]:
+        """How the motion at ``physical`` is integrated and how accurately: ``integrator``,
         ``scheme`` (implicit) or ``method`` (torchdiffeq), ``steps`` and ``dt`` (s) of the
         implicit step; its error at the outputs estimated by step halving
         (:meth:`~torchfit.physics.dynamics.implicit.ImplicitIntegrator.error_estimate`:
         ``error_estimate`` in the positions' units, ``error_estimate_rel`` of the largest
         displacement from the start, ``reference_steps``); torchdiffeq's adaptive methods
         report their tolerances (``rtol``, ``atol``: the error they control) instead.
-        Costs one integration with twice the steps (implicit)."""
+        Costs one integration with twice the steps (implicit). ``result.json``'s
+        ``time_integration``."""
         integrator = self.integrator
-        physical = self.simulation_input(theta.detach())  # type: ignore[attr-defined]
+        physical = physical.detach()
         out: dict[str, Any] = {"integrator": integrator.name}
         if integrator.name != "implicit":
             out.update({"method": integrator.method, "rtol": float(self.cfg.ode_rtol),
@@ -306,42 +429,3 @@ class DynamicMixin:
                     "largest_displacement": largest,
                     "reference_steps": estimate["reference_steps"]})
         return out
-
-    def metric_names(self) -> list[str]:
-        names = super().metric_names()  # type: ignore[misc]
-        return names + ["alpha_damping", "beta_damping", "alpha_damping_err_rel",
-                        "beta_damping_err_rel"]
-
-    def metrics(self, theta: Tensor, x: Tensor | None = None) -> dict[str, float]:
-        out = super().metrics(theta, x)  # type: ignore[misc]
-        damping = self.damping(theta)
-        truth = self.true_damping()
-        for i, name in enumerate(_DAMPING):
-            out[f"{name}_damping"] = float(damping[i])
-            out[f"{name}_damping_err_rel"] = float(abs(damping[i] - truth[i]) / abs(truth[i])) \
-                if float(truth[i]) != 0 else float(abs(damping[i]))
-        return out
-
-    # -- frames are output times ----------------------------------------------------------------
-    def frame_errors(self, x: Tensor) -> dict[str, np.ndarray]:
-        """Position errors per output time against the noise-free truth."""
-        du = (x.detach() - self.x_true).reshape(x.shape[0], -1)
-        return {"u_err_inf": du.abs().amax(dim=1).cpu().numpy(),
-                "u_err_2": torch.linalg.vector_norm(du, dim=1).cpu().numpy()}
-
-    def frame_names(self) -> list[str]:
-        return [f"t = {float(t):.3g} s" for t in self.output_times]
-
-    def describe(self) -> dict[str, Any]:
-        out = super().describe()  # type: ignore[misc]
-        integrator = self.integrator
-        out.update({"dynamic": True, "integrator": integrator.name,
-                    "output_times": int(self.n_frames),
-                    "stored_states": int(integrator.stored_states)})
-        if integrator.name == "implicit":
-            out.update({"scheme": integrator.scheme, "steps": int(integrator.n_steps),
-                        "checkpoint_every": int(integrator.checkpoint_every)})
-        else:
-            out.update({"method": integrator.method})
-        return out
-

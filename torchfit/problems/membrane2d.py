@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any, ContextManager, List
+from typing import Any, ClassVar, List
 
 import numpy as np
 import torch
@@ -56,8 +56,8 @@ from ..settings import Choice
 from .base import InverseProblem
 from .config import (Backend, DType, ProblemConfig, ProblemConfigError, check_newton_settings,
                      require_setting, resolve_backend)
-from .dynamic import (DynamicMixin, DynamicSettings, check_dynamic_flag, check_dynamic_settings,
-                      time_steps_allocation)
+from .dynamic import (DynamicSettings, TimeIntegration, check_dynamic_flag,
+                      check_dynamic_settings, time_steps_allocation)
 
 
 #: the largest ratio of a cell's width to its height (or the reverse) the sheet accepts
@@ -165,9 +165,11 @@ class Membrane2D(InverseProblem):
     dim = 2
     scale_free = True
     default_sheet_frame = 5            # bend by 20 degrees: the most telling frame to draw
+    #: the sheet in motion is another class (:class:`DynamicMembrane2D`)
+    in_time: ClassVar[bool] = False
 
     def check(self, cfg: Membrane2DConfig) -> None:
-        check_dynamic_flag(self, cfg)
+        check_dynamic_flag(self, cfg, self.in_time)
         for key in ("nx", "ny"):
             require_setting(isinstance(getattr(cfg, key), int) and getattr(cfg, key) >= 1, cfg,
                             key, "must be an integer >= 1 (cells per side)")
@@ -218,6 +220,8 @@ class Membrane2D(InverseProblem):
         self.quasistatic = QuasistaticElasticity(self.model, dirichlet,
                                                  backend=resolve_backend(cfg.backend, self.device, 2),
                                                  newton=newton)
+        # warm starts: each frame's Newton starts from its last solution
+        self.warm_starts = self.quasistatic.equilibrium
         rest = self.model.rest.points
         right_frames = animation(rest[self.right_vertices], cfg.width, cfg.height)
         n_frames = right_frames.shape[0]
@@ -249,18 +253,6 @@ class Membrane2D(InverseProblem):
             raise ProblemConfigError(f"Young's modulus must have shape ({self.model.n_cells},) "
                                      f"(one per triangle), got {tuple(E.shape)}")
         return self.quasistatic(E, self.dirichlet_positions.to(E))
-
-    def independent_simulation(self) -> ContextManager[None]:
-        """Cold starts that seed no warm start (the synthetic target):
-        :meth:`Equilibrium.independent`."""
-        return self.quasistatic.equilibrium.independent()
-
-    def simulation_state(self) -> dict[str, Any]:
-        """The solutions Newton's next warm start reads (the anchor, the most recent one)."""
-        return self.quasistatic.equilibrium.warm_start_state()
-
-    def restore_simulation_state(self, state: dict[str, Any]) -> None:
-        self.quasistatic.equilibrium.restore_warm_start_state(state, self.device)
 
     def observe(self, x: Tensor) -> Tensor:
         """Both coordinates of every free vertex, frame-major ``(F * n_free * 2,)``."""
@@ -348,14 +340,17 @@ class Membrane2D(InverseProblem):
         return out
 
 
-class DynamicMembrane2D(DynamicMixin, Membrane2D):
+class DynamicMembrane2D(Membrane2D):
     """The sheet in motion (``problem.dynamic=true``; module docstring): fit ``E`` per
-    triangle with ``alpha`` and ``beta`` to vertex positions at the output times."""
+    triangle with ``alpha`` and ``beta`` to vertex positions at the output times (its
+    :attr:`time` a :class:`~torchfit.problems.dynamic.TimeIntegration`)."""
 
     # the motion goes through the trajectory's own autograd Function, not the equilibrium
     forward_products = InverseProblem.forward_products
 
     scale_free = False
+    in_time = True
+    time: TimeIntegration
 
     def check(self, cfg: Membrane2DConfig) -> None:
         super().check(cfg)
@@ -407,10 +402,10 @@ class DynamicMembrane2D(DynamicMixin, Membrane2D):
             gravity.reshape(-1), rest.reshape(-1), vertex_dim=2)
         newton = NewtonOptions(max_iter=cfg.newton_max_iter, rtol=cfg.newton_rtol,
                                atol=cfg.newton_atol)
-        self.build_integrator(cfg, resolve_backend(cfg.backend, self.device, 2), newton)
-
-    def build_parameterization(self, cfg: Membrane2DConfig) -> Parameterization:
-        return self.damped(super().build_parameterization(cfg), cfg)
+        self.time = TimeIntegration.from_settings(
+            cfg, self.system, 2, resolve_backend(cfg.backend, self.device, 2), newton)
+        self.output_times, self.integrator = self.time.output_times, self.time.integrator
+        self.n_frames = int(self.output_times.numel())
 
     def build_observation(self, cfg: Membrane2DConfig) -> None:
         self.observed_vertices = self.free_vertices.to(self.device)
@@ -418,7 +413,14 @@ class DynamicMembrane2D(DynamicMixin, Membrane2D):
 
     def simulate(self, physical: Tensor) -> Tensor:
         """Vertex positions ``(K, n_vertices, 2)`` at the output times for ``[E, alpha, beta]``."""
-        return self.positions(physical)
+        return self.time.positions(physical)
+
+    def simulate_jacobian(self, physical: Tensor, directions: Tensor) -> Tensor:
+        """``(d positions / d [E, alpha, beta]) directions`` ``(K, n_vertices, 2, k)``."""
+        return self.time.jacobian(physical, directions)
+
+    def frame_names(self) -> list[str]:
+        return self.time.frame_names()
 
     @property
     def default_sheet_frame(self) -> int:

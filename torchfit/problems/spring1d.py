@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any, List, Optional
+from typing import Any, ClassVar, List, Optional
+
+import numpy as np
 
 import torch
 from torch import Tensor
@@ -29,8 +31,8 @@ from ..physics.dynamics import DynamicSystem, KeyedMotion
 from .base import InverseProblem
 from .config import (DataMode, ProblemConfig, ProblemConfigError, require, require_setting,
                      resolve_backend)
-from .dynamic import (DynamicMixin, DynamicSettings, check_dynamic_flag, check_dynamic_settings,
-                      time_steps_allocation)
+from .dynamic import (DynamicSettings, TimeIntegration, check_dynamic_flag,
+                      check_dynamic_settings, time_steps_allocation)
 
 
 
@@ -80,9 +82,11 @@ class Spring1D(InverseProblem):
     initial_setting = "k0"
     truth_fields = ("k_background",)
     dim = 1
+    #: the chain in motion is another class (:class:`DynamicSpring1D`)
+    in_time: ClassVar[bool] = False
 
     def check(self, cfg: Spring1DConfig) -> None:
-        check_dynamic_flag(self, cfg)
+        check_dynamic_flag(self, cfg, self.in_time)
         require_setting(isinstance(cfg.n, int) and cfg.n >= 1, cfg, "n",
                         "must be an integer >= 1 (number of springs)")
         require_setting(cfg.sparse_stride >= 1, cfg, "sparse_stride", "must be >= 1")
@@ -174,9 +178,13 @@ class Spring1D(InverseProblem):
         return x[:, self.observed_nodes.to(x.device), :].reshape(-1)
 
 
-class DynamicSpring1D(DynamicMixin, Spring1D):
+class DynamicSpring1D(Spring1D):
     """The chain in motion (``problem.dynamic=true``; module docstring): fit ``k`` per
-    spring with ``alpha`` and ``beta`` to node positions at the output times."""
+    spring with ``alpha`` and ``beta`` to node positions at the output times (its
+    :attr:`time` a :class:`~torchfit.problems.dynamic.TimeIntegration`)."""
+
+    in_time = True
+    time: TimeIntegration
 
     def check(self, cfg: Spring1DConfig) -> None:
         super().check(cfg)
@@ -213,14 +221,25 @@ class DynamicSpring1D(DynamicMixin, Spring1D):
             self.fixed, KeyedMotion(torch.zeros(1), rest[self.fixed][None]),
             KeyedMotion(torch.as_tensor(cfg.load_times, dtype=dtype), end_load),
             torch.full((n + 1,), cfg.gravity, dtype=dtype, device=device), rest, vertex_dim=1)
-        self.build_integrator(cfg, resolve_backend(cfg.backend, self.device, 1))
-
-    def build_parameterization(self, cfg: Spring1DConfig) -> Parameterization:
-        return self.damped(super().build_parameterization(cfg), cfg)
+        self.time = TimeIntegration.from_settings(cfg, self.system, 1,
+                                                  resolve_backend(cfg.backend, self.device, 1))
+        self.output_times, self.integrator = self.time.output_times, self.time.integrator
+        self.n_frames = int(self.output_times.numel())
 
     def simulate(self, physical: Tensor) -> Tensor:
         """Node positions ``(K, n + 1, 1)`` at the output times for ``[k (n,), alpha, beta]``."""
-        return self.positions(physical)
+        return self.time.positions(physical)
+
+    def simulate_jacobian(self, physical: Tensor, directions: Tensor) -> Tensor:
+        """``(d positions / d [k, alpha, beta]) directions`` ``(K, n + 1, 1, k)``."""
+        return self.time.jacobian(physical, directions)
+
+    def frame_errors(self, x: Tensor) -> dict[str, np.ndarray]:
+        """Position errors per output time against the noise-free truth."""
+        return self.time.frame_errors(x, self.x_true)
+
+    def frame_names(self) -> list[str]:
+        return self.time.frame_names()
 
     @property
     def default_sheet_frame(self) -> int:

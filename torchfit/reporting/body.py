@@ -46,7 +46,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..problems.base import BodyProblem
+from ..problems import BodyProblem
 from .evaluation import Evaluation
 from .figures import colorize, frame_errors_figure, save_png
 from .guard import PlotGuard
@@ -303,7 +303,7 @@ class BodyOutputs:
 
     def _write_frames(self, x: Tensor) -> list[Path]:
         paths = write_obj_sequence(self.run_dir / FRAMES_DIR,
-                                   *file_surface(self.problem, _numpy(self.problem.surface(x))))
+                                   *file_surface(self.problem, _numpy(self.problem.observation.surface(x))))
         progress.info("wrote %d simulated frames to %s", len(paths), self.run_dir / FRAMES_DIR)
         return paths
 
@@ -315,19 +315,20 @@ class BodyOutputs:
                                problem.mesh.cells, _numpy(x), cell_data)]
 
     def _write_usd(self, x: Tensor, field: Tensor, theta: Tensor) -> list[Path]:
-        return write_usd(self.run_dir, self.problem, _numpy(self.problem.surface(x)),
-                         _numpy(field), self.problem.material_density(theta))
+        return write_usd(self.run_dir, self.problem, _numpy(self.problem.observation.surface(x)),
+                         _numpy(field), self.problem.poses.material_density(
+                             self.problem.simulation_input(theta)))
 
     def _write_regions(self, field: Tensor) -> list[Path]:
         problem = self.problem
-        out: dict[str, Any] = {"fitted": problem.region_summary(field)}
+        out: dict[str, Any] = {"fitted": problem.report.region_summary(field)}
         if problem.field_true is not None:
-            out["true"] = problem.region_summary(problem.field_true)
+            out["true"] = problem.report.region_summary(problem.field_true)
             # scale-free: the fit is known up to a global factor; report it aligned too
             f, t = _numpy(field), _numpy(problem.field_true)
             a = float(f @ t / (f @ f)) if float(f @ f) > 0 else 1.0
             out["alignment_scale"] = a
-            out["fitted_aligned"] = problem.region_summary(field * a)
+            out["fitted_aligned"] = problem.report.region_summary(field * a)
         path = self.run_dir / REGIONS_JSON
         write_json(path, out)
         return [path]
@@ -340,8 +341,8 @@ class BodyOutputs:
         problem = self.problem
         writer = self.tb.writer
         faces = np.asarray(problem.animation.faces)
-        surface = _numpy(problem.surface(x))
-        errors = _numpy(problem.surface_error_field(x))                 # (F, V)
+        surface = _numpy(problem.observation.surface(x))
+        errors = _numpy(problem.observation.surface_error_field(x, problem.x_true))  # (F, V)
         vmax = float(errors.max()) if errors.size else 1.0
         from ..mesh.embedding import boundary_faces
 
@@ -429,10 +430,12 @@ class BodyOutputs:
                     "joint_volume_change_per_frame": curves["joint_volume_change"].tolist(),
                     "inverted_tets_per_frame": curves["inverted_tets"].tolist(),
                 }
-        panels = [("animation (target)", _numpy(problem.clean_surface())[frame], None)]
+        target = _numpy(problem.observation.clean_surface(problem.x_true))[frame]
+        panels = [("animation (target)", target, None)]
         shown = [("homogeneous", n) for n in sorted(states["homogeneous"], key=lambda n: n != "linear")]
         shown.append(("fitted", model))
-        errors = {key: _numpy(problem.surface_error_field(states[key[0]][key[1]]))[frame]
+        errors = {key: _numpy(problem.observation.surface_error_field(states[key[0]][key[1]],
+                                                                  problem.x_true))[frame]
                   for key in shown}
         vmax = comparison_range(errors, model)
         summary["picture"] = {"colour_max_mm": 1e3 * vmax, "panel_max_mm": {
@@ -446,7 +449,7 @@ class BodyOutputs:
             panels.append((f"{label}\n{problem.joint_label} volume "
                            f"{100 * info['joint_volume_change_at_frame']:+.1f} %, "
                            f"mean error {1e3 * float(errors[(material, name)].mean()):.2f} mm",
-                           _numpy(problem.surface(states[material][name]))[frame],
+                           _numpy(problem.observation.surface(states[material][name]))[frame],
                            errors[(material, name)]))
         fig = surface_figure(panels, np.asarray(problem.animation.faces), vmax,
                              title=f"{names[frame]} (colour: surface error, 0 to "

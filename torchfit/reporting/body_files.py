@@ -26,7 +26,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..mesh import write_obj
-from ..problems.base import EmbeddedSurfaceProblem
+from ..problems import EmbeddedSurfaceProblem
 from .progress import PROGRESS_LOGGER
 from .results import write_folder
 

@@ -50,7 +50,7 @@ def write_frames(run_dir: Path, problem: Any, x: Tensor, field: Tensor,
     body problem with ``field`` per tetrahedron: the OBJ sequence, ``body.vtu``,
     ``frames.npz`` and the USD files (:mod:`.body_files`; ``density``: as for
     :func:`~.body_files.write_usd`); returns the files written."""
-    surface = _numpy(problem.surface(x))
+    surface = _numpy(problem.observation.surface(x))
     positions = _numpy(x)
     cell_data = vtu_cell_data(problem, _numpy(field))
     return [*write_obj_sequence(run_dir / FRAMES_DIR, *file_surface(problem, surface)),
@@ -74,11 +74,12 @@ def comparison_picture(run_dir: Path, problem: Any, x: Tensor, frame: int,
                        frame_names: Sequence[str]) -> Path:
     """``simulation.png``: the animation at ``frame`` beside the simulation, coloured by the
     distance of every surface vertex to the animation's."""
-    error = _numpy(problem.surface_error_field(x))[frame]
+    error = _numpy(problem.observation.surface_error_field(x, problem.x_true))[frame]
     vmax = float(error.max()) or 1.0
-    panels = [("animation (target)", _numpy(problem.clean_surface())[frame], None),
+    target = _numpy(problem.observation.clean_surface(problem.x_true))[frame]
+    panels = [("animation (target)", target, None),
               (f"simulated, fitted E\nmean error {1e3 * float(error.mean()):.2f} mm",
-               _numpy(problem.surface(x))[frame], error)]
+               _numpy(problem.observation.surface(x))[frame], error)]
     fig = surface_figure(panels, np.asarray(problem.animation.faces), vmax,
                          title=f"{frame_names[frame]} (colour: surface error, 0 to "
                                f"{1e3 * vmax:.2f} mm)",

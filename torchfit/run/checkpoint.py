@@ -2,7 +2,7 @@
 
 ``checkpoint.pt`` is written after every outer iteration: ``theta``, the solver's
 :meth:`~torchfit.solvers.Solver.state_dict`, the problem's
-:meth:`~torchfit.problems.InverseProblem.simulation_state` (what its next simulations
+:attr:`~torchfit.problems.InverseProblem.warm_starts` (what its next simulations
 depend on: the equilibria a warm-started Newton starts from), the iteration and the
 settings and start it belongs to, and a run with frames held out of the fit the state of
 its validation (:meth:`.validation.ValidationTracker.state_dict`: the chosen iteration and
@@ -19,7 +19,7 @@ The checkpoint also records digests of the problem's input data
 and a resume on other data is refused naming what changed; so is a checkpoint whose
 parameters, solver state, warm starts or validation state hold a NaN or an infinity
 (:func:`first_non_finite`: a damaged file, or one written by hand). A body's run keeps its mesh
-(``mesh.npz``, :meth:`torchfit.problems.BodyProblem.keep_mesh`); the app's resume builds the
+(``mesh.npz``, :func:`torchfit.problems.keep_mesh`); the app's resume builds the
 problem on it (:func:`torchfit.problems.body.run_mesh.resumed_mesh`, handed to
 :func:`torchfit.problems.build_problem`), so a resume needs no mesh cache. A directory that holds a run
 (:func:`run_files`) but no readable ``checkpoint.pt`` is refused too: a resume never
@@ -292,7 +292,7 @@ class Checkpointer:
         state.pop("wall_time", None)        # time lives in history.jsonl: same runs, same bytes
         payload = {**self.fixed, "iteration": int(iteration),
                    "theta": theta.detach().cpu().clone(), "solver_state": _cpu(state),
-                   "simulation_state": _cpu(self.problem.simulation_state()),
+                   "simulation_state": _cpu(self.problem.warm_starts.warm_start_state()),
                    "finished": stop_reason is not None, "stop_reason": stop_reason}
         if self.validation is not None:
             payload["validation"] = _cpu(self.validation.state_dict())

@@ -52,7 +52,7 @@ import torch
 from torch import Tensor
 
 from ..problems import InverseProblem
-from ..problems.base import BodyProblem, MotionProblem
+from ..problems import BodyProblem, MotionProblem
 from ..records import IterationRecord
 from ..reporting.body import frame_spans
 from ..reporting.results import PARAMS_FILE
@@ -127,9 +127,10 @@ def frames_near_fold(problem: InverseProblem, theta: Tensor, min_volume: float) 
 def _min_volume_ratios(problem: Any, theta: Tensor) -> list[tuple[int, float]]:
     """``(frame number, smallest volume ratio)`` of every fitted frame at ``theta``: an
     independent simulation (a state the problem holds already is found again)."""
-    with torch.no_grad(), problem.independent_simulation():
+    with torch.no_grad(), problem.warm_starts.independent():
         x = problem.simulate(problem.simulation_input(theta))
-    return list(zip(problem.frame_numbers(), np.asarray(problem.min_volume_ratio(x)).tolist()))
+    ratios = np.asarray(problem.report.min_volume_ratio(x)).tolist()
+    return list(zip(problem.frame_numbers(), ratios))
 
 
 def fit_continued(problem: InverseProblem,

@@ -76,7 +76,7 @@ class Evaluator:
         not validated)."""
         problem = self.problem
         theta = theta.detach()
-        isolated = problem.independent_simulation() if independent else contextlib.nullcontext()
+        isolated = problem.warm_starts.independent() if independent else contextlib.nullcontext()
         with torch.no_grad(), isolated:
             field = problem.field(theta)
             state = problem.simulate(problem.simulation_input(theta)).detach()
@@ -139,5 +139,5 @@ class Evaluator:
 
     def other_model(self, model: str, field: Tensor) -> Tensor:
         """A 3-D body's state ``(F, n, 3)`` with another constitutive ``model`` and ``field``
-        (:meth:`~torchfit.problems.base.BodyProblem.simulate_model`, no gradient)."""
-        return self.problem.simulate_model(model, field.detach())
+        (:meth:`~torchfit.problems.body.model_comparison.ModelComparison.simulate_model`, no gradient)."""
+        return self.problem.comparison.simulate_model(model, field.detach())

@@ -28,7 +28,7 @@ from torch import Tensor
 
 from ..errors import SimulationError
 from ..linalg import set_threads
-from ..problems import BodyProblem, InverseProblem
+from ..problems import BodyProblem, InverseProblem, keep_mesh
 from ..records import IterationRecord
 from ..reporting.progress import ProgressPrinter
 from ..reporting.results import (CHECKPOINT_FILE, PARAMS_FILE, RESULT_FILE,
@@ -157,7 +157,7 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
     if run_path is not None:
         run_path.mkdir(parents=True, exist_ok=True)
         if isinstance(problem, BodyProblem):   # a resume or simulate needs no mesh cache
-            problem.keep_mesh(run_path)
+            keep_mesh(problem, run_path)
         checkpointer = Checkpointer(run_path, problem, solver, rows, start, tracker)
         chain.append(checkpointer)
         outputs = RunOutputs(run_path, problem, evaluator, options, config, restart)
@@ -168,7 +168,7 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
     warm_up_autograd()     # torch's lazy one-time set-up, outside the solver's clock
     if restart is not None:
         # the equilibria the checkpointed process's next simulations start from
-        problem.restore_simulation_state(restart.simulation)
+        problem.warm_starts.restore_warm_start_state(restart.simulation, problem.device)
     try:
         try:
             solved = checkpointed_solve(restart) if finished else \
@@ -241,7 +241,7 @@ def keep_the_start(result: FitResult, evaluator: Evaluator, start: Tensor) -> An
 def bound_warning(problem: InverseProblem, rows: list[dict[str, Any]]) -> str | None:
     """The problem's line on the parameters that ended on a bound (the last record's
     ``at_lower_bound``, ``at_upper_bound``), or ``None``."""
-    if not rows or "at_lower_bound" not in rows[-1]:
+    if not rows or "at_lower_bound" not in rows[-1] or not isinstance(problem, BodyProblem):
         return None
-    return problem.bound_warning(int(rows[-1]["at_lower_bound"]),
+    return problem.report.bound_warning(int(rows[-1]["at_lower_bound"]),
                                  int(rows[-1].get("at_upper_bound", 0)))

@@ -14,7 +14,7 @@ from typing import Any
 
 from ..errors import ConfigurationError
 from ..problems import InverseProblem
-from ..problems.base import FramedProblem
+from ..problems import FramedProblem
 from ..reporting.results import jsonable
 from .validation import RESULT_KEYS as VALIDATION_RESULT_KEYS
 

@@ -28,7 +28,7 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from ..problems import InverseProblem
-from ..problems.base import BodyProblem, FieldImageProblem, MeshProblem, MotionProblem
+from ..problems import BodyProblem, FieldImageProblem, MeshProblem, MotionProblem
 from ..records import IterationRecord
 from ..reporting.body import BodyOutputs
 from ..reporting.body_files import modulus_units
@@ -134,7 +134,7 @@ class RunOutputs:
         summary = result_dict(problem, result, self.config)
         if isinstance(problem, MotionProblem):
             try:
-                timing = problem.time_integration(final.theta)
+                timing = problem.time.report(problem.simulation_input(final.theta))
             except Exception as error:  # noqa: BLE001  (an estimate; the fit stands)
                 timing = None
                 progress.warning("could not estimate the integration error at the fitted "

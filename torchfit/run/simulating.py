@@ -223,13 +223,14 @@ def simulate(run: str | Path, settings: Mapping[str, Any] | None = None,
             state, iterations, seconds = simulate_frames(problem, field, progress_lines)
         with torch.no_grad():
             errors = problem.frame_errors(state)
-            surface = problem.surface(state)
+            surface = problem.observation.surface(state)
         result = SimulationResult(fitted.directory, problem, state, surface, field, errors,
                                   iterations, seconds, 0.0, run_path)
         if run_path is not None:
             run_path.mkdir(parents=True, exist_ok=True)
             result.files = write_frames(run_path, problem, state, field,
-                                        problem.material_density(theta))
+                                        problem.poses.material_density(
+                                            problem.simulation_input(theta)))
             worst = int(np.argmax(errors["surface_err_mean"]))
             result.files.append(comparison_picture(run_path, problem, state, worst,
                                                    problem.frame_names()))
@@ -343,8 +344,8 @@ def simulate_frames(problem: RiggedBody, field: Tensor,
     seen: dict[bytes, int] = {}
     total = problem.n_frames
     names = problem.frame_names()
-    quasistatic = problem.quasistatic
-    with torch.no_grad(), problem.independent_simulation():
+    quasistatic = problem.poses.quasistatic
+    with torch.no_grad(), problem.warm_starts.independent():
         for f in range(total):
             tick = time.perf_counter()
             rig = problem.dirichlet_positions[f:f + 1].to(field)
@@ -383,7 +384,8 @@ def simulate_motion(problem: Any, theta: Tensor, progress_lines: bool = True
     if progress_lines:
         steps = problem.integrator.n_steps
         progress.info("integrated %d frames at %g fps (%d %s steps of %.4g s) in %.1f s",
-                      frames, problem.fps, steps, problem.cfg.scheme.value, problem.dt, wall)
+                      frames, problem.time.fps, steps, problem.cfg.scheme.value, problem.time.dt,
+                      wall)
     return x, [0] * frames, [wall / frames] * frames
 
 

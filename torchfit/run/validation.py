@@ -122,7 +122,7 @@ class ValidationTracker:
         return {"best_iteration": self.best_iteration, "best_theta": self.best_theta,
                 "best": dict(self.best), "fitted_at_best": dict(self.fitted_at_best),
                 "stale": self.stale, "stopped": self.stopped,
-                "simulation": self.validation.simulation_state()}
+                "simulation": self.validation.warm_starts.warm_start_state()}
 
     def load_state_dict(self, state: Mapping[str, Any], iteration: int) -> None:
         """Continue after the checkpoint of ``iteration`` (its record is not judged again)."""
@@ -132,7 +132,8 @@ class ValidationTracker:
         self.fitted_at_best = {k: float(v) for k, v in state["fitted_at_best"].items()}
         self.stale = int(state["stale"])
         self.stopped = bool(state["stopped"])
-        self.validation.restore_simulation_state(state["simulation"])
+        self.validation.warm_starts.restore_warm_start_state(state["simulation"],
+                                                             self.validation.device)
         self.resumed_through = int(iteration)
 
     # -- the end of the run ----------------------------------------------------------------

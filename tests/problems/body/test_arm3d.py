@@ -54,7 +54,7 @@ def test_warm_start_setting_decides_where_newton_starts(cache, warm_start):
     definition in docs/problems.md): the answer at a parameter vector does not depend on the ones
     simulated before it. The default starts from the last solution."""
     problem = arm(cache, frames=[0, 11], warm_start=warm_start)
-    equilibrium = problem.quasistatic.equilibrium
+    equilibrium = problem.poses.quasistatic.equilibrium
     E0 = problem.parameterization(problem.theta0)
     E1 = E0 * torch.linspace(0.5, 2.0, E0.numel(), dtype=E0.dtype)
     problem.simulate(E0)
@@ -73,9 +73,9 @@ def test_neither_the_synthetic_target_nor_the_baseline_seeds_the_fit(cache):
     from the truth's would hand the fit the truth's branch (and one from the baseline put a
     run started elsewhere, ``init=``, on the baseline's)."""
     problem = arm(cache, frames=[0, 11], target="synthetic")
-    equilibrium = problem.quasistatic.equilibrium
+    equilibrium = problem.poses.quasistatic.equilibrium
     assert not equilibrium.last_warm_started
-    problem.homogeneous_surface_error()
+    problem.report.homogeneous_error()
     assert not equilibrium.last_warm_started
     E1 = problem.parameterization(problem.theta0) * 1.5
     problem.simulate(E1)
@@ -111,9 +111,9 @@ def test_linear_flattens_more_than_corotated_at_full_bend(cache):
     rest = float(signed_volumes(problem.mesh.points, cells).sum())
     change = {}
     for model in ("linear", "corotated"):
-        x = problem.simulate_model(model, E)
+        x = problem.comparison.simulate_model(model, E)
         change[model] = float(signed_volumes(x[0].numpy(), cells).sum()) / rest - 1.0
-        assert np.isfinite(problem.joint_volume_change(x)[0])
+        assert np.isfinite(problem.report.joint_volume_change(x)[0])
     assert change["linear"] < -0.3 and abs(change["corotated"]) < 0.05, change
 
 
@@ -128,13 +128,13 @@ def test_newton_finishes_at_a_saddle_where_the_energy_descent_stalls(tmp_path):
     problem = arm(str(tmp_path), frames=[11], tet_edge_length=0.06)
     assert problem.tet.from_cache, "the arm's surface or mesh options changed: the kept " \
         "mesh is not this arm's any more (make a new one that stalls, or drop the test)"
-    equilibrium = problem.quasistatic.equilibrium
+    equilibrium = problem.poses.quasistatic.equilibrium
     x = problem.simulate(problem.field(problem.theta0))
     assert equilibrium.last_newton_iterations[0] < 40
     E = problem.field(problem.theta0)
     residual = equilibrium.model.residual(x.reshape(1, -1), E)[:, equilibrium.free_dofs]
     assert float(torch.linalg.vector_norm(residual)) <= 1.3e-12
-    assert problem.inverted_tets(x)[0] > 0            # the fold, which makes the saddle
+    assert problem.report.inverted_tets(x)[0] > 0            # the fold, which makes the saddle
 
 
 def test_inverted_tetrahedra_are_counted_per_frame(cache):
@@ -144,10 +144,10 @@ def test_inverted_tetrahedra_are_counted_per_frame(cache):
     one = rest.clone()
     a, b, c, d = problem.mesh.cells[0]
     one[d] = one[a] - (one[d] - one[a])      # reflect one corner through another: one tet
-    counts = problem.inverted_tets(torch.stack([rest, mirrored, one]))
+    counts = problem.report.inverted_tets(torch.stack([rest, mirrored, one]))
     assert counts[0] == 0 and counts[1] == problem.model.n_cells and counts[2] >= 1
     assert problem.metrics(problem.theta0)["inverted_tets"] == float(
-        problem.inverted_tets(problem.simulate(problem.field(problem.theta0))).max())
+        problem.report.inverted_tets(problem.simulate(problem.field(problem.theta0))).max())
 
 
 def test_bad_settings_are_one_line(cache):
@@ -254,7 +254,7 @@ def test_the_arm_on_the_cudss_path_matches_the_cpu_backend(cache):
     from helpers.fake_nvmath import FakeCuda
 
     fake = FakeCuda()
-    results = arm_fits(cache, configure=lambda problem: problem.quasistatic.equilibrium.
+    results = arm_fits(cache, configure=lambda problem: problem.poses.quasistatic.equilibrium.
                        use_backend(CudssBackend(runtime=fake, rhs_block=16)))
     assert results["device"][0].theta.shape == (36,)
     count = assert_same_fit(results)

@@ -87,10 +87,10 @@ def test_capsule_rig_fit_stays_inside_tight_bounds(tmp_path):
                  callbacks=[lambda record: fields.append(problem.field(record.theta))])
     low, high = 0.7 * (1 - 1e-12), 1.4 * (1 + 1e-12)
     assert all(float(f.min()) >= low and float(f.max()) <= high for f in fields)
-    assert result.metrics["surface_err_mean"] < problem.homogeneous_surface_error()
+    assert result.metrics["surface_err_mean"] < problem.report.homogeneous_error()
     last = result.history[-1]
     assert last["at_lower_bound"] + last["at_upper_bound"] >= 1
-    summary = problem.region_summary(problem.field(result.theta))
+    summary = problem.report.region_summary(problem.field(result.theta))
     assert all({"at_lower", "at_upper"} <= set(r) for r in summary.values())
 
 

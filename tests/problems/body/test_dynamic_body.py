@@ -15,7 +15,6 @@ import torchfit
 from helpers.capsule_animation import write_capsule
 from torchfit.mesh import load_animation
 from torchfit.problems import ProblemConfigError, RiggedBody, build_problem
-from torchfit.problems.body.dynamic import DynamicRiggedBody
 
 #: six frames of the capsule's bend (0 to 30 degrees, then held)
 ANGLES = (0.0, 10.0, 20.0, 30.0, 30.0, 30.0)
@@ -43,13 +42,13 @@ def settings(root: Path, **more) -> dict:
 
 
 @pytest.fixture(scope="module")
-def synthetic(root) -> DynamicRiggedBody:
+def synthetic(root) -> RiggedBody:
     return build_problem("animation", settings(root, target="synthetic", frames=[0, 1, 2, 3]))
 
 
 def test_dynamic_flag_builds_the_body_in_time(synthetic, root):
     problem = synthetic
-    assert isinstance(problem, DynamicRiggedBody) and not problem.scale_free
+    assert isinstance(problem, RiggedBody) and problem.time.in_time and not problem.scale_free
     assert type(build_problem("animation", {**settings(root), "dynamic": False})) is RiggedBody
     n_field = 2 * 2 * 3
     assert problem.parameterization.n_params == n_field + 2
@@ -82,7 +81,7 @@ def test_fewer_frames_follow_the_same_trajectory(synthetic):
     to there: the truth of frames 0, 1 is the full problem's, reproduced to round-off."""
     first = synthetic.with_frames([0, 1])
     assert first.dirichlet_positions.shape == synthetic.dirichlet_positions.shape
-    x = first.simulate(synthetic.true_simulation_input())
+    x = first.simulate(synthetic.time.true_input(synthetic.field_true))
     assert torch.allclose(x, synthetic.x_true[:2], rtol=0, atol=1e-12)
 
 
@@ -127,7 +126,7 @@ def test_a_density_scale_among_the_parameters(root, tmp_path):
     theta_leaf = theta.clone().requires_grad_(True)
     (grad,) = torch.autograd.grad(problem.forward(theta_leaf), theta_leaf, w)
     assert torch.allclose(J.T @ w, grad, rtol=1e-9, atol=1e-12 * float(grad.abs().max()))
-    density, source = problem.material_density(problem.true_theta())
+    density, source = problem.poses.material_density(problem.simulation_input(problem.true_theta()))
     assert density == pytest.approx(1500.0, rel=1e-12) and "fitted" in source
     if importlib.util.find_spec("pxr") is not None:      # the layer an artist gets
         from pxr import Usd, UsdGeom
@@ -136,15 +135,15 @@ def test_a_density_scale_among_the_parameters(root, tmp_path):
         truth = problem.true_theta()
         with torch.no_grad():
             x = problem.simulate(problem.simulation_input(truth))
-        write_usd(tmp_path, problem, problem.surface(x).numpy(), problem.field(truth).numpy(),
-                  problem.material_density(truth))
+        write_usd(tmp_path, problem, problem.observation.surface(x).numpy(), problem.field(truth).numpy(),
+                  problem.poses.material_density(problem.simulation_input(truth)))
         stage = Usd.Stage.Open(str(tmp_path / "usd" / "body.usda"))
         tet = stage.GetDefaultPrim()
         written = UsdGeom.PrimvarsAPI(tet).GetPrimvar("density").Get()
         assert list(written) == pytest.approx([1500.0] * len(written))
         assert "fitted" in tet.GetCustomDataByKey("torchfit:densitySource")
     plain = build_problem("animation", settings(root))
-    assert plain.material_density(plain.theta0)[0] == 1000.0
+    assert plain.poses.material_density(plain.simulation_input(plain.theta0))[0] == 1000.0
     with pytest.raises(ProblemConfigError, match="problem.density_scale=0.0: must be > 0"):
         build_problem("animation", settings(root, fit_density=True, density_scale=0.0))
 
@@ -169,7 +168,7 @@ def test_slow_motion_is_the_quasistatic_body(root):
         folder = slow if fps == 0.24 else capsule(root, fps=fps, name=f"capsule_{fps:g}")
         problem = build_problem("animation", {**common, "path": str(folder), "dynamic": True,
                                               "substeps": 4, "alpha0": 0.2, "beta0": 1e-4})
-        assert problem.fps == fps
+        assert problem.time.fps == fps
         assert problem.model.n_cells == quasistatic.model.n_cells   # one cached mesh
         physical = problem.simulation_input(problem.theta0)
         x = problem.simulate(physical)
@@ -190,7 +189,7 @@ def test_validation_is_a_later_window(root):
     assert validation.frame_numbers() == [4, 5]
     # the held-out frames are simulated from t = 0 through the fitted window
     assert validation.dirichlet_positions.shape[0] == 6
-    x = validation.simulate(validation.true_simulation_input())
+    x = validation.simulate(validation.time.true_input(validation.field_true))
     assert torch.allclose(x, validation.x_true)
     with pytest.raises(ProblemConfigError, match="is not a later window: fitted frame 4"):
         build_problem("animation", settings(root, frames=[0, 4], validation_frames=[2, 3]))
@@ -243,7 +242,7 @@ def test_a_material_layer_starts_the_body_in_time_in_pascals(root, tmp_path):
         problem = build_problem("animation", settings(root, parameters="tet", init_field=path,
                                                       alpha0=3.0, beta0=0.01, **more))
         field = problem.field(problem.theta0).numpy()
-        return field, [float(v) for v in problem.damping(problem.theta0)]
+        return field, [float(v) for v in problem.time.scalars(problem.simulation_input(problem.theta0))]
 
     field, damping = start(layer("pa", 2.0e4 * shape, "Pa"))
     assert np.abs(field / (2.0e4 * shape) - 1).max() < 1e-6            # float32 in the layer
@@ -277,9 +276,9 @@ def test_under_gravity_the_body_starts_at_rest(root):
               "grid": [2, 2, 3], "dynamic": True, "substeps": 2}
     problem = build_problem("animation", {**common, "gravity": [0.0, 0.0, -9.81]})
     rest = problem.model.rest.points
-    start = problem.system.x0.reshape(-1, 3)
+    start = problem.time.system.x0.reshape(-1, 3)
     sag = start - rest
-    mass = problem.system.mass.reshape(-1, 3)[:, 2]
+    mass = problem.time.system.mass.reshape(-1, 3)[:, 2]
     assert float((mass * sag[:, 2]).sum() / mass.sum()) < -1e-5      # the centre of mass drops
     # the driven vertices stay where the rig puts them at frame 0: the rest, to the round-off
     # of skinning it (1.7e-18 m on one pytetwild mesh)
@@ -288,8 +287,8 @@ def test_under_gravity_the_body_starts_at_rest(root):
     drift = float((x - start[None]).norm(dim=-1).max())
     assert drift <= 1e-6 * float(sag.norm(dim=-1).max()), drift
     weightless = build_problem("animation", common)
-    assert torch.equal(weightless.system.x0.reshape(-1, 3), rest.to(weightless.system.x0))
-    report = problem.time_integration(problem.theta0)
+    assert torch.equal(weightless.time.system.x0.reshape(-1, 3), rest.to(weightless.time.system.x0))
+    report = problem.time.report(problem.simulation_input(problem.theta0))
     assert report["steps"] == 3 * 2 and report["reference_steps"] == 12
     assert report["fps"] == 24.0 and report["substeps"] == 2 and report["scheme"] == "bdf2"
     assert 0.0 <= report["error_estimate"] <= 1e-6 * float(sag.norm(dim=-1).max())

@@ -48,7 +48,7 @@ def test_capsule_fits_and_rerun_hits_the_tet_cache(tmp_path, cache, mode, frames
     assert (problem.mesh.signed_volumes() > 0).all()
     # the user's surface vertices are embedded: the rest tets reproduce them exactly
     rest = torch.as_tensor(problem.mesh.points)
-    assert torch.allclose(problem.surface(rest), torch.as_tensor(problem.animation.rest_vertices),
+    assert torch.allclose(problem.observation.surface(rest), torch.as_tensor(problem.animation.rest_vertices),
                           atol=1e-12)
     if mode == "driven":
         assert problem.observed_vertices.numel() == int((~problem.animation.driven.mask).sum())
@@ -90,7 +90,7 @@ def test_rig_target_fit_lowers_the_surface_error(tmp_path, cache):
     problem = problem_for(folder, cache)
     result = fit(problem, {"name": "levenberg_marquardt", "max_iter": 6, "max_step": 1.0})
     assert result.metrics["surface_err_reduction"] > 1.0
-    assert result.metrics["surface_err_mean"] < problem.homogeneous_surface_error()
+    assert result.metrics["surface_err_mean"] < problem.report.homogeneous_error()
 
 
 def test_fit_app_runs_the_capsule_end_to_end(tmp_path, cache):

@@ -28,7 +28,7 @@ def capsule_problem(tmp_path, angles):
 def test_repeated_pose_simulated_once_and_weighted_as_the_data(tmp_path):
     # a bend played forward and back: frames 3 and 4 repeat frames 1 and 0
     problem = capsule_problem(tmp_path, (0.0, 20.0, 40.0, 20.0, 0.0))
-    poses, pose_of_frame = problem.repeated_poses
+    poses, pose_of_frame = problem.poses.repeated_poses
     assert poses.tolist() == [0, 1, 2] and pose_of_frame.tolist() == [0, 1, 2, 1, 0]
     theta = problem.theta0 + 0.1 * torch.sin(torch.arange(problem.theta0.numel(),
                                                           dtype=problem.theta0.dtype))
@@ -39,21 +39,21 @@ def test_repeated_pose_simulated_once_and_weighted_as_the_data(tmp_path):
     # three poses solved: Newton's factorisations are those of three frames (the cold
     # start's one each, and a frame that finishes at a saddle with the exact tangent may
     # take one more: 20 against 16 + 3 on one CI mesh), never those of five
-    newton = sum(problem.quasistatic.last_newton_iterations)
+    newton = sum(problem.poses.quasistatic.last_newton_iterations)
     assert newton + 3 <= count.factorizations <= newton + 6
-    assert len(problem.quasistatic.last_newton_iterations) == 3
+    assert len(problem.poses.quasistatic.last_newton_iterations) == 3
     # the dense Jacobian: bit for bit the one of every frame simulated, repeated rows equal
     J = problem.forward_jacobian(theta)
     assert float(J.abs().max()) > 1e-5
     rows = J.reshape(5, -1, theta.numel())
     assert torch.equal(rows[3], rows[1]) and torch.equal(rows[4], rows[0])
-    shared, problem.repeated_poses = problem.repeated_poses, None
-    problem.quasistatic.equilibrium.clear_cache()
+    shared, problem.poses.repeated_poses = problem.poses.repeated_poses, None
+    problem.poses.quasistatic.equilibrium.clear_cache()
     x_all = problem.simulate(E)
-    assert len(problem.quasistatic.last_newton_iterations) == 5
+    assert len(problem.poses.quasistatic.last_newton_iterations) == 5
     assert torch.allclose(x_all, x, rtol=0, atol=1e-9)
     assert torch.allclose(problem.forward_jacobian(theta), J, rtol=1e-7, atol=1e-12)
-    problem.repeated_poses = shared
+    problem.poses.repeated_poses = shared
     # the gradient of the misfit counts a repeated frame as often as the data hold it
     t = theta.clone().requires_grad_(True)
     w = torch.rand(J.shape[0], dtype=theta.dtype, generator=torch.Generator().manual_seed(1))

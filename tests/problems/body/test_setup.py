@@ -15,7 +15,7 @@ from helpers.rigged_tube import write_tube
 from torchfit import build_problem
 from torchfit.problems import ProblemConfigError
 from torchfit.problems.body import setup as body_setup
-from torchfit.problems.body.problem import RiggedBody
+from torchfit.problems.body import problem as body_problem
 
 DATA = Path(__file__).resolve().parents[2] / "data"
 
@@ -49,10 +49,11 @@ def test_rig_check_false_and_the_tolerance_let_it_through(tmp_path, monkeypatch)
     class Built(Exception):
         pass
 
-    def stop(self, cfg, animation):
+    def stop(cfg, animation, motion=None, kept=None):
         raise Built(animation.n_frames)
 
-    monkeypatch.setattr(RiggedBody, "tetrahedralize", stop)
+    # the rig check passed when the body goes on to tetrahedralise its surface
+    monkeypatch.setattr(body_problem, "tet_mesh", stop)
     for settings in ({"rig_check": False}, {"rig_tolerance": 3.0}):
         with pytest.raises(Built):
             build_problem("animation", {"path": str(folder), **settings})

@@ -38,26 +38,23 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from ...memory import check_allocation
-from ...mesh.formats.folder import Animation
-from ...params import FieldAndScalars, Parameterization
+from ...params import Parameterization
 from ...physics import NewtonConvergenceError, NewtonOptions
 from ...physics.dynamics import DynamicSystem, SplineMotion, UnstableStepError, make_integrator
-from ..base import InverseProblem
-from ..config import ProblemConfigError, Transform, make_config, require_setting, setting_error
-from ..dynamic import IMPLICIT_STEP_BYTES, DynamicMixin, Integrator, stored_states
-from .arm3d import Arm3D
-from .bounds import modulus_bounds, region_report, theta_bounds
+from ..base import NO_WARM_STARTS
+from ..config import ProblemConfigError, Transform, require_setting, setting_error
+from ..dynamic import (IMPLICIT_STEP_BYTES, Integrator, Scalars, TimeIntegration,
+                       stored_states)
+from ..protocols import WarmStarts
 from .config import ModulusUnit, RiggedBodyConfig
 from .held_out import FrameSplit
-from .init_field import initial_field_theta
-from .problem import RiggedBody
 
 _DAMPING = ("alpha", "beta")
 
@@ -151,101 +148,83 @@ def dynamic_split(cfg: RiggedBodyConfig, n_frames: int) -> FrameSplit | None:
     return FrameSplit(fitted, sorted(validation), [], len(fitted) + len(validation))
 
 
-class DynamicBody(DynamicMixin):
-    """The hooks that make a rigged body move in time (module docstring); put before the
-    body's class in the bases."""
+class BodyInTime(TimeIntegration):
+    """The rigged body's simulation in time (module docstring): the
+    :class:`~torchfit.problems.protocols.BodySimulation` and the
+    :class:`~torchfit.problems.protocols.TimeModel` of ``problem.dynamic=true``.
 
-    scale_free = False
-    # the motion goes through the trajectory's autograd Function (and forward_jacobian)
-    forward_products = InverseProblem.forward_products
+    Built by :meth:`build` from the body's pieces; its simulation input is ``[E (n_tets,),
+    alpha, beta(, density scale)]`` (pascals, 1/s, s, a factor of ``problem.density``);
+    :meth:`simulate` gives the fitted frames' positions ``(F, n, 3)`` at their times ``f /
+    fps``, :meth:`jacobian` the observed rows' tangents forward through time. Nothing
+    carries over between simulations (each integrates from the start):
+    :attr:`warm_starts` is :data:`~torchfit.problems.base.NO_WARM_STARTS`.
+    """
 
-    cfg: RiggedBodyConfig
+    warm_starts: WarmStarts = NO_WARM_STARTS
 
-    def __init__(self, cfg: Any = None, *, kept_mesh: Any = None, **overrides: Any) -> None:
-        config = make_config(self.config_class, cfg, overrides)   # type: ignore[attr-defined]
-        # a material layer that states no unit is read in the units of the modulus settings
-        self.unitless_layer_factor = float(config.E_reference) \
-            if config.E0_unit == ModulusUnit.relative else 1.0
-        super().__init__(in_pascals(config), kept_mesh=kept_mesh)  # type: ignore[call-arg]
+    def __init__(self, cfg: RiggedBodyConfig, system: DynamicSystem, integrator: Any,
+                 output_times: Tensor, fps: float, dt: float, shot_frames: int) -> None:
+        super().__init__(cfg, system, integrator, output_times, 3, Scalars(
+            scalar_names(cfg), scalar_starts(cfg), (cfg.alpha, cfg.beta, *(
+                (cfg.density_scale,) if cfg.fit_density else ())), cfg.transform.value))
+        self.fps, self.dt, self.shot_frames = fps, dt, int(shot_frames)
 
-    def unsimulated_truth(self, error: Any) -> Any:
-        """A time step the integrator cannot take while simulating the synthetic truth is
-        bad input naming ``problem.substeps`` and the true material (at the fit's start the
-        solver refuses it likewise)."""
-        if not isinstance(error, UnstableStepError):
-            return super().unsimulated_truth(error)              # type: ignore[misc]
-        return setting_error("substeps", self.cfg.substeps, "the body cannot be integrated "
-                             f"with the synthetic target's true material "
-                             f"({', '.join(self.truth_settings())}): {error}")
-
-    # -- building -------------------------------------------------------------------------
-    def check(self, cfg: RiggedBodyConfig) -> None:
-        super().check(cfg)                                     # type: ignore[misc]
-        check_body_dynamics(cfg)
-
-    def split_frames(self, cfg: RiggedBodyConfig, animation: Animation) -> FrameSplit | None:
-        return dynamic_split(cfg, animation.n_frames)
-
-    def driving_animation(self, whole: Animation, fitted: Animation) -> Animation:
-        """Every frame of the shot: the rig's motion is input, known to the end, and the
-        spline through all of it makes the motion at a time the same whichever frames are
-        fitted (a fit of the first frames, a continuation's first stage, the held-out
-        window: each reproduces the others' trajectory up to its last frame; a spline
-        ending at the last fitted frame would bend differently there). The integration
-        stops at the last output frame."""
-        return whole
-
-    def pose_repeats(self) -> None:
-        """A pose met again in time is another state (velocity): no frame is shared."""
-        return None
-
-    def build_model(self, cfg: RiggedBodyConfig) -> None:
-        super().build_model(cfg)                               # type: ignore[misc]
-        fps = float(self.animation.fps)
+    @classmethod
+    def build(cls, cfg: RiggedBodyConfig, model: Any, mesh: Any, dirichlet_vertices: Any,
+              drive: Tensor, skinned: Tensor, frame_numbers: list[int], fps: float,
+              backend: str, initial_pose: Callable[[], Tensor]) -> "BodyInTime":
+        """The body in time from the body's model (elasticity on its tetrahedra), mesh,
+        driven vertices and their positions in every frame of the shot ``drive`` ``(S,
+        n_driven, 3)``, the skinned pose of every tetrahedron vertex ``skinned`` ``(S, n,
+        3)``, the fitted frames' numbers, the frame rate and the linear-solve backend;
+        ``initial_pose()``: the positions at ``t = 0`` (the rest shape, or frame 0's
+        equilibrium for ``E0``). Refuses (naming the setting) a frame rate, step or step
+        grid the integrator cannot take and a start under gravity with no equilibrium."""
+        fps = float(fps)
         require_setting(math.isfinite(fps) and fps > 0, cfg, "path", f"the animation's frame "
                         f"rate is {fps:g}; give it a positive fps (the folder's 'fps')")
         dt = 1.0 / (fps * cfg.substeps)
         require_setting(math.isfinite(dt) and dt > 0, cfg, "substeps", f"gives the time step "
                         f"{dt!r} s at {fps:g} fps, which the integrator cannot take; use fewer "
                         "substeps")
-        self.check_time_steps(cfg)
-        self.fps, self.dt = fps, dt
-        dtype, device = self.dtype, self.device
-        n = self.model.n_vertices
-        cells = torch.as_tensor(self.mesh.cells, device=device)
-        volumes = torch.as_tensor(np.abs(self.mesh.signed_volumes()), dtype=dtype, device=device)
+        check_time_steps(cfg, frame_numbers, 3 * model.n_vertices)
+        dtype, device = drive.dtype, drive.device
+        n = model.n_vertices
+        cells = torch.as_tensor(mesh.cells, device=device)
+        volumes = torch.as_tensor(np.abs(mesh.signed_volumes()), dtype=dtype, device=device)
         vertex_mass = torch.zeros(n, dtype=dtype, device=device).index_add(
             0, cells.reshape(-1), (cfg.density * volumes / 4.0).repeat_interleave(4))
-        vertices = np.asarray(self.dirichlet_vertices, dtype=np.int64)
+        vertices = np.asarray(dirichlet_vertices, dtype=np.int64)
         order = np.argsort(vertices, kind="stable")
-        keys = self.dirichlet_positions[:, torch.as_tensor(order, device=device)]  # (S, nd, 3)
+        keys = drive[:, torch.as_tensor(order, device=device)]               # (S, nd, 3)
         fixed = torch.as_tensor((vertices[order][:, None] * 3 + np.arange(3)).reshape(-1))
         key_times = torch.arange(keys.shape[0], dtype=dtype, device=device) / fps
-        rest = self.model.rest.points.to(dtype)
+        rest = model.rest.points.to(dtype)
         # the rig's motion of every tetrahedron vertex (the skinned pose): the damping acts
         # on the velocity relative to it, and the body starts moving with it
-        rig = SplineMotion(key_times, self.start_positions.reshape(keys.shape[0], -1))
+        rig = SplineMotion(key_times, skinned.reshape(keys.shape[0], -1))
         gravity = torch.zeros(3, dtype=dtype, device=device) if cfg.gravity is None else \
             torch.tensor([float(g) for g in cfg.gravity], dtype=dtype, device=device)
-        self.system = DynamicSystem(
-            self.model, self.model.n_cells, vertex_mass.repeat_interleave(3), fixed,
+        system = DynamicSystem(
+            model, model.n_cells, vertex_mass.repeat_interleave(3), fixed,
             SplineMotion(key_times, keys.reshape(keys.shape[0], -1)), None,
-            gravity.repeat(n), self.initial_pose(cfg).reshape(-1),
+            gravity.repeat(n), initial_pose().reshape(-1),
             rig.velocity(key_times[:1])[0], vertex_dim=3, rest=rest.reshape(-1),
             reference_velocity=rig.velocity, density_scaled=cfg.fit_density)
-        self.output_times = torch.as_tensor(self.frame_numbers(), dtype=torch.float64) / fps
+        output_times = torch.as_tensor(frame_numbers, dtype=torch.float64) / fps
         newton = NewtonOptions(max_iter=cfg.newton_max_iter, rtol=cfg.newton_rtol,
                                atol=cfg.newton_atol)
-        self.integrator = make_integrator(
-            "implicit", self.system, self.output_times, dt=dt, scheme=cfg.scheme.value,
-            backend=self.backend, newton=newton, checkpoint_every=cfg.checkpoint_every)
+        integrator = make_integrator(
+            "implicit", system, output_times, dt=dt, scheme=cfg.scheme.value,
+            backend=backend, newton=newton, checkpoint_every=cfg.checkpoint_every)
         if cfg.gravity is not None and bool(gravity.any()):
             # at rest under gravity at t = 0 for E0: the body does not drop at the start
-            start = torch.cat([torch.full((self.model.n_cells,), float(cfg.E0), dtype=dtype,
+            start = torch.cat([torch.full((model.n_cells,), float(cfg.E0), dtype=dtype,
                                           device=device),
-                               torch.tensor(self.scalar_starts(cfg), dtype=dtype, device=device)])
+                               torch.tensor(scalar_starts(cfg), dtype=dtype, device=device)])
             try:
-                rest_under_gravity = self.integrator.static_equilibrium(start, self.system.x0)
+                rest_under_gravity = integrator.static_equilibrium(start, system.x0)
             except NewtonConvergenceError as error:
                 # Seen on a capsule held by 4 tetrahedron vertices near its axis with gravity
                 # across it: the centre of mass above the held line, the body would swing
@@ -254,87 +233,16 @@ class DynamicBody(DynamicMixin):
                     f"problem.gravity={list(cfg.gravity)}: the body has no equilibrium at rest "
                     f"under gravity at the first frame for the start E0 = {cfg.E0:g} Pa (Newton "
                     f"from the rest shape, the load in up to "
-                    f"{self.integrator.static_increments} increments: "
+                    f"{integrator.static_increments} increments: "
                     f"{' '.join(str(error).split(': ', 1)[-1].split(';')[0].split())}); the rig "
-                    f"holds it by {len(self.dirichlet_vertices)} tetrahedron vertices, so it "
+                    f"holds it by {len(dirichlet_vertices)} tetrahedron vertices, so it "
                     "may sag or swing far from its rest shape: raise problem.E0, drive more of "
                     "the body (a larger attach radius, torchfit:attachRadius) or set "
                     "problem.gravity=null") from error
-            self.system.start_at(rest_under_gravity)
+            system.start_at(rest_under_gravity)
+        return cls(cfg, system, integrator, output_times, fps, dt, drive.shape[0])
 
-    def check_time_steps(self, cfg: RiggedBodyConfig) -> None:
-        """Refuse, naming ``problem.substeps``, a step grid whose size exceeds the memory
-        limit: ``substeps`` steps per frame up to the last fitted frame, each a Python object
-        of about 256 bytes, and the states ``(x, v)`` the gradient keeps (every one with
-        ``checkpoint_every = 1``, else two per segment and one segment); a lower bound, since
-        each kept step's factorisation comes on top."""
-        last = max(self.frame_numbers())
-        steps = last * cfg.substeps
-        n_dofs = 3 * self.model.n_vertices
-        kept = stored_states(steps, cfg.checkpoint_every or max(1.0, math.sqrt(steps)))
-        check_allocation(f"problem.substeps={cfg.substeps}",
-                         steps * float(IMPLICIT_STEP_BYTES) + kept * n_dofs * 16.0,
-                         f"{steps:.3g} implicit steps to frame {last} and {kept:.3g} stored "
-                         f"states of {n_dofs} degrees of freedom", ProblemConfigError,
-                         "choose fewer problem.substeps (for the stored states, a larger "
-                         "problem.checkpoint_every also helps)")
-
-    def initial_pose(self, cfg: RiggedBodyConfig) -> Tensor:
-        """Positions ``(n, 3)`` at ``t = 0``: the rest shape where frame 0 drives the rig to
-        its rest positions, else frame 0's equilibrium for the homogeneous ``E0``."""
-        rest = self.model.rest.points.to(self.dtype)
-        drive0 = self.dirichlet_positions[0]
-        at_rest = rest[torch.as_tensor(self.dirichlet_vertices, device=self.device)]
-        scale = float((rest.max(0).values - rest.min(0).values).norm())
-        if float((drive0 - at_rest).abs().max()) <= 1e-12 * scale:
-            return rest.clone()
-        E0 = torch.full((self.model.n_cells,), float(cfg.E0), dtype=self.dtype,
-                        device=self.device)
-        with torch.no_grad(), self.quasistatic.equilibrium.independent():
-            return self.quasistatic(E0, drive0[None], x_init=self.start_positions[:1])[0]
-
-    def initial_parameters(self, cfg: RiggedBodyConfig) -> Tensor:
-        """The constant ``E0`` (pascals) or ``problem.init_field``'s layer in pascals
-        (:mod:`.init_field`: its stated unit, else that of the modulus settings), with the
-        damping at ``alpha0``, ``beta0``."""
-        if not cfg.init_field:
-            return super().initial_parameters(cfg)             # type: ignore[misc]
-        return initial_field_theta(self, cfg, self.unitless_layer_factor)
-
-    def build_parameterization(self, cfg: RiggedBodyConfig) -> Parameterization:
-        return FieldAndScalars(super().build_parameterization(cfg),  # type: ignore[misc]
-                               self.scalar_names(cfg), self.scalar_starts(cfg),
-                               cfg.transform.value)
-
-    @staticmethod
-    def scalar_names(cfg: RiggedBodyConfig) -> tuple[str, ...]:
-        """The scalars beside the field: the damping, and the density scale where fitted."""
-        return (*_DAMPING, *(("density_scale",) if cfg.fit_density else ()))
-
-    @staticmethod
-    def scalar_starts(cfg: RiggedBodyConfig) -> tuple[float, ...]:
-        """Their starts: ``alpha0``, ``beta0`` (and the density scale 1: ``problem.density``)."""
-        return (cfg.alpha0, cfg.beta0, *((1.0,) if cfg.fit_density else ()))
-
-    def material_density(self, theta: Tensor) -> tuple[float, str] | None:
-        """``problem.density`` (kg/m^3), times the fitted density scale where it is fitted."""
-        if not self.cfg.fit_density:
-            return float(self.cfg.density), "problem.density (the body in time's mass)"
-        scale = float(self.damping(theta)[2])
-        return float(self.cfg.density) * scale, (f"fitted: problem.density x the fitted density "
-                                                 f"scale {scale:.6g}")
-
-    def true_damping(self) -> Tensor:
-        """The true scalars: ``alpha``, ``beta`` (and ``density_scale`` where fitted)."""
-        values = [self.cfg.alpha, self.cfg.beta, *(
-            [self.cfg.density_scale] if self.cfg.fit_density else [])]
-        return torch.tensor(values, dtype=self.dtype, device=self.device)
-
-    def truth_settings(self) -> list[str]:
-        return [*super().truth_settings(), *(                  # type: ignore[misc]
-            ["problem.density_scale"] if self.cfg.fit_density else [])]
-
-    # -- the forward model ------------------------------------------------------------------
+    # -- the body's simulation -----------------------------------------------------------
     def simulate(self, physical: Tensor) -> Tensor:
         """Tetrahedron vertex positions ``(F, n, 3)`` at the fitted frames' times for
         ``[E (n_tets,), alpha, beta]``. A step whose Newton does not converge raises
@@ -347,110 +255,66 @@ class DynamicBody(DynamicMixin):
                                     "substeps: raise problem.substeps", error.time,
                                     error.step) from error
 
-    def forward_jacobian(self, theta: Tensor) -> Tensor:
+    def jacobian(self, theta: Tensor, parameterization: Parameterization,
+                 observe: Callable[[Tensor], Tensor]) -> Tensor:
         """``d observe(simulate(map(theta))) / d theta`` ``(m, n_params)``: tangents forward
         through time (one solve with ``n_params`` right-hand sides per step), the observed
-        rows of every output frame."""
+        rows (``observe(like)``: sparse ``(n_obs 3, n 3)``) of every output frame."""
         with torch.no_grad():
             theta = theta.detach()
-            physical = self.parameterization(theta)
-            directions = self.parameterization.jacobian(theta)         # (n_tets + 2, n)
+            physical = parameterization(theta)
+            directions = parameterization.jacobian(theta)              # (n_tets + 2, n)
             dx = self.integrator.jacobian(physical, directions)       # (F, 3 n, n)
-            observe = self._observation_matrix(physical)               # type: ignore[attr-defined]
-            return torch.cat([torch.sparse.mm(observe, dx[f]) for f in range(dx.shape[0])])
+            rows = observe(physical)
+            return torch.cat([torch.sparse.mm(rows, dx[f]) for f in range(dx.shape[0])])
 
-    def homogeneous_surface_error(self) -> float:
-        """Mean surface error of the homogeneous ``E0`` with the starting damping (NaN where
-        it cannot be integrated)."""
-        if not hasattr(self, "_homogeneous_error"):
-            theta = self.parameterization.constant(self.initial_value(self.cfg), self.dtype,
-                                                   self.device)
-            try:
-                with torch.no_grad():
-                    x = self.simulate(self.simulation_input(theta))
-                    self._homogeneous_error = float(self.surface_errors(x).mean())  # type: ignore[attr-defined]
-            except UnstableStepError:    # NaN here; the fit's start refuses it in one line
-                self._homogeneous_error = math.nan
-        return self._homogeneous_error
+    def material_density(self, physical: Tensor) -> tuple[float, str] | None:
+        """``problem.density`` (kg/m^3), times the fitted density scale where it is fitted."""
+        if not self.cfg.fit_density:
+            return float(self.cfg.density), "problem.density (the body in time's mass)"
+        scale = float(self.scalars(physical)[2])
+        return float(self.cfg.density) * scale, (f"fitted: problem.density x the fitted density "
+                                                 f"scale {scale:.6g}")
 
-    def time_integration(self, theta: Tensor) -> dict[str, Any]:
+    # -- what it adds to the body's reports ------------------------------------------------
+    def report(self, physical: Tensor) -> dict[str, Any]:
         """The dynamic problems' report (positions in metres) with the frame rate and the
         substeps."""
-        out = super().time_integration(theta)
+        out = super().report(physical)
         out.update({"fps": self.fps, "substeps": int(self.cfg.substeps)})
         return out
 
-    def simulate_model(self, model: str, E: Tensor, frames: list[int] | None = None) -> Tensor:
-        raise NotImplementedError("the model comparison is quasistatic: the dynamic body "
-                                  "has none")
-
-    # -- what the metrics and outputs report ---------------------------------------------
-    def metric_names(self) -> list[str]:
-        names = super().metric_names()                         # type: ignore[misc]
-        if self.field_true is not None and "k_err_rel_aligned" not in names:
-            names.insert(names.index("k_err_rel") + 1, "k_err_rel_aligned")
-        if self.cfg.fit_density:
-            names += ["density_scale", "density_scale_err_rel"]
-        return names
-
-    def metrics(self, theta: Tensor, x: Tensor | None = None) -> dict[str, float]:
-        with torch.no_grad():
-            if x is None:
-                x = self.simulate(self.simulation_input(theta))
-            out = super().metrics(theta, x)                    # type: ignore[misc]
-            if self.field_true is not None:
-                field, truth = self.field(theta), self.field_true
-                scale = float(torch.dot(field, truth) / torch.dot(field, field))
-                out["k_err_rel_aligned"] = float(torch.linalg.vector_norm(
-                    scale * field - truth) / torch.linalg.vector_norm(truth))
-            if self.cfg.fit_density:
-                fitted = float(self.damping(theta)[2])
-                out["density_scale"] = fitted
-                out["density_scale_err_rel"] = abs(fitted / float(self.cfg.density_scale) - 1)
-        return out
-
-    def frame_errors(self, x: Tensor) -> dict[str, np.ndarray]:
-        """The body's per-frame report, with a synthetic truth also the position errors
-        of every output time (``u_err_inf``, ``u_err_2``: the motion pictures')."""
-        out = RiggedBody.frame_errors(self, x)                 # type: ignore[arg-type]
-        if self.x_true is not None:
-            out.update(DynamicMixin.frame_errors(self, x))
-        return out
-
-    def frame_names(self) -> list[str]:
-        return super(DynamicMixin, self).frame_names()         # the body's, not "t = ..."
-
-    def theta_bounds(self) -> tuple[Tensor, Tensor] | None:
-        """The modulus bounds on the field's parameters; the damping coefficients unbounded
-        (positive by ``exp``; ``>= 0`` with ``identity``)."""
-        m = self.parameterization.n_field_params
-        bounds = theta_bounds(self.cfg, m, self.theta0)
-        if bounds is None:
-            return None
-        low = -math.inf if self.cfg.transform == Transform.exp else 0.0
-        k = self.parameterization.n_scalars
-        tail = torch.tensor([[low] * k, [math.inf] * k], dtype=self.theta0.dtype,
-                            device=self.theta0.device)
-        return torch.cat([bounds[0], tail[0]]), torch.cat([bounds[1], tail[1]])
-
-    def region_summary(self, field: Tensor) -> dict[str, dict[str, float]]:
-        return region_report(field, self.mesh.signed_volumes(), self.tet_regions,  # type: ignore[attr-defined]
-                             self.region_names, self.parameterization.field_parameterization.basis,  # type: ignore[attr-defined]
-                             modulus_bounds(self.cfg))
-
     def describe(self) -> dict[str, Any]:
-        out = super().describe()                               # type: ignore[misc]
+        out = super().describe()
         out.update({"fps": self.fps, "substeps": int(self.cfg.substeps), "dt": self.dt,
                     "density": float(self.cfg.density), "fit_density": bool(self.cfg.fit_density),
-                    "shot_frames": int(self.dirichlet_positions.shape[0]),
+                    "shot_frames": self.shot_frames,
                     "mass": float(self.system.mass.sum()) / 3.0})
         return out
 
 
-class DynamicRiggedBody(DynamicBody, RiggedBody):
-    """``problem=animation problem.dynamic=true``: your rigged body in time."""
+def scalar_names(cfg: RiggedBodyConfig) -> tuple[str, ...]:
+    """The scalars beside the field: the damping, and the density scale where fitted."""
+    return (*_DAMPING, *(("density_scale",) if cfg.fit_density else ()))
 
 
-class DynamicArm3D(DynamicBody, Arm3D):
-    """``problem=arm3d problem.dynamic=true``: the procedural arm in time."""
+def scalar_starts(cfg: RiggedBodyConfig) -> tuple[float, ...]:
+    """Their starts: ``alpha0``, ``beta0`` (and the density scale 1: ``problem.density``)."""
+    return (cfg.alpha0, cfg.beta0, *((1.0,) if cfg.fit_density else ()))
 
+
+def check_time_steps(cfg: RiggedBodyConfig, frame_numbers: list[int], n_dofs: int) -> None:
+    """Refuse, naming ``problem.substeps``, a step grid whose size exceeds the memory
+    limit: ``substeps`` steps per frame up to the last fitted frame, each a Python object
+    of about 256 bytes, and the states ``(x, v)`` the gradient keeps (every one with
+    ``checkpoint_every = 1``, else two per segment and one segment); a lower bound, since
+    each kept step's factorisation comes on top."""
+    last = max(frame_numbers)
+    steps = last * cfg.substeps
+    kept = stored_states(steps, cfg.checkpoint_every or max(1.0, math.sqrt(steps)))
+    check_allocation(f"problem.substeps={cfg.substeps}",
+                     steps * float(IMPLICIT_STEP_BYTES) + kept * n_dofs * 16.0,
+                     f"{steps:.3g} implicit steps to frame {last} and {kept:.3g} stored "
+                     f"states of {n_dofs} degrees of freedom", ProblemConfigError,
+                     "choose fewer problem.substeps (for the stored states, a larger "
+                     "problem.checkpoint_every also helps)")

@@ -124,7 +124,7 @@ def describe_body(problem: Any, bounds: Any) -> dict[str, Any]:
            "backend": problem.backend, "full_bend_frame": problem.full_bend_frame,
            "joint_tets": int(len(problem.joint_cells)), "grid": problem.grid.describe(),
            "E_bounds": bounds,
-           "surface_err_mean_homogeneous": problem.homogeneous_surface_error()}
+           "surface_err_mean_homogeneous": problem.report.homogeneous_error()}
     if problem.rig_report is not None:     # the rig check's largest skinning distance
         out["rig_skinning_error"] = problem.rig_report.skinning_error
     if os.environ.get("TORCHFIT_CACHE_DIR"):
