@@ -5,7 +5,8 @@ import dataclasses
 from typing import Any
 
 from .body.arm3d import Arm3D, Arm3DConfig
-from .base import NO_WARM_STARTS, InverseProblem, has_forward_jacobian, has_forward_products
+from .base import (NO_WARM_STARTS, InverseProblem, has_forward_jacobian, has_forward_products,
+                   parameter_meaning)
 from .dynamic import QUASISTATIC, TimeIntegration
 from .protocols import (BodyProblem, BodySimulation, EmbeddedSurfaceProblem, FieldImageProblem,
                         FramedProblem, MeshProblem, MotionProblem, PosedProblem, PoseEquilibrium,
@@ -68,4 +69,4 @@ __all__ = ["Arm3D", "Arm3DConfig", "BodyProblem", "BodySimulation", "DynamicMemb
            "Poisson2D", "Poisson2DConfig", "ProblemConfig", "ProblemConfigError", "ProblemEntry",
            "QUASISTATIC", "RiggedBody", "RiggedBodyConfig", "Spring1D", "Spring1DConfig",
            "TimeIntegration", "TimeModel", "WarmStarts", "build_problem",
-           "has_forward_jacobian", "has_forward_products", "keep_mesh"]
+           "has_forward_jacobian", "has_forward_products", "keep_mesh", "parameter_meaning"]

@@ -423,19 +423,20 @@ class InverseProblem:
         (the settings determine everything)."""
         return {}
 
-    def parameter_meaning(self) -> dict[str, object]:
-        """What the parameters mean beyond their count, recorded in ``params.pt``: ``init=``
-        refuses a run whose meaning differs even where the counts agree. The problem
-        (problems of one family share parameters), the spatial dimension, and whether the
-        damping is appended (dynamic)."""
-        return {"problem": self.parameter_family or self.name, "dim": int(self.dim),
-                "dynamic": bool(getattr(self.cfg, "dynamic", False))}
-
     def describe(self) -> dict[str, object]:
         """Sizes for logs and result files."""
         return {"name": self.name, "n_params": self.parameterization.n_params,
                 "n_data": int(self.data.numel()), "noise_level": self.noise_level,
                 "scale_free": self.scale_free, **self.time.describe()}
+
+
+def parameter_meaning(problem: InverseProblem) -> dict[str, object]:
+    """What ``problem``'s parameters mean beyond their count, recorded in ``params.pt``:
+    ``init=`` refuses a run whose meaning differs even where the counts agree. The problem
+    (problems of one family share parameters), the spatial dimension, and whether the
+    damping is appended (dynamic)."""
+    return {"problem": problem.parameter_family or problem.name, "dim": int(problem.dim),
+            "dynamic": bool(getattr(problem.cfg, "dynamic", False))}
 
 
 def array_digest(*arrays: Any) -> str:

@@ -27,8 +27,8 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from ..problems import InverseProblem
-from ..problems import BodyProblem, FieldImageProblem, MeshProblem, MotionProblem
+from ..problems import (BodyProblem, FieldImageProblem, InverseProblem, MeshProblem, MotionProblem,
+                        parameter_meaning)
 from ..records import IterationRecord
 from ..reporting.body import BodyOutputs
 from ..reporting.body_files import modulus_units
@@ -127,7 +127,7 @@ class RunOutputs:
         self.tb.finish(problem, final.field, metrics, hparams, self.guard)
         files[:0] = list(save_params(run_dir, result.theta, result.field, problem.field_name,
                                      problem.parameterization.transform,
-                                     problem.parameter_meaning()))
+                                     parameter_meaning(problem)))
         if isinstance(problem, MeshProblem):
             _save_frames(run_dir / "frames.npz", problem, final)
             files.append(run_dir / "frames.npz")

@@ -11,7 +11,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..problems import InverseProblem
+from ..problems import InverseProblem, parameter_meaning
 from ..reporting.results import PARAMS_FILE
 from .options import FitConfigError
 
@@ -51,7 +51,7 @@ def initial_theta(problem: InverseProblem, init: Tensor | str | Path | None = No
                                      "same parameterisation")
         meaning = saved.get("meaning")
         if isinstance(meaning, dict):       # params.pt of 2026-11-26 on
-            for key, ours in problem.parameter_meaning().items():
+            for key, ours in parameter_meaning(problem).items():
                 if key in meaning and meaning[key] != ours:
                     raise FitConfigError(
                         f"{where} holds the parameters of another problem ({key} "

@@ -34,7 +34,7 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor
 
-from ..problems import InverseProblem
+from ..problems import InverseProblem, parameter_meaning
 from ..records import IterationRecord, StopReason
 from ..reporting.evaluation import Evaluation
 from ..reporting.results import save_torch
@@ -160,7 +160,7 @@ class ValidationTracker:
                                    "field_name": self.problem.field_name}
         if self.problem.parameterization.transform is not None:
             payload["transform"] = self.problem.parameterization.transform
-        payload["meaning"] = dict(self.problem.parameter_meaning())     # as params.pt's
+        payload["meaning"] = dict(parameter_meaning(self.problem))     # as params.pt's
         return save_torch(run_dir / BEST_PARAMS_FILE, payload)
 
 
