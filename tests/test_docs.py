@@ -29,7 +29,7 @@ PACKAGE = REPO / "torchfit"
 #: Names of files that are gone, named on purpose by a lab note (its history).
 HISTORY: dict[str, set[str]] = {
     "docs/notes/structure.md": {"physics/equilibrium.py", "linalg/sparse_solve.py",
-                                "mesh/animation.py", "mesh/arm.py", "problems/animation.py",
+                                "mesh/arm.py", "problems/animation.py",
                                 "linalg/backends.py", "mesh/tetrahedralize.py",
                                 "problems/rigged_body.py"},
     "docs/notes/tensorboard.md": {"torchfit/logging/tensorboard.py"},

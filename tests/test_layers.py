@@ -149,11 +149,6 @@ NOT_YET = "not yet through the face (issue 46, item 3)"
 #: package. Only shrinks: an entry no import needs fails the test.
 PAST_A_FACE: dict[tuple[str, str], str] = {
     ("torchfit.config", "torchfit.run.options"): NOT_YET,
-    ("torchfit.mesh.formats.convert", "torchfit.mesh.formats.gltf.writer"): NOT_YET,
-    ("torchfit.mesh.formats.convert", "torchfit.mesh.formats.usd.writer"): NOT_YET,
-    ("torchfit.mesh.formats.readers", "torchfit.mesh.formats.gltf.reader"): NOT_YET,
-    ("torchfit.mesh.formats.readers", "torchfit.mesh.formats.usd.reader"): NOT_YET,
-    ("torchfit.mesh.rig_check", "torchfit.mesh.formats.folder"): NOT_YET,
     ("torchfit.physics.dynamics.system", "torchfit.linalg.pattern"): NOT_YET,
     ("torchfit.physics.equilibrium.adjoint", "torchfit.linalg.counters"): NOT_YET,
     ("torchfit.physics.equilibrium.equilibrium", "torchfit.linalg.backends.cudss"): NOT_YET,
