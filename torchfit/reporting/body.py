@@ -46,7 +46,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..problems.base import BodyProblem
+from ..problems import BodyProblem
 from .evaluation import Evaluation
 from .figures import colorize, frame_errors_figure, save_png
 from .guard import PlotGuard
@@ -343,7 +343,7 @@ class BodyOutputs:
         surface = _numpy(problem.surface(x))
         errors = _numpy(problem.surface_error_field(x))                 # (F, V)
         vmax = float(errors.max()) if errors.size else 1.0
-        from ..mesh.embedding import boundary_faces
+        from ..mesh import boundary_faces
 
         tet_faces, _ = boundary_faces(np.asarray(problem.mesh.cells))
         E_vertex = vertex_field(np.asarray(problem.mesh.cells), _numpy(field),

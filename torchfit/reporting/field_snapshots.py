@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..problems.base import FramedProblem, MeshProblem
+from ..problems import FramedProblem, MeshProblem
 from .evaluation import Evaluation
 from .figures import (ERROR_CMAP, aligned, colorize, field_panels, frame_errors_figure,
                       image_extent, save_png, sheet_figure, snapshots_figure,

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..problems.base import FieldImageProblem, MeshProblem
+from ..problems import FieldImageProblem, MeshProblem
 from .guard import PlotGuard
 from .results import atomic_write
 

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 from torch import Tensor
 
-from ..problems.base import MeshProblem
+from ..problems import MeshProblem
 from .evaluation import Evaluation
 from .figures import save_png
 from .guard import PlotGuard
