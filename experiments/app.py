@@ -248,7 +248,7 @@ def checked_config(cfg: Any, schema: type, throw_on_missing: bool = True) -> dic
 
 
 def refuse(message: BaseException | str, run_dir: Path, guard: RunDirGuard) -> NoReturn:
-    from torchfit.run.lock import release_all
+    from torchfit.run import release_all
 
     print("error: " + one_line(message), file=sys.stderr, flush=True)
     release_all()       # the lock goes before the directory is left as it was
@@ -274,8 +274,7 @@ def run_hydra_app(main: Callable[[], Any], started: Callable[[], bool],
     (unknown option, misspelt or mistyped override: Hydra exits 1 before the task) exits 2
     like every other bad input. With a ``guard`` (the fit app), a single run into a given
     ``hydra.run.dir`` holds it first (module docstring), and the guard reads it then."""
-    from torchfit.run.directory import check_writable
-    from torchfit.run.lock import acquire, release_all
+    from torchfit.run import acquire, check_writable, release_all
 
     argv = sys.argv[1:]
     root = output_root(argv, default_root).resolve()

@@ -235,9 +235,8 @@ def absolute_paths(argv: list[str], cwd: str | None = None) -> list[str]:
 
 def _schemas() -> dict[str, tuple[type, str]]:
     """Config dataclasses by class name: (the class, what it configures)."""
+    from torchfit import PROBLEMS, SOLVERS
     from torchfit.config import FitConfig, SimulateConfig, VerifyConfig
-    from torchfit.problems import PROBLEMS
-    from torchfit.solvers import SOLVERS
 
     out: dict[str, tuple[type, str]] = {}
     for name, entry in PROBLEMS.items():
@@ -280,8 +279,7 @@ def check_sections(config: dict, sections: Iterable[str]) -> str | None:
     """The line for the first key of ``config``'s ``sections`` (``problem``, ``solver``:
     chosen by their ``name``) that is no field of its config class (``+problem.foo=1``,
     which Hydra adds); ``None`` where all are known."""
-    from torchfit.problems import PROBLEMS
-    from torchfit.solvers import SOLVERS
+    from torchfit import PROBLEMS, SOLVERS
 
     registries = {"problem": PROBLEMS, "solver": SOLVERS}
     for section in sections:

@@ -50,16 +50,12 @@ from hydra.types import RunMode  # noqa: E402
 from omegaconf import DictConfig, OmegaConf  # noqa: E402
 
 matplotlib.use("Agg")   # pictures are files and TensorBoard images; never a window
+from torchfit import build_problem  # noqa: E402
 from torchfit.config import FitConfig, register_configs  # noqa: E402
-from torchfit.linalg import set_threads  # noqa: E402
-from torchfit.problems import build_problem  # noqa: E402
-from torchfit.problems.body.run_mesh import resumed_mesh  # noqa: E402
-from torchfit.reporting.results import write_json  # noqa: E402
-from torchfit.run import FitOptions, distributed, fit, fit_continued  # noqa: E402
-from torchfit.run.continuation import (FIRST_STAGE_DIR, continuation_applies,  # noqa: E402
-                                       continuation_setting, first_stage_iterations)
-from torchfit.run.options import check_threads  # noqa: E402
-from torchfit.run.solver import solver_config  # noqa: E402
+from torchfit.run import (FIRST_STAGE_DIR, FitOptions, check_threads,  # noqa: E402
+                          continuation_applies, continuation_setting, distributed, fit,
+                          fit_continued, first_stage_iterations, resumed_mesh, set_threads,
+                          solver_config, write_json)
 
 register_configs()
 log = logging.getLogger("fit")

@@ -45,7 +45,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 matplotlib.use("Agg")   # pictures are files; never a window
 from torchfit.config import SimulateConfig, register_configs  # noqa: E402
 from torchfit.errors import ConfigurationError  # noqa: E402
-from torchfit.run.simulating import check_run_dir, read_fitted_run, simulate  # noqa: E402
+from torchfit.run import check_run_dir, read_fitted_run, simulate  # noqa: E402
 
 register_configs()
 log = logging.getLogger("simulate")

@@ -30,10 +30,9 @@ import hydra  # noqa: E402
 from hydra.core.hydra_config import HydraConfig  # noqa: E402
 from omegaconf import DictConfig  # noqa: E402
 
+from torchfit import build_problem  # noqa: E402
 from torchfit.config import VerifyConfig, register_configs  # noqa: E402
-from torchfit.linalg import set_threads  # noqa: E402
-from torchfit.problems import build_problem  # noqa: E402
-from torchfit.run import VerifyOptions, verify  # noqa: E402
+from torchfit.run import VerifyOptions, set_threads, verify  # noqa: E402
 
 register_configs()
 GUARD = RunDirGuard(sys.argv[1:])

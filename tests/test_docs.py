@@ -11,7 +11,10 @@
   (subpackages included) and its top-level modules, and its layer table states exactly the
   import rules tests/test_layers.py enforces;
 * no file of the repository points outside it (to the design and problem pages that lived
-  beside it, or to the directory that held them).
+  beside it, or to the directory that held them);
+* docs/reference.md is what ``scripts/tools/reference.py`` writes from the faces now (each
+  face's ``__all__`` and each name's first docstring sentence), as the layout table is
+  checked against the packages.
 
 Each check is a function of text, tested on a bad sample so that it can fail.
 """
@@ -29,7 +32,7 @@ PACKAGE = REPO / "torchfit"
 #: Names of files that are gone, named on purpose by a lab note (its history).
 HISTORY: dict[str, set[str]] = {
     "docs/notes/structure.md": {"physics/equilibrium.py", "linalg/sparse_solve.py",
-                                "mesh/animation.py", "mesh/arm.py", "problems/animation.py",
+                                "mesh/arm.py", "problems/animation.py",
                                 "linalg/backends.py", "mesh/tetrahedralize.py",
                                 "problems/rigged_body.py"},
     "docs/notes/tensorboard.md": {"torchfit/logging/tensorboard.py"},
@@ -158,6 +161,15 @@ def enforced_rules() -> tuple[dict[str, set[str]], set[str]]:
     return module.ALLOWED, module.NEUTRAL
 
 
+def reference_tool():
+    """scripts/tools/reference.py as a module (it writes docs/reference.md)."""
+    spec = importlib.util.spec_from_file_location("reference_tool",
+                                                  REPO / "scripts" / "tools" / "reference.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def outside_references(text: str) -> list[str]:
     return [name for name in OUTSIDE if name in text]
 
@@ -264,6 +276,12 @@ def test_the_layer_table_states_the_enforced_rules():
     assert stated == allowed
 
 
+def test_the_reference_is_what_the_faces_offer():
+    tool = reference_tool()
+    assert (DOCS / "reference.md").read_text() == tool.page(), \
+        "docs/reference.md is stale: run .venv/bin/python scripts/tools/reference.py"
+
+
 def test_nothing_points_outside_the_repository():
     found = {}
     for path in repository_files():
@@ -324,3 +342,32 @@ def test_outside_references_finds_each_name():
     for name in OUTSIDE:
         assert outside_references(f"see {name} for the rest") == [name]
     assert outside_references("see docs/architecture.md and docs/problems.md") == []
+
+
+def test_the_reference_follows_a_face_to_its_definitions(tmp_path):
+    tool = reference_tool()
+    root = tmp_path / "torchfit"
+    (root / "part").mkdir(parents=True)
+    (root / "__init__.py").write_text('"""The package."""\nfrom .part import Thing\n'
+                                      '__all__ = ["Thing"]\n')
+    (root / "part" / "__init__.py").write_text(
+        '"""A part: its job."""\nfrom .inner import LIMIT, Thing, use\n'
+        '__all__ = ["LIMIT", "Thing", "use"]\n')
+    (root / "part" / "inner.py").write_text(
+        '"""Inner."""\n#: the largest size | ever\nLIMIT = 3\n\n\nclass Thing:\n'
+        '    """A :class:`~torchfit.part.Thing` of ``size`` things. More here."""\n\n\n'
+        'def use():\n    pass\n')
+    (root / "errors.py").write_text('"""Errors."""\nclass Bad(Exception):\n    """Bad."""\n'
+                                    '_hidden = 1\n')
+    text = tool.page(tool.Source(root))
+    assert "## `torchfit`\n\nThe package.\n" in text
+    assert "| `Thing` | `torchfit.part.inner` | A `Thing` of `size` things. |" in text
+    assert "| `LIMIT` | `torchfit.part.inner` | the largest size \\| ever |" in text
+    assert "| `use` | `torchfit.part.inner` |  |" in text
+    assert "## `torchfit.errors`" in text and "| `Bad` | `torchfit.errors` | Bad. |" in text
+    assert "_hidden" not in text
+    assert text.index("## `torchfit`\n") < text.index("## `torchfit.part`") < text.index(
+        "## `torchfit.errors`")
+    (root / "part" / "__init__.py").write_text('"""A part."""\nfrom .inner import use\n'
+                                               '__all__ = ["use"]\n')
+    assert tool.page(tool.Source(root)) != text         # a face that changes changes the page

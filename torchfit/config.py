@@ -22,8 +22,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
 from .problems import PROBLEMS
-from .run import fit, fit_continued
-from .run.options import FitOptions, VerifyOptions
+from .run import FitOptions, VerifyOptions, fit, fit_continued
 from .solvers import SOLVERS
 
 

@@ -130,6 +130,7 @@ def npz_headers(path: Path, where: str, error: type[Exception] = ConfigurationEr
 
 
 def array_bytes(shape: tuple[int, ...], dtype: np.dtype) -> float:
+    """Bytes of an array of ``shape`` and ``dtype`` (a float: no overflow)."""
     return float(np.prod(shape, dtype=np.float64)) * np.dtype(dtype).itemsize
 
 

@@ -129,6 +129,8 @@ class SolveResult:
 
 
 class Callback(Protocol):
+    """What a solver calls with each iteration record (a run's observers are callbacks)."""
+
     def __call__(self, record: IterationRecord) -> bool | None:
         """Called once per outer iteration; return ``True`` to stop the solver."""
 

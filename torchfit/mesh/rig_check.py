@@ -5,7 +5,7 @@ another unit than the rest surface (millimetres against metres), and bone transf
 in another convention than the format's ``x' = A x + t`` (``A`` transposed, i.e. a
 row-vector layout stored as column-vector ``[A | t]``; bone-local instead of rest-relative
 transforms; translations in another unit). :func:`check_animation` refuses both with one
-:class:`~.formats.folder.AnimationError` line that names the frames (and bones) at fault
+:class:`~.animation.AnimationError` line that names the frames (and bones) at fault
 and the likely cause.
 
 **Scale** (every animation, skeleton or driven vertices): the size of a frame is the RMS
@@ -45,7 +45,7 @@ import math
 
 import numpy as np
 
-from .formats.folder import UNITS, Animation, AnimationError
+from .animation import UNITS, Animation, AnimationError
 from .rig import distance_weights, segment_distances
 
 #: a frame whose size differs from the rest's by more than this factor is refused
@@ -246,7 +246,7 @@ def check_skinning(animation: Animation, tolerance: float = TOLERANCE) -> float 
 
 def check_animation(animation: Animation, tolerance: float = TOLERANCE) -> RigReport:
     """The scale of every frame, then (with a skeleton) the skinning;
-    raises :class:`~.formats.folder.AnimationError` (one line) for either."""
+    raises :class:`~.animation.AnimationError` (one line) for either."""
     ratios = check_scale(animation)
     return RigReport(ratios, check_skinning(animation, tolerance),
                      animation.skeleton is not None and animation.skeleton.weights is None)

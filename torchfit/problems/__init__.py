@@ -4,7 +4,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from .body.arm3d import Arm3D, Arm3DConfig
+from .body import Arm3D, Arm3DConfig
 from .base import (NO_WARM_STARTS, InverseProblem, has_forward_jacobian, has_forward_products,
                    parameter_meaning)
 from .dynamic import QUASISTATIC, TimeIntegration
@@ -14,10 +14,8 @@ from .protocols import (BodyProblem, BodySimulation, EmbeddedSurfaceProblem, Fie
 from .config import ProblemConfig, ProblemConfigError, make_config
 from .membrane2d import DynamicMembrane2D, Membrane2D, Membrane2DConfig
 from .poisson2d import Poisson2D, Poisson2DConfig
-from ..mesh.tetwild.store import KeptMesh
-from .body.run_mesh import keep_mesh
-from .body.problem import RiggedBody
-from .body.config import RiggedBodyConfig
+from ..mesh import KeptMesh
+from .body import RiggedBody, RiggedBodyConfig, fitted_mesh, keep_mesh, resumed_mesh
 from .spring1d import DynamicSpring1D, Spring1D, Spring1DConfig
 
 
@@ -69,4 +67,5 @@ __all__ = ["Arm3D", "Arm3DConfig", "BodyProblem", "BodySimulation", "DynamicMemb
            "Poisson2D", "Poisson2DConfig", "ProblemConfig", "ProblemConfigError", "ProblemEntry",
            "QUASISTATIC", "RiggedBody", "RiggedBodyConfig", "Spring1D", "Spring1DConfig",
            "TimeIntegration", "TimeModel", "WarmStarts", "build_problem",
-           "has_forward_jacobian", "has_forward_products", "keep_mesh", "parameter_meaning"]
+           "fitted_mesh", "has_forward_jacobian", "has_forward_products", "keep_mesh",
+           "parameter_meaning", "resumed_mesh"]

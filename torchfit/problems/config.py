@@ -24,9 +24,7 @@ import torch
 from .. import settings
 from ..errors import ConfigurationError
 from ..linalg import amg_available, cudss_available, pardiso_available
-from ..linalg.backends.amg import AMG_EXTRA
-from ..linalg.backends.cudss import CUDA_EXTRA
-from ..linalg.backends.pardiso_mkl import PARDISO_EXTRA
+from ..linalg.backends import AMG_EXTRA, CUDA_EXTRA, PARDISO_EXTRA
 from ..settings import Choice, check_values, convert_choices, make_settings
 
 
@@ -174,7 +172,7 @@ def resolve_backend(choice: Backend, device: torch.device, dim: int,
     (192 on the arm) with every factor, where PARDISO wins at every size measured."""
     if choice != Backend.auto:
         return choice.value
-    from ..linalg.backends.choice import default_backend
+    from ..linalg.backends import default_backend
 
     return default_backend(dim, device, n_dofs, solves_per_factor)
 

@@ -344,7 +344,7 @@ class BodyOutputs:
         surface = _numpy(problem.observation.surface(x))
         errors = _numpy(problem.observation.surface_error_field(x, problem.x_true))  # (F, V)
         vmax = float(errors.max()) if errors.size else 1.0
-        from ..mesh.embedding import boundary_faces
+        from ..mesh import boundary_faces
 
         tet_faces, _ = boundary_faces(np.asarray(problem.mesh.cells))
         E_vertex = vertex_field(np.asarray(problem.mesh.cells), _numpy(field),

@@ -113,8 +113,8 @@ def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarra
     if importlib.util.find_spec("pxr") is None:
         progress.info("no USD output: install the extra torchfit[usd] (usd-core) for it")
         return []
-    from ..mesh.formats.usd.writer import (write_point_cache_usd, write_tet_mesh_usd,
-                                           write_vertex_field_usd)
+    from ..mesh.formats.usd import (write_point_cache_usd, write_tet_mesh_usd,
+                                    write_vertex_field_usd)
 
     source = Path(str(problem.animation.path))
     over = source if source.suffix.lower() in USD_SUFFIXES and source.is_file() else None

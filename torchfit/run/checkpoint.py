@@ -41,7 +41,7 @@ from torch import Tensor
 from ..errors import ConfigurationError
 from ..problems import InverseProblem
 from ..records import IterationRecord, SolveResult, StopReason
-from ..reporting.results import CHECKPOINT_FILE, PARAMS_FILE, RESULT_FILE, jsonable, save_torch
+from ..reporting import CHECKPOINT_FILE, PARAMS_FILE, RESULT_FILE, jsonable, save_torch
 from ..solvers import Solver
 from .options import FitConfigError, plain_settings
 from .result import FitResult

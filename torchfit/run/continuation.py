@@ -51,11 +51,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..problems import InverseProblem
-from ..problems import BodyProblem, MotionProblem
+from ..problems import BodyProblem, InverseProblem, MotionProblem
 from ..records import IterationRecord
-from ..reporting.body import frame_spans
-from ..reporting.results import PARAMS_FILE
+from ..reporting import PARAMS_FILE, frame_spans
 from ..solvers import Solver, SolverConfig
 from .checkpoint import check_fresh_start
 from .directory import check_writable

@@ -38,10 +38,10 @@ import torch
 from torch import Tensor
 
 from ..errors import SimulationError
-from ..linalg.counters import counting
+from ..linalg import counting
 from ..problems import InverseProblem
 from ..records import IterationRecord
-from ..reporting.evaluation import Evaluation
+from ..reporting import Evaluation
 from .validation import VALIDATION_METRICS, record_keys, validation_metrics
 
 log = logging.getLogger("torchfit.run")

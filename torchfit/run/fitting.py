@@ -30,12 +30,10 @@ from ..errors import SimulationError
 from ..linalg import set_threads
 from ..problems import BodyProblem, InverseProblem, keep_mesh
 from ..records import IterationRecord
-from ..reporting.progress import ProgressPrinter
-from ..reporting.results import (CHECKPOINT_FILE, PARAMS_FILE, RESULT_FILE,
-                                 remove_stale_temporaries)
+from ..reporting import (CHECKPOINT_FILE, PARAMS_FILE, ProgressPrinter, RESULT_FILE,
+                         remove_stale_temporaries)
 from ..residual import warm_up_autograd
-from ..solvers import Solver, SolverConfig
-from ..solvers.base import UnsimulatedStart
+from ..solvers import Solver, SolverConfig, UnsimulatedStart
 from .checkpoint import (Checkpointer, check_fresh_start, checkpointed_solve,
                          finished_outputs_readable, finished_result, read_checkpoint)
 from .directory import check_writable

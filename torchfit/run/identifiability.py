@@ -51,7 +51,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..linalg.estimators import column_norms
+from ..linalg import column_norms
 from ..problems import BodyProblem, InverseProblem
 
 #: a parameter is determined when its sensitivity is at least this fraction of the largest

@@ -13,9 +13,8 @@ import math
 from typing import Any
 
 from ..errors import ConfigurationError
-from ..problems import InverseProblem
-from ..problems import FramedProblem
-from ..reporting.results import jsonable
+from ..problems import FramedProblem, InverseProblem
+from ..reporting import jsonable
 from .validation import RESULT_KEYS as VALIDATION_RESULT_KEYS
 
 #: Counters a result reports beside the metrics; ``objective_metric`` may name them too.

@@ -27,20 +27,13 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from ..problems import (BodyProblem, FieldImageProblem, InverseProblem, MeshProblem, MotionProblem,
-                        parameter_meaning)
+from ..problems import (BodyProblem, FieldImageProblem, InverseProblem, MeshProblem,
+                        MotionProblem, parameter_meaning)
 from ..records import IterationRecord
-from ..reporting.body import BodyOutputs
-from ..reporting.body_files import modulus_units
-from ..reporting.evaluation import Evaluation
-from ..reporting.field_snapshots import FieldSnapshots
-from ..reporting.figures import field_is_chain, write_run_pngs
-from ..reporting.guard import PlotGuard
-from ..reporting.identifiability import write_identifiability
-from ..reporting.motion import MotionOutputs
-from ..reporting.progress import PROGRESS_LOGGER
-from ..reporting.results import RESULT_FILE, atomic_write, save_params, write_json
-from ..reporting.tensorboard import TensorBoardLogger, event_files
+from ..reporting import (BodyOutputs, Evaluation, FieldSnapshots, MotionOutputs, PROGRESS_LOGGER,
+                         PlotGuard, RESULT_FILE, TensorBoardLogger, atomic_write, event_files,
+                         field_is_chain, modulus_units, save_params, write_identifiability,
+                         write_json, write_run_pngs)
 from .checkpoint import Resume
 from .evaluator import Evaluator
 from .options import FitOptions

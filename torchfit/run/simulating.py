@@ -38,11 +38,10 @@ from torch import Tensor
 from ..errors import ConfigurationError
 from ..linalg import set_threads
 from ..problems import PROBLEMS, RiggedBody, build_problem
-from ..problems.body.run_mesh import RUN_MESH_FILE, fitted_mesh, read_run_mesh
-from ..reporting.body_files import modulus_units
-from ..reporting.progress import PROGRESS_LOGGER, ensure_progress_visible
-from ..reporting.results import CHECKPOINT_FILE, PARAMS_FILE, RESULT_FILE, write_json
-from ..reporting.simulation import comparison_picture, write_frames
+from ..problems.body import RUN_MESH_FILE, fitted_mesh, read_run_mesh
+from ..reporting import (CHECKPOINT_FILE, PARAMS_FILE, PROGRESS_LOGGER, RESULT_FILE,
+                         comparison_picture, ensure_progress_visible, modulus_units, write_frames,
+                         write_json)
 from .directory import check_writable
 from .lock import hold
 from .options import FitConfigError

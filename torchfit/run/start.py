@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from ..problems import InverseProblem, parameter_meaning
-from ..reporting.results import PARAMS_FILE
+from ..reporting import PARAMS_FILE
 from .options import FitConfigError
 
 

@@ -36,8 +36,7 @@ from torch import Tensor
 
 from ..problems import InverseProblem, parameter_meaning
 from ..records import IterationRecord, StopReason
-from ..reporting.evaluation import Evaluation
-from ..reporting.results import save_torch
+from ..reporting import Evaluation, save_torch
 
 log = logging.getLogger("torchfit.run")
 

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from ..linalg import set_threads
 from ..problems import InverseProblem
-from ..reporting.results import write_json
+from ..reporting import write_json
 from ..verification import VerificationReport
 from ..verification import verify as verify_residual
 from .directory import check_writable

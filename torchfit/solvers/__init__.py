@@ -18,16 +18,16 @@ from __future__ import annotations
 
 from ..records import Callback, IterationRecord, SolveResult, StopReason
 from ..residual import ResidualFunction
-from .base import Need, Needs, Solver, SolverConfig, SolverConfigError
+from .base import Need, Needs, Solver, SolverConfig, SolverConfigError, UnsimulatedStart
 from .gauss_newton import GaussNewton, GaussNewtonConfig, gauss_newton
 from .levenberg_marquardt import LevenbergMarquardt, LevenbergMarquardtConfig, levenberg_marquardt
 from .registry import SOLVERS, SolverEntry, build
-from .split_bregman.solver import SplitBregman, split_bregman
-from .split_bregman.settings import SplitBregmanConfig
+from .split_bregman import SplitBregman, SplitBregmanConfig, split_bregman
 from .total_variation import GroupTV
 
 __all__ = ["Callback", "GaussNewton", "GaussNewtonConfig", "GroupTV", "IterationRecord",
            "LevenbergMarquardt", "LevenbergMarquardtConfig", "Need", "Needs",
            "ResidualFunction", "SOLVERS", "SolveResult", "Solver", "SolverConfig",
            "SolverConfigError", "SolverEntry", "SplitBregman", "SplitBregmanConfig",
-           "StopReason", "build", "gauss_newton", "levenberg_marquardt", "split_bregman"]
+           "StopReason", "UnsimulatedStart", "build", "gauss_newton", "levenberg_marquardt",
+           "split_bregman"]

@@ -62,8 +62,7 @@ import torch
 from torch import Tensor
 
 from ..errors import SimulationError
-from ..linalg import CGLSResult, cgls
-from ..linalg.estimators import column_norms
+from ..linalg import CGLSResult, cgls, column_norms
 from ..records import Callback, IterationRecord, SolveResult, StopReason
 from ..residual import Linearization, ResidualFunction, try_linearize
 from ..settings import Choice

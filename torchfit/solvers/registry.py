@@ -18,8 +18,7 @@ from torch import Tensor
 from .base import Need, Solver, SolverConfig, SolverConfigError
 from .gauss_newton import GaussNewton, GaussNewtonConfig
 from .levenberg_marquardt import LevenbergMarquardt, LevenbergMarquardtConfig
-from .split_bregman.solver import SplitBregman
-from .split_bregman.settings import SplitBregmanConfig
+from .split_bregman import SplitBregman, SplitBregmanConfig
 
 
 @dataclasses.dataclass(frozen=True)

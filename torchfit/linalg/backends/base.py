@@ -22,6 +22,8 @@ class Factor(Protocol):
 
 
 class Backend(Protocol):
+    """A linear-solve backend: factorises a matrix of a pattern into a :class:`Factor`."""
+
     name: str
 
     def factorize(self, pattern: SparsePattern, values: Tensor, symmetric: bool) -> Factor:

@@ -38,7 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .folder import Animation, AnimationError, write_animation
+from ..animation import Animation, AnimationError
+from .folder import write_animation
 from .sniff import GLTF_SUFFIXES, suffix_reader
 from ..rig import Skeleton
 
@@ -140,7 +141,7 @@ def _write(animation: Animation, out: Path, target: str, fps: float, up: str,
     if skeleton is None:                              # a point cache as a USD stage
         from pxr import Sdf, Usd, UsdGeom, Vt
 
-        from .usd.writer import write_point_cache_usd
+        from .usd import write_point_cache_usd
 
         write_point_cache_usd(out, faces, frames, prim="/Body", fps=fps)
         stage = Usd.Stage.Open(str(out))
@@ -159,14 +160,14 @@ def _write(animation: Animation, out: Path, target: str, fps: float, up: str,
     if target == "usd":
         from pxr import Usd, UsdGeom
 
-        from .usd.writer import write_skinned_usd
+        from .usd import write_skinned_usd
 
         write_skinned_usd(out, rest, faces, skeleton, shapes, shape_weights, fps)
         stage = Usd.Stage.Open(str(out))
         UsdGeom.SetStageUpAxis(stage, up)
         stage.GetRootLayer().Save()
     else:
-        from .gltf.writer import write_skinned_gltf
+        from .gltf import write_skinned_gltf
 
         write_skinned_gltf(out, rest, faces, skeleton, shapes, shape_weights, fps)
     return len(shapes)

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .folder import AnimationError
+from ..animation import AnimationError
 from ..rig import Skeleton, check_transforms, segment_distances
 from ..simplicial import MeshError
 

@@ -7,16 +7,17 @@ path's suffix: ``.usd``, ``.usda``, ``.usdc``,
 ``.usdz`` to :mod:`.usd.reader` (the extra ``usd``), ``.gltf``, ``.glb`` to
 :mod:`.gltf.reader` (the extra ``gltf``), anything else (a folder, a manifest) to
 :func:`.folder.load_animation`. Every reader returns the same
-:class:`~.folder.Animation`, its seams welded (:mod:`.seams`: a glTF's split
+:class:`~torchfit.mesh.Animation`, its seams welded (:mod:`.seams`: a glTF's split
 vertices are one surface again, the file's own vertices kept for outputs); errors are one
-line (:class:`~.folder.AnimationError`).
+line (:class:`~torchfit.mesh.AnimationError`).
 """
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
 
-from .folder import DEFAULT_FPS, Animation, AnimationError, load_animation
+from ..animation import DEFAULT_FPS, Animation, AnimationError
+from .folder import load_animation
 from .seams import weld_seams
 from .sniff import GLTF_SUFFIXES, USD_SUFFIXES, refusal
 
@@ -71,14 +72,14 @@ def _read(path: str | Path, prim: str, fps: float) -> Animation:
         raise AnimationError(refused)
     suffix = Path(path).suffix.lower()
     if suffix in USD_SUFFIXES:
-        from .usd.reader import load_usd
+        from .usd import load_usd
 
         if fps:
             raise AnimationError(f"{path}: problem.fps applies to glTF files only (a USD stage "
                                  "has its time samples); leave it at 0")
         return load_usd(path, prim)
     if suffix in GLTF_SUFFIXES:
-        from .gltf.reader import load_gltf
+        from .gltf import load_gltf
 
         return load_gltf(path, prim, fps)
     if prim or fps:

@@ -10,7 +10,7 @@ boundary edge, and the body reads as open (not watertight) with duplicate vertic
 (within ``tolerance`` times the rest bounding box's diagonal): the animation then holds the
 welded surface (what is tetrahedralised, embedded, fitted and drawn), and
 ``Animation.file_vertices`` ``(V_file,)`` (the welded vertex of each file vertex) and
-``Animation.file_faces`` keep the file's own; :meth:`~.folder.Animation.file_points` maps
+``Animation.file_faces`` keep the file's own; :meth:`~torchfit.mesh.Animation.file_points` maps
 any per-vertex array back, so that every output (OBJ frames, the USD point cache, a
 per-vertex field) has the file's vertex count and order. Vertices that coincide at rest but
 part in some frame (lips, eyelids) stay apart. A welded vertex takes the mean of its copies'
@@ -27,7 +27,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .folder import Animation
+from ..animation import Animation
 
 #: copies closer than this fraction of the rest bounding box's diagonal are one vertex
 TOLERANCE = 1e-6

@@ -5,8 +5,12 @@ pytetwild runs in a child process (:mod:`.worker`), its output is cached by a ha
 surface and the options (fTetWild is not deterministic), and a run keeps the mesh it used
 (:mod:`.store`), so a resume or ``simulate`` needs no cache.
 """
+from .size import body_volume
+from .store import (RUN_MESH_FILE, KeptMesh, StoredMesh, read_kept_mesh, read_run_mesh,
+                    write_run_mesh)
 from .tetrahedralize import (TetMesh, TetOptions, TetrahedralizationError, default_cache_dir,
                              tetrahedralize)
 
-__all__ = ["TetMesh", "TetOptions", "TetrahedralizationError", "default_cache_dir",
-           "tetrahedralize"]
+__all__ = ["KeptMesh", "RUN_MESH_FILE", "StoredMesh", "TetMesh", "TetOptions",
+           "TetrahedralizationError", "body_volume", "default_cache_dir", "read_kept_mesh",
+           "read_run_mesh", "tetrahedralize", "write_run_mesh"]

@@ -27,7 +27,7 @@ from typing import Any, Callable
 import torch
 from torch import Tensor
 
-from ...linalg.pattern import csr_matrix
+from ...linalg import csr_matrix
 from .errors import DynamicsInputError, InvalidFieldError, NegativeDampingError, NonFiniteStateError
 
 #: times ``(T,)`` -> values ``(T, n)``

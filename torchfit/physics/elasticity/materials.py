@@ -224,11 +224,13 @@ class Corotated(Material):
         return A + c0[..., None, None, None, None] * identity4(d, F)
 
 
+#: config name (``problem.model``) -> material class
 MATERIALS: dict[str, type[Material]] = {
     "linear": LinearElastic,
     "corotated": Corotated,
     "stable_neo_hookean": StableNeoHookean,
 }
+#: other names a config may give a material -> its name in :data:`MATERIALS`
 ALIASES = {"neo_hookean": "stable_neo_hookean", "rotated_linear": "corotated"}
 
 

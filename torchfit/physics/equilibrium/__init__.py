@@ -12,8 +12,7 @@ is never unrolled) and gives explicit products and whole Jacobians without autog
 from .equilibrium import Equilibrium
 from .linearization import EquilibriumLinearization
 from .model import EquilibriumModel
-from .newton import NewtonConvergenceError, NewtonOptions, TrialBudgetExceeded
+from .newton import NewtonConvergenceError, NewtonOptions, TrialBudgetExceeded, newton_progress
 
 __all__ = ["Equilibrium", "EquilibriumLinearization", "EquilibriumModel",
-           "NewtonConvergenceError", "NewtonOptions",
-           "TrialBudgetExceeded"]
+           "NewtonConvergenceError", "NewtonOptions", "TrialBudgetExceeded", "newton_progress"]

@@ -17,7 +17,7 @@ from typing import Any, Protocol
 import torch
 from torch import Tensor
 
-from ...linalg.counters import active_scopes, within
+from ...linalg import active_scopes, within
 from .cache import Solution, SolutionCache
 from .dirichlet import DirichletReduction
 from .model import ModelExtensions

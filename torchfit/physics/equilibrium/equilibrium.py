@@ -24,8 +24,7 @@ from typing import Any, Callable, ContextManager
 import torch
 from torch import Tensor
 
-from ...linalg import Backend, Factor
-from ...linalg.backends.cudss import gpu_memory_error
+from ...linalg import Backend, Factor, gpu_memory_error
 from .adjoint import EquilibriumFunction
 from .cache import Solution, SolutionCache
 from .dirichlet import DirichletReduction

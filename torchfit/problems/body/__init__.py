@@ -15,5 +15,7 @@ on :mod:`.report`'s functions and :mod:`.motion`), the model comparison
 from .arm3d import Arm3D, Arm3DConfig
 from .config import RiggedBodyConfig
 from .problem import RiggedBody
+from .run_mesh import RUN_MESH_FILE, fitted_mesh, keep_mesh, read_run_mesh, resumed_mesh
 
-__all__ = ["Arm3D", "Arm3DConfig", "RiggedBody", "RiggedBodyConfig"]
+__all__ = ["Arm3D", "Arm3DConfig", "RUN_MESH_FILE", "RiggedBody", "RiggedBodyConfig",
+           "fitted_mesh", "keep_mesh", "read_run_mesh", "resumed_mesh"]

@@ -30,11 +30,10 @@ from typing import List
 import numpy as np
 
 from ...mesh import MeshError
-from ...mesh.formats.folder import Animation, load_animation, write_animation
+from ...mesh import Animation, default_cache_dir, load_animation, write_animation
 from .procedural_arm import (MAX_EXTENSION, MAX_FLEXION, REGION_NAMES, ArmShape,
                              arm_animation, arm_surface,
                              correctives, elbow_angles, elbow_region, region_labels)
-from ...mesh.tetwild.tetrahedralize import default_cache_dir
 from ..config import ProblemConfigError, require_setting
 
 #: the longest segment accepted, in radii of the arm's thinner end

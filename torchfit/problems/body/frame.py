@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...mesh.tetwild.tetrahedralize import TetMesh, TetOptions, tetrahedralize
+from ...mesh import TetMesh, TetOptions, tetrahedralize
 
 #: two second moments closer than this (relative) are one round group (shape says nothing)
 ROUND = 0.1

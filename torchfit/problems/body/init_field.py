@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from ...mesh import MeshError
-from ...mesh.formats.usd.material import ModulusLayer, layer_cell_values, read_modulus_layer
+from ...mesh.formats.usd import ModulusLayer, layer_cell_values, read_modulus_layer
 from ..config import setting_error
 
 #: a least-squares value below this fraction of the layer's mean is raised to it

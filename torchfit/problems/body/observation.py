@@ -17,8 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ...mesh.embedding import Embedding, dof_matrix
-from ...mesh.formats.folder import Animation
+from ...mesh import Animation, Embedding, dof_matrix
 from .report import surface_distances
 
 

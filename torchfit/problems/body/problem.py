@@ -41,12 +41,8 @@ from torch import Tensor
 
 from ...memory import check_allocation
 from ...mesh import MeshError, SimplexMesh, element_adjacency
-from ...mesh.formats.folder import Animation, AnimationError
-from ...mesh.formats.readers import read_animation
-from ...mesh.embedding import Embedding, embed_points
-from ...mesh.rig import joint_cells, skeleton_drive, surface_drive
-from ...mesh.tetwild.store import RUN_MESH_FILE, KeptMesh, write_run_mesh
-from ...mesh.tetwild.tetrahedralize import TetMesh
+from ...mesh import (Animation, AnimationError, Embedding, KeptMesh, body_volume, embed_points,
+                     joint_cells, read_animation, skeleton_drive, surface_drive)
 from ...params import Parameterization, per_element, per_region
 from ...physics import NewtonOptions
 from ...physics.dynamics import UnstableStepError
@@ -91,8 +87,6 @@ def edge_count(cfg: RiggedBodyConfig, animation: Animation) -> tuple[str, float,
     checks before fTetWild runs: ``tet_count``, else the count ``tet_edge_length`` implies
     (the body's volume filled with regular tetrahedra of that edge: a lower bound, fTetWild
     makes about :data:`~torchfit.mesh.tetwild.size.TETS_PER_REGULAR` times more)."""
-    from ...mesh.tetwild.size import body_volume
-
     frames = animation.n_frames
     if cfg.tet_count is not None:
         return (f"problem.tet_count={cfg.tet_count}", float(cfg.tet_count), frames,

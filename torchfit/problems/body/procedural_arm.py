@@ -31,7 +31,7 @@ import math
 
 import numpy as np
 
-from ...mesh.rig import Skeleton, axial_coordinates, blend, distance_weights, segment_distances
+from ...mesh import Skeleton, axial_coordinates, blend, distance_weights, segment_distances
 
 REGION_NAMES = ("bone", "muscle", "fat")
 #: the largest elbow flexion the procedural arm animates (degrees): beyond it the forearm's

@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from ...mesh import MeshError
-from ...mesh.tetwild.store import (RUN_MESH_FILE, KeptMesh, StoredMesh, read_kept_mesh,
-                                   read_run_mesh, write_run_mesh)
+from ...mesh import (RUN_MESH_FILE, KeptMesh, StoredMesh, read_kept_mesh, read_run_mesh,
+                     write_run_mesh)
 
 __all__ = ["RUN_MESH_FILE", "KeptMesh", "StoredMesh", "fitted_mesh", "keep_mesh",
            "read_run_mesh", "resumed_mesh"]

@@ -15,11 +15,9 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from ...mesh import MeshError
-from ...mesh.formats.folder import Animation, AnimationError
-from ...mesh.rig_check import RigReport, check_animation
-from ...mesh.tetwild.store import KeptMesh
-from ...mesh.tetwild.tetrahedralize import TetMesh, TetOptions, default_cache_dir
-from ...physics.equilibrium.newton import newton_progress
+from ...mesh import (Animation, AnimationError, KeptMesh, RigReport, TetMesh, TetOptions,
+                     check_animation, default_cache_dir)
+from ...physics import newton_progress
 from ...steps import count, step
 from .frame import tetrahedralize_in_frame
 from ..config import ProblemConfigError, require_setting

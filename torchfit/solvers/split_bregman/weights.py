@@ -26,8 +26,7 @@ import math
 import torch
 from torch import Tensor
 
-from ...linalg import cgls
-from ...linalg.estimators import frobenius_norm_sq, power_norm_sq
+from ...linalg import cgls, frobenius_norm_sq, power_norm_sq
 from .settings import SplitBregmanConfig
 from ..stacked import LinearResidual
 from ..total_variation import GroupTV

@@ -1,7 +1,7 @@
 """A glTF 2.0 skin as an animation (``.glb``/``.gltf``, the extra ``gltf``: pygltflib).
 
 :func:`load_gltf` reads one skinned node (a node with a ``mesh`` and a ``skin``) into the same
-:class:`~..folder.Animation` as the folder format:
+:class:`~torchfit.mesh.Animation` as the folder format:
 
 - rest: the mesh's ``POSITION`` (every triangle primitive, concatenated in order), faces from
   its indices; the skinned node's own transform is ignored, as the specification says (the
@@ -21,7 +21,7 @@
   metres}`` on the skin or the node, else the default there.
 
 Units: metres (glTF's); the coordinates are kept, and the animation's ``up`` is +Y (the
-glTF specification's up axis; the pictures stand the body on it). Refused with one line (:class:`~..folder.AnimationError`): ``CUBICSPLINE``
+glTF specification's up axis; the pictures stand the body on it). Refused with one line (:class:`~torchfit.mesh.AnimationError`): ``CUBICSPLINE``
 samplers, sparse accessors, Draco or meshopt compression (any required extension), primitives
 other than triangles, no skinned node, several without ``problem.prim``.
 """
@@ -33,7 +33,7 @@ from urllib.parse import unquote
 
 import numpy as np
 
-from ..folder import Animation, AnimationError
+from ...animation import Animation, AnimationError
 from ..joints import skeleton_from_joints
 
 _COMPONENTS = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32,

@@ -13,7 +13,7 @@ reads the stage's first prim (depth first) that carries one of
 with the prim's rest points in metres (the stage's ``metersPerUnit``, the prim's transform
 at the default time) and, for a TetMesh, its tetrahedra. Whether the layer belongs to the
 body being fitted is the caller's check (:func:`layer_cell_values`). Errors are one line
-(:class:`~.folder.AnimationError`).
+(:class:`~torchfit.mesh.AnimationError`).
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..folder import AnimationError
+from ...animation import AnimationError
 
 #: a layer's points must match the body's within this fraction of its bounding box's diagonal
 MATCH_TOLERANCE = 1e-3
@@ -127,7 +127,7 @@ def layer_cell_values(layer: ModulusLayer, where: str, *, file_rest: np.ndarray,
                       file_vertices: np.ndarray | None, rest: np.ndarray, points: np.ndarray,
                       cells: np.ndarray) -> np.ndarray:
     """The layer's modulus per tetrahedron ``(m,)`` of the body being fitted, or one
-    :class:`~.folder.AnimationError` line when the layer belongs to another body.
+    :class:`~torchfit.mesh.AnimationError` line when the layer belongs to another body.
 
     Args:
         file_rest: ``(V_file, 3)`` the user's rest vertices in the file's order (metres);

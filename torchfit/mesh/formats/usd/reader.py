@@ -2,7 +2,7 @@
 
 ``problem.path=<file>.usd|.usda|.usdc|.usdz`` reads, with Pixar's ``usd-core`` (``pxr``,
 imported only here and only then), one mesh prim of the stage into the same
-:class:`~..folder.Animation` as the folder format:
+:class:`~torchfit.mesh.Animation` as the folder format:
 
 - **a skinned mesh** (a ``UsdGeom.Mesh`` with ``SkelBindingAPI`` bound to a
   ``UsdSkel.Skeleton`` with a ``SkelAnimation``): rest points (the ``points`` at the default
@@ -34,7 +34,7 @@ authored (a Y-up stage stays Y-up); the stage's ``upAxis`` (``UsdGeom.GetStageUp
 or Z) is the animation's ``up`` (``(0, 1, 0)`` or ``(0, 0, 1)``), which the pictures stand
 the body on.
 USD matrices act on row vectors, ``[x, 1] @ M``. Errors are one line
-(:class:`~..folder.AnimationError`).
+(:class:`~torchfit.mesh.AnimationError`).
 """
 from __future__ import annotations
 
@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from ..folder import Animation, AnimationError
+from ...animation import Animation, AnimationError
 from ..joints import fan_triangles, row_vector_transforms, skeleton_from_joints
 from ...rig import DrivenSurface
 
