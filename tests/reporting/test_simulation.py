@@ -16,10 +16,11 @@ def test_the_simulation_picture_uses_the_bodys_camera_and_a_colour_bar(tmp_path,
     vertices = torch.as_tensor(np.asarray(mesh.vertices))
     frames = torch.stack([vertices, vertices * 1.01])
     view = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])      # Y up
-    problem = SimpleNamespace(
-        animation=SimpleNamespace(faces=np.asarray(mesh.faces)), view_axes=view,
-        surface=lambda x: x, clean_surface=lambda: frames,
-        surface_error_field=lambda x: torch.linalg.norm(x - frames, dim=-1))
+    observation = SimpleNamespace(
+        surface=lambda x: x, clean_surface=lambda x_true: frames,
+        surface_error_field=lambda x, x_true: torch.linalg.norm(x - frames, dim=-1))
+    problem = SimpleNamespace(animation=SimpleNamespace(faces=np.asarray(mesh.faces)),
+                              view_axes=view, observation=observation, x_true=None)
     drawn = {}
     original = simulation.surface_figure
 
