@@ -60,6 +60,7 @@ from torchfit.run import (FIRST_STAGE_DIR, FitOptions, check_threads,  # noqa: E
 register_configs()
 log = logging.getLogger("fit")
 GUARD = RunDirGuard(sys.argv[1:])
+SESSION = distributed.DistributedSession()     # this process's part in a torchrun job
 _started = False
 
 
@@ -115,7 +116,7 @@ def rank_lost(who: str, run_dir: Path) -> NoReturn:
     lost: the checkpoint of the last finished iteration is written atomically. torchrun's
     SIGTERM (it follows a worker's death within its monitor interval) is ignored from here."""
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    distributed.abandon()
+    SESSION.abandon()
     _log_to_file(f"{who} stopped answering:\n{traceback.format_exc()}")
     print(f"error: {who} stopped answering (killed, or its machine went away) "
           f"{_when(run_dir)}; nothing of the run is lost: continue with: "
@@ -158,8 +159,8 @@ def main(cfg: DictConfig) -> float:
         continuing = continuation is True or (continuation == "auto"
                                               and continuation_applies(problem))
         if distributed.launched():      # torchrun: rank 0 fits, the others simulate frames
-            distributed.lead(problem, {**config, "continuation": continuing,
-                                       "run_dir": str(run_dir)}, multirun)
+            SESSION.lead(problem, {**config, "continuation": continuing,
+                                   "run_dir": str(run_dir)}, multirun)
         if continuing:
             result = fit_continued(problem, solver, run_dir=run_dir,
                                    resume=bool(config["resume"]), options=options,
@@ -171,7 +172,7 @@ def main(cfg: DictConfig) -> float:
                          options=options, config=config, init=config["init"])
     except KeyboardInterrupt as interrupt:     # Ctrl-C, or SIGTERM (app.Terminated)
         terminated = isinstance(interrupt, Terminated)
-        lost = distributed.stopped_answering(None) if terminated else None
+        lost = SESSION.stopped_answering(None) if terminated else None
         if lost is not None:        # torchrun stops rank 0 because another rank died
             rank_lost(lost, run_dir)
         print(f"{'terminated (SIGTERM)' if terminated else 'interrupted'}; continue with: "
@@ -182,7 +183,7 @@ def main(cfg: DictConfig) -> float:
             # a collective lost its peer; torchrun's SIGTERM follows within its monitor
             # interval (0.1 s): ignored while rank 0 finds which rank is gone and says so
             signal.signal(signal.SIGTERM, signal.SIG_IGN)
-            rank_lost(distributed.stopped_answering(error) or "a rank", run_dir)
+            rank_lost(SESSION.stopped_answering(error) or "a rank", run_dir)
         if no_space(error) and not multirun:
             # a fault, not bad input: what the run wrote stays (checkpoint, history) and the
             # same command with resume=true continues it once there is space
@@ -233,9 +234,9 @@ def build_for_rank(config: dict[str, Any]) -> Any:
 
 if __name__ == "__main__":
     if distributed.launched() and distributed.rank() > 0:
-        sys.exit(distributed.serve(build_for_rank))     # no Hydra, no files: rank 0 writes
+        sys.exit(SESSION.serve(build_for_rank))         # no Hydra, no files: rank 0 writes
     try:
         run_hydra_app(main, lambda: _started, guard=GUARD)
     finally:
         if distributed.launched():
-            distributed.stop()
+            SESSION.stop()

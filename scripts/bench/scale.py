@@ -207,21 +207,23 @@ def run_single(job: dict[str, Any]) -> dict[str, Any]:
 
 
 def run_distributed(job: dict[str, Any]) -> dict[str, Any] | None:
-    """Under torchrun: rank 0 leads (:func:`torchfit.run.distributed.ranks.lead`) and measures,
-    the others serve; a gather bandwidth probe first. Returns rank 0's figures."""
+    """Under torchrun: rank 0 leads (:meth:`torchfit.run.distributed.DistributedSession.lead`)
+    and measures, the others serve; a gather bandwidth probe first. Returns rank 0's
+    figures."""
     import torch
     import torch.distributed as dist
     from torchfit.linalg import set_threads
     from torchfit.run import distributed
 
     set_threads(job["threads"])
-    distributed.ranks.start_group()     # not re-exported by the package
+    distributed.start_group()
+    session = distributed.DistributedSession()
     rank, size = dist.get_rank(), dist.get_world_size()
     probe = gather_bandwidth(torch, dist, rank, size)
     config = {"solver": {"name": "levenberg_marquardt", "dense_jacobian_max_params": 10 ** 6},
               "problem": settings_of(job)}
     if rank > 0:
-        code = distributed.serve(lambda cfg: build(cfg["problem"]))
+        code = session.serve(lambda cfg: build(cfg["problem"]))
         if code:
             raise SystemExit(code)
         return None
@@ -232,11 +234,11 @@ def run_distributed(job: dict[str, Any]) -> dict[str, Any] | None:
              "tet_cache_hit": bool(problem.tet.from_cache), "loadavg": load}
     try:
         start = time.perf_counter()
-        distributed.lead(problem, config)
+        session.lead(problem, config)
         setup["lead_s"] = time.perf_counter() - start
         out = measure(problem, job, size, {"setup": setup, "gather_probe": probe})
     finally:
-        distributed.stop()
+        session.stop()
     out["peak_rss_MB_rank0"] = maxrss_mb(resource.RUSAGE_SELF)
     return out
 

@@ -17,11 +17,12 @@ import pytest
 import yaml
 
 from experiments.cli import PATH_KEYS, absolute_paths
+from helpers.apps import APPS, run_app
 from helpers.capsule_animation import write_capsule
 
 REPO = Path(__file__).resolve().parents[2]
 DOC = "docs/guide/install-and-run.md"
-_VENV_LOCK = threading.Lock()      # the tests run the commands two at a time
+_VENV_LOCK = threading.Lock()      # the tests run the scripts two at a time
 #: the capsule's quick fit (tests/experiments/test_simulate.py), one iteration
 CAPSULE = ("problem=animation", "problem.tet_edge_length=0.15", "problem.grid=[2,2,3]",
            "solver.max_iter=1", "threads=1")
@@ -51,11 +52,34 @@ def _stand_in_venv(venv: Path) -> None:
 
 def command(tmp_path: Path, cwd: Path, *args: str) -> subprocess.CompletedProcess:
     """``args`` (a script of scripts/ or an app of experiments/ and its arguments) run in
-    ``cwd``."""
+    ``cwd``: a script as a subprocess, an app (``experiments/<app>.py``) in this process
+    (:func:`helpers.apps.run_app`, with the script's environment)."""
+    if _is_app(args[0]):
+        env = environment(tmp_path)
+        return run_app(Path(args[0]).name, *args[1:], cwd=cwd, env=env,
+                       unset=("HYDRA_FULL_ERROR", "PYTHONPATH"))
     program = [str(REPO / args[0])] if args[0].endswith(".sh") else \
         [sys.executable, str(REPO / args[0])]
     return subprocess.run([*program, *args[1:]], cwd=cwd, env=environment(tmp_path),
                           capture_output=True, text=True, timeout=300)
+
+
+def _is_app(path: str) -> bool:
+    return path.startswith("experiments/") and Path(path).name in APPS
+
+
+def commands(tmp_path: Path, cwd: Path, calls: dict) -> dict:
+    """:func:`command` of each ``calls`` value (an argument tuple), by key: the scripts two
+    at a time in threads, the apps meanwhile in this thread, one after another (an app in
+    this process is not thread-safe)."""
+    scripts = {key: args for key, args in calls.items() if not _is_app(args[0])}
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        pending = {key: pool.submit(command, tmp_path, cwd, *args)
+                   for key, args in scripts.items()}
+        done = {key: command(tmp_path, cwd, *args) for key, args in calls.items()
+                if key not in scripts}
+        done.update({key: future.result() for key, future in pending.items()})
+    return done
 
 
 def one_error(proc: subprocess.CompletedProcess, *words: str) -> str:
@@ -97,9 +121,7 @@ def test_relative_paths_are_from_where_they_were_typed(tmp_path):
         "run": (("scripts/simulate.sh", "run=runs/none", "hydra.run.dir=r_sim"),
                 str(work / "runs" / "none")),
     }
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        done = dict(pool.map(lambda item: (item[0], command(tmp_path, work, *item[1][0])),
-                             cases.items()))
+    done = commands(tmp_path, work, {name: args for name, (args, _) in cases.items()})
     for name, (_, absolute) in cases.items():
         one_error(done[name], absolute)
     assert not list(work.iterdir())
@@ -135,7 +157,6 @@ def test_fit_and_simulate_from_another_directory(tmp_path):
     assert not (REPO / "sweep").exists() and not (REPO / "runs" / "fit").exists()
 
 
-@pytest.mark.slow       # six refusals, each importing the app (about 35 s on 2 busy cores)
 def test_a_misspelt_override_is_one_line_with_the_nearest_key(tmp_path):
     """Hydra's block (and its advice to add the key with +) gave way to one line with the
     nearest key and where the settings are; +key of a section is refused alike; an unknown
@@ -156,10 +177,9 @@ def test_a_misspelt_override_is_one_line_with_the_nearest_key(tmp_path):
         "solver=levenbrg": ["solver=levenbrg is not an option",
                             "did you mean solver=levenberg_marquardt?", "split_bregman"],
     }
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        done = dict(pool.map(lambda o: (o, command(tmp_path, tmp_path, "experiments/fit.py",
-                                                   f"hydra.run.dir={tmp_path / str(hash(o))}", o)),
-                             cases))
+    done = commands(tmp_path, tmp_path, {o: ("experiments/fit.py",
+                                             f"hydra.run.dir={tmp_path / str(hash(o))}", o)
+                                         for o in cases})
     for override, words in cases.items():
         one_error(done[override], *words)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["venv"]      # no run directory
@@ -196,8 +216,7 @@ def test_help_on_every_user_command(tmp_path):
         ("experiments/fit.py", "problem=spring1d", "--cfg", "job"): ["name: spring1d"],
         ("experiments/fit.py", "--info", "searchpath"): ["Config search path"],
     }
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        done = dict(pool.map(lambda args: (args, command(tmp_path, here, *args)), cases))
+    done = commands(tmp_path, here, {args: args for args in cases})
     for args, words in cases.items():
         proc = done[args]
         assert proc.returncode == 0, (args, proc.stderr[-2000:])

@@ -8,6 +8,11 @@ never a traceback; two runs started at once into one directory: one runs, the ot
 2; a full disk stops the run with one line naming the file and the resume command, leaves
 no empty or temporary file, and the resume after space is freed ends where the
 uninterrupted run ended. The fast suite runs a seeded sample of each; ``-m slow`` all.
+
+What is about a process runs the app as one (the run that is killed, the two runs at once,
+the runs on a full disk in a private mount namespace, and the uninterrupted reference,
+whose wall time places the kills); the resumes after a kill or a damaged file run in the
+test's process (:func:`helpers.fit_app.run_fit_app`).
 """
 from __future__ import annotations
 
@@ -24,7 +29,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from helpers.fit_app import REPO, run_fit_app
+from helpers.fit_app import REPO, run_fit_app, run_fit_app_process
 from helpers.runs import tree_digest
 
 SEED = 20261126
@@ -84,10 +89,11 @@ def _one_error_line(stderr: str) -> str:
 
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory) -> tuple[Path, float]:
-    """The uninterrupted run and its wall time (s)."""
+    """The uninterrupted run and its wall time (s), a subprocess: the kills are placed in the
+    wall time of a process that imports and runs the app."""
     run_dir = tmp_path_factory.mktemp("faults") / "reference"
     started = time.perf_counter()
-    done = run_fit_app(run_dir, *PROBLEM)
+    done = run_fit_app_process(run_dir, *PROBLEM)
     assert done.returncode == 0, done.stderr[-2000:]
     return run_dir, time.perf_counter() - started
 

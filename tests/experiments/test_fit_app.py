@@ -1,6 +1,10 @@
 """The Hydra apps ``experiments/fit.py`` and ``experiments/verify.py`` as a user runs them
-(subprocesses from the repo root): outputs, exit statuses, bad input, resume, sweeps.
+(from the repo root): outputs, exit statuses, bad input, resume, sweeps.
 
+The apps run in the test's process (:mod:`helpers.apps`: the app's ``__main__`` with its
+argv, exit status and output as a subprocess would give them); one test of each app runs
+it as a subprocess, the smoke test that the command itself works
+(:func:`test_fit_prints_where_everything_is`, :func:`test_verify_exit_statuses`).
 What the run itself computes and writes is tested in-process in tests/run/."""
 from __future__ import annotations
 
@@ -9,21 +13,29 @@ import json
 import os
 import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
 import torch
 
-from helpers.fit_app import run_fit_app, with_problem
+from helpers.apps import run_app
+from helpers.fit_app import run_fit_app, run_fit_app_process, with_problem
 
 REPO = Path(__file__).resolve().parents[2]
 HAS_CUDA = torch.cuda.is_available()
 
 
 def app(script: str, *args: str, timeout: float = 180) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    """``python experiments/<script> <args>`` from the repository root, in this process."""
     if script == "fit.py":      # the app's default problem is the short arm; these use spring1d
+        args = tuple(with_problem(args))
+    return run_app(script, *args)
+
+
+def app_process(script: str, *args: str, timeout: float = 180) -> subprocess.CompletedProcess:
+    """:func:`app` as a subprocess (the smoke test of an app)."""
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    if script == "fit.py":
         args = tuple(with_problem(args))
     return subprocess.run([sys.executable, f"experiments/{script}", *args], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=timeout)
@@ -40,8 +52,9 @@ def digest(root: Path) -> dict[str, str]:
 
 
 def test_fit_prints_where_everything_is(tmp_path):
+    """The fit app's smoke test: ``python experiments/fit.py`` as a subprocess."""
     run_dir = tmp_path / "gn"
-    proc = ok(run_fit_app(run_dir, "problem.n=16", "problem.noise=1e-4"))
+    proc = ok(run_fit_app_process(run_dir, "problem.n=16", "problem.noise=1e-4"))
     result = json.loads((run_dir / "result.json").read_text())
     assert result["status"] == "completed" and result["stop_reason"] == "discrepancy"
     assert result["config"]["problem"]["noise"] == 1e-4
@@ -103,15 +116,13 @@ SAMPLE = (["problem.k0=inf"], ["solver=split_bregman", "solver.growth=inf"],
 
 
 def check_bad_input(tmp_path: Path, cases: list) -> None:
-    """Run every case through the app (three at a time: ~2.5 s of imports each) and collect
+    """Run every case through the app (in this process, one after another) and collect
     what is wrong with each: exit status, traceback, error lines, named setting, files left."""
-    def run(item):
-        i, (overrides, _) = item
+    def run(i, overrides):
         run_dir = tmp_path / f"case{i}" / "run"
         return run_dir, run_fit_app(run_dir, *overrides)
 
-    with ThreadPoolExecutor(max_workers=3) as pool:
-        done = list(pool.map(run, enumerate(cases)))
+    done = [run(i, overrides) for i, (overrides, _) in enumerate(cases)]
     failures = []
     for (overrides, words), (run_dir, proc) in zip(cases, done):
         errors = [line for line in proc.stderr.splitlines() if line.startswith("error: ")]
@@ -221,11 +232,12 @@ def test_init_starts_from_an_earlier_run_of_the_same_parameterisation(tmp_path):
 
 
 def test_verify_exit_statuses(tmp_path):
-    passed = ok(app("verify.py", f"hydra.run.dir={tmp_path / 'ok'}", "problem.n=16"))
+    """The verify app's smoke test: ``python experiments/verify.py`` as a subprocess."""
+    passed = ok(app_process("verify.py", f"hydra.run.dir={tmp_path / 'ok'}", "problem.n=16"))
     assert "wrote" in passed.stdout and (tmp_path / "ok" / "verify.json").is_file()
     for i, override in enumerate(["at=nowhere"]):   # the others: tests/run/test_verifying.py
         run_dir = tmp_path / f"bad{i}"
-        proc = app("verify.py", f"hydra.run.dir={run_dir}", override)
+        proc = app_process("verify.py", f"hydra.run.dir={run_dir}", override)
         assert proc.returncode == 2, (override, proc.stderr)
         assert "Traceback" not in proc.stderr and "error: " in proc.stderr, override
         assert not run_dir.exists(), override

@@ -1,26 +1,19 @@
-"""Bad input of issue 27 refused by the app (experiments/fit.py as a subprocess): exit 2,
-one ``error:`` line naming the setting, nothing written. The in-process checks are in
-tests/problems/test_input_checks.py."""
+"""Bad input of issue 27 refused by the app (experiments/fit.py, run in the test's process by
+:func:`helpers.apps.run_app`): exit 2, one ``error:`` line naming the setting, nothing
+written. The checks of the problems themselves are in tests/problems/test_input_checks.py."""
 from __future__ import annotations
 
-import os
 import subprocess
-import sys
-from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 
 import pytest
 
+from helpers.apps import run_app
 from helpers.repeating_animation import write_tube
-
-REPO = Path(__file__).resolve().parents[2]
 
 
 def fit(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
-    base = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
-    return subprocess.run([sys.executable, "experiments/fit.py", *args], cwd=REPO,
-                          env={**base, **(env or {})}, capture_output=True, text=True,
-                          timeout=120)
+    """``python experiments/fit.py <args>`` from the repository root, in this process."""
+    return run_app("fit.py", *args, env=env)
 
 
 def refused(proc: subprocess.CompletedProcess, *words: str) -> str:
@@ -47,11 +40,7 @@ def test_refusals_through_the_app(tmp_path):
                   "problem, solver, resume, init, continuation,"]),
     }
 
-    def run(item):
-        return item[0], fit(*item[1][0])
-
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        done = dict(pool.map(run, cases.items()))
+    done = {name: fit(*overrides) for name, (overrides, _) in cases.items()}
     for name, (_, words) in cases.items():
         refused(done[name], *words)
     assert not (tmp_path / "sweep").exists()       # not even multirun.yaml
@@ -85,12 +74,8 @@ def test_bad_validation_frames_are_refused_through_the_app(tmp_path):
                     ["problem.validation_frames=[2, 5]: overlaps problem.frames (frames [2])"]),
     }
 
-    def run(item):
-        name, (overrides, _) = item
-        return name, fit(f"hydra.run.dir={tmp_path / name}", *body, *overrides)
-
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        done = dict(pool.map(run, cases.items()))
+    done = {name: fit(f"hydra.run.dir={tmp_path / name}", *body, *overrides)
+            for name, (overrides, _) in cases.items()}
     for name, (_, words) in cases.items():
         refused(done[name], *words)
         assert not (tmp_path / name).exists(), name

@@ -1,7 +1,10 @@
 """The fit app owns its run directory (issue 27): two runs started at once into one directory
 (one runs, the other exits 2 with one line, nothing mixed), SIGTERM like Ctrl-C (143 and the
 resume hint), a finished run left byte-identical by a resume, and a resume that never starts
-over where the checkpoint is missing or unreadable."""
+over where the checkpoint is missing or unreadable.
+
+The two runs at once and SIGTERM are about processes: the app runs as subprocesses there;
+the resumes and refusals run in the test's process (:func:`helpers.fit_app.run_fit_app`)."""
 from __future__ import annotations
 
 import json

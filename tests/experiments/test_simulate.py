@@ -1,6 +1,10 @@
 """experiments/simulate.py: a fitted material on an animation of the same body (a capsule with
 a two-bone rig, not the arm): the frames and errors of the ``init=`` / ``max_iter=0`` route,
-OBJ and VTU out, one-line refusals that write nothing."""
+OBJ and VTU out, one-line refusals that write nothing.
+
+The apps run in the test's process (:func:`run_simulate_app`, :func:`helpers.apps.run_app`);
+the simulate app's smoke test runs it as a subprocess
+(:func:`test_a_fit_of_another_problem_is_refused_with_one_line`)."""
 from __future__ import annotations
 
 import json
@@ -14,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 
+from helpers.apps import run_app
 from helpers.capsule_animation import write_capsule
 from helpers.fit_app import REPO, run_fit_app
 from helpers.runs import tree_digest
@@ -31,6 +36,13 @@ OTHER_ANGLES = (5.0, 12.0, 20.0, 35.0)
 
 
 def run_simulate_app(run_dir, *overrides, env=None):
+    """``python experiments/simulate.py hydra.run.dir=<run_dir> <overrides>`` from the
+    repository root, in this process."""
+    return run_app("simulate.py", f"hydra.run.dir={run_dir}", *overrides, env=env)
+
+
+def run_simulate_app_process(run_dir, *overrides, env=None):
+    """:func:`run_simulate_app` as a subprocess (the app's smoke test)."""
     environment = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
     environment.update(env or {})
     return subprocess.run([sys.executable, "experiments/simulate.py", f"hydra.run.dir={run_dir}",
@@ -222,20 +234,21 @@ def test_params_of_another_parameter_count_or_problem_are_refused(fitted, tmp_pa
 
 def test_a_fit_of_another_problem_is_refused_with_one_line(tmp_path):
     """A spring chain's run (fitted from Python: no .hydra/, its settings in result.json):
-    exit 2, one line, nothing written."""
+    exit 2, one line, nothing written. The simulate app's smoke test: the app as a
+    subprocess."""
     spring = tmp_path / "spring"
     fit(build_problem("spring1d", {"n": 8}), {"name": "gauss_newton", "max_iter": 1},
         run_dir=spring, options=FitOptions(progress=False))
     with pytest.raises(FitConfigError, match="is a fit of problem spring1d; simulate applies"):
         simulate(spring, progress_lines=False)
     out = tmp_path / "out"
-    proc = run_simulate_app(out, f"run={spring}")
+    proc = run_simulate_app_process(out, f"run={spring}")
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert proc.stderr.strip().splitlines() == [
         f"error: run={spring} is a fit of problem spring1d; simulate applies the material of "
         "a body fitted to an animation (problem=animation or arm3d)"]
     assert not out.exists()
-    proc = run_simulate_app(out, "problem.path=/nowhere")
+    proc = run_simulate_app_process(out, "problem.path=/nowhere")
     assert proc.returncode == 2 and proc.stderr.startswith("error: run=<the directory of a "
                                                            "fitted run> is required")
     assert not out.exists()

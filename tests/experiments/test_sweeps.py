@@ -1,5 +1,8 @@
 """Sweep presets of experiments/fit.py (conf/experiment/, conf/hydra/launcher/) and the
-launchers and sweeper they use: joblib, submitit (local executor), Optuna."""
+launchers and sweeper they use: joblib, submitit (local executor), Optuna.
+
+The app runs in the test's process (:func:`fit`, :func:`helpers.apps.run_app`); with the
+submitit launcher (it starts the jobs as processes of their own) as a subprocess."""
 from __future__ import annotations
 
 import json
@@ -12,12 +15,20 @@ from pathlib import Path
 import pytest
 import yaml
 
+from helpers.apps import run_app
 from helpers.fit_app import with_problem
 
 REPO = Path(__file__).resolve().parents[2]
 
 
 def fit(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    """``python experiments/fit.py <args>`` (spring1d unless they choose a problem) from the
+    repository root, in this process."""
+    return run_app("fit.py", *with_problem(args))
+
+
+def fit_process(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    """:func:`fit` as a subprocess."""
     env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
     return subprocess.run([sys.executable, "experiments/fit.py", *with_problem(args)], cwd=REPO,
                           env=env,
@@ -149,7 +160,7 @@ def test_submitit_local_launcher(tmp_path):
     """The submitit launcher (its local executor: separate processes, no SLURM) runs a
     two-job spring1d sweep; both jobs write their results into the sweep directory."""
     sweep = tmp_path / "sub"
-    ok(fit("-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=5",
+    ok(fit_process("-m", "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=5",
            f"hydra.sweep.dir={sweep}", "solver=gauss_newton,levenberg_marquardt",
            "problem.n=16", "problem.noise=1e-4", "solver.max_iter=20", "threads=1",
            "progress=false"))

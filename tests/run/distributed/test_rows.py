@@ -2,7 +2,7 @@
 
 The ranks are emulated in one process (each rank's rows and its part of every product, then
 the reduction rank 0 makes: concatenation in frame order, sums in rank order); the real
-exchange over torchrun is tests/run/test_distributed.py's (slow)."""
+exchange over torchrun is tests/run/distributed/test_session.py's (slow)."""
 from __future__ import annotations
 
 import pytest

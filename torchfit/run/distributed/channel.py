@@ -1,4 +1,4 @@
-"""The collectives of a distributed fit (:mod:`.ranks`): rank 0 commands, every rank answers.
+"""The collectives of a distributed fit (:mod:`.session`): rank 0 commands, every rank answers.
 
 A command is a broadcast header of four int64 (the code and up to three values). An answer
 is this rank's part, computed under :meth:`Channel.run`, which tells every rank how each
@@ -6,12 +6,13 @@ part went (a :class:`~torchfit.errors.SimulationError` anywhere is raised on ran
 failed simulation; another error ends the rank that had it) and adds the workers'
 factorisation and solve counts to rank 0's; :meth:`Channel.collect` then gathers frame
 blocks to rank 0 in frame order, :meth:`Channel.total` sums equal-shaped parts there in
-rank order. :func:`exchanging` says whether rank 0 is inside an exchange (stopped there, it
-must not send the workers a stop: they wait in the same exchange).
+rank order, :meth:`Channel.gather_object` and :meth:`Channel.scatter_object` move the
+warm-start state. :attr:`Channel.exchanging` says whether rank 0 is inside an exchange
+(stopped there, it must not send the workers a stop: they wait in the same exchange).
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 import torch
 import torch.distributed as dist
@@ -21,7 +22,8 @@ from ...errors import SimulationError
 from ...linalg.counters import SolveCounters, counting, credit
 
 #: the commands: simulate / Jacobian / cold block on, off / warm-start state / restore / stop
-SIMULATE, JACOBIAN, INDEPENDENT_ON, INDEPENDENT_OFF, STATE, RESTORE, STOP = range(7)
+#: / drop the cached solutions
+SIMULATE, JACOBIAN, INDEPENDENT_ON, INDEPENDENT_OFF, STATE, RESTORE, STOP, CLEAR = range(8)
 #: products with a Jacobian kept on the ranks (:mod:`.rows`)
 MATVEC, RMATVEC, GRAM, FULL = 20, 21, 22, 23
 ROW_COMMANDS = (MATVEC, RMATVEC, GRAM, FULL)
@@ -31,17 +33,6 @@ GRAPH_COMMANDS = (SIMULATE_GRAPH, GRAPH_VJP, GRAPH_JVP)
 #: codes whose answer is an exchange (every rank computes, rank 0 receives)
 COMMANDS_WITH_EXCHANGE = (SIMULATE, JACOBIAN, STATE, RESTORE) + ROW_COMMANDS + GRAPH_COMMANDS
 _OK, _SIMULATION_FAILED, _FAILED = 0, 1, 2
-_EXCHANGING = False
-
-
-def exchange(started: bool) -> None:
-    """Rank 0 enters (``True``) or leaves an exchange."""
-    global _EXCHANGING
-    _EXCHANGING = started
-
-
-def exchanging() -> bool:
-    return _EXCHANGING
 
 
 class Channel:
@@ -52,11 +43,13 @@ class Channel:
         self.rank, self.size = dist.get_rank(), dist.get_world_size()
         self.blocks = blocks
         self.longest = max(len(block) for block in blocks)
+        #: rank 0's: a command with an answer was sent and the answer is not all in yet
+        self.exchanging = False
 
     def command(self, code: int, *values: int) -> list[int]:
         header = torch.zeros(4, dtype=torch.int64)
         if self.rank == 0 and code in COMMANDS_WITH_EXCHANGE:
-            exchange(True)
+            self.exchanging = True
         if self.rank == 0:
             header[0] = code
             header[1:1 + len(values)] = torch.as_tensor(values, dtype=torch.int64)
@@ -90,7 +83,7 @@ class Channel:
         everyone = [torch.zeros_like(mine) for _ in range(self.size)]
         dist.all_gather(everyone, mine)
         if self.rank == 0:
-            exchange(False)
+            self.exchanging = False
             for row in everyone[1:]:        # the workers' work, in rank 0's scopes
                 credit(SolveCounters(int(row[1]), int(row[2]), int(row[3]), int(row[4])))
         failed = [(r, int(row[0])) for r, row in enumerate(everyone) if int(row[0]) != _OK]
@@ -123,9 +116,9 @@ class Channel:
             dist.gather(padded.cpu(), dst=0)
             return None
         parts = [torch.empty_like(padded.cpu()) for _ in range(self.size)]
-        exchange(True)
+        self.exchanging = True
         dist.gather(padded.cpu(), parts, dst=0)
-        exchange(False)
+        self.exchanging = False
         out = local.new_empty((sum(len(b) for b in self.blocks),) + tuple(local.shape[1:]))
         for r, block in enumerate(self.blocks):
             out[torch.as_tensor(block, dtype=torch.int64, device=out.device)] = \
@@ -144,10 +137,30 @@ class Channel:
             dist.gather(local, dst=0)
             return None
         parts = [torch.empty_like(local) for _ in range(self.size)]
-        exchange(True)
+        self.exchanging = True
         dist.gather(local, parts, dst=0)
-        exchange(False)
+        self.exchanging = False
         result = parts[0].clone()
         for part in parts[1:]:
             result += part
         return result
+
+    def gather_object(self, value: Any) -> list[Any] | None:
+        """Every rank's ``value`` (picklable) on rank 0, in rank order, which ends rank 0's
+        exchange; ``None`` elsewhere."""
+        if self.rank != 0:
+            dist.gather_object(value, dst=0)
+            return None
+        gathered: list[Any] = [None] * self.size
+        dist.gather_object(value, gathered, dst=0)
+        self.exchanging = False
+        return gathered
+
+    def scatter_object(self, parts: list[Any] | None) -> Any:
+        """Rank 0's ``parts[r]`` (one picklable value per rank) on rank ``r``, which ends
+        rank 0's exchange (a worker passes ``None``)."""
+        received: list[Any] = [None]
+        dist.scatter_object_list(received, parts if self.rank == 0 else None, src=0)
+        if self.rank == 0:
+            self.exchanging = False
+        return received[0]

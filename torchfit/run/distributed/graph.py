@@ -1,7 +1,7 @@
 """A distributed simulation autograd can differentiate: each rank keeps its poses' graph.
 
 The matrix-free path of a distributed fit (``n_params`` above
-``solver.dense_jacobian_max_params``, :mod:`.ranks`): the solvers take ``J v`` and
+``solver.dense_jacobian_max_params``, :mod:`.split`): the solvers take ``J v`` and
 ``J^T w`` from autograd through ``problem.forward`` (:class:`~torchfit.residual.Linearization`),
 so rank 0's simulation must be an autograd node. :class:`DistributedSimulation` is that
 node; each rank's own frames are simulated with a graph from a leaf copy of the modulus

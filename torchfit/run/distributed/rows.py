@@ -1,6 +1,6 @@
 """A dense Jacobian whose row blocks stay on their ranks: the products the dense path needs.
 
-Under ``torchrun`` (:mod:`.ranks`) every rank computes the rows of ``J = d forward /
+Under ``torchrun`` (:mod:`.split`) every rank computes the rows of ``J = d forward /
 d theta`` of its own poses, ``(P_rank n_obs 3, n)`` (the frames that repeat a pose share its
 rows: ``J^T J`` weights them by their frame count, ``J^T w`` takes ``w`` summed per pose,
 ``J x`` is expanded to every frame on rank 0), and keeps them (:class:`RowStore`:
@@ -76,7 +76,7 @@ def local_product(code: int, rows: Tensor, operand: Tensor | None,
 class DistributedRows:
     """Rank 0's handle of a Jacobian ``(m, n)`` whose rows stay on the ranks (module
     docstring). ``exchange(code, ident, operand)`` runs a product on every rank and returns
-    the reduced result on rank 0 (:meth:`.ranks.FrameSplit.row_product`)."""
+    the reduced result on rank 0 (:meth:`.split.FrameSplit.row_product`)."""
 
     def __init__(self, ident: int, shape: tuple[int, int], dtype: torch.dtype,
                  device: torch.device, exchange: Callable[[int, int, Tensor | None], Tensor]

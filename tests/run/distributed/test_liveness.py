@@ -1,4 +1,5 @@
-"""A torchrun rank that stops answering, and refusals under torchrun: one line from rank 0.
+"""torchfit.run.distributed.liveness: a torchrun rank that stops answering is told from other
+failures, and rank 0 says so in one line.
 
 Rank 0 tells a lost rank (a collective's broken connection, or torchrun's SIGTERM once a
 worker of this host is gone) from other failures and prints one ``error:`` line naming it
@@ -21,7 +22,9 @@ import torch
 
 from helpers.capsule_animation import write_capsule
 from helpers.fit_app import REPO
-from torchfit.run.distributed import ranks
+from torchfit.run.distributed import DistributedSession
+from torchfit.run.distributed.liveness import (communication_failure, gone, identity, lost_rank,
+                                               start_time)
 
 TORCHRUN = Path(sys.executable).with_name("torchrun")
 GLOO = ("[/__w/pytorch/pytorch/third_party/gloo/gloo/transport/tcp/pair.cc:537] Read error "
@@ -29,32 +32,43 @@ GLOO = ("[/__w/pytorch/pytorch/third_party/gloo/gloo/transport/tcp/pair.cc:537] 
         "worker hanging or bugs in the application.")
 
 
-def test_a_lost_peer_is_told_from_other_failures(monkeypatch):
-    assert ranks.communication_failure(RuntimeError(GLOO))
+def test_a_lost_peer_is_told_from_other_failures():
+    assert communication_failure(RuntimeError(GLOO))
     try:
         try:
             raise RuntimeError("[..] Timed out waiting 1800000ms for recv operation")
         except RuntimeError as inner:
             raise ValueError("wrapped") from inner
     except ValueError as outer:
-        assert ranks.communication_failure(outer)
-    assert not ranks.communication_failure(RuntimeError("rank 1 of 2 failed (its error line "
-                                                        "is above)"))
-    assert not ranks.communication_failure(ValueError("connection reset"))   # not a collective
-    monkeypatch.setenv("RANK", "0")
-    monkeypatch.setenv("WORLD_SIZE", "3")
+        assert communication_failure(outer)
+    assert not communication_failure(RuntimeError("rank 1 of 2 failed (its error line "
+                                                  "is above)"))
+    assert not communication_failure(ValueError("connection reset"))   # not a collective
+    assert not communication_failure(None)
     child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
-    me, alive = ranks.identity(), ranks.identity()[:1] + (child.pid, ranks._start_time(child.pid))
-    monkeypatch.setattr(ranks, "_PEERS", [me, me, alive])
-    assert ranks.stopped_answering(None) is None        # SIGTERM, every worker running
-    assert ranks.stopped_answering(RuntimeError(GLOO), wait=0.1) == "a rank of 3"
-    assert ranks.stopped_answering(ValueError("bad")) is None
+    me, alive = identity(), identity()[:1] + (child.pid, start_time(child.pid))
+    peers = [me, me, alive]
+    assert not gone(me) and not gone(alive)
+    assert lost_rank(peers, 3, None) is None        # SIGTERM, every worker running
+    assert lost_rank(peers, 3, RuntimeError(GLOO), wait=0.1) == "a rank of 3"
+    assert lost_rank([me, me], 2, RuntimeError(GLOO), wait=0.1) == "rank 1 of 2"
+    assert lost_rank(peers, 3, ValueError("bad")) is None
     child.kill()
     child.wait()
-    assert ranks.stopped_answering(None) == "rank 2 of 3"
-    assert ranks.stopped_answering(RuntimeError(GLOO)) == "rank 2 of 3"
-    monkeypatch.setattr(ranks, "_PEERS", [me, me, (me[0], me[1], "1")])   # a reused pid
-    assert ranks.stopped_answering(None) == "rank 2 of 3"
+    assert gone(alive)
+    assert lost_rank(peers, 3, None) == "rank 2 of 3"
+    assert lost_rank(peers, 3, RuntimeError(GLOO)) == "rank 2 of 3"
+    reused = (me[0], me[1], "1")                    # this pid, another start time
+    assert gone(reused) and lost_rank([me, me, reused], 3, None) == "rank 2 of 3"
+    assert not gone(("another-host", child.pid, ""))    # only this host's can be looked at
+    # the session asks the same of its peers, on rank 0 of several only
+    session = DistributedSession(rank=0, size=3)
+    session.peers = (me, me, reused)
+    assert session.stopped_answering(None) == "rank 2 of 3"
+    assert DistributedSession(rank=1, size=3).stopped_answering(RuntimeError(GLOO)) is None
+    assert DistributedSession(rank=0, size=1).stopped_answering(RuntimeError(GLOO)) is None
+    assert DistributedSession(rank=0, size=2).stopped_answering(RuntimeError(GLOO),
+                                                                wait=0.0) == "rank 1 of 2"
 
 
 def _settings(tmp_path: Path) -> list[str]:
@@ -139,51 +153,3 @@ def test_rank_1_killed_mid_fit_is_one_line_with_the_resume_command(tmp_path):
     result = json.loads((run / "result.json").read_text())
     assert result["resumed_from_iteration"] == int(match.group(1)) - 1
     assert torch.equal(_theta(tmp_path / "full"), _theta(run))
-
-
-@pytest.mark.slow
-def test_refusals_under_the_launcher_are_one_line_and_exit_2(tmp_path):
-    """``experiments/launch.py`` (what ``scripts/fit.sh --nproc_per_node=2`` runs): a problem
-    that does not run distributed and a resume of a checkpoint written by 1 process are
-    each exactly one line on standard error, exit 2, the directory as it was; raw torchrun
-    gives the same first line, then its summary (rank 0's ``exitcode: 2``) and exit 1."""
-    launch = [sys.executable, "experiments/launch.py", "--standalone", "--nproc_per_node=2"]
-    refused = subprocess.run([*launch, f"hydra.run.dir={tmp_path / 'chain'}",
-                              "problem=spring1d", "threads=1"], cwd=REPO, env=_env(),
-                             capture_output=True, text=True, timeout=300)
-    assert refused.returncode == 2, refused.stderr[-3000:]
-    assert refused.stderr.splitlines() == [
-        "error: problem spring1d / solver gauss_newton does not run distributed yet "
-        "(torchrun runs a quasistatic rigged body with levenberg_marquardt or gauss_newton); "
-        "run it as one process"]
-    assert not (tmp_path / "chain").exists()
-
-    run = tmp_path / "one"          # an earlier run's directory, its checkpoint 1 process's
-    (run / ".hydra").mkdir(parents=True)
-    for name in ("config.yaml", "hydra.yaml", "overrides.yaml"):     # what Hydra writes
-        (run / ".hydra" / name).write_text(f"# the earlier run's {name}\n")
-    (run / "fit.log").write_text("the earlier run's log\n")
-    torch.save({"simulation_state": {"anchor": 0}}, run / "checkpoint.pt")
-
-    def contents() -> dict[str, bytes]:
-        return {str(p.relative_to(run)): p.read_bytes() for p in run.rglob("*") if p.is_file()}
-    before = contents()
-    settings = [f"hydra.run.dir={run}", *_settings(tmp_path), "resume=true"]
-    resumed = subprocess.run([*launch, *settings], cwd=REPO, env=_env(), capture_output=True,
-                             text=True, timeout=300)
-    assert resumed.returncode == 2, resumed.stderr[-3000:]
-    assert resumed.stderr.splitlines() == [
-        f"error: cannot resume: {run / 'checkpoint.pt'} was written by 1 process(es), this run "
-        "has 2; resume with torchrun --nproc_per_node=1 (or as one process)"]
-    assert contents() == before
-
-    raw = subprocess.run([str(TORCHRUN), "--standalone", "--nproc_per_node=2",
-                          "experiments/fit.py", *settings], cwd=REPO,
-                         env={**_env(), "OMP_NUM_THREADS": "1"}, capture_output=True,
-                         text=True, timeout=300)
-    assert raw.returncode == 1                  # torchrun's status for any failed rank
-    first = raw.stderr.splitlines()[0]
-    assert first == resumed.stderr.splitlines()[0]
-    assert [line for line in raw.stderr.splitlines() if line.startswith("error:")] == [first]
-    assert re.search(r"rank +: 0 \(local_rank: 0\)\n +exitcode +: 2 ", raw.stderr)
-    assert contents() == before

@@ -1,6 +1,11 @@
-"""torchfit.run.distributed.ranks: frames over torchrun ranks give the one-process fit."""
+"""torchfit.run.distributed.session: rank 0 leading and a worker serving give the one-process
+fit, and no run state lives outside the session.
+
+The fits run under ``torchrun --standalone --nproc_per_node=2`` (gloo) through
+``experiments/fit.py`` (slow); the scan of ``torchfit/run/`` is a source check."""
 from __future__ import annotations
 
+import ast
 import json
 import os
 import shutil
@@ -10,76 +15,110 @@ from pathlib import Path
 
 import pytest
 import torch
+import torch.distributed as dist
 
 from helpers.capsule_animation import write_capsule
 from helpers.fit_app import REPO, run_fit_app
 from helpers.repeating_animation import POSES, write_tube
-from torchfit.problems import build_problem
-from torchfit.run import FitConfigError
-from torchfit.run.distributed.ranks import (check_resume, check_same_inputs, check_state,
-                                      check_supported, partition)
+from torchfit.run.distributed import DistributedSession, launched, rank, world_size
 
 TORCHRUN = Path(sys.executable).with_name("torchrun")
+RUN = REPO / "torchfit" / "run"
+#: containers whose module-level value a function may fill
+MUTABLE_CALLS = {"dict", "list", "set", "defaultdict", "OrderedDict", "deque", "WeakSet",
+                 "WeakValueDictionary", "WeakKeyDictionary"}
+#: methods that change a container in place
+MUTATORS = {"append", "add", "update", "setdefault", "pop", "remove", "clear", "extend",
+            "insert", "popitem", "discard", "appendleft", "sort", "reverse"}
+#: module-level containers of torchfit/run that are the process's, not a run's: the run
+#: directories whose lock this process holds (a re-entrant count, and the directories made
+#: for them), released at exit (tests/test_seams.py names them too)
+PROCESS_STATE = {"torchfit/run/lock.py: _held", "torchfit/run/lock.py: _created"}
 
 
-def test_partition_interleaves_the_poses_balanced():
-    assert partition(5, 2) == [[0, 2, 4], [1, 3]]
-    assert partition(23, 2)[1] == list(range(1, 23, 2))     # the arm: 12 + 11 poses
-    assert partition(2, 3) == [[0], [1], []]
-    for poses, ranks in ((48, 5), (7, 3), (11, 4), (3, 1)):
-        blocks = partition(poses, ranks)
-        sizes = [len(block) for block in blocks]
-        assert max(sizes) - min(sizes) <= 1 and sizes == sorted(sizes, reverse=True)
-        assert sorted(sum(blocks, [])) == list(range(poses))       # each pose once
-        # a run of neighbouring poses (alike in cost) is shared out evenly
-        for start in range(0, poses - ranks + 1):
-            window = range(start, start + ranks)
-            assert sorted(r for r, b in enumerate(blocks) for p in b if p in window) == \
-                list(range(ranks))
-    with pytest.raises(ValueError):
-        partition(4, 0)
+def _mutable(value: ast.expr) -> bool:
+    if isinstance(value, (ast.Dict, ast.List, ast.Set, ast.DictComp, ast.ListComp,
+                          ast.SetComp)):
+        return True
+    if isinstance(value, ast.Call):
+        func = value.func
+        name = func.id if isinstance(func, ast.Name) else \
+            func.attr if isinstance(func, ast.Attribute) else ""
+        return name in MUTABLE_CALLS
+    return False
 
 
-def test_what_does_not_run_distributed_is_refused_in_one_line():
-    chain = build_problem("spring1d", {})
-    with pytest.raises(FitConfigError, match="problem spring1d / solver gauss_newton does not "
-                                             "run distributed yet") as info:
-        check_supported(chain, {"solver": {"name": "gauss_newton",
-                                           "dense_jacobian_max_params": 1000}}, 2)
-    assert "\n" not in str(info.value)
+def run_state(source: str, where: str = "") -> list[str]:
+    """``where: what`` for each way ``source`` keeps state in the module or forwards members:
+    a ``global`` (or ``nonlocal``) statement anywhere (a function rebinding a module name:
+    a flag set to ``None`` or ``False`` and changed later), a module-level container
+    (``{}``, ``[]``, ``set()``, ``dict()``, ...) that a function of the module changes (in
+    place or by item), and a ``__getattr__`` (members forwarded, found missing only when
+    asked for). Module-level constants (``__all__``, tables only read) are not state."""
+    tree = ast.parse(source)
+    containers: set[str] = set()
+    for node in tree.body:
+        if isinstance(node, (ast.Assign, ast.AnnAssign)) and node.value is not None and \
+                _mutable(node.value):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            containers |= {t.id for t in targets if isinstance(t, ast.Name)}
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Global, ast.Nonlocal)):
+            found |= {f"{where}: {type(node).__name__.lower()} {name}" for name in node.names}
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            if node.name == "__getattr__":
+                found.add(f"{where}: __getattr__")
+            for inner in ast.walk(node):
+                if isinstance(inner, ast.Call) and isinstance(inner.func, ast.Attribute) and \
+                        inner.func.attr in MUTATORS and isinstance(inner.func.value, ast.Name) \
+                        and inner.func.value.id in containers:
+                    found.add(f"{where}: {inner.func.value.id}")
+                if isinstance(inner, (ast.Subscript,)) and isinstance(inner.ctx, (
+                        ast.Store, ast.Del)) and isinstance(inner.value, ast.Name) and \
+                        inner.value.id in containers:
+                    found.add(f"{where}: {inner.value.id}")
+    return sorted(found)
 
 
-def test_a_resume_with_another_number_of_processes_is_refused(tmp_path):
-    state = {"world_size": 2, "blocks": [[0, 2], [2, 3]], "ranks": [{"a": 1}, {"a": 2}]}
-    torch.save({"simulation_state": state}, tmp_path / "checkpoint.pt")
-    check_resume(tmp_path, 2)
-    with pytest.raises(FitConfigError, match="written by 2 process.*--nproc_per_node=2"):
-        check_resume(tmp_path, 1)
-    torch.save({"simulation_state": {"anchor": 0}}, tmp_path / "checkpoint.pt")
-    with pytest.raises(FitConfigError, match="written by 1 process"):
-        check_resume(tmp_path, 3)
-    torch.save({"simulation_state": {}}, tmp_path / "checkpoint.pt")   # linear: nothing saved
-    check_resume(tmp_path, 3)
+def test_no_module_of_the_run_keeps_run_state_or_forwards_members():
+    found = [hit for path in sorted(RUN.rglob("*.py"))
+             for hit in run_state(path.read_text(), path.relative_to(REPO).as_posix())]
+    assert set(found) >= PROCESS_STATE, "an exemption no module needs any more: drop it"
+    state = sorted(set(found) - PROCESS_STATE)
+    assert not state, f"run state in modules, or forwarded members, in torchfit/run: {state}"
 
 
-def test_warm_starts_shared_out_otherwise_are_refused_in_one_line():
-    # a 2-rank checkpoint written with contiguous blocks (before the interleaved partition)
-    old = {"world_size": 2, "blocks": [[0, 2], [2, 3]], "ranks": [{}, {}]}
-    with pytest.raises(FitConfigError, match="shared over the ranks in another way") as info:
-        check_state(old, partition(3, 2))
-    assert "\n" not in str(info.value)
-    with pytest.raises(FitConfigError, match="--nproc_per_node=2"):
-        check_state(old, partition(3, 3))
-    check_state({**old, "blocks": [[0, 2], [1]]}, partition(3, 2))      # the same split
+def test_the_scan_can_fail():
+    source = ("import re\n_SHARED = False\n_LATER = None\n_SEEN = {}\n_HELD: dict = dict()\n"
+              "LOST = re.compile('x')\nTABLE = {'a': 1}\n__all__ = ['stop']\n"
+              "def stop():\n    global _SHARED, _LATER\n    _SHARED = False\n"
+              "    _SEEN.setdefault('a', 1)\n    _HELD['b'] = TABLE['a']\n    return __all__[0]\n"
+              "class Split:\n    def __getattr__(self, name):\n        return 1\n"
+              "def outer():\n    count = 0\n    def inner():\n        nonlocal count\n")
+    assert run_state(source, "m") == ["m: _HELD", "m: _SEEN", "m: __getattr__",
+                                      "m: global _LATER", "m: global _SHARED",
+                                      "m: nonlocal count"]
+    assert run_state("X = 1\nNAMES = ('a',)\nTABLE = {'a': [1]}\n"
+                     "def f():\n    return TABLE['a'][0]\n") == []
 
 
-def test_a_rank_on_other_inputs_is_refused_in_one_line():
-    mine = {"tet mesh": "a1", "animation": "b1"}
-    check_same_inputs(mine, [None, dict(mine), dict(mine)])
-    with pytest.raises(FitConfigError, match="rank 2 built its problem on another tet mesh "
-                                             "than rank 0") as info:
-        check_same_inputs(mine, [None, dict(mine), {"tet mesh": "a2", "animation": "b1"}])
-    assert "\n" not in str(info.value)
+def test_the_session_outside_torchrun_is_inert(monkeypatch):
+    monkeypatch.delenv("RANK", raising=False)
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    assert (rank(), world_size(), launched()) == (0, 1, False)
+    session = DistributedSession()
+    assert (session.rank, session.size, session.launched) == (0, 1, False)
+    session.stop()                                      # no group started, nothing sent
+    assert not dist.is_initialized()
+    assert session.stopped_answering(RuntimeError("Connection reset by peer")) is None
+    session.abandon()
+    assert session.abandoned and session.channel is None and session.split is None
+    monkeypatch.setenv("RANK", "1")
+    monkeypatch.setenv("WORLD_SIZE", "4")
+    worker = DistributedSession()
+    assert (worker.rank, worker.size, worker.launched) == (1, 4, True)
+    assert DistributedSession(rank=0, size=2).peers == ()       # until rank 0 leads
 
 
 def _torchrun(run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
@@ -180,15 +219,3 @@ def test_the_matrix_free_path_gives_the_one_process_iterates(tmp_path):
     assert difference <= 1e-6
     for a, b in zip(first["history"], second["history"]):
         assert abs(a["cg_iterations"] - b["cg_iterations"]) <= 1
-
-
-@pytest.mark.slow
-def test_torchrun_refuses_what_does_not_run_distributed_and_writes_nothing(tmp_path):
-    proc = _torchrun(tmp_path / "run", "problem=spring1d", "threads=1")
-    assert proc.returncode != 0
-    lines = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
-    assert lines == ["error: problem spring1d / solver gauss_newton does not run distributed "
-                     "yet (torchrun runs a quasistatic rigged body with levenberg_marquardt or "
-                     "gauss_newton); run it as one process"]
-    assert "exitcode: 2" in proc.stderr           # rank 0's refusal; the worker left quietly
-    assert not (tmp_path / "run").exists()
