@@ -19,7 +19,7 @@ import torch.distributed as dist
 from torch import Tensor
 
 from ...errors import SimulationError
-from ...linalg.counters import SolveCounters, counting, credit
+from ...linalg import SolveCounters, counting, credit
 
 #: the commands: simulate / Jacobian / cold block on, off / warm-start state / restore / stop
 #: / drop the cached solutions
