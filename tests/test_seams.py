@@ -2,8 +2,8 @@
 replaces its methods, and no module keeps a process-global registry that other code fills.
 
 A collaborator reaches an object through an interface the object declares (a distributed run
-plugs its pose simulation in with ``RiggedBody.plug``; a run's mesh is an argument of
-``build_problem``); scans of the source keep it that way. Tests are not scanned: a test double
+plugs its pose simulation in with ``FramePoses.plug``, the seam of the body's ``poses``; a
+run's mesh is an argument of ``build_problem``); scans of the source keep it that way. Tests are not scanned: a test double
 may stand in for a method.
 """
 from __future__ import annotations
