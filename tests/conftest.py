@@ -1,7 +1,13 @@
 """The suite's fixtures: float64, a fixed seed and one torch thread for every test, the vendored
-test vectors, a real TensorBoard server. Helpers that tests import are in ``tests/helpers/``."""
+test vectors, a real TensorBoard server. Helpers that tests import are in ``tests/helpers/``.
+
+The tiers (tests/tiers.py): the fast tier's tests are marked ``fast``; the tests that must
+run on one pytest-xdist worker get their ``xdist_group``; with ``TORCHFIT_TEST_SUMMARY`` set
+(scripts/test.sh) the run's counts are written to that file."""
 from __future__ import annotations
 
+import os
+import warnings
 from pathlib import Path
 
 import pytest
@@ -9,6 +15,44 @@ import torch
 
 from helpers.tensorboard_server import TensorBoardServer
 from helpers.vectors import VECTOR_FILES, VECTORS
+from tiers import NOT_FAST, group_of, in_fast_tier, matches
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "fast: the fast tier, set from tests/tiers.py "
+                            "(scripts/test.sh --tier fast)")
+
+
+@pytest.hookimpl(tryfirst=True)     # before -m selects and before xdist reads the groups
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if in_fast_tier(item.nodeid, item.get_closest_marker("slow") is not None):
+            item.add_marker(pytest.mark.fast)
+        group = group_of(item.nodeid)
+        if group is not None:
+            item.add_marker(pytest.mark.xdist_group(group))
+    if not config.args or config.args == ["tests"]:     # the whole suite was collected
+        stale = [start for start in NOT_FAST if not any(matches(item.nodeid, start)
+                                                        for item in items)]
+        if stale:
+            warnings.warn(pytest.PytestWarning(
+                f"tests/tiers.py: NOT_FAST names no test: {', '.join(stale)} (renamed or "
+                "gone: those tests are back in the fast tier; update the list)"))
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """The counts of the run for scripts/test.sh's closing line (the controller's, under
+    xdist): passed, failed (errors included), skipped."""
+    path = os.environ.get("TORCHFIT_TEST_SUMMARY")
+    if not path or hasattr(config, "workerinput"):
+        return
+
+    def count(*keys: str) -> int:
+        return sum(1 for key in keys for report in terminalreporter.stats.get(key, [])
+                   if getattr(report, "count_towards_summary", True))
+
+    Path(path).write_text(f"{count('passed')} passed, {count('failed', 'error')} failed, "
+                          f"{count('skipped')} skipped\n")
 
 
 @pytest.fixture(autouse=True)
