@@ -1,5 +1,6 @@
-"""The suite's fixtures: float64, a fixed seed and one torch thread for every test, the vendored
-test vectors, a real TensorBoard server. Helpers that tests import are in ``tests/helpers/``.
+"""The suite's fixtures: float64, a fixed seed and one torch (and BLAS) thread for every test,
+the vendored test vectors, a real TensorBoard server. Helpers that tests import are in
+``tests/helpers/``.
 
 The tiers (tests/tiers.py): the fast tier's tests are marked ``fast``; the tests that must
 run on one pytest-xdist worker get their ``xdist_group``; with ``TORCHFIT_TEST_SUMMARY`` set
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from threadpoolctl import threadpool_limits
 
 from helpers.tensorboard_server import TensorBoardServer
 from helpers.vectors import VECTOR_FILES, VECTORS
@@ -72,7 +74,10 @@ def _one_torch_thread():
     # threading sets its own count; the processes a test starts choose theirs.
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
-    yield
+    # the BLAS and OpenMP pools of numpy and scipy too (OpenBLAS's threads spin): two pytest
+    # workers with two BLAS threads each ask four cores of two
+    with threadpool_limits(limits=1):
+        yield
     torch.set_num_threads(threads)
 
 
