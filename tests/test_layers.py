@@ -61,6 +61,15 @@ def modules() -> dict[str, Path]:
     return out
 
 
+def imported_module(package: str, node: ast.ImportFrom) -> str:
+    """The absolute module a ``from ... import`` in ``package`` names (relative levels
+    resolved)."""
+    if node.level:
+        base = package.split(".")[: len(package.split(".")) - node.level + 1]
+        return ".".join(base + ([node.module] if node.module else []))
+    return node.module or ""
+
+
 def imports_of(name: str, path: Path, known: set[str]) -> set[str]:
     package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
     found = set()
@@ -69,11 +78,7 @@ def imports_of(name: str, path: Path, known: set[str]) -> set[str]:
         if isinstance(node, ast.Import):
             targets = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package.split(".")[: len(package.split(".")) - node.level + 1]
-                module = ".".join(base + ([node.module] if node.module else []))
-            else:
-                module = node.module or ""
+            module = imported_module(package, node)
             targets = [module] + [f"{module}.{a.name}" for a in node.names]
         for target in targets:
             while target and target not in known:
@@ -191,11 +196,7 @@ def named_modules(name: str, path: Path, mods: dict[str, Path],
         if isinstance(node, ast.Import):
             found |= {known(a.name) for a in node.names}
         elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package.split(".")[: len(package.split(".")) - node.level + 1]
-                module = ".".join(base + ([node.module] if node.module else []))
-            else:
-                module = node.module or ""
+            module = imported_module(package, node)
             source = known(module)
             for alias in node.names:
                 if source == module and alias.name in offered.get(source, set()):
