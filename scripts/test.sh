@@ -15,7 +15,7 @@ environment, creating or updating it first (scripts/_venv.sh), on two pytest-xdi
 Writes nothing but pytest's cache.
 
   scripts/test.sh --tier fast             # the fast tier: before each commit (about 5 minutes on 2 cores)
-  scripts/test.sh                         # everything, what CI runs (--tier full, about 25 minutes)
+  scripts/test.sh                         # everything, what CI runs (--tier full, about 14 minutes on 2 idle cores)
   scripts/test.sh -m "not slow"           # the tests not marked slow
   scripts/test.sh tests/experiments -x    # one folder, stop at the first failure
   scripts/test.sh -k simulate --durations=10
