@@ -39,7 +39,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from torchfit.mesh import write_animation  # noqa: E402
+from torchfit.mesh import AnimationError, check_replaceable, write_animation  # noqa: E402
 from torchfit.problems.body.procedural_arm import ArmShape, arm_animation  # noqa: E402
 from torchfit.problems.body.procedural_arm import MAX_FLEXION  # noqa: E402
 from torchfit.problems.body.procedural_arm import corrective_shapes  # noqa: E402
@@ -87,6 +87,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.n_frames < 2 or not 0.0 < args.max_flexion <= MAX_FLEXION:
         parser.error(f"--n-frames must be at least 2 and --max-flexion in (0, {MAX_FLEXION:g}] "
                      "degrees")
+    if args.folder is not None:
+        try:                         # before any file is written: a user's folder is never replaced
+            check_replaceable(args.folder)
+        except AnimationError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
     shape = ArmShape(n_frames=args.n_frames, max_flexion=args.max_flexion)
     data = arm_animation(shape)
     if args.float32_rest:

@@ -1,6 +1,9 @@
 """Exceptions shared by the layers (kept here so that no layer imports another for them)."""
 from __future__ import annotations
 
+import errno
+import os
+
 
 class SimulationError(RuntimeError):
     """The forward simulation has no valid answer at these parameters.
@@ -19,3 +22,40 @@ class ConfigurationError(ValueError):
     The problem, solver and run layers raise subclasses of it; applications report it
     without a traceback and run nothing.
     """
+
+
+#: what to do about a write that failed, by its errno (the failures a user can act on)
+_WRITE_REMEDIES = {
+    errno.ENOSPC: "free space there",
+    errno.EDQUOT: "free space there (the disk quota is exhausted)",
+    errno.EFBIG: "raise the file-size limit (ulimit -f) or write to another place",
+    errno.EROFS: "write to another place (this one is read-only)",
+    errno.EACCES: "write where you have permission",
+    errno.EPERM: "write where you have permission",
+}
+
+
+def write_failure(error: BaseException | None) -> OSError | None:
+    """The failed write in ``error`` or the chain it was raised from, as an ``OSError`` whose
+    ``errno`` is one of :data:`_WRITE_REMEDIES`; ``None`` where there is none.
+
+    The USD library reports a failed write as ``pxr.Tf.ErrorException`` with the C++ error
+    text of every layer it went through (40 lines and more, the ``strerror`` among them):
+    that becomes the ``OSError`` it reports, without a file name."""
+    while error is not None:
+        if isinstance(error, OSError) and error.errno in _WRITE_REMEDIES:
+            return error
+        if type(error).__name__ == "ErrorException":          # pxr.Tf, not imported here
+            text = str(error)
+            for code in _WRITE_REMEDIES:
+                if os.strerror(code) in text:
+                    return OSError(code, os.strerror(code))
+        error = error.__cause__ or error.__context__
+    return None
+
+
+def write_failure_line(error: OSError, target: object) -> str:
+    """One line for a write to ``target`` that failed with ``error`` (:func:`write_failure`):
+    what happened and what to do."""
+    remedy = _WRITE_REMEDIES.get(error.errno, "check the place and try again")
+    return f"cannot write {target}: {error.strerror or error}; {remedy}"

@@ -48,3 +48,19 @@ def test_nothing_to_write_is_a_usage_error(capsys):
     with pytest.raises(SystemExit) as info:
         write_arm()([])
     assert info.value.code == 2 and "--usd" in capsys.readouterr().err
+
+
+def test_a_users_folder_is_refused_before_anything_is_written(tmp_path, capsys):
+    """Issue 50: write_arm replaced an existing folder whole; a folder holding the user's
+    files is refused in one line, and neither it nor the --usd output is written."""
+    user = tmp_path / "mine"
+    user.mkdir()
+    (user / "notes.txt").write_text("precious")
+    assert write_arm()([str(user), "--usd", str(tmp_path / "arm.usda")]) == 2
+    assert capsys.readouterr().err.startswith(f"error: {user} holds files torchfit did not "
+                                              "write (notes.txt)")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine"]
+    assert [p.name for p in user.iterdir()] == ["notes.txt"]
+    assert write_arm()([str(tmp_path / "arm"), "--n-frames", "3"]) == 0
+    assert write_arm()([str(tmp_path / "arm"), "--n-frames", "4"]) == 0     # its own: replaced
+    assert load_animation(tmp_path / "arm").n_frames == 4

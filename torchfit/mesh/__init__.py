@@ -5,7 +5,8 @@ cached), barycentric embedding, rigs and the rig check, the :class:`Animation` e
 builds (:mod:`.animation`), and the file formats of a rigged animation (:mod:`.formats`).
 """
 from .animation import DEFAULT_FPS, UNITS, Animation, AnimationError
-from .formats import load_animation, read_animation, write_animation, write_obj
+from .formats import (check_replaceable, load_animation, read_animation, write_animation,
+                      write_obj)
 from .embedding import Embedding, boundary_faces, dof_matrix, embed_points
 from .rig import (DrivenSurface, Skeleton, axial_coordinates, blend, distance_weights,
                   joint_cells, segment_distances, skeleton_drive, surface_drive)
@@ -22,7 +23,7 @@ __all__ = ["Animation", "AnimationError", "DEFAULT_FPS", "DrivenSurface", "Embed
            "KeptMesh", "MeshError", "RUN_MESH_FILE", "RigReport", "SimplexMesh", "Skeleton",
            "StoredMesh", "SurfaceError", "TetMesh", "TetOptions", "TetrahedralizationError",
            "UNITS", "axial_coordinates", "blend", "body_volume", "box_tetrahedra",
-           "boundary_faces", "check_animation", "check_rest_cells", "default_cache_dir",
+           "boundary_faces", "check_animation", "check_replaceable", "check_rest_cells", "default_cache_dir",
            "distance_weights", "dof_matrix", "element_adjacency", "embed_points",
            "joint_cells", "load_animation", "load_surface", "normalized_points",
            "read_animation", "read_kept_mesh", "read_run_mesh", "rectangle_triangles",

@@ -2,6 +2,7 @@
 positions within 1e-6 m after round trips, refusals as one line with nothing written."""
 from __future__ import annotations
 
+import errno
 import hashlib
 import os
 import subprocess
@@ -163,6 +164,100 @@ def test_refusals_write_nothing(tmp_path, capsys):
         errors = [line for line in err.splitlines() if line.startswith("error: ")]
         assert len(errors) == 1 and words in errors[0], (name, err)
     assert sorted(p.name for p in tmp_path.iterdir()) == before      # not even a temporary
+
+
+def test_what_is_not_an_output_of_its_kind_is_never_replaced(tmp_path, capsys):
+    """Issue 50: a user's folder (its notes were deleted), a plain file (it became a folder),
+    a text file where a stage goes, a folder where a glTF goes: refused in one line before
+    the input is read, every byte left as it was."""
+    arm = write_arm(tmp_path / "arm")
+    user = tmp_path / "userdir"
+    user.mkdir()
+    (user / "notes.txt").write_text("precious")
+    (tmp_path / "plain").write_text("a plain file")
+    (tmp_path / "notes.usda").write_text("not a stage")
+    (tmp_path / "folder.glb").mkdir()
+    cases = {user: "holds files torchfit did not write (notes.txt)",
+             tmp_path / "plain": "exists and is not a folder",
+             tmp_path / "notes.usda": "exists and is not a USD stage",
+             tmp_path / "folder.glb": "is a folder; a glTF file would replace it"}
+
+    def state():
+        return sorted((str(p.relative_to(tmp_path)), p.read_bytes() if p.is_file() else b"")
+                      for p in tmp_path.rglob("*"))
+
+    before = state()
+    for out, words in cases.items():
+        assert main([str(arm), str(out)]) == 2
+        errors = [line for line in capsys.readouterr().err.splitlines() if line]
+        assert len(errors) == 1 and errors[0].startswith("error: ") and words in errors[0], \
+            (out, errors)
+    assert state() == before
+
+
+def test_an_output_of_its_kind_is_replaced_and_the_folder_is_the_users(tmp_path):
+    """A stage over a stage, a folder over an animation folder torchfit wrote, an empty
+    folder: replaced; the written folder has a plain mkdir's mode (it was 0700)."""
+    arm = write_arm(tmp_path / "arm")
+    converted(arm, tmp_path / "out.usda")
+    converted(arm, tmp_path / "out.usda")
+    (tmp_path / "empty").mkdir()
+    for folder in (tmp_path / "copy", tmp_path / "copy", tmp_path / "empty"):
+        converted(tmp_path / "out.usda", folder)
+        assert_same(read_animation(folder, weld=False), read_animation(arm, weld=False))
+        mask = os.umask(0)
+        os.umask(mask)
+        assert (folder.stat().st_mode & 0o777) == 0o777 & ~mask
+    assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+@pytest.mark.parametrize("out", ["full.usda", "full.glb", "full_folder"])
+def test_a_write_that_fails_is_one_line_and_leaves_nothing(tmp_path, out):
+    """A file-size limit (``ulimit -f``: EFBIG, what a full disk does to a write) while
+    writing each kind: one ``error:`` line that says what to do, exit 2, no traceback (USD
+    printed 40 lines of C++ errors), no output and no temporary left."""
+    import resource
+
+    arm = write_arm(tmp_path / "arm")
+    work = tmp_path / "work"
+    work.mkdir()
+    limit = 64 * 1024                      # the arm's files are several times larger
+
+    def small_files() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    proc = subprocess.run([sys.executable, "-m", "torchfit.mesh.formats.convert", str(arm),
+                           str(work / out)], capture_output=True, text=True, timeout=300,
+                          preexec_fn=small_files, cwd=REPO,
+                          env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(f"error: cannot write {work / out}: File "
+                                                   "too large; raise the file-size limit"), lines
+    assert list(work.iterdir()) == []
+
+
+def test_a_usd_write_failure_becomes_the_oserror_it_reports():
+    from torchfit.errors import write_failure, write_failure_line
+
+    class ErrorException(Exception):           # the shape of pxr.Tf.ErrorException
+        pass
+
+    usd = ErrorException("\n\tError in 'ArFilesystemWritableAsset::Write' at line 78: 'Error "
+                         "occurred writing file: No space left on device'\n" * 40)
+    assert write_failure(RuntimeError("saving")) is None
+    failure = write_failure(usd)
+    assert failure is not None and failure.errno == errno.ENOSPC
+    assert write_failure_line(failure, "x.usda") == ("cannot write x.usda: No space left on "
+                                                     "device; free space there")
+    assert write_failure(ValueError("not a write")) is None
+    try:
+        try:
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS), "out.glb")
+        except OSError as inner:
+            raise RuntimeError("while converting") from inner
+    except RuntimeError as outer:
+        assert write_failure(outer).filename == "out.glb"
 
 
 def test_convert_sh_help(tmp_path):

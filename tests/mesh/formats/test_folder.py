@@ -8,7 +8,8 @@ import pytest
 import yaml
 
 from helpers.capsule_animation import ANGLES, write_capsule
-from torchfit.mesh import AnimationError, MeshError, load_animation
+from torchfit.mesh import (AnimationError, DrivenSurface, MeshError, load_animation,
+                           write_animation)
 
 
 def edit_manifest(folder, change):
@@ -139,3 +140,30 @@ def test_weights_labels_and_bones_that_are_not_numbers_are_refused(tmp_path):
     np.save(folder / "regions.npy", np.array(["bone"] * n))
     edit_manifest(folder, lambda s: s.update(regions={"labels": "regions.npy"}))
     expect_error(folder, r"regions\.npy: holds text \(dtype <U4\), but must hold integers")
+
+
+def test_an_existing_path_is_replaced_only_when_it_holds_a_written_animation(tmp_path):
+    """write_animation removed whatever stood at the path: now a plain file or a folder with
+    anything it does not write is refused (one line naming it), the folder untouched."""
+    rest, faces = np.eye(4, 3), np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]])
+    frames = np.stack([rest, rest + 0.1])
+
+    def write(folder):
+        return write_animation(folder, rest, faces, frames,
+                               driven=DrivenSurface(np.array([True, False, False, False]), 1e-3))
+
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "rest.obj").write_text("my own rest surface")
+    (mine / "sculpt.blend").write_bytes(b"BLENDER")
+    with pytest.raises(AnimationError, match=r"holds files torchfit did not write "
+                                             r"\(sculpt\.blend\)"):
+        write(mine)
+    assert (mine / "rest.obj").read_text() == "my own rest surface"
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(AnimationError, match="exists and is not a folder"):
+        write(tmp_path / "file")
+    write(tmp_path / "anim")
+    write(tmp_path / "anim")                             # its own: replaced, nothing beside it
+    assert load_animation(tmp_path / "anim").n_frames == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["anim", "file", "mine"]

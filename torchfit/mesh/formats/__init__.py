@@ -6,8 +6,8 @@ format's bones in :mod:`.joints`. USD needs the extra ``usd`` (``pxr``), glTF th
 ``gltf`` (``pygltflib``); both are imported only when such a file is read or written, and
 their subpackages (:mod:`.usd`, :mod:`.gltf`) are their faces.
 """
-from .folder import load_animation, write_animation, write_obj
+from .folder import check_replaceable, load_animation, write_animation, write_obj
 from .readers import GLTF_SUFFIXES, USD_SUFFIXES, read_animation
 
-__all__ = ["GLTF_SUFFIXES", "USD_SUFFIXES", "load_animation", "read_animation",
+__all__ = ["GLTF_SUFFIXES", "USD_SUFFIXES", "check_replaceable", "load_animation", "read_animation",
            "write_animation", "write_obj"]

@@ -23,8 +23,12 @@ The output's suffix chooses the writer: ``.usd``/``.usda``/``.usdc`` a UsdSkel s
 
 A point cache (driven vertices, no rig) converts to USD or a folder, not to glTF (torchfit
 reads glTF skins only). The output is written under a temporary name beside it, read back
-and compared with the input (frames within ``CHECK_TOLERANCE``), then renamed into place
-(replacing an existing output); any fault is one ``error:`` line, exit 2, nothing written.
+and compared with the input (frames within ``CHECK_TOLERANCE``), then renamed into place.
+An existing output is replaced only where it is of the kind written: a USD stage by a
+stage, a glTF file by a glTF file, an animation folder torchfit wrote by a folder
+(:func:`.folder.check_replaceable`); anything else there (a user's folder, a plain file) is
+refused before the input is read. Any fault (a refusal, a full disk, a file-size limit, a
+read-only place) is one ``error:`` line, exit 2, nothing written.
 """
 from __future__ import annotations
 
@@ -38,8 +42,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ...errors import write_failure, write_failure_line
 from ..animation import Animation, AnimationError
-from .folder import write_animation
+from .folder import check_replaceable, replace_folder, write_animation
 from .sniff import GLTF_SUFFIXES, suffix_reader
 from ..rig import Skeleton
 
@@ -60,6 +65,32 @@ def output_kind(path: Path) -> str:
         raise AnimationError(f"{path}: convert writes .usd, .usda or .usdc stages, not a .usdz "
                              "package; write a .usdc and package it with usdzip")
     return "usd" if suffix in USD_OUT else "gltf" if suffix in GLTF_SUFFIXES else "folder"
+
+
+#: the first bytes of a file of each kind convert writes (an existing output it replaces)
+_MAGIC = {"usd": (b"#usda", b"PXR-USDC"), "gltf": (b"glTF", b"{")}
+
+
+def check_output(out: Path, target: str) -> None:
+    """Refuse (one line) an existing ``out`` that is not of the kind ``target`` writes: a
+    folder or another file where a USD stage or glTF file goes, a plain file or a user's
+    folder where an animation folder goes. An empty file may be replaced."""
+    if target == "folder":
+        check_replaceable(out)
+        return
+    if not (out.exists() or out.is_symlink()):
+        return
+    name = "a USD stage" if target == "usd" else "a glTF file"
+    if out.is_dir():
+        raise AnimationError(f"{out} is a folder; {name} would replace it: name a file")
+    try:
+        with open(out, "rb") as existing:
+            head = existing.read(8).lstrip()
+    except OSError as err:
+        raise AnimationError(f"{out} cannot be read ({err.strerror}); name another output")
+    if head and not head.startswith(_MAGIC[target]):
+        raise AnimationError(f"{out} exists and is not {name}; convert replaces only a file "
+                             "of the kind it writes: name another path, or remove it")
 
 
 def up_axis(path: Path, kind: str, given: str) -> str:
@@ -186,6 +217,7 @@ def convert(source: Path, out: Path, prim: str = "", fps: float = 0.0, up: str =
         raise AnimationError(f"{out}: the output would overwrite the input; name another path")
     kind = suffix_reader(source)
     target = output_kind(out)
+    check_output(out, target)
     if fps < 0 or not np.isfinite(fps):
         raise AnimationError(f"--fps={fps}: give a positive frame rate (or leave it unset)")
     animation = read_animation(source, prim, fps if kind == "gltf" else 0.0, weld=False)
@@ -193,13 +225,14 @@ def convert(source: Path, out: Path, prim: str = "", fps: float = 0.0, up: str =
     axis = up_axis(source, kind, up)
     description = f"converted from {source.name}" + (f" ({animation.prim})" if animation.prim
                                                       else "") + f" at {rate:g} fps"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp_dir = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    tmp = tmp_dir / (out.name if target != "folder" else "animation")
     if animation.region_labels is not None and target != "folder":
         _log.warning("%s: its region labels are not carried into a %s file (a folder keeps "
                      "them)", source, "USD" if target == "usd" else "glTF")
+    tmp_dir = None
     try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp_dir = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+        tmp = tmp_dir / (out.name if target != "folder" else "animation")
         try:
             n_shapes = _write(animation, tmp, target, rate, axis, description)
         except ImportError as err:
@@ -213,13 +246,19 @@ def convert(source: Path, out: Path, prim: str = "", fps: float = 0.0, up: str =
             raise AnimationError(f"{out}: the converted file reads back {gap:.3g} m from the "
                                  f"input's frames (rest {rest_gap:.3g} m), over "
                                  f"{CHECK_TOLERANCE:g} m; nothing written")
-        if out.is_dir():
-            shutil.rmtree(out)
-        elif out.exists():
-            out.unlink()
-        os.replace(tmp, out)
+        if target == "folder":
+            replace_folder(tmp, out)
+        else:
+            os.replace(tmp, out)         # checked above: nothing or a file of this kind
+    except Exception as err:            # noqa: BLE001 - a write fault of any library
+        failure = write_failure(err)
+        if failure is None:
+            raise
+        raise AnimationError(write_failure_line(failure, out) + " (nothing was written)"
+                             ) from None
     finally:
-        shutil.rmtree(tmp_dir, ignore_errors=True)
+        if tmp_dir is not None:
+            shutil.rmtree(tmp_dir, ignore_errors=True)
     rig = f"{animation.skeleton.n_bones} bones" if animation.skeleton is not None else \
         f"{int(animation.driven.mask.sum())} driven vertices"
     shapes = f", {n_shapes} blend shapes" if target != "folder" and animation.skeleton else ""

@@ -460,6 +460,54 @@ def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     Path(path).write_text("\n".join(lines) + "\n")
 
 
+#: the files :func:`write_animation` writes: a folder holding only these is one it may replace
+WRITTEN_FILES = frozenset({MANIFEST, "rest.obj", "frames.npz", "skeleton.npz", "weights.npy",
+                           "driven.npy", "regions.npy"})
+
+
+def check_replaceable(folder: str | Path) -> None:
+    """Raise :class:`AnimationError` (one line) unless ``folder`` may be replaced by a written
+    animation: absent, an empty folder, or a folder holding only the files
+    :func:`write_animation` writes (:data:`WRITTEN_FILES`). A plain file, or a folder with
+    anything else in it (a user's notes, a hand-made animation's frame meshes), is never
+    deleted to make room."""
+    folder = Path(folder)
+    if not (folder.exists() or folder.is_symlink()):
+        return
+    if not folder.is_dir() or folder.is_symlink():
+        raise AnimationError(f"{folder} exists and is not a folder; an animation folder would "
+                             "replace it: name a new folder (or a .usda/.glb file)")
+    others = sorted(e.name for e in folder.iterdir() if e.name not in WRITTEN_FILES
+                    or not e.is_file())
+    if others:
+        shown = ", ".join(others[:3]) + (f" and {len(others) - 3} more" if len(others) > 3 else "")
+        raise AnimationError(f"{folder} holds files torchfit did not write ({shown}); an "
+                             "animation is written only into a new or empty folder or over "
+                             "one torchfit wrote: name a new folder, or move those files")
+
+
+def replace_folder(new: Path, folder: Path) -> None:
+    """Put the written folder ``new`` at ``folder`` (checked by :func:`check_replaceable`):
+    the old one is renamed aside, the new one renamed in, then the old one removed (a kill in
+    between leaves the old animation beside, hidden, never half of either)."""
+    if not folder.exists():
+        os.replace(new, folder)
+        return
+    check_replaceable(folder)
+    aside = Path(tempfile.mkdtemp(prefix=f".{folder.name}.old.", dir=folder.parent))
+    os.replace(folder, aside / "old")
+    os.replace(new, folder)
+    shutil.rmtree(aside, ignore_errors=True)
+
+
+def user_permissions(path: Path) -> None:
+    """Give a folder made by ``tempfile.mkdtemp`` (mode 0700) the mode a plain ``mkdir``
+    gives (0777 less the umask): the written animation is the user's, not private."""
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(path, 0o777 & ~mask)
+
+
 def write_animation(folder: str | Path, rest_vertices: np.ndarray, faces: np.ndarray,
                     frames: np.ndarray, *, skeleton: Skeleton | None = None,
                     driven: DrivenSurface | None = None,
@@ -471,13 +519,17 @@ def write_animation(folder: str | Path, rest_vertices: np.ndarray, faces: np.nda
     ``fps`` written where given).
 
     The folder is written whole into a temporary sibling and renamed into place, so a
-    killed process never leaves a half-written animation. Returns the manifest path.
+    killed process never leaves a half-written animation. An existing ``folder`` is replaced
+    only where :func:`check_replaceable` allows (else :class:`AnimationError`, nothing
+    written). Returns the manifest path.
     """
     if (skeleton is None) == (driven is None):
         raise ValueError("give exactly one of skeleton or driven")
     folder = Path(folder)
+    check_replaceable(folder)
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    user_permissions(tmp)
     try:
         write_obj(tmp / "rest.obj", np.asarray(rest_vertices, dtype=np.float64),
                   np.asarray(faces, dtype=np.int64))
@@ -512,9 +564,7 @@ def write_animation(folder: str | Path, rest_vertices: np.ndarray, faces: np.nda
         import yaml
 
         (tmp / MANIFEST).write_text(yaml.safe_dump(manifest, sort_keys=False))
-        if folder.exists():
-            shutil.rmtree(folder)
-        os.replace(tmp, folder)
+        replace_folder(tmp, folder)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
