@@ -65,6 +65,8 @@ NOT_FAST: dict[str, str] = {
     "tests/problems/body/test_arm3d.py::test_neither_the_synthetic_target_nor_the_baseline_seeds_the_fit": "6 s",
     "tests/problems/body/test_arm3d.py::test_warm_start_setting_decides_where_newton_starts": "59 s (2 cases)",
     "tests/problems/body/test_dynamic_body.py::test_a_density_scale_among_the_parameters": "17 s",
+    "tests/problems/body/test_init_field.py::test_a_layer_past_the_bounds_starts_clipped_into_them_and_says_so":
+        "15 s (2 cases: the capsule tetrahedralised once)",
     "tests/problems/body/test_dynamic_body.py::test_dynamic_body_derivatives": "51 s (2 cases)",
     "tests/problems/body/test_dynamic_body.py::test_dynamic_flag_builds_the_body_in_time": "24 s",
     "tests/problems/body/test_dynamic_body.py::test_slow_motion_is_the_quasistatic_body": "13 s",

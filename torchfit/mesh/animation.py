@@ -96,12 +96,14 @@ class Animation:
         return int(self.rest_vertices.shape[0])
 
     def select(self, frames: list[int]) -> "Animation":
-        """The animation restricted to the frames ``frames`` (indices, in that order)."""
-        idx = np.asarray(frames, dtype=np.int64)
-        bad = (idx < 0) | (idx >= self.n_frames)
-        if bad.any():
-            raise AnimationError(f"{self.path}: frame {int(idx[bad][0])} does not exist "
+        """The animation restricted to the frames ``frames`` (indices, in that order); a frame
+        that does not exist (negative, past the last, or a number no index can hold) is an
+        :class:`AnimationError` naming it."""
+        bad = [int(f) for f in frames if not 0 <= int(f) < self.n_frames]   # Python ints: no
+        if bad:                                                # overflow for 10**20
+            raise AnimationError(f"{self.path}: frame {bad[0]} does not exist "
                                  f"(the animation has frames 0..{self.n_frames - 1})")
+        idx = np.asarray(frames, dtype=np.int64)
         skeleton = None if self.skeleton is None else dataclasses.replace(
             self.skeleton, transforms=self.skeleton.transforms[idx])
         return dataclasses.replace(self, frames=self.frames[idx], skeleton=skeleton,

@@ -15,7 +15,7 @@ import trimesh
 from helpers.capsule_animation import write_capsule
 from torchfit.mesh.formats.folder import AnimationError, load_animation
 from torchfit.mesh.formats.readers import read_animation
-from torchfit.mesh.formats.sniff import sniff
+from torchfit.mesh.formats.sniff import refusal, sniff
 from torchfit.problems import build_problem
 from torchfit.problems.config import ProblemConfigError
 
@@ -106,3 +106,18 @@ def test_fbx_is_refused_by_the_fit_app(tmp_path):
     assert errors[0].startswith(f"error: problem.path={files['fbx'][0]}: is a binary FBX file")
     assert all(w in errors[0] for w in EXPORT_WORDS)
     assert not run.exists() and not (tmp_path / "cache").exists()
+
+
+@pytest.mark.parametrize("name, content, words", [
+    ("shot.fbx", b"", "is an empty file"),
+    ("shot.usda", b"", "is an empty file"),
+    ("shot.fbx", b"unit: 1.0\nrest: rest.obj\n", "ends in '.fbx' but is a text file, not an FBX"),
+    ("shot.abc", b"\x01\x02\x00\x03", "ends in '.abc' but is a binary file, not an Alembic"),
+])
+def test_an_empty_or_misnamed_file_is_not_read_as_a_manifest(tmp_path, name, content, words):
+    """Issue 50: an empty .fbx was read as a manifest ("missing entry 'rest'")."""
+    path = tmp_path / name
+    path.write_bytes(content)
+    line = refusal(path)
+    assert line is not None and words in line and "\n" not in line
+    assert line.startswith(str(path.absolute()))

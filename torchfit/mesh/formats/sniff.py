@@ -111,6 +111,13 @@ def refusal(path: str | Path) -> str | None:
     kind = sniff(path)
     where = path.absolute()
     named = suffix_reader(path)
+    if path.stat().st_size == 0:                # an empty .fbx was read as a manifest
+        return (f"{where} is an empty file; problem.path must be an animation folder, a USD "
+                f"stage or a glTF file: {EXPORT}")
+    if path.suffix.lower() in (".fbx", ".abc") and kind.name not in ("fbx", "alembic", "hdf5"):
+        return (f"{where} ends in '{path.suffix}' but is {kind.what}, not an "
+                f"{'FBX file' if path.suffix.lower() == '.fbx' else 'Alembic archive'}; "
+                f"torchfit reads neither: {EXPORT}")
     if kind.name == "fbx":
         return (f"{where} is {kind.what}, which torchfit does not read (Autodesk's format has "
                 f"no open reader); {EXPORT}; an FBX can be opened in Blender first "

@@ -6,7 +6,9 @@ body is refused in one line). It is projected on the parameters by least squares
 field: ``v = argmin ||B v - E||`` over the basis ``B`` of the parameterisation (exact for
 ``parameters=tet``, the region means for ``region``, the grid's pre-image for ``grid``),
 values below ``1e-3`` of the field's mean raised to it (a least-squares pre-image may
-undershoot), then ``theta = log v`` (``exp`` transform) or ``v``. Iteration 0's field is
+undershoot), values outside the modulus bounds (``problem.E_min``, ``E_max``: a fitted field
+that sits on a bound projects a little past it) clipped into them and said in one warning,
+then ``theta = log v`` (``exp`` transform) or ``v``. One log line says which layer was read. Iteration 0's field is
 ``B v``: the layer itself for ``tet``, its projection otherwise. Scalars the parameters
 carry beside the field (the body in time's damping) start at their own settings
 (``alpha0``, ``beta0``).
@@ -20,6 +22,7 @@ modulus settings (``problem.E0_unit``: factors of ``problem.E_reference``, or pa
 """
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 import numpy as np
@@ -29,6 +32,9 @@ from torch import Tensor
 from ...mesh import MeshError
 from ...mesh.formats.usd import ModulusLayer, layer_cell_values, read_modulus_layer
 from ..config import setting_error
+from .bounds import modulus_bounds
+
+log = logging.getLogger("torchfit.problems")
 
 #: a least-squares value below this fraction of the layer's mean is raised to it
 FLOOR = 1e-3
@@ -64,6 +70,10 @@ def initial_field_theta(problem: Any, cfg: Any, unitless: float | None = None) -
         raise setting_error("init_field", cfg.init_field, str(err)) from err
     if unitless is not None:
         field = field * layer_to_pascals(layer, cfg, unitless)
+    log.info("start: problem.init_field=%s: %s, %d values per %s, %.3g to %.3g %s",
+             cfg.init_field, layer.prim, len(layer.values),
+             "tetrahedron" if layer.kind == "tet" else "vertex", float(np.min(layer.values)),
+             float(np.max(layer.values)), layer.unit or "(no unit stated)")
     whole = problem.parameterization
     # the field's own parameterisation where scalars ride beside it (FieldAndScalars)
     parameterization = getattr(whole, "field_parameterization", whole)
@@ -75,6 +85,16 @@ def initial_field_theta(problem: Any, cfg: Any, unitless: float | None = None) -
         dense = (basis.to_dense() if basis.layout != torch.strided else basis).to(target)
         values = torch.linalg.lstsq(dense, target[:, None]).solution[:, 0]
     values = torch.clamp(values, min=FLOOR * float(target.mean()))
+    bounds = modulus_bounds(cfg)
+    if bounds is not None:
+        outside = (values < bounds[0]) | (values > bounds[1])
+        if bool(outside.any()):
+            factor = float(torch.maximum(bounds[0] / values, values / bounds[1]).max())
+            log.warning("problem.init_field: %d of %d start values lie outside the modulus "
+                        "bounds [%.4g, %.4g] (by up to %.3gx: the layer's field projected on "
+                        "the parameters); clipped into them", int(outside.sum()),
+                        values.numel(), bounds[0], bounds[1], factor)
+            values = torch.clamp(values, bounds[0], bounds[1])
     theta_field = torch.log(values) if parameterization.transform == "exp" else values
     if parameterization is whole:
         return theta_field

@@ -113,3 +113,21 @@ def test_a_missing_extra_names_it(tmp_path, monkeypatch):
 
 def test_rotate_helper_is_a_rotation():
     assert np.allclose(rotate("z", 90)[:3, :3] @ [1, 0, 0], [0, 1, 0])
+
+
+@pytest.mark.parametrize("name, content", [("junk.usda", bytes(range(256)) * 2),
+                                           ("field.npy", b"\x93NUMPY\x01\x00v\x00{'descr'")])
+def test_a_file_that_is_not_a_stage_is_one_line_for_the_animation_and_the_layer(
+        tmp_path, name, content):
+    """Issue 50: random bytes or a .npy as problem.init_field gave a 25-line pxr traceback;
+    the animation reader and the material layer's reader both say it in one line."""
+    from torchfit.mesh.formats.usd import read_modulus_layer
+
+    path = tmp_path / name
+    path.write_bytes(content)
+    for read in (load_usd, read_modulus_layer):
+        with pytest.raises(AnimationError, match="cannot open it as a USD stage") as info:
+            read(path)
+        text = str(info.value)
+        assert "\n" not in text and text.startswith(str(path)) and "Error in" not in text
+        assert text.endswith("give a USD file (.usd, .usda, .usdc)")

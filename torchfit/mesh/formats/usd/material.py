@@ -71,9 +71,9 @@ def read_modulus_layer(path: str | Path) -> ModulusLayer:
     except ImportError as err:
         raise AnimationError(f"{path}: reading USD needs the optional extra 'usd': pip install "
                              f"'torchfit[usd]' ({err})") from err
-    stage = Usd.Stage.Open(str(path))
-    if stage is None:
-        raise AnimationError(f"{path}: cannot open it as a USD stage")
+    from .reader import open_stage
+
+    stage = open_stage(path)
     scale = float(UsdGeom.GetStageMetersPerUnit(stage))
     for prim in stage.Traverse():
         primvars = UsdGeom.PrimvarsAPI(prim)

@@ -64,6 +64,25 @@ def _pxr(path: Path) -> Any:
     return pxr
 
 
+def open_stage(path: Path) -> Any:
+    """``Usd.Stage.Open(path)``, or :class:`AnimationError` in one line where the file is not a
+    stage (random bytes, a ``.npy``): the USD library's reason (the first quoted message of
+    its C++ errors, which it raises as ``pxr.Tf.ErrorException`` of many lines)."""
+    pxr = _pxr(path)
+    try:
+        stage = pxr.Usd.Stage.Open(str(path))
+    except Exception as err:  # noqa: BLE001 - pxr raises Tf errors of many kinds
+        quoted = [line.rsplit(" : ", 1)[-1].strip(" '") for line in str(err).splitlines()
+                  if " : " in line]
+        why = quoted[0] if quoted else (str(err).strip().splitlines() or [type(err).__name__])[-1]
+        raise AnimationError(f"{path}: cannot open it as a USD stage ({why}); give a USD "
+                             "file (.usd, .usda, .usdc)") from None
+    if stage is None:
+        raise AnimationError(f"{path}: cannot open it as a USD stage; give a USD file (.usd, "
+                             ".usda, .usdc)")
+    return stage
+
+
 def _matrix(m: Any) -> np.ndarray:
     return np.array(m, dtype=np.float64).reshape(4, 4)
 
@@ -299,13 +318,7 @@ def load_usd(path: str | Path, prim: str = "") -> Animation:
     pxr = _pxr(path)
     if not path.is_file():
         raise AnimationError(f"{path}: no such USD file")
-    try:
-        stage = pxr.Usd.Stage.Open(str(path))
-    except Exception as err:  # noqa: BLE001 - pxr raises Tf errors of many kinds
-        raise AnimationError(f"{path}: cannot open it as a USD stage "
-                             f"({str(err).strip().splitlines()[-1]})") from err
-    if stage is None:
-        raise AnimationError(f"{path}: cannot open it as a USD stage")
+    stage = open_stage(path)
     scale = float(pxr.UsdGeom.GetStageMetersPerUnit(stage))
     axis = str(pxr.UsdGeom.GetStageUpAxis(stage)).upper()
     _log.info("%s: up axis %s (coordinates kept as authored), %g metres per unit", path,
