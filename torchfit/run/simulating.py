@@ -112,13 +112,16 @@ class SimulationResult:
 
     def summary(self) -> str:
         errors = self.frame_errors["surface_err_mean"]
-        worst = int(np.argmax(errors))
+        # the animation's frame number, not the index into the simulated selection
+        worst = int(self.problem.frame_numbers()[int(np.argmax(errors))])
         inverted = int(np.count_nonzero(self.frame_errors["inverted_tets"]))
+        # in time the integrator counts steps, not Newton iterations per frame (it said "0")
+        work = f"{self.problem.integrator.n_steps} time steps" if \
+            self.problem.time.in_time else f"{sum(self.newton_iterations)} Newton iterations"
         return (f"simulated {len(errors)} frames of {self.problem.animation.path.parent.name} "
                 f"with the material of {self.fitted}: mean surface error "
                 f"{1e3 * self.surface_err_mean:.4g} mm (worst frame {worst}: "
-                f"{1e3 * float(errors[worst]):.4g} mm), {sum(self.newton_iterations)} Newton "
-                f"iterations, {inverted} frames with inverted tetrahedra, {self.wall_s:.1f} s")
+                f"{1e3 * float(errors.max()):.4g} mm), {work}, {inverted} frames with inverted tetrahedra, {self.wall_s:.1f} s")
 
     def as_dict(self) -> dict[str, Any]:
         per_frame = {k: np.asarray(v).tolist() for k, v in self.frame_errors.items()}
