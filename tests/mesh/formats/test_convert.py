@@ -304,3 +304,29 @@ def test_a_conversion_opens_in_blender(tmp_path):
     expected = original.frames[frames] @ rotate.T
     assert np.abs(points - expected).max() < 1e-5
     assert np.abs(points[2] - points[0]).max() > 0.05                  # it bends
+
+
+def test_the_read_back_tolerance_scales_with_the_body(tmp_path):
+    """Issue 50: a stage 1.07e-6 m off was refused against a fixed 1e-6 m; float32 storage
+    is relative. The arm scaled to 40 m (a building-sized creature) converts both ways."""
+    from torchfit.mesh.formats.convert import check_tolerance
+
+    data = arm_animation(ArmShape())
+    scale = 40.0 / np.ptp(data["frames"][..., 2])
+    skeleton = data["skeleton"]
+    import dataclasses
+
+    transforms = skeleton.transforms.copy()
+    transforms[..., 3] *= scale
+    big = dataclasses.replace(skeleton, heads=skeleton.heads * scale, tails=skeleton.tails * scale,
+                              transforms=transforms, attach_radius=skeleton.attach_radius * scale)
+    write_animation(tmp_path / "giant", data["rest_vertices"] * scale, data["faces"],
+                    data["frames"] * scale, skeleton=big)
+    giant = read_animation(tmp_path / "giant", weld=False)
+    assert check_tolerance(giant) == pytest.approx(1e-6 * np.linalg.norm(np.ptp(
+        np.concatenate([giant.rest_vertices[None], giant.frames]).reshape(-1, 3), axis=0)))
+    assert check_tolerance(read_animation(write_arm(tmp_path / "arm"), weld=False)) == 1e-6
+    for out in ("giant.usda", "giant.glb"):
+        converted(tmp_path / "giant", tmp_path / out)
+        back = read_animation(tmp_path / out, weld=False)
+        assert 1e-6 < np.abs(back.frames - giant.frames).max() <= check_tolerance(giant)

@@ -23,7 +23,7 @@ The output's suffix chooses the writer: ``.usd``/``.usda``/``.usdc`` a UsdSkel s
 
 A point cache (driven vertices, no rig) converts to USD or a folder, not to glTF (torchfit
 reads glTF skins only). The output is written under a temporary name beside it, read back
-and compared with the input (frames within ``CHECK_TOLERANCE``), then renamed into place.
+and compared with the input (frames within :func:`check_tolerance`), then renamed into place.
 An existing output is replaced only where it is of the kind written: a USD stage by a
 stage, a glTF file by a glTF file, an animation folder torchfit wrote by a folder
 (:func:`.folder.check_replaceable`); anything else there (a user's folder, a plain file) is
@@ -53,8 +53,12 @@ _log = logging.getLogger(__name__)
 #: the blend shapes reproduce the frames' residual over the skinning within this (metres;
 #: float32, as USD and glTF store points, resolves 6e-8 m at 1 m)
 SHAPE_TOLERANCE = 1e-7
-#: the written file, read back, reproduces the input's frames within this (metres)
+#: the written file, read back, reproduces the input's frames within this (metres) or
+#: ``CHECK_RELATIVE`` of the animation's extent, whichever is larger: USD and glTF store
+#: float32 (6e-8 of a coordinate's size per rounding, a few roundings through the joints), so
+#: a fixed tolerance refused large bodies (a stage 1.07e-6 m off against 1e-6 m)
 CHECK_TOLERANCE = 1e-6
+CHECK_RELATIVE = 1e-6
 USD_OUT = (".usd", ".usda", ".usdc")
 
 
@@ -91,6 +95,14 @@ def check_output(out: Path, target: str) -> None:
     if head and not head.startswith(_MAGIC[target]):
         raise AnimationError(f"{out} exists and is not {name}; convert replaces only a file "
                              "of the kind it writes: name another path, or remove it")
+
+
+def check_tolerance(animation: Animation) -> float:
+    """How far the read-back may lie from the input (metres): :data:`CHECK_TOLERANCE`, or
+    :data:`CHECK_RELATIVE` of the extent of every position the animation takes."""
+    every = np.concatenate([animation.rest_vertices[None], animation.frames]).reshape(-1, 3)
+    extent = float(np.linalg.norm(every.max(axis=0) - every.min(axis=0)))
+    return max(CHECK_TOLERANCE, CHECK_RELATIVE * extent)
 
 
 def up_axis(path: Path, kind: str, given: str) -> str:
@@ -242,10 +254,11 @@ def convert(source: Path, out: Path, prim: str = "", fps: float = 0.0, up: str =
         back = read_animation(tmp, weld=False)
         gap = float(np.abs(back.frames - animation.frames).max())
         rest_gap = float(np.abs(back.rest_vertices - animation.rest_vertices).max())
-        if max(gap, rest_gap) > CHECK_TOLERANCE or back.frames.shape != animation.frames.shape:
+        tolerance = check_tolerance(animation)
+        if max(gap, rest_gap) > tolerance or back.frames.shape != animation.frames.shape:
             raise AnimationError(f"{out}: the converted file reads back {gap:.3g} m from the "
                                  f"input's frames (rest {rest_gap:.3g} m), over "
-                                 f"{CHECK_TOLERANCE:g} m; nothing written")
+                                 f"{tolerance:.3g} m; nothing written")
         if target == "folder":
             replace_folder(tmp, out)
         else:
@@ -276,7 +289,8 @@ def main(argv: list[str] | None = None) -> int:
                     "skeleton with its per-frame transforms and weights (or a point cache's "
                     "driven vertices), what the frames hold beyond the skinning as blend "
                     "shapes, the frame rate; metres. The output is read back and compared "
-                    "with the input (within 1e-6 m) before it replaces an existing one.",
+                    "with the input (within 1e-6 m, or 1e-6 of the body's extent if larger) "
+                    "before it replaces an existing one of its kind.",
         epilog="examples: scripts/convert.sh shot.usdc shot.glb; scripts/convert.sh my_arm "
                "arm.usda; scripts/convert.sh rig.glb rig_folder --fps 30 "
                "(docs/guide/formats.md)")
