@@ -45,7 +45,8 @@ from typing import Any, Callable, NoReturn
 from omegaconf.errors import OmegaConfBaseException
 
 from experiments.cli import check_sections, schema_named, unknown_setting
-from torchfit.errors import ConfigurationError
+from torchfit.errors import (WRITE_ERRNOS, ConfigurationError, write_failure,
+                             write_remedy)
 
 #: Exceptions that mean "the input is wrong" (exit 2, one line, nothing left behind).
 BAD_INPUT = (ConfigurationError, OmegaConfBaseException, OSError)
@@ -57,50 +58,56 @@ def one_line(error: BaseException | str) -> str:
     return " ".join(str(error).split())
 
 
-#: errno values of a full file system or an exhausted quota
-_NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+#: errno values of a write that failed for a reason the user can act on: a full file
+#: system or quota, a file-size limit (``ulimit -f``), a read-only or forbidden place
+_NO_SPACE = tuple(sorted(WRITE_ERRNOS))
 
 
 def no_space(error: BaseException) -> bool:
-    """Whether ``error`` (or what it was raised from) is a full disk or quota."""
-    while error is not None:
-        if isinstance(error, OSError) and error.errno in _NO_SPACE:
-            return True
-        error = error.__cause__ or error.__context__
-    return False
+    """Whether ``error`` (or what it was raised from) is a write that failed for a reason the
+    user can act on (:func:`torchfit.errors.write_failure`: a full disk, a file-size limit,
+    a read-only place; USD's errors of those included)."""
+    return write_failure(error) is not None
 
 
 def _no_space_error(error: BaseException) -> OSError:
-    """The full-disk ``OSError`` in ``error``'s chain, the one that names a file if any."""
+    """The failed write in ``error``'s chain, the one that names a file if any."""
     chain = []
     while error is not None:
-        if isinstance(error, OSError) and error.errno in _NO_SPACE:
-            chain.append(error)
+        found = write_failure(error)
+        if found is not None:
+            chain.append(found)
         error = error.__cause__ or error.__context__
     return next((e for e in chain if e.filename), chain[0])
 
 
-def _full(error: OSError) -> str:
-    return "the disk quota is exhausted" if error.errno == errno.EDQUOT else \
-        "no space left on the device"
+def _full(error: OSError, run_dir: Path) -> str:
+    """What happened to a write into ``run_dir``, as the start of the line."""
+    if error.errno == errno.EFBIG:
+        return f"a file of {run_dir} reached the file-size limit"
+    what = {errno.EDQUOT: "the disk quota is exhausted", errno.ENOSPC:
+            "no space left on the device"}.get(error.errno, (error.strerror or "").lower() or
+                                                "a write failed")
+    return f"{what} of {run_dir}"
 
 
 def no_space_line(error: BaseException, run_dir: Path, resume_command: str) -> str:
-    """The one line for a run stopped by a full disk: the file being written, and how to
-    continue (the checkpoint and every file were written atomically: nothing is half)."""
+    """The one line for a run stopped by a failed write (a full disk, a file-size limit): the
+    file being written, what to do and how to continue (the checkpoint and every file were
+    written atomically: nothing is half)."""
     error = _no_space_error(error)
     where = f" while writing {error.filename}" if error.filename else ""
-    return (f"{_full(error)} of {run_dir}{where}; free space there, then continue with: "
+    return (f"{_full(error, run_dir)}{where}; {write_remedy(error)}, then continue with: "
             f"{resume_command}")
 
 
 def no_space_at_start_line(error: BaseException, run_dir: Path) -> str:
-    """The one line for a disk full before the task ran (the lock, Hydra's ``.hydra/``):
-    nothing of the run was written, the same command runs once there is space."""
+    """The one line for a failed write before the task ran (the lock, Hydra's ``.hydra/``):
+    nothing of the run was written, the same command runs once the cause is gone."""
     error = _no_space_error(error)
     where = f" while writing {error.filename}" if error.filename else ""
-    return (f"{_full(error)} of {run_dir}{where}, before the run started (nothing of it "
-            f"was written); free space there, then run the same command again")
+    return (f"{_full(error, run_dir)}{where}, before the run started (nothing of it "
+            f"was written); {write_remedy(error)}, then run the same command again")
 
 
 def _name_hydras_files() -> None:

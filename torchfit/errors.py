@@ -35,6 +35,15 @@ _WRITE_REMEDIES = {
 }
 
 
+#: the ``errno`` values of a write that failed for a reason the user can act on
+WRITE_ERRNOS = frozenset(_WRITE_REMEDIES)
+
+
+def write_remedy(error: OSError) -> str:
+    """What to do about the failed write ``error`` (one phrase: "free space there", ...)."""
+    return _WRITE_REMEDIES.get(error.errno, "check the place and try again")
+
+
 def write_failure(error: BaseException | None) -> OSError | None:
     """The failed write in ``error`` or the chain it was raised from, as an ``OSError`` whose
     ``errno`` is one of :data:`_WRITE_REMEDIES`; ``None`` where there is none.
@@ -57,5 +66,4 @@ def write_failure(error: BaseException | None) -> OSError | None:
 def write_failure_line(error: OSError, target: object) -> str:
     """One line for a write to ``target`` that failed with ``error`` (:func:`write_failure`):
     what happened and what to do."""
-    remedy = _WRITE_REMEDIES.get(error.errno, "check the place and try again")
-    return f"cannot write {target}: {error.strerror or error}; {remedy}"
+    return f"cannot write {target}: {error.strerror or error}; {write_remedy(error)}"

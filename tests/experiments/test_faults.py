@@ -341,3 +341,41 @@ def test_a_disk_full_partway_is_one_line_naming_the_file(tmp_path, size_kib):
     assert "Traceback" in (out / "left" / "fit.log").read_text()
     assert not (out / "left" / LOCK_FILE).exists()
     assert int((out / "rc2").read_text()) == 0, (out / "second.err").read_text()[-2000:]
+
+
+@pytest.mark.slow       # the arm's 48 frames, one iteration, twice (about a minute)
+def test_a_file_size_limit_at_the_usd_outputs_stops_in_one_line_and_the_resume_writes_them(
+        tmp_path):
+    """Issue 50: EFBIG while writing ``usd/frames.usda`` (the largest file: 3.5 MB for the
+    arm's 48 frames) ended "done", exit 0, ``usd/`` missing, and a resume did not write it.
+    Now the guard of the outputs lets a failed write through: one line saying what to do, exit
+    2, the run not final; the resume (no limit) writes every USD file."""
+    import resource
+
+    pytest.importorskip("pxr")
+    arm = tmp_path / "my_arm"
+    subprocess.run([sys.executable, "scripts/write_arm.py", str(arm)], cwd=REPO, env=_env(),
+                   check=True, capture_output=True, timeout=300)
+    run_dir = tmp_path / "run"
+    command = [sys.executable, "experiments/fit.py", f"hydra.run.dir={run_dir}",
+               "problem=animation", f"problem.path={arm}", "solver.max_iter=1",
+               "problem.tet_count=1500", f"problem.cache_dir={tmp_path / 'cache'}", "threads=1"]
+    limit = 2500 * 1024          # above body.vtu (2.0 MB) and frames.npz (1.7 MB)
+
+    def limited() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, resource.RLIM_INFINITY))
+
+    first = subprocess.run(command, cwd=REPO, env=_env(), capture_output=True, text=True,
+                           timeout=900, preexec_fn=limited)
+    assert first.returncode == 2, first.stderr[-3000:]
+    line = _one_error_line(first.stderr)
+    assert line.startswith(f"error: a file of {run_dir} reached the file-size limit; raise the "
+                           "file-size limit (ulimit -f)"), line
+    assert f"hydra.run.dir={run_dir} resume=true" in line
+    assert not (run_dir / "usd" / "frames.usda").exists()
+    again = subprocess.run(command + ["resume=true"], cwd=REPO, env=_env(), capture_output=True,
+                           text=True, timeout=900)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert {p.name for p in (run_dir / "usd").iterdir()} >= {"frames.usda", "body.usda",
+                                                              "material.usda"}
+    assert (run_dir / "usd" / "frames.usda").stat().st_size > limit
