@@ -5,9 +5,11 @@ import types
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
-from torchfit.run import SimulationResult
+from torchfit.run import FitConfigError, SimulationResult
+from torchfit.run.simulating import check_parameters
 
 
 def test_the_summary_names_the_worst_frame_by_its_animation_number():
@@ -27,3 +29,17 @@ def test_the_summary_names_the_worst_frame_by_its_animation_number():
     # in time: the integration's steps (the Newton iterations per frame are not counted)
     problem.time.in_time, problem.integrator = True, types.SimpleNamespace(n_steps=92)
     assert "(worst frame 4: 3 mm), 92 time steps, 1 frames" in result.summary()
+
+
+@pytest.mark.parametrize("fitted, now, words", [
+    (True, False, "was fitted in time (problem.dynamic=true): its parameters are the field and "
+                  "the damping; simulate it in time with problem.dynamic=true"),
+    (False, True, "was fitted frame by frame (quasistatic) and holds no damping"),
+])
+def test_a_run_fitted_in_time_or_not_is_said_so(fitted, now, words):
+    """Issue 50: a run fitted in time simulated with problem.dynamic=false got a parameter
+    count pointing at problem.grid."""
+    run = types.SimpleNamespace(directory=Path("/w/run"), settings={"dynamic": fitted})
+    body = types.SimpleNamespace(cfg=types.SimpleNamespace(dynamic=now))
+    with pytest.raises(FitConfigError, match=words.replace("(", r"\(").replace(")", r"\)")):
+        check_parameters(run, body)

@@ -308,6 +308,15 @@ def build_fitted_body(fitted: FittedRun, overrides: dict[str, Any]) -> RiggedBod
 def check_parameters(fitted: FittedRun, problem: RiggedBody) -> Tensor:
     """``theta`` of the fit, checked against ``problem``'s parameterisation."""
     where = f"run={fitted.directory / PARAMS_FILE}"
+    in_time, simulated_in_time = bool(fitted.settings.get("dynamic")), bool(problem.cfg.dynamic)
+    if in_time and not simulated_in_time:    # (was a parameter count pointing at problem.grid)
+        raise FitConfigError(f"run={fitted.directory} was fitted in time (problem.dynamic=true):"
+                             " its parameters are the field and the damping; simulate it in "
+                             "time with problem.dynamic=true")
+    if simulated_in_time and not in_time:
+        raise FitConfigError(f"problem.dynamic=true: run={fitted.directory} was fitted frame by "
+                             "frame (quasistatic) and holds no damping; simulate it with "
+                             "problem.dynamic=false, or fit it in time first")
     n = problem.parameterization.n_params
     for key, saved, ours in (("field", fitted.field_name, problem.field_name),
                              ("transform", fitted.transform, problem.parameterization.transform)):
