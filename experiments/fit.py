@@ -234,7 +234,7 @@ def build_for_rank(config: dict[str, Any]) -> Any:
 
 if __name__ == "__main__":
     if distributed.launched() and distributed.rank() > 0:
-        sys.exit(SESSION.serve(build_for_rank))         # no Hydra, no files: rank 0 writes
+        sys.exit(SESSION.serve(build_for_rank, resume_command))   # no Hydra, no files
     try:
         run_hydra_app(main, lambda: _started, guard=GUARD)
     finally:

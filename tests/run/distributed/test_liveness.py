@@ -153,3 +153,47 @@ def test_rank_1_killed_mid_fit_is_one_line_with_the_resume_command(tmp_path):
     result = json.loads((run / "result.json").read_text())
     assert result["resumed_from_iteration"] == int(match.group(1)) - 1
     assert torch.equal(_theta(tmp_path / "full"), _theta(run))
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds rank 0 in /proc")
+def test_rank_0_killed_mid_fit_leaves_rank_1_one_line_with_the_resume_command(tmp_path):
+    """SIGKILL of rank 0 once iteration 1 is logged (issue 50: rank 1 printed gloo's raw
+    message, no resume command, exit 1). Rank 1 either is stopped by torchrun's SIGTERM
+    first (quiet) or says in one line that rank 0 stopped answering and how to continue; the
+    printed command resumes the run."""
+    settings = _settings(tmp_path)
+    run = tmp_path / "killed"
+    proc = subprocess.Popen([str(TORCHRUN), "--standalone", "--nproc_per_node=2",
+                             "experiments/fit.py", f"hydra.run.dir={run}", *settings],
+                            cwd=REPO, env=_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    killed = False
+    deadline = time.monotonic() + 300
+    while proc.poll() is None and time.monotonic() < deadline and not killed:
+        log = run / "fit.log"
+        if log.is_file() and re.search(r"progress\]\[INFO\] - +1 ", log.read_text()):
+            pid = _rank_pid(run, 0)
+            assert pid is not None
+            os.kill(pid, signal.SIGKILL)
+            killed = True
+        time.sleep(0.02)
+    out, err = proc.communicate(timeout=300)
+    assert killed, err[-3000:]
+    lines = [line for line in err.splitlines() if line.startswith("error:")]
+    assert len(lines) <= 1, err[-3000:]
+    assert "Connection reset" not in err and "gloo" not in " ".join(lines).lower()
+    if lines:
+        match = re.fullmatch(r"error: rank 1: rank 0 stopped answering \(killed, or its machine "
+                             r"went away\); nothing of the run is lost: continue with: "
+                             r"(torchrun --standalone --nproc_per_node=2 experiments/fit\.py "
+                             r"hydra\.run\.dir=\S+ .* resume=true)", lines[0])
+        assert match, lines[0]
+        assert shlex.split(match.group(1))[4:] == [f"hydra.run.dir={run}", *settings,
+                                                   "resume=true"]
+    resumed = subprocess.run([str(TORCHRUN), "--standalone", "--nproc_per_node=2",
+                              "experiments/fit.py", f"hydra.run.dir={run}", *settings,
+                              "resume=true"], cwd=REPO, env=_env(), capture_output=True,
+                             text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert json.loads((run / "result.json").read_text())["status"] == "completed"

@@ -37,6 +37,18 @@ def test_what_does_not_run_distributed_is_refused_in_one_line():
     check_single_job(False)
 
 
+def test_a_problem_in_time_is_refused_naming_problem_dynamic():
+    """Issue 50: a run in time under torchrun was refused naming the problem and the solver;
+    what does not run distributed is the setting problem.dynamic=true."""
+    in_time = build_problem("spring1d", {"dynamic": True})
+    with pytest.raises(FitConfigError) as info:
+        check_supported(in_time, {"solver": {"name": "levenberg_marquardt"}}, 2)
+    assert str(info.value) == ("problem.dynamic=true does not run distributed yet: a body in "
+                               "time integrates its frames one after another, torchrun shares "
+                               "out the poses of a quasistatic body; run spring1d in time as "
+                               "one process")
+
+
 def test_a_resume_with_another_number_of_processes_is_refused(tmp_path):
     state = {"world_size": 2, "blocks": [[0, 2], [2, 3]], "ranks": [{"a": 1}, {"a": 2}]}
     torch.save({"simulation_state": state}, tmp_path / "checkpoint.pt")

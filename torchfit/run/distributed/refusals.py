@@ -37,8 +37,12 @@ def check_supported(problem: Any, config: dict[str, Any], n_ranks: int) -> None:
     poses than ranks, a continuation."""
     solver = str(config.get("solver", {}).get("name"))
     name = problem.name
-    supported = isinstance(problem, PosedProblem) and not isinstance(problem, MotionProblem) \
-        and solver in SOLVERS
+    if isinstance(problem, MotionProblem):      # (the line named the problem and solver)
+        raise FitConfigError(f"problem.dynamic=true does not run distributed yet: a body in "
+                             f"time integrates its frames one after another, torchrun shares "
+                             f"out the poses of a quasistatic body; run {name} in time as one "
+                             "process")
+    supported = isinstance(problem, PosedProblem) and solver in SOLVERS
     if not supported:
         raise FitConfigError(f"problem {name} / solver {solver} does not run distributed yet "
                              f"(torchrun runs a quasistatic rigged body with "

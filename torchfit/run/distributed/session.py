@@ -38,18 +38,21 @@ import logging
 import signal
 import sys
 import warnings
+from pathlib import Path
 from typing import Any, Callable
 
 import torch.distributed as dist
 
 from . import environment
 from .channel import STOP, Channel
-from .liveness import identity, lost_rank
+from .liveness import communication_failure, identity, lost_rank
 from .refusals import check_same_inputs, check_single_job, check_supported
 from .split import FrameSplit, partition, plug_split
 
 #: a worker's exit status once SIGTERM came (the job is being stopped as a whole)
 TERMINATED_STATUS = 143
+#: a worker's exit status once rank 0 stopped answering (rank 0's for a lost worker: 3)
+LEADER_LOST_STATUS = 3
 
 
 class DistributedSession:
@@ -139,11 +142,14 @@ class DistributedSession:
             dist.destroy_process_group()
 
     # -- a worker --------------------------------------------------------------------------
-    def serve(self, build: Callable[[dict[str, Any]], Any]) -> int:
+    def serve(self, build: Callable[[dict[str, Any]], Any],
+              resume_command: Callable[[Path], str] | None = None) -> int:
         """A worker (rank > 0): build the problem from rank 0's settings and answer its
         commands until told to stop. Returns the exit status: 0 (stopped, or rank 0
-        refused the settings), 1 (this rank failed, or rank 0 stopped answering; one
-        ``error:`` line), 143 (SIGTERM: the job was cancelled)."""
+        refused the settings), 1 (this rank failed; one ``error:`` line),
+        :data:`LEADER_LOST_STATUS` (rank 0 stopped answering: one ``error:`` line that says
+        nothing is lost and, given ``resume_command`` (the run directory -> the command that
+        continues it), how to continue), 143 (SIGTERM: the job was cancelled)."""
         environment.start_group()
         rank = dist.get_rank()
         logging.basicConfig(level=logging.WARNING, format=f"rank {rank}: %(message)s")
@@ -177,26 +183,36 @@ class DistributedSession:
             raise
         channel = split.channel
         while True:
+            waiting = True
             try:
                 header = channel.command(0)
-                code = header[0]
-            except Exception as err:  # noqa: BLE001  (rank 0 gone)
-                if self.terminated:     # the job was cancelled: rank 0 said so
-                    return TERMINATED_STATUS
-                print(f"error: rank {rank}: rank 0 stopped answering "
-                      f"({str(err).splitlines()[0]})", file=sys.stderr, flush=True)
-                return 1
-            if code == STOP:
-                dist.destroy_process_group()
-                return 0
-            try:
+                if header[0] == STOP:
+                    dist.destroy_process_group()
+                    return 0
+                waiting = False
                 split.answer(header)
-            except Exception as err:  # noqa: BLE001
-                if self.terminated:
-                    return TERMINATED_STATUS
-                print(f"error: rank {rank}: {str(err).splitlines()[0] if str(err) else err!r}",
-                      file=sys.stderr, flush=True)
-                return 1
+            except Exception as err:  # noqa: BLE001  (rank 0 gone, or this rank failed)
+                return self._worker_failed(rank, err, waiting, config, resume_command)
+
+    def _worker_failed(self, rank: int, error: Exception, waiting: bool, config: dict[str, Any],
+                       resume_command: Callable[[Path], str] | None) -> int:
+        """A worker's one line and exit status for ``error`` (:meth:`serve`): quiet after the
+        job's SIGTERM (rank 0 said it); rank 0 gone (``waiting`` for its command, or a
+        collective inside an answer that lost its peer): that, and the resume command; else
+        this rank's own failure. gloo's message (a socket reset, a timeout) says nothing a
+        TD can use."""
+        if self.terminated:
+            return TERMINATED_STATUS
+        if waiting or communication_failure(error):
+            run_dir = config.get("run_dir")
+            resume = f"; nothing of the run is lost: continue with: " \
+                f"{resume_command(Path(run_dir))}" if resume_command and run_dir else ""
+            print(f"error: rank {rank}: rank 0 stopped answering (killed, or its machine went "
+                  f"away){resume}", file=sys.stderr, flush=True)
+            return LEADER_LOST_STATUS
+        print(f"error: rank {rank}: {str(error).splitlines()[0] if str(error) else error!r}",
+              file=sys.stderr, flush=True)
+        return 1
 
     def _note_terminated(self, signum: int, frame: Any) -> None:
         self.terminated = True
