@@ -58,6 +58,11 @@ def check_resumes(make, tmp_path, max_iter, kills):
         assert without_time(resumed.history) == without_time(full.history)
         assert (resumed.factorizations, resumed.solves) == (full.factorizations, full.solves)
         assert resumed.validation == full.validation        # frames held out: the same choice
+        errors = tmp_path / "full" / "frame_errors.jsonl"   # a body's per-frame errors
+        if errors.is_file():    # (issue 50: a resume drew no frame_errors_history.png)
+            assert (run_dir / "frame_errors.jsonl").read_text() == errors.read_text()
+            assert len(errors.read_text().splitlines()) == full.iterations + 1
+            assert (run_dir / "frame_errors_history.png").is_file()
 
 
 def test_the_checkpoint_holds_the_warm_start_anchor(cache, tmp_path):  # noqa: F811
@@ -98,6 +103,30 @@ def test_a_body_with_validation_frames_resumes_exactly(tmp_path):
                 "grid": [2, 2, 2], "cache_dir": str(tmp_path / "cache"), "frames": [0, 2, 6],
                 "validation_frames": [1]}
     check_resumes(lambda: build_problem("animation", settings), tmp_path, 3, [1])
+
+
+def test_a_body_killed_after_its_last_iteration_draws_the_whole_history(tmp_path):
+    """Killed after its last iteration, before its outputs (issue 50): the resume has one
+    record of its own, yet frame_errors_history.png and frame_errors.jsonl cover every
+    iteration, as the uninterrupted run's."""
+    torch.set_num_threads(1)
+    settings = {"path": str(write_tube(tmp_path / "tube")), "tet_edge_length": 0.3,
+                "grid": [2, 2, 2], "cache_dir": str(tmp_path / "cache"), "frames": [0, 2, 6]}
+    solver = {"name": "levenberg_marquardt", "max_iter": 2}
+    full = fit(build_problem("animation", settings), solver, run_dir=tmp_path / "full",
+               options=OPTIONS)
+    run_dir = tmp_path / "killed"
+    with pytest.raises(Killed):
+        fit(build_problem("animation", settings), solver, run_dir=run_dir, options=OPTIONS,
+            callbacks=[kill_after(full.iterations)])
+    assert not (run_dir / "frame_errors_history.png").exists()
+    resumed = fit(build_problem("animation", settings), solver, run_dir=run_dir, resume=True,
+                  options=OPTIONS)
+    assert torch.equal(resumed.theta, full.theta)
+    assert (run_dir / "frame_errors.jsonl").read_text() == \
+        (tmp_path / "full" / "frame_errors.jsonl").read_text()
+    assert len((run_dir / "frame_errors.jsonl").read_text().splitlines()) == full.iterations + 1
+    assert (run_dir / "frame_errors_history.png").is_file()
 
 
 @pytest.mark.slow

@@ -26,7 +26,13 @@ into the run directory
     the fit, the validation frames (held out of the fit) drawn and marked, integer ticks;
 ``animation/``
     a copy of the animation folder when the problem wrote it itself (``arm3d``): a worked
-    example of the format.
+    example of the format;
+``frame_errors.jsonl``
+    the per-frame errors of every recorded iteration as the run goes (one JSON line each:
+    ``iteration``, ``surface_err_mean`` per fitted frame, ``validation`` per held-out frame
+    or ``null``), so that a resumed run draws ``frame_errors_history.png`` over the whole
+    fit: a resume reads the lines up to its checkpoint's iteration
+    (:meth:`BodyOutputs.restore_history`) and rewrites the file with them.
 
 TensorBoard (``tb/``): meshes (``add_mesh``) of the chosen frames coloured by surface error
 (``mesh/surface_error_frame<f>``) and of the tetrahedral boundary coloured by Young's
@@ -37,7 +43,9 @@ run evaluated.
 """
 from __future__ import annotations
 
+import json
 import logging
+import os
 import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
@@ -54,6 +62,9 @@ from .progress import PROGRESS_LOGGER
 from .body_files import (FRAMES_DIR, VTU_FILE, file_surface, vtu_cell_data, write_body_vtu,
                          write_obj_sequence, write_usd)
 from .results import write_folder, write_json
+
+#: the per-frame errors of every recorded iteration (module docstring)
+FRAME_ERRORS_FILE = "frame_errors.jsonl"
 
 if TYPE_CHECKING:  # pragma: no cover
     from .tensorboard import TensorBoardLogger
@@ -233,13 +244,48 @@ class BodyOutputs:
         assert evaluation.record is not None, "an observer reads the evaluation of a record"
         iteration = int(evaluation.record.iteration)
         curves = self.problem.frame_errors(evaluation.state)
+        # a resume's first record is its checkpoint's iteration: restored, not written again
+        restored = iteration in self.history
         self.history[iteration] = curves["surface_err_mean"]
         if evaluation.validation_errors is not None:
             self.validation_history[iteration] = np.asarray(evaluation.validation_errors)
+        if not restored:
+            with open(self.run_dir / FRAME_ERRORS_FILE, "a", encoding="utf-8") as stream:
+                stream.write(json.dumps(self._history_row(iteration)) + "\n")
         if iteration == 0:
             self.started_elsewhere = not torch.equal(evaluation.theta, self.problem.theta0)
             if not self.started_elsewhere:
                 self.baseline = evaluation
+
+    def _history_row(self, iteration: int) -> dict[str, Any]:
+        validation = self.validation_history.get(iteration)
+        return {"iteration": iteration,
+                "surface_err_mean": [float(v) for v in self.history[iteration]],
+                "validation": None if validation is None else [float(v) for v in validation]}
+
+    def restore_history(self, last_iteration: int | None) -> None:
+        """The per-frame errors of iterations ``0..last_iteration`` from the run directory's
+        ``frame_errors.jsonl`` (a resume: ``last_iteration`` is its checkpoint's), the file
+        rewritten with just those (atomically); ``None``: a fresh run, the file emptied. A
+        torn or unreadable line ends what is read (as ``history.jsonl``'s)."""
+        path = self.run_dir / FRAME_ERRORS_FILE
+        rows: list[dict[str, Any]] = []
+        if last_iteration is not None and path.is_file():
+            for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+                try:
+                    row = json.loads(line)
+                    iteration = int(row["iteration"])
+                    errors = np.asarray(row["surface_err_mean"], dtype=np.float64)
+                except (ValueError, KeyError, TypeError):
+                    break
+                if iteration <= last_iteration:
+                    rows.append(row)
+                    self.history[iteration] = errors
+                    if row.get("validation") is not None:
+                        self.validation_history[iteration] = np.asarray(row["validation"])
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.0.tmp")
+        tmp.write_text("".join(json.dumps(r) + "\n" for r in rows), encoding="utf-8")
+        os.replace(tmp, path)
 
     def comparison_models(self) -> list[str]:
         """The constitutive models the comparison shows beside the fitted one (``linear``),

@@ -82,6 +82,9 @@ class RunOutputs:
         if isinstance(problem, BodyProblem):
             self.body = BodyOutputs(problem, self.tb, run_dir, guard=self.guard,
                                     suggest_continuation=options.fold_hint)
+            # the per-frame errors of the iterations before the checkpoint (a resume draws
+            # frame_errors_history.png over the whole fit)
+            self.body.restore_history(None if restart is None else restart.iteration)
         if isinstance(problem, MotionProblem):
             self.motion = MotionOutputs(problem, self.tb, run_dir,
                                         list(options.snapshot_iterations), guard=self.guard)
