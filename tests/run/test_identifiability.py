@@ -4,6 +4,7 @@ determined) against two patches that bend it."""
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -14,8 +15,9 @@ from helpers.patch_animation import write_patch_capsule
 from helpers.small_problems import CACHE
 from torchfit import build_problem, fit
 from torchfit.run import FitOptions
-from torchfit.run.identifiability import (EFFECT_THRESHOLD, NO_REDUCTION, PROBES, from_jacobian,
-                                          identify, rigid_deviation)
+from torchfit.run.identifiability import (EFFECT_THRESHOLD, NO_REDUCTION, PROBES,
+                                          achieved_reduction, from_jacobian, identify,
+                                          rigid_deviation)
 from torchfit.run.result import FitResult
 
 QUIET = FitOptions(progress=False)
@@ -96,6 +98,21 @@ def test_a_fit_that_reduces_nothing_is_not_determined_nor_converged():
     line = result.summary()
     assert "(converged)" not in line and "(not converged)" in line
     assert "determine the material" not in line
+
+
+def test_the_reduction_a_fit_achieved():
+    history = [{"iteration": 0, "misfit": 2.0}, {"iteration": 1, "misfit": 0.5}]
+    # a body: against the homogeneous material, whatever the start
+    body = {"misfit": 0.5, "surface_err_reduction": 1.25}
+    assert achieved_reduction(body, history) == (1.25, "the homogeneous material")
+    assert achieved_reduction(body, history, own_start=False)[0] == 1.25
+    # else the start's misfit over the end's; none from init= (an earlier fit) or an exact
+    # start, nor without a history
+    assert achieved_reduction({"misfit": 0.5}, history) == (4.0, "the start")
+    assert achieved_reduction({"misfit": 0.5}, history, own_start=False)[0] is None
+    assert achieved_reduction({"misfit": 0.0}, [{"misfit": 0.0}])[0] is None
+    assert achieved_reduction({"misfit": 0.0}, history)[0] == math.inf
+    assert achieved_reduction({"misfit": 0.5}, None)[0] is None
 
 
 def test_rigid_deviation_of_a_rigid_and_of_a_bent_motion():

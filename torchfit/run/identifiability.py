@@ -36,7 +36,8 @@ After the solver stops, :func:`identify` says which parameters the data determin
     the drive of the prescribed vertices, not from the data;
   - the fit **reduced nothing**: the error it reached is less than ``1 + NO_REDUCTION``
     times smaller than the baseline's (a body's ``surface_err_reduction``, against the
-    homogeneous material; else the misfit at the start over the misfit at the end). Its
+    homogeneous material; else the misfit at the start over the misfit at the end, where
+    the fit started at the problem's own start and not at ``init=`` an earlier fit). Its
     field is then the start's moved where the data barely see: nothing in the data says
     it is better than the start.
 
@@ -304,16 +305,17 @@ def from_gram(gram: Tensor, theta: Tensor, data: Tensor, transform: str = "exp",
 
 # -- from a run ------------------------------------------------------------------------------
 def achieved_reduction(metrics: Mapping[str, Any] | None,
-                       history: Sequence[Mapping[str, Any]] | None
+                       history: Sequence[Mapping[str, Any]] | None, own_start: bool = True
                        ) -> tuple[float | None, str]:
     """How many times the fit lowered its error, and below what: a body's
     ``surface_err_reduction`` (the homogeneous material), else history row 0's ``misfit``
-    over the final ``metrics``' (the start); ``None`` where neither is known or the start
-    reproduced the data already."""
+    over the final ``metrics``' (the start); ``None`` where neither is known, where the start
+    reproduced the data already, or where the start is not the problem's own (``own_start``
+    false: ``init=`` an earlier fit, which a good continuation barely improves)."""
     metrics = metrics or {}
     if metrics.get("surface_err_reduction") is not None:
         return float(metrics["surface_err_reduction"]), "the homogeneous material"
-    start = history[0].get("misfit") if history else None
+    start = history[0].get("misfit") if history and own_start else None
     end = metrics.get("misfit")
     if start is None or end is None or not float(start) > 0:
         return None, "the start"
@@ -322,7 +324,8 @@ def achieved_reduction(metrics: Mapping[str, Any] | None,
 
 def identify(problem: InverseProblem, lin: Any, theta: Tensor,
              metrics: Mapping[str, Any] | None = None,
-             history: Sequence[Mapping[str, Any]] | None = None) -> Identifiability:
+             history: Sequence[Mapping[str, Any]] | None = None,
+             own_start: bool = True) -> Identifiability:
     """The report of ``problem`` at its fitted ``theta`` (module docstring).
 
     ``lin``: the solver's last linearisation (``solver.lin``) or ``None``; used where it is
@@ -330,13 +333,14 @@ def identify(problem: InverseProblem, lin: Any, theta: Tensor,
     metrics at ``theta``, ``history``: the run's rows (row 0: the start), for the misfit
     the fit started from and the reduction it achieved (:func:`achieved_reduction`); without
     them the effect is measured against the residual at ``theta`` and no reduction is asked.
+    ``own_start``: the fit started at the problem's own start (``theta0``, not ``init=``).
     """
     theta = theta.detach()
     data = problem.data
     transform = problem.parameterization.transform
     usable = lin is not None and getattr(lin, "r", None) is not None and \
         lin.r.numel() == data.numel() and torch.equal(lin.theta, theta)
-    reduction, baseline = achieved_reduction(metrics, history)
+    reduction, baseline = achieved_reduction(metrics, history, own_start)
     start = history[0].get("misfit") if history else None
     common = {"gauge": bool(problem.scale_free), "reduction": reduction,
               "baseline": baseline, **_rigid(problem)}
