@@ -56,6 +56,21 @@ def test_a_bodys_summary_says_what_a_td_reads():
         in undetermined and "(not converged)" in undetermined
 
 
+def test_held_out_frames_worse_than_homogeneous_say_so():
+    body = {"misfit": 0.507, "surface_err_mean": 5.49e-4, "surface_err_max": 0.0112,
+            "surface_err_reduction": 1.01}
+    validation = {"iteration": 0, "params": "params_best_validation.pt",
+                  "final": {"surface_err_mean": 6.3e-4, "surface_err_reduction": 0.97},
+                  "chosen": {"surface_err_mean": 6.1e-4, "surface_err_reduction": 1.0}}
+    line = result(metrics=body, validation=validation).summary()
+    assert ("on the held-out frames 0.63 mm mean, 0.97x below the homogeneous material "
+            "(best held-out at iteration 0: 0.61 mm mean, params_best_validation.pt); the "
+            "held-out frames are WORSE than with the homogeneous material (0.97x): the fitted "
+            "material does not carry over to them; stopped by") in line
+    validation["final"]["surface_err_reduction"] = 1.0      # as good, not worse: no warning
+    assert "WORSE" not in result(metrics=body, validation=validation).summary()
+
+
 def test_result_json_keys_in_their_order():
     problem = build_problem("spring1d", {"n": 2})
     out = result_dict(problem, result(resumed_from=2), {"problem": {"n": 2}})
@@ -78,6 +93,7 @@ def test_an_undetermined_fit_says_so_beside_its_stop_reason():
     assert out["converged"] is True and out["stop_reason"] == "discrepancy"
     assert out["determined"] is False
     assert out["identifiability"] == {"determined": False, "n_params": 2, "n_determined": 0,
-                                      "effective_rank": 0, "source": "",
-                                      "reason": report.reason}
+                                      "effective_rank": 0, "source": "", "effect": 0.0,
+                                      "reduction": None, "reason": report.reason,
+                                      "cause": "effect"}
     assert list(out).index("determined") == list(out).index("status") + 1

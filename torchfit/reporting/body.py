@@ -237,6 +237,9 @@ class BodyOutputs:
         self.baseline: Evaluation | None = None
         self.started_elsewhere = False     # iteration 0 was not the initial guess (init=)
         self.suggest_continuation = suggest_continuation
+        #: the data determine no material and the run's end is its start (set by the run
+        #: before :meth:`finish`): the USD material says so
+        self.kept_start = False
         #: one line per file worth pointing a user at, once :meth:`compare` wrote it
         self.highlights: list[str] = []
 
@@ -363,7 +366,7 @@ class BodyOutputs:
     def _write_usd(self, x: Tensor, field: Tensor, theta: Tensor) -> list[Path]:
         return write_usd(self.run_dir, self.problem, _numpy(self.problem.observation.surface(x)),
                          _numpy(field), self.problem.poses.material_density(
-                             self.problem.simulation_input(theta)))
+                             self.problem.simulation_input(theta)), kept_start=self.kept_start)
 
     def _write_regions(self, field: Tensor) -> list[Path]:
         problem = self.problem

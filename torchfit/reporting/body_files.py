@@ -37,6 +37,9 @@ MATERIAL_FILE = "material.usda"
 DENSITY = 1000.0
 DENSITY_SOURCE = "assumed 1000 kg/m^3 (water): a quasistatic fit does not determine it"
 FRAMES_DIR = "frames"
+#: ``customData`` ``torchfit:determined`` of the material a not-determined fit writes
+NOT_DETERMINED = ("false: the data determine no material; this is the field the fit started "
+                  "from, not a fitted one (identifiability.json)")
 USD_DIR = "usd"
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
@@ -105,11 +108,13 @@ def _frame_times(names: Sequence[str]) -> list[float] | None:
 
 
 def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarray,
-              density: tuple[float, str] | None = None) -> list[Path]:
+              density: tuple[float, str] | None = None, kept_start: bool = False) -> list[Path]:
     """``usd/frames.usda`` and ``usd/body.usda`` (module docstring); nothing, with a log
     line, where ``usd-core`` is not installed. ``density``: the material's density (kg/m^3)
     and where it comes from (the problem's :meth:`material_density`); ``None``: the assumed
-    :data:`DENSITY`."""
+    :data:`DENSITY`. ``kept_start``: the data determine no material and ``field`` is the
+    fit's start, said on every material attribute (``customData`` ``torchfit:determined``,
+    :data:`NOT_DETERMINED`)."""
     if importlib.util.find_spec("pxr") is None:
         progress.info("no USD output: install the extra torchfit[usd] (usd-core) for it")
         return []
@@ -136,6 +141,8 @@ def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarra
     material = {"youngsModulus": field, "poissonsRatio": np.full(len(cells), problem.cfg.nu),
                 "density": np.full(len(cells), float(density_value))}
     custom = {**units.custom(), "torchfit:densitySource": density_source}
+    if kept_start:
+        custom["torchfit:determined"] = NOT_DETERMINED
     per_vertex = vertex_field(problem, field)
 
     def fill(partial: Path) -> None:

@@ -199,7 +199,9 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
                        validation=None if tracker is None else tracker.summary(final))
     if result.validation is not None:
         result.validation["failed_iterations"] = [i for i, _ in evaluator.validation_failures]
-    result.identifiability = identify(problem, getattr(solver, "lin", None), solved.theta)
+    # init= an earlier fit: its misfit reduction from the start proves nothing
+    result.identifiability = identify(problem, getattr(solver, "lin", None), solved.theta,
+                                      final.metrics, rows, own_start=start is None)
     if not result.identifiability.determined:
         log.warning("%s", result.identifiability.warning())
         final = keep_the_start(result, evaluator, problem.theta0 if start is None else start)

@@ -15,17 +15,34 @@ After the solver stops, :func:`identify` says which parameters the data determin
   directions the data fix jointly (two parameters with one column each count once). A
   scale-free problem (only prescribed displacements) never fixes the overall scale: its
   rank is at most ``n - 1`` (``gauge: true``).
-* **The fit as a whole** is *not determined* when the data do not depend on the material:
+* **The fit as a whole** is *not determined* when the data do not depend on the material,
+  or when the fit shows none of it. Every test is scale-free (the data's units cancel) and
+  its bar sits decades from the values on either side, so one body gives one verdict on
+  any mesh of it (docs/notes/identifiability.md):
 
-  - the Jacobian is flat: ``max s < FLAT_THRESHOLD * ||data - mean(data)||``; or
+  - the **effect** is small: ``effect = max s / ||r_0||``, the change of the data that an
+    e-fold change of the most-seen parameter makes, over the misfit the fit started from
+    (``||r_0||``, history row 0; the residual at the report's point where no history is
+    given, the data's spread ``||data - mean(data)||`` where no residual is either), is
+    below ``EFFECT_THRESHOLD``. A body that any material moves alike gives round-off here
+    (1e-7 and less); a material that explains the data, a sizeable fraction (0.08 and
+    more on the project's bodies; ``inf`` where the start reproduces the data exactly);
   - for a body with a rest surface (``problem.animation``), every frame's targets are a
     rigid motion of the rest: the RMS distance of the observed targets from the best rigid
     motion of the rest (Kabsch, per frame) is below ``RIGID_THRESHOLD`` times the rest's
     bounding-box diagonal, or below the noise when the noise level ``delta`` is known (a
     point's RMS noise distance ``1.1 sqrt(3) delta / sqrt(m)`` over the diagonal). Any
     material then moves the body the same way; a Jacobian that is not flat there comes from
-    the drive of the prescribed vertices, not from the data
-    (docs/notes/identifiability.md).
+    the drive of the prescribed vertices, not from the data;
+  - the fit **reduced nothing**: the error it reached is less than ``1 + NO_REDUCTION``
+    times smaller than the baseline's (a body's ``surface_err_reduction``, against the
+    homogeneous material; else the misfit at the start over the misfit at the end, where
+    the fit started at the problem's own start and not at ``init=`` an earlier fit). Its
+    field is then the start's moved where the data barely see: nothing in the data says
+    it is better than the start.
+
+  The outputs of a fit that is not determined keep its starting field
+  (:func:`torchfit.run.fitting.keep_the_start`) and the run never says "converged".
 
 Where the Jacobian comes from (``source``): the dense Jacobian the solver made at its last
 accepted point (Levenberg-Marquardt and Gauss-Newton on the dense path: no extra work); else
@@ -45,7 +62,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -57,9 +74,11 @@ from ..problems import BodyProblem, InverseProblem
 #: a parameter is determined when its sensitivity is at least this fraction of the largest
 #: (and a singular value counts in the effective rank when it is this fraction of the largest)
 RELATIVE_THRESHOLD = 1e-2
-#: the data do not depend on the material when the largest sensitivity is below this
-#: fraction of the data's spread ``||data - mean(data)||``
-FLAT_THRESHOLD = 1e-8
+#: the data do not depend on the material when the largest sensitivity (an e-fold change of
+#: one parameter) changes the data by less than this fraction of the start's misfit
+EFFECT_THRESHOLD = 1e-3
+#: a fit reduced nothing when its error is not ``1 + NO_REDUCTION`` times below the baseline's
+NO_REDUCTION = 0.02
 #: targets are a rigid motion of the rest when their RMS distance from the best rigid
 #: motion is below this fraction of the rest's bounding-box diagonal
 RIGID_THRESHOLD = 1e-6
@@ -73,12 +92,16 @@ class Identifiability:
 
     Attributes:
         determined: whether the data determine the material at all.
-        reason: why not (``None`` when determined).
+        reason: why not (``None`` when determined); ``cause`` which test said so:
+            ``rigid``, ``effect`` or ``reduction`` (module docstring).
         source: where the Jacobian came from.
         sensitivity, relative, parameter_determined: ``(n,)`` per parameter.
         singular_values: ``(min(m, n),)`` of ``J diag(u)``, largest first, or ``None``.
         effective_rank: or ``None`` without singular values.
         data_spread: ``||data - mean(data)||``.
+        effect: ``max s / ||r_0||``; ``reference_misfit`` the ``||r_0||`` it used.
+        reduction: how many times the fit lowered its error below ``baseline`` (``None``:
+            not given), with ``baseline`` naming it (``the homogeneous material``).
         rigid_deviation: the targets' largest per-frame RMS distance from a rigid motion of
             the rest, relative to the rest's diagonal (``None``: no rest surface).
         gauge: the problem is scale-free (one direction is never determined).
@@ -97,6 +120,11 @@ class Identifiability:
     singular_values: np.ndarray | None
     effective_rank: int | None
     data_spread: float
+    effect: float = math.inf
+    reference_misfit: float = 0.0
+    reduction: float | None = None
+    baseline: str | None = None
+    cause: str | None = None
     rigid_deviation: float | None = None
     gauge: bool = False
     extra_products: int = 0
@@ -114,18 +142,21 @@ class Identifiability:
         out: dict[str, Any] = {"determined": self.determined,
                                "n_params": int(self.sensitivity.size),
                                "n_determined": self.n_determined,
-                               "effective_rank": self.effective_rank, "source": self.source}
+                               "effective_rank": self.effective_rank, "source": self.source,
+                               "effect": _finite(self.effect),
+                               "reduction": _finite(self.reduction)}
         if self.reason:
-            out["reason"] = self.reason
+            out["reason"], out["cause"] = self.reason, self.cause
         return out
 
     def as_json(self) -> dict[str, Any]:
         """The content of ``identifiability.json``."""
         out = self.summary()
         out.update({
-            "thresholds": {"relative": RELATIVE_THRESHOLD, "flat": FLAT_THRESHOLD,
-                           "rigid": RIGID_THRESHOLD},
+            "thresholds": {"relative": RELATIVE_THRESHOLD, "effect": EFFECT_THRESHOLD,
+                           "rigid": RIGID_THRESHOLD, "no_reduction": NO_REDUCTION},
             "gauge": self.gauge, "data_spread": self.data_spread,
+            "reference_misfit": self.reference_misfit, "baseline": self.baseline,
             "rigid_deviation": self.rigid_deviation,
             "largest_sensitivity": float(self.sensitivity.max()) if self.sensitivity.size else 0.0,
             "extra_products": self.extra_products, "regions": self.regions,
@@ -137,13 +168,33 @@ class Identifiability:
                            "determined": [bool(v) for v in self.parameter_determined]}})
         return out
 
+    def verdict(self) -> str:
+        """The summary line's verdict: ``the data determine the material``, else what the
+        fit is (``cause``) and that its outputs keep the start."""
+        if self.determined:
+            return "the data determine the material"
+        if self.cause == "reduction":
+            return (f"the fit is NOT better than {self.baseline} ({self.reduction:.2f}x): "
+                    f"the outputs keep the starting field (identifiability.json)")
+        return ("the data do NOT determine the material: the outputs keep the starting field "
+                "(identifiability.json)")
+
     def warning(self) -> str | None:
         """The one warning line of an undetermined fit (``None`` when determined)."""
         if self.determined:
             return None
+        if self.cause == "reduction":
+            return (f"the fit shows nothing the data determine: {self.reason}; the solver's "
+                    f"stop means nothing and the outputs keep the starting field (result.json: "
+                    f"determined false; identifiability.json)")
         return (f"the data do not determine the material: {self.reason}; any material fits "
                 f"them alike, so the solver's stop means nothing (result.json: determined "
                 f"false; identifiability.json)")
+
+
+def _finite(value: float | None) -> float | str | None:
+    """JSON holds no infinity: ``"inf"`` for it."""
+    return None if value is None else float(value) if math.isfinite(value) else "inf"
 
 
 # -- the numbers ----------------------------------------------------------------------------
@@ -177,30 +228,42 @@ def rigid_deviation(rest: np.ndarray, targets: np.ndarray) -> float:
 
 def assess(sensitivity: Tensor, singular_values: Tensor | None, data: Tensor,
            rigid: float | None = None, noise_level: float | None = None, size: float = 1.0,
-           source: str = "", gauge: bool = False) -> Identifiability:
+           source: str = "", gauge: bool = False, misfit: float | None = None,
+           reduction: float | None = None,
+           baseline: str = "the homogeneous material") -> Identifiability:
     """The report's numbers from the per-parameter sensitivities (and singular values).
 
     Args:
         sensitivity: ``(n,)`` ``s_j`` (module docstring).
         singular_values: of ``J diag(u)`` or ``None``.
-        data: ``(m,)`` the data (their spread is the flatness scale).
+        data: ``(m,)`` the data (their spread is the effect's reference without ``misfit``).
         rigid: :func:`rigid_deviation` of the targets or ``None``.
         noise_level: ``delta`` or ``None``; ``size`` the rest's diagonal (with ``rigid``).
+        misfit: ``||r_0||``, the misfit the fit started from (the effect's reference).
+        reduction: how many times the fit lowered its error below ``baseline``, or ``None``.
     """
     s = sensitivity.detach().double().cpu()
     data = data.detach().double().cpu()
     spread = float(torch.linalg.vector_norm(data - data.mean())) if data.numel() else 0.0
     largest = float(s.max()) if s.numel() else 0.0
-    reason = None
+    reference = spread if misfit is None else float(misfit)
+    effect = largest / reference if reference > 0 else math.inf if largest > 0 else 0.0
+    reason = cause = None
     noise_rms = 1.1 * math.sqrt(3.0) * noise_level / math.sqrt(data.numel()) / size \
         if noise_level and data.numel() else 0.0
     if rigid is not None and rigid <= max(RIGID_THRESHOLD, noise_rms):
+        cause = "rigid"
         reason = (f"every frame's targets are a rigid motion of the rest (RMS distance from "
                   f"one {rigid:.2g} of the body's size)")
-    elif not largest >= FLAT_THRESHOLD * spread or largest == 0.0:
-        reason = (f"the simulated data do not change with the material (largest sensitivity "
-                  f"{largest:.2g}, {largest / spread if spread else 0.0:.2g} of the data's "
-                  f"spread)")
+    elif not effect >= EFFECT_THRESHOLD or largest == 0.0:
+        cause = "effect"
+        reason = (f"the simulated data do not change with the material (an e-fold change of "
+                  f"the most-seen parameter moves them by {effect:.2g} of the start's misfit; "
+                  f"{EFFECT_THRESHOLD:g} needed)")
+    elif reduction is not None and not reduction >= 1.0 + NO_REDUCTION:
+        cause = "reduction"
+        reason = (f"the fit's error is {reduction:.2f}x below {baseline}'s, within "
+                  f"{NO_REDUCTION:.0%} of it")
     relative = s / largest if largest > 0 else torch.zeros_like(s)
     determined = reason is None
     flags = (relative >= RELATIVE_THRESHOLD) & determined
@@ -212,7 +275,8 @@ def assess(sensitivity: Tensor, singular_values: Tensor | None, data: Tensor,
         rank = int((values >= RELATIVE_THRESHOLD * top).sum()) if determined and top > 0 else 0
         values = values.numpy()
     return Identifiability(determined, reason, source, s.numpy(), relative.numpy(),
-                           flags.numpy(), values, rank, spread, rigid, gauge)
+                           flags.numpy(), values, rank, spread, effect, reference, reduction,
+                           None if reduction is None else baseline, cause, rigid, gauge)
 
 
 def from_jacobian(J: Any, theta: Tensor, data: Tensor, transform: str = "exp",
@@ -240,18 +304,50 @@ def from_gram(gram: Tensor, theta: Tensor, data: Tensor, transform: str = "exp",
 
 
 # -- from a run ------------------------------------------------------------------------------
-def identify(problem: InverseProblem, lin: Any, theta: Tensor) -> Identifiability:
+def achieved_reduction(metrics: Mapping[str, Any] | None,
+                       history: Sequence[Mapping[str, Any]] | None, own_start: bool = True
+                       ) -> tuple[float | None, str]:
+    """How many times the fit lowered its error, and below what: a body's
+    ``surface_err_reduction`` (the homogeneous material), else history row 0's ``misfit``
+    over the final ``metrics``' (the start); ``None`` where neither is known, where the start
+    reproduced the data already, or where the start is not the problem's own (``own_start``
+    false: ``init=`` an earlier fit, which a good continuation barely improves)."""
+    metrics = metrics or {}
+    if metrics.get("surface_err_reduction") is not None:
+        return float(metrics["surface_err_reduction"]), "the homogeneous material"
+    start = history[0].get("misfit") if history and own_start else None
+    end = metrics.get("misfit")
+    if start is None or end is None or not float(start) > 0:
+        return None, "the start"
+    return (float(start) / float(end) if float(end) > 0 else math.inf), "the start"
+
+
+def identify(problem: InverseProblem, lin: Any, theta: Tensor,
+             metrics: Mapping[str, Any] | None = None,
+             history: Sequence[Mapping[str, Any]] | None = None,
+             own_start: bool = True) -> Identifiability:
     """The report of ``problem`` at its fitted ``theta`` (module docstring).
 
     ``lin``: the solver's last linearisation (``solver.lin``) or ``None``; used where it is
-    at ``theta`` and linearises the problem's own residual.
+    at ``theta`` and linearises the problem's own residual. ``metrics``: the final
+    metrics at ``theta``, ``history``: the run's rows (row 0: the start), for the misfit
+    the fit started from and the reduction it achieved (:func:`achieved_reduction`); without
+    them the effect is measured against the residual at ``theta`` and no reduction is asked.
+    ``own_start``: the fit started at the problem's own start (``theta0``, not ``init=``).
     """
     theta = theta.detach()
     data = problem.data
     transform = problem.parameterization.transform
     usable = lin is not None and getattr(lin, "r", None) is not None and \
         lin.r.numel() == data.numel() and torch.equal(lin.theta, theta)
-    common = {"gauge": bool(problem.scale_free), **_rigid(problem)}
+    reduction, baseline = achieved_reduction(metrics, history, own_start)
+    start = history[0].get("misfit") if history else None
+    common = {"gauge": bool(problem.scale_free), "reduction": reduction,
+              "baseline": baseline, **_rigid(problem)}
+    if start is not None:
+        common["misfit"] = float(start)
+    elif usable:
+        common["misfit"] = float(torch.linalg.vector_norm(lin.r))
     if usable and getattr(lin, "dense", False):
         report = from_jacobian(lin.jacobian(), theta, data, transform,
                                source="dense Jacobian of the last iteration", **common)
@@ -259,6 +355,7 @@ def identify(problem: InverseProblem, lin: Any, theta: Tensor) -> Identifiabilit
         extra = 0 if usable else 1
         if not usable:
             lin = problem.residual().linearize(theta)
+            common.setdefault("misfit", float(torch.linalg.vector_norm(lin.r)))
         generator = torch.Generator().manual_seed(0)
         norms = column_norms(lin.vjp, lin.r, theta, PROBES, generator)
         s = norms * parameter_scale(theta, transform).to(norms)
@@ -339,6 +436,6 @@ def _per_cell(problem: InverseProblem, theta: Tensor, report: Identifiability) -
     report.no_cells = int(no_cells.sum())
 
 
-__all__ = ["FLAT_THRESHOLD", "Identifiability", "PROBES", "RELATIVE_THRESHOLD",
-           "RIGID_THRESHOLD", "assess", "from_jacobian", "identify", "parameter_scale",
-           "rigid_deviation"]
+__all__ = ["EFFECT_THRESHOLD", "Identifiability", "NO_REDUCTION", "PROBES",
+           "RELATIVE_THRESHOLD", "RIGID_THRESHOLD", "achieved_reduction", "assess",
+           "from_jacobian", "identify", "parameter_scale", "rigid_deviation"]

@@ -107,6 +107,7 @@ class RunOutputs:
             files.extend(self.motion.finish(final))
         comparison: dict[str, Any] = {}
         if self.body is not None:
+            self.body.kept_start = result.kept_start     # its USD material says not fitted
             files.extend(self.body.finish(final))
             states = self.guard.run("model comparison", self._comparison_states, final)
             if states is not None:

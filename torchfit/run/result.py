@@ -24,7 +24,7 @@ from torch import Tensor
 
 from ..problems import InverseProblem
 from ..records import SolveResult
-from .validation import result_values
+from .validation import held_out_worse, result_values
 
 
 @dataclasses.dataclass
@@ -95,8 +95,10 @@ class FitResult:
     def summary(self) -> str:
         """One line a TD reads: where the problem has a surface, its error (mean, max, and
         how far below the homogeneous material's) on the fitted frames and on the held-out
-        ones (with the iteration they chose), else the headline metrics; whether the data
-        determine the material; the stop reason, iterations, time and counts."""
+        ones (with the iteration they chose, and a warning where they end worse than with the
+        homogeneous material), else the headline metrics; the verdict (whether the data
+        determine the material, :meth:`~.identifiability.Identifiability.verdict`); the stop
+        reason, iterations, time and counts (an undetermined fit: never "converged")."""
         if "surface_err_mean" in self.metrics:
             told = f"surface error on the fitted frames {surface_error_text(self.metrics)}"
             if self.validation is not None:
@@ -105,13 +107,13 @@ class FitResult:
                 told += (f"; on the held-out frames {surface_error_text(section.get('final', {}))}"
                          f" (best held-out at iteration {section.get('iteration')}: "
                          f"{_mm(chosen.get('surface_err_mean'))} mean, {section.get('params')})")
+                worse = held_out_worse(section)
+                if worse:
+                    told += f"; {worse}"
         else:
             told = ", ".join(f"{k} {self.metrics[k]:.3e}" for k in
                              ("misfit", "k_err_rel", "k_err_rel_aligned") if k in self.metrics)
-        verdict = "" if self.determined is None else \
-            "; the data determine the material" if self.determined else \
-            ("; the data do NOT determine the material: the outputs keep the starting field "
-             "(identifiability.json)")
+        verdict = "" if self.identifiability is None else f"; {self.identifiability.verdict()}"
         # an undetermined fit's stop means nothing: never "converged"
         stop = "converged" if self.converged and self.determined is not False else \
             "not converged"

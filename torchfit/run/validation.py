@@ -163,6 +163,17 @@ class ValidationTracker:
         return save_torch(run_dir / BEST_PARAMS_FILE, payload)
 
 
+def held_out_worse(section: Mapping[str, Any]) -> str | None:
+    """The summary line's warning where the held-out frames end worse than with the
+    homogeneous material (the final ``surface_err_reduction`` below 1: the fit does not carry
+    over to frames it did not see), else ``None``."""
+    reduction = section.get("final", {}).get("surface_err_reduction")
+    if reduction is None or not float(reduction) < 1.0:
+        return None
+    return (f"the held-out frames are WORSE than with the homogeneous material "
+            f"({float(reduction):.3g}x): the fitted material does not carry over to them")
+
+
 def result_values(section: Mapping[str, Any]) -> dict[str, Any]:
     """The top-level ``result.json`` keys (:data:`RESULT_KEYS`) of a ``validation`` section."""
     chosen = section.get("chosen", {})
