@@ -233,7 +233,9 @@ def _skinned(pxr: Any, path: Path, prim: Any, skeleton_query: Any, query: Any,
     skeleton = skeleton_from_joints(positions * scale, parents, transforms, weights,
                                     [j.rsplit("/", 1)[-1] for j in joints],
                                     None if radius is None else radius * scale, rest * scale,
-                                    where, None if lengths is None else lengths * scale)
+                                    where, None if lengths is None else lengths * scale,
+                                    authored_as="the stage's torchfit:attachRadius / "
+                                    "torchfit:boneLength")
     names = [f"{path.name}:{prim.GetPath()}@{c.GetValue():g}" for c in codes]
     return _animation(path, rest * scale, faces, frames * scale, scale, names, skeleton=skeleton,
                       prim=str(prim.GetPath()))
