@@ -31,10 +31,12 @@ quantity came from (:attr:`~.rig.Skeleton.origin`, printed at set-up and written
 run's ``rig.json``).
 
 Measured (2026-12-07, docs/notes/dcc_rigs.md): the test tube (a capsule whose bones end at
-its caps' centres) as a joint tree without lengths or radius derives its tip bone 0.2500 m
-(authored 0.25) and the attach radius 0.0200 m (authored 0.02); the procedural arm (bones
-that end at the surface's pole) 0.2450 m against 0.28 (its end is rounded like the tube's:
-the two conventions cannot both be met) and 0.0159 m against 0.017.
+its caps' centres) as a UsdSkel stage of joints only derives its tip bone 0.2500 m (authored
+0.25; 0.2646 before) and the attach radius 0.0200 m (authored 0.02); Blender's limb (flat
+caps) its end bone 0.1667 m from USD and glTF alike, Blender's own length (0.1167 before);
+the procedural arm's forearm, whose bone ends at the surface's rounded pole, 0.2431 m
+against 0.28 (a rounded end like the tube's: the two conventions cannot both be met) and
+the radius 0.0159 m against 0.017.
 
 A degenerate joint tree is refused in one line: joints with weight that coincide
 (:func:`check_joint_placement`: a stage whose joints all sit at the origin skins its frames
@@ -108,7 +110,8 @@ def skeleton_from_joints(joint_positions: np.ndarray, parents: np.ndarray,
                          joint_names: list[str], attach_radius: float | None,
                          rest_vertices: np.ndarray, source: str,
                          bone_lengths: np.ndarray | None = None,
-                         authored_as: str = "the file") -> Skeleton:
+                         authored_as: tuple[str, str] = ("the file's attach radius",
+                                                         "the file's bone length")) -> Skeleton:
     """The animation format's :class:`~.rig.Skeleton` of a joint hierarchy (lengths in metres).
 
     Args:
@@ -120,8 +123,8 @@ def skeleton_from_joints(joint_positions: np.ndarray, parents: np.ndarray,
         rest_vertices: ``(V, 3)`` metres (the end bones' extents, the default radius).
         bone_lengths: ``(J,)`` authored lengths of end joints' bones (metres; ``NaN`` or
             ``<= 0``: from the data), or ``None``.
-        authored_as: how the file's authored lengths and radius are named in
-            :attr:`~.rig.Skeleton.origin` (``"torchfit:boneLength"``...).
+        authored_as: how the file names its authored radius and lengths, for
+            :attr:`~.rig.Skeleton.origin` (``("the stage's torchfit:attachRadius", ...)``).
     """
     parents = np.asarray(parents, dtype=np.int64)
     weights = normalized_weights(joint_weights, source)
@@ -149,7 +152,7 @@ def skeleton_from_joints(joint_positions: np.ndarray, parents: np.ndarray,
     ends = np.flatnonzero(joint_of_bone == child_of_bone)
     if ends.size:
         tails[ends], how = end_bone_tails(positions, parents, weights, rest_vertices,
-                                          joint_of_bone[ends], bone_lengths, authored_as)
+                                          joint_of_bone[ends], bone_lengths, authored_as[1])
         for k, text in zip(ends, how):
             lengths_from[k] = text
     check_bone_placement(heads, tails, joint_of_bone, weights, rest, joint_names, source)
@@ -163,7 +166,7 @@ def skeleton_from_joints(joint_positions: np.ndarray, parents: np.ndarray,
     names = [joint_names[j] if np.sum(joint_of_bone == j) == 1
              else f"{joint_names[j]}->{joint_names[c]}"
              for j, c in zip(joint_of_bone, child_of_bone)]
-    radius_from = f"authored: {authored_as}"
+    radius_from = f"authored: {authored_as[0]}"
     if attach_radius is None:
         attach_radius = default_attach_radius(rest_vertices, heads, tails)
         radius_from = (f"derived: {ATTACH_RATIO:g} x the median distance of the rest surface "
@@ -181,7 +184,8 @@ def skeleton_from_joints(joint_positions: np.ndarray, parents: np.ndarray,
 def end_bone_tails(positions: np.ndarray, parents: np.ndarray, weights: np.ndarray,
                    rest_vertices: np.ndarray, joints: np.ndarray,
                    bone_lengths: np.ndarray | None = None,
-                   authored_as: str = "the file") -> tuple[np.ndarray, list[str]]:
+                   authored_as: str = "the file's bone length"
+                   ) -> tuple[np.ndarray, list[str]]:
     """Tails ``(len(joints), 3)`` of the bones of end joints ``joints`` (module docstring)
     and, per bone, how its length was found (authored, or derived and how).
 

@@ -353,8 +353,8 @@ def load_gltf(path: str | Path, prim: str = "", fps: float = 0.0) -> Animation:
                         if isinstance(nodes[j].extras, dict) else np.nan for j in joints])
     skeleton = skeleton_from_joints(positions, np.array(joint_parent), matrices[..., :3, :],
                                     weights, names, radius, rest, where, lengths,
-                                    authored_as="the file's extras torchfit:attachRadius / "
-                                    "torchfit:boneLength")
+                                    authored_as=("the extras' torchfit:attachRadius",
+                                                 "the joint's extras torchfit:boneLength"))
     if not np.isfinite(frames).all():
         raise AnimationError(f"{where}: the posed points hold a NaN or infinite coordinate")
     import trimesh

@@ -234,8 +234,8 @@ def _skinned(pxr: Any, path: Path, prim: Any, skeleton_query: Any, query: Any,
                                     [j.rsplit("/", 1)[-1] for j in joints],
                                     None if radius is None else radius * scale, rest * scale,
                                     where, None if lengths is None else lengths * scale,
-                                    authored_as="the stage's torchfit:attachRadius / "
-                                    "torchfit:boneLength")
+                                    authored_as=("the stage's torchfit:attachRadius",
+                                                 "the stage's torchfit:boneLength"))
     names = [f"{path.name}:{prim.GetPath()}@{c.GetValue():g}" for c in codes]
     return _animation(path, rest * scale, faces, frames * scale, scale, names, skeleton=skeleton,
                       prim=str(prim.GetPath()))
