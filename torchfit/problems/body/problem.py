@@ -233,6 +233,8 @@ class RiggedBody(InverseProblem):
                 message = message[len(str(where)) + 1:]
             elif message.startswith(f"{where}: "):          # a reader's line on the file itself
                 message = message[len(str(where)) + 2:]
+            elif message.startswith(f"{where}:"):           # ... on a prim or node of it
+                message = message[len(str(where)) + 1:]
             raise ProblemConfigError(f"problem.path={where}: {message}") from err
 
     def build_model(self, cfg: RiggedBodyConfig) -> None:
