@@ -18,7 +18,8 @@
 - bones: the joints' segments (:func:`..joints.skeleton_from_joints`: an end joint's bone
   reaches over the vertices its weights dominate, or ``extras: {"torchfit:boneLength":
   metres}`` on its joint node); ``attach_radius`` from ``extras: {"torchfit:attachRadius":
-  metres}`` on the skin or the node, else the default there.
+  metres}`` on the skin or the node, else the default there; the skeleton says which was
+  authored and which derived, and a degenerate joint tree is refused there.
 
 Units: metres (glTF's); the coordinates are kept, and the animation's ``up`` is +Y (the
 glTF specification's up axis; the pictures stand the body on it). Refused with one line (:class:`~torchfit.mesh.AnimationError`): ``CUBICSPLINE``
