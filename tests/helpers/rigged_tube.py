@@ -73,3 +73,68 @@ def write_tube(folder: Path, axis: str = "x", **kwargs) -> Path:
     write_animation(folder, data["rest"], data["faces"], data["frames"],
                     skeleton=data["skeleton"])
     return folder
+
+
+def write_tube_stage(path: Path, axis: str = "x", at_origin: bool = False, **kwargs) -> Path:
+    """The tube as a third-party UsdSkel stage (usd-core): joints ``base`` and ``base/tip``
+    at the bones' heads, no end joint, no ``torchfit:boneLength`` nor ``torchfit:attachRadius``
+    (the reader derives them), the tube's weights and transforms (no bulge: UsdSkel skins the
+    frames). ``at_origin``: every joint's bind transform the identity (all joints at the
+    origin), the animation chosen so that the skinning still gives the same frames."""
+    from pxr import Gf, Usd, UsdGeom, UsdSkel, Vt
+    from scipy.spatial.transform import Rotation
+
+    data = tube_animation(axis, bulge=0.0, **kwargs)
+    skeleton = data["skeleton"]
+
+    def homogeneous(transform: np.ndarray) -> np.ndarray:
+        m = np.eye(4)
+        m[:3] = transform
+        return m
+
+    def translation(t: np.ndarray) -> np.ndarray:
+        m = np.eye(4)
+        m[:3, 3] = t
+        return m
+
+    bind = [np.eye(4), np.eye(4)] if at_origin else \
+        [translation(skeleton.heads[0]), translation(skeleton.heads[1])]
+    row = lambda m: Gf.Matrix4d(*np.asarray(m.T, dtype=np.float64).ravel().tolist())  # noqa: E731
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    root = UsdSkel.Root.Define(stage, "/Root")
+    usd_skeleton = UsdSkel.Skeleton.Define(stage, "/Root/Skeleton")
+    joints = ["base", "base/tip"]
+    usd_skeleton.CreateJointsAttr(joints)
+    usd_skeleton.CreateBindTransformsAttr(Vt.Matrix4dArray([row(b) for b in bind]))
+    rest_local = [bind[0], np.linalg.inv(bind[0]) @ bind[1]]
+    usd_skeleton.CreateRestTransformsAttr(Vt.Matrix4dArray([row(m) for m in rest_local]))
+    animation = UsdSkel.Animation.Define(stage, "/Root/Skeleton/Animation")
+    animation.CreateJointsAttr(joints)
+    for f, transforms in enumerate(skeleton.transforms):
+        # skinning = world @ inverse(bind) = the bone's transform: world = transform @ bind
+        world = [homogeneous(transforms[b]) @ bind[b] for b in range(2)]
+        local = [world[0], np.linalg.inv(world[0]) @ world[1]]
+        quats = [Rotation.from_matrix(m[:3, :3]).as_quat() for m in local]
+        animation.CreateTranslationsAttr().Set(
+            Vt.Vec3fArray([Gf.Vec3f(*map(float, m[:3, 3])) for m in local]), float(f))
+        animation.CreateRotationsAttr().Set(Vt.QuatfArray(
+            [Gf.Quatf(float(q[3]), float(q[0]), float(q[1]), float(q[2])) for q in quats]),
+            float(f))
+        animation.CreateScalesAttr().Set(Vt.Vec3hArray([Gf.Vec3h(1, 1, 1)] * 2), float(f))
+    UsdSkel.BindingAPI.Apply(usd_skeleton.GetPrim()).CreateAnimationSourceRel().SetTargets(
+        [animation.GetPath()])
+    mesh = UsdGeom.Mesh.Define(stage, "/Root/Tube")
+    mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(data["rest"].astype(np.float32)))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([3] * len(data["faces"])))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(data["faces"].ravel().tolist()))
+    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([usd_skeleton.GetPath()])
+    binding.CreateJointIndicesPrimvar(False, 2).Set(Vt.IntArray([0, 1] * len(data["rest"])))
+    binding.CreateJointWeightsPrimvar(False, 2).Set(
+        Vt.FloatArray(skeleton.weights.ravel().tolist()))
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(len(skeleton.transforms) - 1)
+    stage.SetDefaultPrim(root.GetPrim())
+    stage.GetRootLayer().Save()
+    return path

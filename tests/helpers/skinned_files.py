@@ -211,16 +211,19 @@ def gltf_tube(*, cubic: bool = False, sparse: bool = False, draco: bool = False,
     """
     import pygltflib as g
 
-    points, quads = tube(length=0.2, radius=0.02)
+    along, quads = tube(length=0.2, radius=0.02)
     triangles = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
     world = _trs(t=(0, 1, 0), s=(2, 2, 2))
+    # the mesh stored where the joints bind (the world's placement of the tube): the
+    # joints inside the flesh they move, as a DCC exports them
+    points = along * 2.0 + np.array([0.0, 1.0, 0.0])
     rest_local = {"A": _trs(), "B": _trs(t=(0, 0.1, 0), q=Rotation.from_euler(
         "z", 10, degrees=True).as_quat()), "C": _trs(t=(0, 0.1, 0))}
     bind = {"A": world @ rest_local["A"]}
     bind["B"] = bind["A"] @ rest_local["B"]
     bind["C"] = bind["B"] @ rest_local["C"]
     order = ["A", "B", "C"]
-    weight_b = np.clip(points[:, 1] / 0.2, 0.1, 0.9)
+    weight_b = np.clip(along[:, 1] / 0.2, 0.1, 0.9)
     blob = bytearray()
     views, accessors = [], []
 

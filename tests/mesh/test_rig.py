@@ -6,6 +6,7 @@ import pytest
 
 from torchfit.mesh import DrivenSurface, MeshError, Skeleton, box_tetrahedra, boundary_faces
 from torchfit.mesh.rig import (axial_coordinates, blend, check_transforms, distance_weights,
+                               rig_description, rig_lines,
                                joint_cells, most_rotated_frame, segment_distances,
                                skeleton_drive, surface_drive)
 
@@ -115,6 +116,7 @@ def test_skeleton_drive_prescribes_the_vertices_near_the_bone():
     assert np.allclose(drive.positions, np.stack([points[axis], points[axis] + SHIFT]))
     assert np.array_equal(drive.start[:, axis], drive.positions)
     assert np.allclose(drive.start, frames, atol=1e-12)      # every vertex moves with the rig
+    assert drive.per_bone.tolist() == [len(axis)]
     far = Skeleton(skeleton.heads + [5.0, 0, 0], skeleton.tails + [5.0, 0, 0], transforms, 0.1)
     with pytest.raises(MeshError, match=r"^no material point lies within attach_radius=0\.1 m"):
         skeleton_drive(points, cells, far, rest, faces, frames)
@@ -149,3 +151,27 @@ def test_joint_cells_and_the_most_rotated_frame():
     for f, degrees in enumerate((0.0, 30.0, 10.0)):
         transforms[f, 1, :, :3] = rotation_z(np.radians(degrees))
     assert most_rotated_frame(skeleton) == 1 and most_rotated_frame(None) == 0
+
+
+def test_the_rig_described_with_its_origins_and_driven_vertices():
+    points, cells, rest, faces, frames, transforms = translated_box()
+    two = np.concatenate([transforms, transforms], axis=1)
+    heads = np.array([[0.5, 0.5, 0.0], [0.5, 0.5, 1.0]])
+    tails = np.array([[0.5, 0.5, 1.0], [0.5, 0.5, 1.75]])
+    authored = Skeleton(heads, tails, two, 0.1, names=["lower", "upper"])
+    drive = skeleton_drive(points, cells, authored, rest, faces, frames)
+    description = rig_description(authored, drive)
+    assert [b["length_m"] for b in description["bones"]] == pytest.approx([1.0, 0.75])
+    counts = [b["driven_vertices"] for b in description["bones"]]
+    assert sum(counts) == len(drive.vertices) and min(counts) > 0
+    assert description["bones"][1]["length_from"] == "authored: the file's bone segment"
+    assert description["attach_radius_from"] == "authored: the file's attach radius"
+    assert description["weights_from"].startswith("derived: from each vertex's distance")
+    derived = Skeleton(heads, tails, two, 0.1, names=["lower", "upper"],
+                       origin={"lengths": ["authored: a", "derived: b"],
+                               "attach_radius": "derived: c", "weights": "authored: d"})
+    lines = rig_lines(rig_description(derived))
+    assert lines == ["bone lower: 1 m; length authored: a", "bone upper: 0.75 m; length derived: b",
+                     "attach radius 0.1 m: derived: c", "weights authored: d"]
+    assert rig_lines(description)[0] == f"bone lower: 1 m, {counts[0]:,} driven vertices; " \
+        "length authored: the file's bone segment"

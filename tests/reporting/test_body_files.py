@@ -130,3 +130,19 @@ def test_an_embedded_body_writes_its_material_on_the_users_vertices(tmp_path):
     shared = (1.5 * volumes[0] + 0.25 * volumes[1]) / volumes.sum()   # nodes 1, 2, 3
     expected = [1.5, shared, shared, 0.5 * shared + 0.5 * 0.25]
     np.testing.assert_allclose(values, expected, rtol=1e-6)
+
+
+def test_rig_json_is_the_problems_rig_or_nothing(tmp_path):
+    import json
+
+    from torchfit.reporting.body_files import RIG_FILE, write_rig
+
+    description = {"bones": [{"name": "tip", "length_m": 0.25, "length_from": "derived: x",
+                              "driven_vertices": 16}],
+                   "attach_radius_m": 0.02, "attach_radius_from": "derived: y",
+                   "weights_from": "authored: z"}
+    assert write_rig(tmp_path, SimpleNamespace(rig_description=description)) == \
+        [tmp_path / RIG_FILE]
+    assert json.loads((tmp_path / RIG_FILE).read_text()) == description
+    assert write_rig(tmp_path / "none", SimpleNamespace(rig_description=None)) == []
+    assert not (tmp_path / "none").exists()

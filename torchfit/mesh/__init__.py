@@ -9,7 +9,8 @@ from .formats import (check_replaceable, load_animation, read_animation, write_a
                       write_obj)
 from .embedding import Embedding, boundary_faces, dof_matrix, embed_points
 from .rig import (DrivenSurface, Skeleton, axial_coordinates, blend, distance_weights,
-                  joint_cells, segment_distances, skeleton_drive, surface_drive)
+                  joint_cells, rig_description, rig_lines, segment_distances, skeleton_drive,
+                  surface_drive)
 from .rig_check import RigReport, check_animation
 from .simplicial import (MeshError, SimplexMesh, box_tetrahedra, check_rest_cells,
                          element_adjacency, normalized_points, rectangle_triangles,
@@ -27,5 +28,6 @@ __all__ = ["Animation", "AnimationError", "DEFAULT_FPS", "DrivenSurface", "Embed
            "distance_weights", "dof_matrix", "element_adjacency", "embed_points",
            "joint_cells", "load_animation", "load_surface", "normalized_points",
            "read_animation", "read_kept_mesh", "read_run_mesh", "rectangle_triangles",
+           "rig_description", "rig_lines",
            "segment_distances", "signed_volumes", "skeleton_drive", "surface_drive",
            "tetrahedralize", "write_animation", "write_obj", "write_run_mesh"]

@@ -41,6 +41,11 @@ class Skeleton:
         weights: ``(V, B)`` skinning weights per rest-surface vertex, or ``None`` (from
             distance).
         names: ``B`` bone names.
+        origin: where the rig's quantities came from, for the set-up's rig lines and
+            ``rig.json`` (:func:`rig_description`): ``lengths`` (one text per bone),
+            ``attach_radius``, ``weights``, each ``"authored: ..."`` (the file gave it) or
+            ``"derived: ..."`` (how); empty for a rig the file gives whole (the animation
+            folder's segments).
     """
 
     heads: np.ndarray
@@ -49,6 +54,7 @@ class Skeleton:
     attach_radius: float
     weights: np.ndarray | None = None
     names: list[str] = dataclasses.field(default_factory=list)
+    origin: dict = dataclasses.field(default_factory=dict)
 
     @property
     def n_bones(self) -> int:
@@ -86,12 +92,15 @@ class Drive:
             surface).
         idle_bones: names of the bones that prescribe no vertex (:func:`idle_bones`): their
             flesh follows only through its neighbours.
+        per_bone: ``(B,)`` prescribed vertices nearest to each bone (a skeleton's drive;
+            ``None`` for a driven surface).
     """
 
     vertices: np.ndarray
     positions: np.ndarray
     start: np.ndarray
     idle_bones: list[str] = dataclasses.field(default_factory=list)
+    per_bone: np.ndarray | None = None
 
 
 def segment_distances(points: np.ndarray, heads: np.ndarray, tails: np.ndarray) -> np.ndarray:
@@ -265,7 +274,47 @@ def skeleton_drive(points: np.ndarray, cells: np.ndarray, skeleton: Skeleton,
     start[:, boundary] = surface_start(points[boundary], rest_vertices, faces, frames)
     positions = rigged[:, dirichlet]
     start[:, dirichlet] = positions
-    return Drive(dirichlet, positions, start, idle_bones(distances, skeleton))
+    per_bone = np.bincount(distances[dirichlet].argmin(axis=1), minlength=skeleton.n_bones)
+    return Drive(dirichlet, positions, start, idle_bones(distances, skeleton), per_bone)
+
+
+def rig_description(skeleton: Skeleton, drive: Drive | None = None) -> dict:
+    """The rig as the set-up prints it and ``rig.json`` keeps it: per bone its name, rest
+    head and tail (metres), length and where the length came from, and (with the
+    ``drive``) the prescribed vertices nearest to it; the attach radius and the weights with
+    their origins (:attr:`Skeleton.origin`; ``"authored: ..."`` where it is empty)."""
+    names = list(skeleton.names) or [f"bone{b}" for b in range(skeleton.n_bones)]
+    lengths = np.linalg.norm(skeleton.tails - skeleton.heads, axis=1)
+    origin = skeleton.origin
+    lengths_from = origin.get("lengths") or ["authored: the file's bone segment"] * len(names)
+    weights_from = origin.get("weights") or (
+        "authored: the file's skinning weights" if skeleton.weights is not None else
+        "derived: from each vertex's distance to the bones (reach attach_radius)")
+    bones = [{"name": name, "head_m": skeleton.heads[b].tolist(),
+              "tail_m": skeleton.tails[b].tolist(), "length_m": float(lengths[b]),
+              "length_from": lengths_from[b]} for b, name in enumerate(names)]
+    if drive is not None and drive.per_bone is not None:
+        for bone, n in zip(bones, drive.per_bone):
+            bone["driven_vertices"] = int(n)
+    return {"bones": bones, "attach_radius_m": float(skeleton.attach_radius),
+            "attach_radius_from": origin.get("attach_radius",
+                                             "authored: the file's attach radius"),
+            "weights_from": weights_from}
+
+
+def rig_lines(description: dict) -> list[str]:
+    """The console's lines of a :func:`rig_description`: one per bone, then the radius and
+    the weights (``authored``/``derived`` and how)."""
+    lines = []
+    for bone in description["bones"]:
+        driven = f", {bone['driven_vertices']:,} driven vertices" \
+            if "driven_vertices" in bone else ""
+        lines.append(f"bone {bone['name']}: {bone['length_m']:.4g} m{driven}; length "
+                     f"{bone['length_from']}")
+    lines.append(f"attach radius {description['attach_radius_m']:.4g} m: "
+                 f"{description['attach_radius_from']}")
+    lines.append(f"weights {description['weights_from']}")
+    return lines
 
 
 def surface_drive(points: np.ndarray, driven: DrivenSurface, rest_vertices: np.ndarray,

@@ -11,6 +11,8 @@ into the run directory
     the tetrahedral mesh (rest positions) for ParaView (meshio): cell data ``E`` (fitted),
     ``E_true`` (synthetic targets), ``region``; point data ``displacement_NNN`` per frame
     (``Warp By Vector`` shows a frame);
+``rig.json``
+    the rig the body was attached with (:func:`.body_files.write_rig`);
 ``regions.json``
     the fitted field summarised per region (tets, volume, mean, min, max, volume-weighted
     mean), and the truth's for synthetic targets;
@@ -60,7 +62,7 @@ from .figures import colorize, frame_errors_figure, save_png
 from .guard import PlotGuard
 from .progress import PROGRESS_LOGGER
 from .body_files import (FRAMES_DIR, VTU_FILE, file_surface, vtu_cell_data, write_body_vtu,
-                         write_obj_sequence, write_usd)
+                         write_obj_sequence, write_rig, write_usd)
 from .results import write_folder, write_json
 
 #: the per-frame errors of every recorded iteration (module docstring)
@@ -314,6 +316,7 @@ class BodyOutputs:
             ("body.vtu", self._write_vtu, (x, field)),
             ("USD frames and tet mesh", self._write_usd, (x, field, final.theta)),
             ("regions.json", self._write_regions, (field,)),
+            ("rig.json", write_rig, (self.run_dir, problem)),
             ("TensorBoard meshes", self._write_meshes, (x, field)),
             ("frame_errors.png", self._write_frame_errors, (final,)),
         ]

@@ -12,7 +12,9 @@ a primvar, and the material as the deformable-physics draft names it: ``youngsMo
 on an ``over`` of the user's mesh prim, or on a ``/Rest`` mesh for a folder or glTF
 animation). Every modulus is written in the units :func:`modulus_units` gives (pascals, or
 relative to ``problem.E0``), said on each attribute (``customData``, ``documentation``)
-and in the VTU field's name. Folders are filled beside their name and renamed when whole, single files
+and in the VTU field's name. ``rig.json``: the rig the body was attached with (its bones,
+lengths, attach radius, driven vertices per bone, each authored or derived and how:
+:func:`torchfit.mesh.rig_description`). Folders are filled beside their name and renamed when whole, single files
 written to a temporary name and renamed: a kill or a full disk leaves no part.
 """
 from __future__ import annotations
@@ -28,7 +30,7 @@ import numpy as np
 from ..mesh import write_obj
 from ..problems import EmbeddedSurfaceProblem
 from .progress import PROGRESS_LOGGER
-from .results import write_folder
+from .results import write_folder, write_json
 
 VTU_FILE = "body.vtu"
 #: the per-vertex Young's modulus on the user's mesh (an over of its prim)
@@ -40,6 +42,7 @@ FRAMES_DIR = "frames"
 #: ``customData`` ``torchfit:determined`` of the material a not-determined fit writes
 NOT_DETERMINED = ("false: the data determine no material; this is the field the fit started "
                   "from, not a fitted one (identifiability.json)")
+RIG_FILE = "rig.json"
 USD_DIR = "usd"
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
@@ -229,3 +232,12 @@ def vertex_field(problem: Any, field: np.ndarray) -> np.ndarray | None:
     values = np.einsum("vk,vk->v", nodes[cells[problem.embedding.cells]],
                        problem.embedding.weights)
     return problem.animation.file_values(values)
+
+
+def write_rig(run_dir: Path, problem: Any) -> list[Path]:
+    """``rig.json``: the problem's attached rig (``problem.rig_description``); nothing for a
+    body driven by surface vertices."""
+    description = getattr(problem, "rig_description", None)
+    if description is None:
+        return []
+    return [write_json(Path(run_dir) / RIG_FILE, description)]

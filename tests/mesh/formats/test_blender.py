@@ -48,10 +48,13 @@ def test_a_split_limb_from_blender_reads_as_blender_skins_it(limb):
     order = np.lexsort(usd.rest_vertices.T)
     other = np.lexsort(z_up(glb.rest_vertices).T)
     assert np.abs(usd.frames[:, order] - z_up(glb.frames)[:, other]).max() < 1e-6
-    # the end bone carries a third of the limb: its bone reaches one radius short of the tip
+    # the end bone carries a third of the limb: the limb's end is flat (a capped tube), so
+    # its bone reaches the tip, as Blender's bone does; the same rig from either file
     for animation, tail in ((usd, usd.skeleton.tails[2]), (glb, z_up(glb.skeleton.tails[2]))):
         assert animation.skeleton.names == ["upper", "lower", "end"]
-        assert np.allclose(tail, [LENGTH - RADIUS, 0, 0], atol=2e-3)
+        assert np.allclose(tail, [LENGTH, 0, 0], atol=2e-3)
+        assert animation.skeleton.origin["lengths"][2].endswith("(a flat end)")
+    assert glb.skeleton.attach_radius == pytest.approx(usd.skeleton.attach_radius, rel=1e-6)
 
 
 def test_a_hand_with_two_fingers_has_a_bone_per_finger_joint(tmp_path):

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from torchfit.mesh.formats.folder import AnimationError
-from torchfit.mesh.formats.joints import (bone_joints, end_bone_tails, fan_triangles,
+from torchfit.mesh.formats.joints import (bone_joints, end_bone_tails, end_extent,
+                                           fan_triangles,
                                           skeleton_from_joints)
 from torchfit.mesh.rig import Skeleton, blend, skeleton_drive
 
@@ -57,8 +58,8 @@ def test_bones_to_joints_and_back_is_the_same_rig():
     assert parents.tolist() == [-1, 0, 1] and mover.tolist() == [0, 1, 1]
     joint_weights = np.concatenate([weights, np.zeros((3, 1))], 1)
     back = skeleton_from_joints(positions, parents, skeleton.transforms[:, mover],
-                                joint_weights, ["up", "fore", "end"], None, heads + [0.3, 0, 0],
-                                "s")
+                                joint_weights, ["up", "fore", "end"], None,
+                                np.array([[0.3, 0, 0], [0.3, 0, 1], [0.3, 0, 2]]), "s")
     assert back.names == ["up", "fore"]
     assert np.allclose(back.heads, heads) and np.allclose(back.tails, tails)
     assert np.allclose(back.transforms, skeleton.transforms)
@@ -101,10 +102,13 @@ def test_a_weighted_end_joint_drives_the_flesh_its_weights_cover():
     skeleton = skeleton_from_joints(joints, parents, T, weights, ["upper", "lower", "end"],
                                     None, rest, "limb")
     assert skeleton.names == ["upper", "lower", "end"]
-    # the end bone: from its joint along the axis from its parent, one flesh radius (0.05)
-    # short of the tip (0.5) its weights reach
+    # the end bone: from its joint along the axis from its parent to the flat end (0.5) its
+    # weights reach, and says so
     assert np.allclose(skeleton.heads[2], [1 / 3, 0, 0])
-    assert np.allclose(skeleton.tails[2], [0.45, 0, 0])
+    assert np.allclose(skeleton.tails[2], [0.5, 0, 0])
+    assert skeleton.origin["lengths"][2].endswith("along its axis (a flat end)")
+    assert skeleton.origin["lengths"][:2] == ["authored: the joint to its child joint"] * 2
+    assert skeleton.origin["attach_radius"].startswith("derived: 0.4 x the median distance")
     # material points inside the tube (tet vertices): those of the end bone follow it
     rng = np.random.default_rng(0)
     inside = rng.uniform([0, -0.05, -0.05], [0.5, 0.05, 0.05], size=(4000, 3))
@@ -135,18 +139,19 @@ def test_end_bones_authored_rootless_tiny_and_idle():
     rest, joints, parents, weights, T = limb()
     normalised = weights / weights.sum(1, keepdims=True)
     # an authored length wins over the data (glTF extras / USD torchfit:boneLength)
-    tails = end_bone_tails(joints, parents, normalised, rest, np.array([2]),
-                           np.array([0.0, 0.0, 0.1]))
+    tails, how = end_bone_tails(joints, parents, normalised, rest, np.array([2]),
+                                np.array([0.0, 0.0, 0.1]), "torchfit:boneLength")
     assert np.allclose(tails, [[1 / 3 + 0.1, 0, 0]])
+    assert how == ["authored: torchfit:boneLength"]
     # a single weighted root joint: the principal axis of its vertices, to their side
-    single = end_bone_tails(np.array([[0.0, 0, 0]]), np.array([-1]), np.ones((len(rest), 1)),
-                            rest, np.array([0]))
+    single, _ = end_bone_tails(np.array([[0.0, 0, 0]]), np.array([-1]),
+                               np.ones((len(rest), 1)), rest, np.array([0]))
     assert single[0, 0] > 0.3 and np.allclose(single[0, 1:], 0, atol=1e-9)
     # a tiny region (the end joint dominates no vertex): where its weight is >= half its most
     tiny = normalised.copy()
     tiny[:, 2] *= 0.3
     tiny /= tiny.sum(1, keepdims=True)
-    tails = end_bone_tails(joints, parents, tiny, rest, np.array([2]))
+    tails, _ = end_bone_tails(joints, parents, tiny, rest, np.array([2]))
     assert tails[0, 0] > 0.4 and np.allclose(tails[0, 1:], 0)
     # a bone far from every material point drives nothing and is named
     skeleton = skeleton_from_joints(joints, parents, T, weights, ["upper", "lower", "end"],
@@ -157,3 +162,49 @@ def test_end_bones_authored_rootless_tiny_and_idle():
     drive = skeleton_drive(inside, np.arange(12).reshape(3, 4), skeleton, rest,
                            np.array([[0, 1, 2]]), blend(rest, weights, T))
     assert drive.idle_bones == ["end"]
+
+
+def test_an_end_bone_ends_at_a_flat_end_or_at_its_caps_centre():
+    """A tube of radius 0.05 whose last 0.3 m an end bone's weights dominate: flat, the bone
+    reaches the end; capped by a hemisphere (15-degree rings), the cap's centre."""
+    phi = np.radians(np.arange(0, 360, 30))
+    ring = lambda s, r: np.stack([np.full(phi.size, s), r * np.cos(phi), r * np.sin(phi)], 1)  # noqa: E731
+    body = np.concatenate([ring(s, 0.05) for s in np.linspace(0, 0.3, 13)])
+    flat = np.concatenate([body, [[0.3, 0, 0]]])
+    angles = np.radians(np.arange(15, 90, 15))
+    cap = np.concatenate([body] + [ring(0.3 + 0.05 * np.sin(a), 0.05 * np.cos(a))
+                                   for a in angles] + [[[0.35, 0, 0]]])
+    for points, length, rounding in ((flat, 0.3, 0.0), (cap, 0.3, 0.05)):
+        radial = np.linalg.norm(points[:, 1:], axis=1)
+        got = end_extent(points[:, 0], radial)
+        assert got == pytest.approx((length, rounding), abs=2e-3)
+    # a cone tapering to a point (a fingertip): its end radius near the tip is small, so the
+    # bone reaches within it of the tip (0.3)
+    cone = np.stack([np.linspace(0, 0.3, 20), np.linspace(0.05, 0, 20), np.zeros(20)], 1)
+    assert 0.29 < end_extent(cone[:, 0], cone[:, 1])[0] < 0.3
+
+
+def test_coinciding_or_misplaced_joints_are_refused_naming_them():
+    rest, joints, parents, weights, T = limb()
+    names = ["upper", "lower", "end"]
+    at_origin = np.zeros_like(joints)
+    with pytest.raises(AnimationError) as err:
+        skeleton_from_joints(at_origin, parents, T, weights, names, None, rest, "limb.usda")
+    message = str(err.value)
+    assert "\n" not in message and message.startswith("limb.usda: joints upper, lower, end "
+                                                       "coincide (all at (0, 0, 0) m")
+    assert "apply the armature's rest pose" in message
+    # the end joint moved 0.3 m off the limb (0.5 m long): its flesh lies far from it
+    off = joints.copy()
+    off[2] += [0, 0.3, 0]
+    with pytest.raises(AnimationError, match=r"limb.usda: the bones of joint end lie far "
+                       r"from the vertices their weights dominate \(joint end: a median "
+                       r"0\.3\d+ m away on a body 0\.52 m across"):
+        skeleton_from_joints(off, parents, T, weights, names, None, rest, "limb.usda")
+    # a weightless root on the first joint is no fault
+    with_root = np.concatenate([joints[:1], joints])
+    skeleton = skeleton_from_joints(with_root, np.array([-1, 0, 1, 2]),
+                                    np.concatenate([T[:, :1], T], 1),
+                                    np.concatenate([0 * weights[:, :1], weights], 1),
+                                    ["root"] + names, None, rest, "limb.usda")
+    assert skeleton.names[0] == "root" and skeleton.n_bones == 4

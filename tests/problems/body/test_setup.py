@@ -110,6 +110,10 @@ def test_every_set_up_step_is_on_the_console_with_its_counts(tmp_path, caplog, m
         f"attaching the rig to {n_points:,} tetrahedron vertices in 3 frames ...",
         f"attaching the rig to {n_points:,} tetrahedron vertices in 3 frames: "
         f"{len(problem.dirichlet_vertices):,} driven (prescribed), ",
+        "rig: bone ", "rig: bone ",
+        f"rig: attach radius {problem.animation.skeleton.attach_radius:.4g} m: authored: the "
+        "file's attach radius",
+        "rig: weights derived: from each vertex's distance to the bones (reach attach_radius)",
         f"first simulation of 3 frames ({n_tets:,} tetrahedra, corotated) ...",
         f"first simulation of 3 frames ({n_tets:,} tetrahedra, corotated): 3 frames in "
         "equilibrium, ",
@@ -118,6 +122,29 @@ def test_every_set_up_step_is_on_the_console_with_its_counts(tmp_path, caplog, m
     for line, start in zip(lines, expected):
         assert line.startswith(start), (line, start)
     assert "with weights from distance reproduces" in lines[3]    # weights: distance
+    bones = problem.rig_description["bones"]
+    assert sum(b["driven_vertices"] for b in bones) == len(problem.dirichlet_vertices)
+    for line, bone in zip(lines[10:12], bones):
+        assert line == (f"rig: bone {bone['name']}: {bone['length_m']:.4g} m, "
+                        f"{bone['driven_vertices']:,} driven vertices; length authored: the "
+                        "file's bone segment")
     assert problem.rig_report.distance_weights and problem.rig_report.skinning_error < 0.05
     assert problem.rig_report.scale_ratios.shape == (3,)
     assert lines[-1].endswith(" s")
+
+
+def test_the_app_refuses_a_stage_with_every_joint_at_the_origin_and_writes_nothing(tmp_path):
+    pytest.importorskip("pxr")
+    from helpers.rigged_tube import write_tube_stage
+
+    stage = write_tube_stage(tmp_path / "origin.usda", at_origin=True)
+    run = tmp_path / "run"
+    proc = run_fit_app(run, "problem=animation", f"problem.path={stage}",
+                       f"problem.cache_dir={tmp_path / 'cache'}")
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("error: ")]
+    assert proc.returncode == 2 and len(errors) == 1, proc.stderr[-3000:]
+    assert "Traceback" not in proc.stderr
+    assert errors[0].startswith(f"error: problem.path={stage}: /Root/Tube: joints base, tip "
+                                "coincide (all at (0, 0, 0) m in the rest pose), so their bones "
+                                "have no length and hold no flesh; ")
+    assert not run.exists() and not (tmp_path / "cache").exists()

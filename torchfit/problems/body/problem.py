@@ -52,7 +52,8 @@ from ..base import InverseProblem, array_digest
 from ..protocols import BodySimulation, WarmStarts
 from .grid import blocks_field, body_grid, grid_parameterization
 from .motion import most_deformed_frame, most_strained_cells, picture_up, view_axes
-from .setup import animation_summary, check_rig, check_tet_settings, tet_mesh, tet_options
+from .setup import (animation_summary, check_rig, check_tet_settings, report_rig, tet_mesh,
+                    tet_options)
 from .report import (BODY_METRICS, body_metrics, describe_body, frame_report,
                      inverted_counts, min_volume_ratios, volume_change)
 from ..config import (Backend, ProblemConfigError, Transform, check_newton_settings,
@@ -232,6 +233,8 @@ class RiggedBody(InverseProblem):
                 message = message[len(str(where)) + 1:]
             elif message.startswith(f"{where}: "):          # a reader's line on the file itself
                 message = message[len(str(where)) + 2:]
+            elif message.startswith(f"{where}:"):           # ... on a prim or node of it
+                message = message[len(str(where)) + 1:]
             raise ProblemConfigError(f"problem.path={where}: {message}") from err
 
     def build_model(self, cfg: RiggedBodyConfig) -> None:
@@ -290,6 +293,8 @@ class RiggedBody(InverseProblem):
                 progress.result = f"{count(len(drive.vertices))} driven (prescribed)"
         except MeshError as err:
             raise ProblemConfigError(f"{animation.path}: {err}") from err
+        # the attached rig, printed once; the run writes it as rig.json (None: driven vertices)
+        self.rig_description = None if rigged.skeleton is None else report_rig(rigged.skeleton, drive)
         if drive.idle_bones:
             log.warning(f"{animation.path}: rig check: bone(s) {', '.join(drive.idle_bones)} "
                         f"drive no material (no tetrahedron vertex within attach_radius="

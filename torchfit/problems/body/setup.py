@@ -5,20 +5,25 @@ tetrahedralising, embedding, attaching the rig, the first simulation); each logs
 does, its counts and its time (:mod:`torchfit.steps`, logger ``torchfit.setup``), so the
 console shows the tet count, the number of driven vertices and where the tet cache is
 before the first iteration. The rig check (:mod:`torchfit.mesh.rig_check`) runs before
-anything is built or cached: a refused rig costs a second and writes nothing.
+anything is built or cached: a refused rig costs a second and writes nothing. Once the rig
+is attached, :func:`report_rig` prints it once (bones, lengths, attach radius, driven
+vertices per bone, and whether the file gave each or the reader derived it and how); the
+run keeps it as ``rig.json``.
 """
 from __future__ import annotations
 
 import contextlib
+import logging
 import time
 from pathlib import Path
 from typing import Any, Iterator
 
 from ...mesh import MeshError
-from ...mesh import (Animation, AnimationError, KeptMesh, RigReport, TetMesh, TetOptions,
-                     check_animation, default_cache_dir)
+from ...mesh import (Animation, AnimationError, KeptMesh, RigReport, Skeleton, TetMesh,
+                     TetOptions, check_animation, default_cache_dir, rig_description,
+                     rig_lines)
 from ...physics import newton_progress
-from ...steps import count, step
+from ...steps import SETUP_LOGGER, count, step
 from .frame import tetrahedralize_in_frame
 from ..config import ProblemConfigError, require_setting
 
@@ -54,6 +59,19 @@ def check_rig(cfg: Any, animation: Animation) -> RigReport | None:
                                      "problem.rig_tolerance sets the tolerance)") from err
         progress.result = report.line().removeprefix("rig check: ")
     return report
+
+
+def report_rig(skeleton: Skeleton, drive: Any) -> dict:
+    """The attached rig on the set-up's console, one line per bone then the attach radius and
+    the weights (:func:`torchfit.mesh.rig_lines`), each saying whether the file gave it or
+    how it was derived; returns the description ``rig.json`` keeps
+    (:func:`torchfit.mesh.rig_description`; ``drive``: the :class:`~torchfit.mesh.rig.Drive`
+    that counts the driven vertices per bone)."""
+    description = rig_description(skeleton, drive)
+    log = logging.getLogger(SETUP_LOGGER)
+    for line in rig_lines(description):
+        log.info("rig: %s", line)
+    return description
 
 
 @contextlib.contextmanager

@@ -131,3 +131,42 @@ def test_a_file_that_is_not_a_stage_is_one_line_for_the_animation_and_the_layer(
         text = str(info.value)
         assert "\n" not in text and text.startswith(str(path)) and "Error in" not in text
         assert text.endswith("give a USD file (.usd, .usda, .usdc)")
+
+
+def test_a_third_party_tube_stage_derives_the_folders_rig_and_says_so(tmp_path):
+    """The rigged tube as a UsdSkel stage with joints only (no end joint, no length, no
+    radius): the reader's bones, lengths and attach radius are the folder's authored ones."""
+    from helpers.rigged_tube import tube_animation, write_tube_stage
+
+    authored = tube_animation("x", bulge=0.0)
+    animation = load_usd(write_tube_stage(tmp_path / "tube.usda"))
+    skeleton, folder = animation.skeleton, authored["skeleton"]
+    assert skeleton.names == ["base", "tip"]
+    assert np.abs(animation.frames - authored["frames"]).max() < 1e-6
+    assert np.abs(skeleton.heads - folder.heads).max() < 1e-6
+    assert np.abs(skeleton.tails - folder.tails).max() < 2e-3 * 0.25   # within 0.2 %
+    assert skeleton.attach_radius == pytest.approx(folder.attach_radius, rel=0.01)
+    assert skeleton.origin["lengths"][0] == "authored: the joint to its child joint"
+    assert skeleton.origin["lengths"][1].startswith("derived: the extent of the vertices its "
+                                                    "weights dominate along its axis less the "
+                                                    "rounded end's radius 0.05 m")
+    assert skeleton.origin["attach_radius"].startswith("derived: 0.4 x the median distance")
+
+
+def test_a_stage_with_every_joint_at_the_origin_is_refused_though_it_skins(tmp_path, monkeypatch):
+    from helpers.rigged_tube import tube_animation, write_tube_stage
+    from torchfit.mesh.formats import joints
+
+    path = write_tube_stage(tmp_path / "origin.usda", at_origin=True)
+    with pytest.raises(AnimationError) as err:
+        load_usd(path)
+    assert str(err.value) == (
+        f"{path}:/Root/Tube: joints base, tip coincide (all at (0, 0, 0) m in the rest pose), "
+        "so their bones have no length and hold no flesh; the skinning may still reproduce "
+        "the frames, but the bind transforms must place each joint where it bends (in the "
+        "DCC: apply the armature's rest pose and re-export)")
+    # a valid stage: with the placement checks off its skinning gives the tube's frames
+    monkeypatch.setattr(joints, "check_joint_placement", lambda *args: None)
+    monkeypatch.setattr(joints, "check_bone_placement", lambda *args: None)
+    animation = load_usd(path)
+    assert np.abs(animation.frames - tube_animation("x", bulge=0.0)["frames"]).max() < 1e-6

@@ -18,7 +18,8 @@
 - bones: the joints' segments (:func:`..joints.skeleton_from_joints`: an end joint's bone
   reaches over the vertices its weights dominate, or ``extras: {"torchfit:boneLength":
   metres}`` on its joint node); ``attach_radius`` from ``extras: {"torchfit:attachRadius":
-  metres}`` on the skin or the node, else the default there.
+  metres}`` on the skin or the node, else the default there; the skeleton says which was
+  authored and which derived, and a degenerate joint tree is refused there.
 
 Units: metres (glTF's); the coordinates are kept, and the animation's ``up`` is +Y (the
 glTF specification's up axis; the pictures stand the body on it). Refused with one line (:class:`~torchfit.mesh.AnimationError`): ``CUBICSPLINE``
@@ -352,7 +353,9 @@ def load_gltf(path: str | Path, prim: str = "", fps: float = 0.0) -> Animation:
     lengths = np.array([float(nodes[j].extras.get("torchfit:boneLength", np.nan))
                         if isinstance(nodes[j].extras, dict) else np.nan for j in joints])
     skeleton = skeleton_from_joints(positions, np.array(joint_parent), matrices[..., :3, :],
-                                    weights, names, radius, rest, where, lengths)
+                                    weights, names, radius, rest, where, lengths,
+                                    authored_as=("the extras' torchfit:attachRadius",
+                                                 "the joint's extras torchfit:boneLength"))
     if not np.isfinite(frames).all():
         raise AnimationError(f"{where}: the posed points hold a NaN or infinite coordinate")
     import trimesh

@@ -19,7 +19,8 @@ imported only here and only then), one mesh prim of the stage into the same
   weights dominate, or ``torchfit:boneLength``, a float array on the skeleton prim with one
   length per joint in stage units, 0 where the data decide); ``attach_radius`` from the
   float attribute ``torchfit:attachRadius`` (stage units) on the mesh or skeleton, else the
-  default there.
+  default there; the skeleton says which was authored and which derived, and a degenerate
+  joint tree (weighted joints that coincide, bones away from their flesh) is refused there.
 - **a point cache**: a mesh whose ``points`` are time-sampled; the driven vertices are the
   primvar ``primvars:torchfit:driven`` (bool or int per vertex, nonzero: driven), the
   tolerance ``torchfit:drivenTolerance`` (stage units; default: the mean edge length of the
@@ -252,7 +253,9 @@ def _skinned(pxr: Any, path: Path, prim: Any, skeleton_query: Any, query: Any,
     skeleton = skeleton_from_joints(positions * scale, parents, transforms, weights,
                                     [j.rsplit("/", 1)[-1] for j in joints],
                                     None if radius is None else radius * scale, rest * scale,
-                                    where, None if lengths is None else lengths * scale)
+                                    where, None if lengths is None else lengths * scale,
+                                    authored_as=("the stage's torchfit:attachRadius",
+                                                 "the stage's torchfit:boneLength"))
     names = [f"{path.name}:{prim.GetPath()}@{c.GetValue():g}" for c in codes]
     return _animation(path, rest * scale, faces, frames * scale, scale, names, skeleton=skeleton,
                       prim=str(prim.GetPath()))
