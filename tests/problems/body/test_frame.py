@@ -96,15 +96,38 @@ def _metrics(run):
     return found
 
 
+def _turned_stage(source, target, rotation, shift):
+    """``source`` (a USD stage in metres) flattened into ``target``, turned by ``rotation``,
+    moved by ``shift`` (m) and written in centimetres (``metersPerUnit`` 0.01, the root's
+    transform scaled by 100): the same body in metres."""
+    from pxr import Gf, Usd, UsdGeom
+
+    Usd.Stage.Open(str(source)).Flatten().Export(str(target))
+    stage = Usd.Stage.Open(str(target))
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    matrix = np.eye(4)
+    matrix[:3, :3], matrix[3, :3] = 100.0 * rotation.T, 100.0 * shift      # row vectors
+    root = stage.GetDefaultPrim()
+    UsdGeom.Xformable(root).AddTransformOp().Set(Gf.Matrix4d(matrix.tolist()))
+    stage.Save()
+
+
 @pytest.mark.slow
-def test_a_blender_limb_as_usd_gltf_and_centimetres_fits_the_same(tmp_path):
+def test_a_blender_limb_in_any_file_fits_the_same_and_simulates_from_another(tmp_path):
     """Acceptance (issue 47, item 1): the Blender limb exported as USD (Z up, metres), as
-    glTF (Y up, seams split) and as USD in centimetres (``metersPerUnit`` 0.01): one mesh
-    (the first run builds it, the others read it: 1,115 tetrahedra each) and the same fitted
-    surface errors: the centimetre stage to 1e-9 relative (measured 1e-15); the glTF to
-    1e-5 (measured 2.5e-6): its frames are not the USD's bytes (glTF skins through float32
-    joint matrices: up to 7e-8 m apart on a 0.5 m limb, so 6e-5 of the 1.2 mm error at a
-    vertex), 2 LM iterations, 3 frames, one thread."""
+    glTF (Y up, seams split), as USD in centimetres (Blender's ``metersPerUnit`` 0.01) and
+    that USD turned by a general rotation and written x100 in centimetres (pxr): one mesh
+    (the first run builds it, the others read it: 1,115 tetrahedra each in one test run, 867
+    in another: fTetWild's fresh build is not repeatable) and the same fitted surface
+    errors: the USDs to 1e-9 relative (measured 7e-16 and 6e-13); the glTF to 1e-5
+    (measured 2.3-2.5e-6): its frames are not the USD's bytes (glTF skins through float32
+    joint matrices: up to 7e-8 m apart on a 0.5 m limb, 6e-5 of the 1.2 mm error at a
+    vertex). 2 LM iterations, 3 frames, one thread. ``simulate`` of the USD fit's material
+    on the turned stage, with no cache, uses the fit's mesh (mapped) and gives the errors it
+    gives on the USD itself (measured 1.2e-11 apart)."""
+    from scipy.spatial.transform import Rotation
+
+    from helpers.apps import run_app
     from helpers.blender_rigs import blender_available, run_blender
     from helpers.fit_app import run_fit_app
 
@@ -114,8 +137,11 @@ def test_a_blender_limb_as_usd_gltf_and_centimetres_fits_the_same(tmp_path):
     limb = {"kind": "limb", "seams": True, "split": True, "frames": 3, "bend": 45.0}
     run_blender(limb | {"usd": "limb.usda", "glb": "limb.glb"}, tmp_path / "m")
     run_blender(limb | {"usd": "limb.usda", "meters_per_unit": 0.01}, tmp_path / "cm")
+    turn = Rotation.from_euler("xyz", [37.0, -71.0, 113.0], degrees=True).as_matrix()
+    _turned_stage(tmp_path / "m" / "limb.usda", tmp_path / "turned.usda", turn,
+                  np.array([0.3, -0.1, 0.7]))
     files = {"usd": tmp_path / "m" / "limb.usda", "gltf": tmp_path / "m" / "limb.glb",
-             "usd_cm": tmp_path / "cm" / "limb.usda"}
+             "usd_cm": tmp_path / "cm" / "limb.usda", "usd_turned": tmp_path / "turned.usda"}
     figures, logs = {}, {}
     for name, path in files.items():
         run = tmp_path / f"run_{name}"
@@ -128,8 +154,20 @@ def test_a_blender_limb_as_usd_gltf_and_centimetres_fits_the_same(tmp_path):
         print(name, figures[name])
     assert "built and cached" in logs["usd"] and "read from the cache" in logs["gltf"]
     assert len(list((tmp_path / "c").glob("tetmesh/canonical/*/*.npz"))) == 1
-    for name, tolerance in (("gltf", 1e-5), ("usd_cm", 1e-9)):
+    for name, tolerance in (("gltf", 1e-5), ("usd_cm", 1e-9), ("usd_turned", 1e-9)):
         assert figures[name].keys() == figures["usd"].keys()
         for key, value in figures["usd"].items():
             assert figures[name][key] == pytest.approx(value, rel=tolerance, abs=1e-12), \
                 (name, key)
+    simulated = {}
+    for name in ("usd", "usd_turned"):
+        out = tmp_path / f"simulate_{name}"
+        proc = run_app("simulate.py", f"hydra.run.dir={out}", f"run={tmp_path / 'run_usd'}",
+                       f"problem.path={files[name]}", "problem.cache_dir=", "threads=1",
+                       env={"TORCHFIT_CACHE_DIR": str(tmp_path / "empty-cache")})
+        assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
+        simulated[name] = _metrics(out)
+        print("simulate", name, simulated[name])
+    assert not (tmp_path / "empty-cache").exists()
+    for key, value in simulated["usd"].items():
+        assert simulated["usd_turned"][key] == pytest.approx(value, rel=1e-9, abs=1e-12), key
