@@ -171,13 +171,21 @@ def welded_surface(vertices: np.ndarray, faces: np.ndarray, tolerance: float = W
     v = np.asarray(vertices, dtype=np.float64)
     radius = float(np.linalg.norm(v - v.mean(axis=0), axis=1).max()) or 1.0
     groups = weld_groups(v, tolerance * radius)
+    return groups, _group_means(v, groups), _uncollapsed(groups[np.asarray(faces, dtype=np.int64)])
+
+
+def _group_means(points: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """``(G, 3)`` the mean of each group's points."""
     n = int(groups.max()) + 1
-    merged = np.zeros((n, 3))
-    np.add.at(merged, groups, v)
-    merged /= np.bincount(groups, minlength=n)[:, None]
-    f = groups[np.asarray(faces, dtype=np.int64)]
-    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
-    return groups, merged, f[keep]
+    means = np.zeros((n, 3))
+    np.add.at(means, groups, points)
+    return means / np.bincount(groups, minlength=n)[:, None]
+
+
+def _uncollapsed(faces: np.ndarray) -> np.ndarray:
+    """The faces whose three corners are distinct (welding collapses the others)."""
+    return faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
+                 & (faces[:, 0] != faces[:, 2])]
 
 
 def canonical_surface(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray,
@@ -195,14 +203,11 @@ def canonical_surface(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarra
         raise TetrahedralizationError("the surface has no extent (every vertex at one "
                                       "point); give a surface that encloses a volume")
     groups = weld_groups(local[used] / scale, WELD)
-    n = int(groups.max()) + 1
-    merged = np.zeros((n, 3))
-    np.add.at(merged, groups, local[used] / scale)
-    merged /= np.bincount(groups, minlength=n)[:, None]
+    merged = _group_means(local[used] / scale, groups)
+    n = len(merged)
     index = np.full(len(v), -1, dtype=np.int64)
     index[used] = groups
-    f = index[f]
-    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    f = _uncollapsed(index[f])
     unit = 2.0 ** -SNAP_BITS
     snapped = np.round(merged / unit)
     order = np.lexsort((snapped[:, 0], snapped[:, 1], snapped[:, 2]))

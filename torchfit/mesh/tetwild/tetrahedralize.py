@@ -7,7 +7,8 @@ fTetWild is robust to imperfect surfaces but not deterministic (its output chang
 run to run and with the number of threads); the cache is what makes "the same input gives
 the same fit" true: the first call stores the mesh under a key that hashes the input
 (vertex and face bytes), the options and the pytetwild version, and every later call
-returns the stored arrays bit for bit.
+returns the stored arrays bit for bit. A body's surface goes through its canonical form
+instead (:mod:`.canonical`: one mesh whatever its axes, units, dtype, order or seams).
 
 Conventions: ``points`` ``(n, 3)`` float64 in the unit of the surface's vertices, ``cells``
 ``(m, 4)`` int64, positively oriented (``det([p1 - p0, p2 - p0, p3 - p0]) > 0``), every
