@@ -87,3 +87,27 @@ def test_a_near_copy_reads_the_entry_and_another_body_builds_its_own(tmp_path):
     other = tetrahedralize_canonical(longer, options, cache_dir=tmp_path)
     assert not other.from_cache and other.key != first.key
     assert len(list(tmp_path.glob("canonical/*/*.npz"))) == 2
+
+
+def test_the_same_surface_in_a_turned_canonical_frame_reads_the_entry_turned(tmp_path):
+    """A round body's frame in its cross-section comes from the motion: another shot turns
+    it. The entry stored in one frame serves the other, its tetrahedra turned alike."""
+    from scipy.spatial.transform import Rotation
+
+    vertices, faces = tapered_capsule()
+    options = TetOptions(edge_length_fac=0.2)
+    first = tetrahedralize_canonical(canonical_surface(vertices, faces, *FRAME), options,
+                                     cache_dir=tmp_path)
+    spin = Rotation.from_rotvec([0.0, 0.0, 0.9]).as_matrix()
+    v, f = seam_split(vertices, faces)                  # the welded order is the file's
+    turned_frame = canonical_surface(v, f, FRAME[0], spin @ FRAME[1])
+    assert canonical_surface(vertices, faces, *FRAME).difference(turned_frame) != ""
+    again = tetrahedralize_canonical(turned_frame, options, cache_dir=tmp_path)
+    assert again.from_cache and again.key == first.key
+    np.testing.assert_array_equal(again.cells, first.cells)
+    np.testing.assert_allclose(again.points, first.points, atol=1e-12)
+    # another order in the file gives no correspondence: another entry
+    pv, pf = permuted(vertices, faces)
+    other = tetrahedralize_canonical(canonical_surface(pv, pf, FRAME[0], spin @ FRAME[1]),
+                                     options, cache_dir=tmp_path)
+    assert not other.from_cache

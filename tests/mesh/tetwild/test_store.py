@@ -111,3 +111,38 @@ def test_the_same_body_from_another_file_gets_the_kept_mesh_mapped(tmp_path):
                                         r"shape \(a vertex 0\.0\d+ of the body's radius"):
         kept.mesh_for(other, f, options, body_surface(other, f, None))
     assert kept.frame_for(other, f, options, body_surface(other, f, None)) is None
+
+
+def test_a_round_body_turned_by_another_shot_s_motion_still_gets_the_kept_mesh(tmp_path):
+    """A round body's canonical frame is settled by its motion: another shot from another
+    file can turn it about the body's axis, so the canonical surfaces differ; the kept
+    welded vertices moved rigidly onto the file's (in their order) still match, and the
+    mesh is mapped by that motion. Another shape still does not."""
+    from scipy.spatial.transform import Rotation
+
+    from tests.helpers.canonical_surfaces import seam_split, tapered_capsule, turned
+    from torchfit.mesh import canonical_surface
+    from torchfit.problems.body.frame import body_surface, tetrahedralize_in_frame
+
+    vertices, faces = tapered_capsule()
+    options = TetOptions(edge_length_fac=0.2)
+    tet = tetrahedralize_in_frame(vertices, faces, None, options, tmp_path / "cache")
+    frame = (np.array([0.1, 0.2, 0.3]), np.eye(3))
+    write_run_mesh(tmp_path / "mesh.npz", tet, options, vertices, faces, None, frame)
+    kept = KeptMesh(read_run_mesh(tmp_path / "mesh.npz"), required=True)
+    moved, (_, R, t) = turned(vertices, scale=1.0)
+    v, f = seam_split(moved.astype(np.float32), faces)
+    own = body_surface(v, f, None).placement
+    spin = Rotation.from_rotvec([0.0, 0.0, 0.7]).as_matrix()    # about a2: the motion's choice
+    surface = canonical_surface(v, f, own.origin, spin @ own.axes)
+    assert kept.stored.canonical_surface().difference(surface) != ""
+    mesh = kept.mesh_for(v, f, options, surface)
+    assert np.abs(mesh.points - (tet.points @ R.T + t)).max() < 1e-6 * np.ptp(tet.points)
+    origin, axes = kept.frame_for(v, f, options, surface)
+    assert np.abs(origin - (frame[0] @ R.T + t)).max() < 1e-6
+    assert np.abs(axes - frame[1] @ R.T).max() < 1e-6
+    other = v.copy()
+    other[:, 2] *= 1.05
+    with pytest.raises(MeshError, match="^not the fitted body: not the fitted body's surface"):
+        kept.mesh_for(other, f, options, canonical_surface(other, f, own.origin,
+                                                           spin @ own.axes))

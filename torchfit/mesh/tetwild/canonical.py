@@ -25,9 +25,14 @@ mapped by its own :class:`Placement` (scale, rotate, translate) into its file's
 coordinates: a rotated, rescaled, re-ordered, seam-split or float32 copy of a surface gets
 the same tetrahedra (the same count, points equal to the mapped ones to round-off), and
 the same :attr:`~.options.TetMesh.key`. A byte-identical canonical surface is found by its
-file name (``digest``); any other of the same key by comparing it with each stored one.
+file name (``digest``); any other of the same key by comparing it with each stored one;
+failing that, a stored surface that is this one turned (vertex for vertex in the files'
+welded order, :func:`turn_between`: a round body whose axes another shot's motion chose)
+serves it, its tetrahedra turned alike.
 **Not promised:** another triangulation or a remeshed surface of the same shape (other
-counts or triangles: another entry), nor a fresh cache giving the same mesh: fTetWild's
+counts or triangles: another entry), a mirror image, a round body turned by another shot
+*and* re-ordered (another entry), the same tetrahedra for a body symmetric in shape and
+motion (the same up to that symmetry), nor a fresh cache giving the same mesh: fTetWild's
 output changes from build to build even with one thread (docs/notes/axes.md), so the
 cache (shared, or the run's own ``mesh.npz``) is what fixes the mesh.
 
@@ -96,11 +101,14 @@ class CanonicalSurface:
     """A surface in canonical form (module doc) and where it sits in its file.
 
     ``vertices`` ``(n, 3)`` float64 canonical coordinates (radius 1), ``faces`` ``(k, 3)``
-    int64 in canonical order, ``placement`` the map back into the file's coordinates."""
+    int64 in canonical order, ``placement`` the map back into the file's coordinates,
+    ``file_order`` ``(n,)`` the canonical vertex of each welded vertex in the file's order
+    (``None``: not known)."""
 
     vertices: np.ndarray
     faces: np.ndarray
     placement: Placement
+    file_order: np.ndarray | None = None
 
     @property
     def digest(self) -> str:
@@ -138,6 +146,29 @@ class CanonicalSurface:
         if not np.array_equal(_sorted_faces(nearest[self.faces]), _sorted_faces(other.faces)):
             return "its surface has the same points but other triangles"
         return ""
+
+
+def turn_between(stored: CanonicalSurface, surface: CanonicalSurface,
+                 tolerance: float = MATCH) -> np.ndarray | None:
+    """``Q`` ``(3, 3)``, a rotation with ``stored.vertices @ Q.T`` on ``surface``'s vertices
+    (within ``tolerance``, vertex for vertex in the files' welded order, the same
+    triangles), or ``None``: the same surface in another canonical frame, as a round body
+    gets when another shot's motion settles its axes."""
+    if stored.file_order is None or surface.file_order is None or \
+            stored.vertices.shape != surface.vertices.shape or \
+            stored.faces.shape != surface.faces.shape:
+        return None
+    x, y = stored.vertices[stored.file_order], surface.vertices[surface.file_order]
+    u, _, vt = np.linalg.svd(y.T @ x)
+    turn = u @ vt
+    if np.linalg.det(turn) < 0 or np.abs(x @ turn.T - y).max() > tolerance:
+        return None
+    # the same triangles: stored canonical vertex -> the surface's, through the file order
+    to_surface = np.empty(len(x), dtype=np.int64)
+    to_surface[stored.file_order] = surface.file_order
+    if not np.array_equal(_sorted_faces(to_surface[stored.faces]), surface.faces):
+        return None
+    return turn
 
 
 def canonical_options(options: TetOptions, scale: float) -> TetOptions:
@@ -214,7 +245,8 @@ def canonical_surface(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarra
     rank = np.empty(n, dtype=np.int64)
     rank[order] = np.arange(n)
     canonical = snapped[order] * unit + 0.0          # + 0.0: no -0.0 in the bytes
-    return CanonicalSurface(canonical, _sorted_faces(rank[f]), Placement(origin, axes, scale))
+    return CanonicalSurface(canonical, _sorted_faces(rank[f]), Placement(origin, axes, scale),
+                            rank)
 
 
 def _sorted_faces(faces: np.ndarray) -> np.ndarray:
@@ -256,13 +288,16 @@ def tetrahedralize_canonical(surface: CanonicalSurface, options: TetOptions = Te
                 stored = write_entry(path, key, points, cells, build_seconds, work, version,
                                      overwrite=False,
                                      extra={"surface_vertices": surface.vertices,
-                                            "surface_faces": surface.faces})
+                                            "surface_faces": surface.faces} | (
+                                         {} if surface.file_order is None else
+                                         {"surface_order": surface.file_order}))
                 if stored is None:
                     path = None
                 elif not stored:                     # another process stored it first
                     found = _lookup(folder, surface)
         if found is not None:
-            path, points, cells, build_seconds, digest = found
+            path, points, cells, build_seconds, digest, turn = found
+            points = points if turn is None else points @ turn.T
             from_cache = True
         entry = hashlib.sha256(f"{key}/{digest}".encode()).hexdigest()
         mesh = TetMesh(surface.placement.to_file(points), cells, entry, from_cache,
@@ -285,16 +320,23 @@ def _build_canonical(surface: CanonicalSurface, options: TetOptions, progress: s
 
 
 def _lookup(folder: Path, surface: CanonicalSurface
-            ) -> tuple[Path, np.ndarray, np.ndarray, float, str] | None:
-    """The stored entry of ``surface`` under ``folder`` (its own digest first, then every
-    other in name order), or ``None``; unreadable entries are warned about and skipped."""
+            ) -> tuple[Path, np.ndarray, np.ndarray, float, str, np.ndarray | None] | None:
+    """The stored entry of ``surface`` under ``folder``, ``(path, points, cells,
+    build_seconds, digest, turn)``: its own digest first, then every other in name order
+    that matches (:meth:`CanonicalSurface.difference`; ``turn`` ``None``), then one that
+    matches turned (:func:`turn_between`: ``points @ turn.T`` are the surface's); ``None``
+    where none does. Unreadable entries are warned about and skipped."""
     own = folder / f"{surface.digest}.npz"
     others = sorted(p for p in folder.glob("*.npz") if p != own) if folder.is_dir() else []
+    entries = []
     for path in ([own] if own.exists() else []) + others:
         try:
             with np.load(path, allow_pickle=False) as data:
+                order = np.array(data["surface_order"]) if "surface_order" in data.files \
+                    else None
                 stored = CanonicalSurface(np.array(data["surface_vertices"]),
-                                          np.array(data["surface_faces"]), surface.placement)
+                                          np.array(data["surface_faces"]), surface.placement,
+                                          order)
                 points, cells = np.array(data["points"]), np.array(data["cells"])
                 build_seconds = float(data["build_seconds"])
         except Exception as e:  # noqa: BLE001  (a truncated or foreign file)
@@ -302,5 +344,10 @@ def _lookup(folder: Path, surface: CanonicalSurface
                         f"({type(e).__name__}: {' '.join(str(e).split())}); skipping it")
             continue
         if surface.difference(stored) == "":
-            return path, points, cells, build_seconds, path.stem
+            return path, points, cells, build_seconds, path.stem, None
+        entries.append((path, stored, points, cells, build_seconds))
+    for path, stored, points, cells, build_seconds in entries:
+        turn = turn_between(stored, surface)
+        if turn is not None:
+            return path, points, cells, build_seconds, path.stem, turn
     return None

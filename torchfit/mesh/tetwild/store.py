@@ -12,7 +12,9 @@ it for its own surface and options before the cache is looked at; a ``required``
 order, seams) is the same surface: where the mesh was made in canonical form
 (:mod:`.canonical`) the file keeps that form's placement, and a surface handed over with
 its own canonical form (``surface=``) matches when the two canonical surfaces are one
-(:meth:`~.canonical.CanonicalSurface.difference`) and their sizes agree within
+(:meth:`~.canonical.CanonicalSurface.difference`), or its welded vertices in their order
+are the kept ones moved rigidly (a round body turned by another shot's motion), and their
+sizes agree within
 :data:`SCALE_MATCH` (the kept mesh is a physical body: a rescaled copy in the same unit is
 another body, refused); the kept tetrahedra and the grid's frame are then mapped into the
 new file's coordinates. Any other surface is refused in one line naming what differs.
@@ -39,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from ..simplicial import MeshError
-from .canonical import CanonicalSurface, Placement, canonical_surface
+from .canonical import MATCH, CanonicalSurface, Placement, canonical_surface, welded_surface
 from .tetrahedralize import TetMesh, TetOptions, pytetwild_version, tetrahedralize
 
 #: The file a run keeps its mesh in.
@@ -80,21 +82,58 @@ class StoredMesh:
     def difference(self, vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
                    surface: CanonicalSurface | None = None) -> str:
         """What differs between this mesh's input and ``vertices``/``faces``/``options``
-        (one phrase; ``""``: nothing); with ``surface`` (their canonical form) the
-        canonical surfaces are compared where the arrays differ."""
+        (one phrase; ``""``: nothing); with ``surface`` (their canonical form) the same
+        body from another file matches too (:meth:`placement_for`)."""
+        return self.placement_for(vertices, faces, options, surface)[1]
+
+    def placement_for(self, vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
+                      surface: CanonicalSurface | None = None
+                      ) -> tuple[Placement | None, str]:
+        """``(placement, why)``: where this mesh's canonical coordinates sit in the file of
+        ``vertices``, ``faces`` (``None``: the kept file itself, nothing to map), and ``""``;
+        or ``(None, what differs)``. Another file matches (``surface``: its canonical form)
+        where the canonical surfaces are one, or else (a round body whose frame its motion
+        settles, turned by another shot's motion) where its welded vertices, in their
+        order, are the kept ones moved rigidly (within the canonical match) with the same
+        faces; in both cases at the same size (:data:`SCALE_MATCH`)."""
         exact = self._exact_difference(vertices, faces, options)
         if not exact or surface is None or self.placement is None or \
                 exact.startswith("tetrahedralisation options"):
-            return exact
+            return None, exact
         ours = self.canonical_surface()
         shape = ours.difference(surface)
+        placement = surface.placement
         if shape:
-            return f"not the fitted body's surface in any axes, order or seams: {shape}"
-        ratio = surface.placement.scale / ours.placement.scale
+            placement = self._moved_rigidly(vertices, faces)
+            if placement is None:
+                return None, f"not the fitted body's surface in any axes, order or seams: {shape}"
+        ratio = placement.scale / self.placement.scale
         if abs(ratio - 1.0) > SCALE_MATCH:
-            return (f"its rest surface is the fitted body's scaled by {ratio:.6g} (in "
-                    "metres: check the file's unit, e.g. USD metersPerUnit)")
-        return ""
+            return None, (f"its rest surface is the fitted body's scaled by {ratio:.6g} (in "
+                          "metres: check the file's unit, e.g. USD metersPerUnit)")
+        return placement, ""
+
+    def _moved_rigidly(self, vertices: np.ndarray, faces: np.ndarray) -> Placement | None:
+        """The kept placement carried by the similarity ``y = s x R^T + t`` that takes the
+        kept welded vertices onto ``vertices``' in their order, where it fits within
+        :data:`~.canonical.MATCH` of the radius and the faces are the same; else ``None``."""
+        _, x, x_faces = welded_surface(self.surface_vertices, self.surface_faces)
+        _, y, y_faces = welded_surface(vertices, faces)
+        if x.shape != y.shape or not np.array_equal(x_faces, y_faces):
+            return None
+        x_mean, y_mean = x.mean(axis=0), y.mean(axis=0)
+        u, sigma, vt = np.linalg.svd((y - y_mean).T @ (x - x_mean))
+        if np.linalg.det(u @ vt) < 0:                              # a mirror image
+            return None
+        rotation = u @ vt
+        scale = float(sigma.sum() / ((x - x_mean) ** 2).sum())
+        shift = y_mean - scale * x_mean @ rotation.T
+        radius = float(np.linalg.norm(y - y_mean, axis=1).max())
+        if np.abs(scale * x @ rotation.T + shift - y).max() > MATCH * radius:
+            return None
+        kept = self.placement
+        return Placement(scale * kept.origin @ rotation.T + shift, kept.axes @ rotation.T,
+                         scale * kept.scale)
 
     def canonical_surface(self) -> CanonicalSurface:
         """The canonical form of the kept rest surface at its recorded placement."""
@@ -121,22 +160,24 @@ class StoredMesh:
         return ""
 
     def tet_mesh(self, seconds: float, surface: CanonicalSurface | None = None,
-                 mapped: bool = False) -> TetMesh:
-        """The kept mesh (made of ``surface``, a matching canonical form); ``mapped``: its
-        points mapped into the coordinates of ``surface``'s file (another file)."""
-        if not mapped or surface is None or self.placement is None:
+                 placement: Placement | None = None) -> TetMesh:
+        """The kept mesh (made of ``surface``, a matching canonical form); with
+        ``placement`` (:meth:`placement_for`: another file) its points mapped into that
+        file's coordinates."""
+        if placement is None or self.placement is None:
             return TetMesh(self.points, self.cells, self.key, True, seconds,
                            self.build_seconds, self.path, surface)
-        points = surface.placement.to_file(self.placement.from_file(self.points))
+        points = placement.to_file(self.placement.from_file(self.points))
         return TetMesh(points, self.cells, self.key, True, seconds, self.build_seconds,
                        self.path, surface)
 
-    def frame_in(self, surface: CanonicalSurface | None) -> tuple[np.ndarray, np.ndarray]:
-        """The grid's frame, mapped into ``surface``'s file (``None``: as kept)."""
-        if surface is None or self.placement is None:
+    def frame_in(self, placement: Placement | None) -> tuple[np.ndarray, np.ndarray]:
+        """The grid's frame, mapped into another file by ``placement``
+        (:meth:`placement_for`; ``None``: as kept)."""
+        if placement is None or self.placement is None:
             return self.frame
-        origin = surface.placement.to_file(self.placement.from_file(self.frame[0]))
-        return origin, self.placement.directions_to(surface.placement, self.frame[1])
+        origin = placement.to_file(self.placement.from_file(self.frame[0]))
+        return origin, self.placement.directions_to(placement, self.frame[1])
 
 
 def write_run_mesh(path: str | Path, tet: TetMesh, options: TetOptions,
@@ -230,10 +271,9 @@ class KeptMesh:
         :class:`~..simplicial.MeshError` naming what differs where the mesh is
         ``required``."""
         start = time.perf_counter()
-        why = self.stored.difference(vertices, faces, options, surface)
+        placement, why = self.stored.placement_for(vertices, faces, options, surface)
         if not why:
-            exact = self.stored._exact_difference(vertices, faces, options) == ""
-            return self.stored.tet_mesh(time.perf_counter() - start, surface, not exact)
+            return self.stored.tet_mesh(time.perf_counter() - start, surface, placement)
         if self.required:
             raise MeshError(f"not the fitted body: {why}; the fitted material applies to "
                             "animations of the same rest surface")
@@ -246,11 +286,10 @@ class KeptMesh:
         its own (a new animation of the body keeps the fitted grid), mapped into the file
         of ``surface`` (their canonical form) where that is the same body from another
         file; else ``None``."""
-        if self.stored.frame is None or not self.stored.matches(vertices, faces, options,
-                                                                surface):
+        if self.stored.frame is None:
             return None
-        exact = self.stored._exact_difference(vertices, faces, options) == ""
-        return self.stored.frame_in(None if exact else surface)
+        placement, why = self.stored.placement_for(vertices, faces, options, surface)
+        return None if why else self.stored.frame_in(placement)
 
 
 def read_kept_mesh(run_dir: str | Path, required: bool = False) -> KeptMesh | None:
