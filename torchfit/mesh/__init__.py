@@ -16,18 +16,21 @@ from .simplicial import (MeshError, SimplexMesh, box_tetrahedra, check_rest_cell
                          element_adjacency, normalized_points, rectangle_triangles,
                          signed_volumes)
 from .surface import SurfaceError, load_surface
-from .tetwild import (RUN_MESH_FILE, KeptMesh, StoredMesh, TetMesh, TetOptions,
-                      TetrahedralizationError, body_volume, default_cache_dir, read_kept_mesh,
-                      read_run_mesh, tetrahedralize, write_run_mesh)
+from .tetwild import (RUN_MESH_FILE, CanonicalSurface, KeptMesh, Placement, StoredMesh,
+                      TetMesh, TetOptions, TetrahedralizationError, body_volume,
+                      canonical_surface, default_cache_dir, read_kept_mesh, read_run_mesh,
+                      tetrahedralize, tetrahedralize_canonical, welded_surface,
+                      write_run_mesh)
 
-__all__ = ["Animation", "AnimationError", "DEFAULT_FPS", "DrivenSurface", "Embedding",
-           "KeptMesh", "MeshError", "RUN_MESH_FILE", "RigReport", "SimplexMesh", "Skeleton",
-           "StoredMesh", "SurfaceError", "TetMesh", "TetOptions", "TetrahedralizationError",
-           "UNITS", "axial_coordinates", "blend", "body_volume", "box_tetrahedra",
-           "boundary_faces", "check_animation", "check_replaceable", "check_rest_cells", "default_cache_dir",
-           "distance_weights", "dof_matrix", "element_adjacency", "embed_points",
-           "joint_cells", "load_animation", "load_surface", "normalized_points",
-           "read_animation", "read_kept_mesh", "read_run_mesh", "rectangle_triangles",
-           "rig_description", "rig_lines",
+__all__ = ["Animation", "AnimationError", "CanonicalSurface", "DEFAULT_FPS", "DrivenSurface",
+           "Embedding", "KeptMesh", "MeshError", "Placement", "RUN_MESH_FILE", "RigReport",
+           "SimplexMesh", "Skeleton", "StoredMesh", "SurfaceError", "TetMesh", "TetOptions",
+           "TetrahedralizationError", "UNITS", "axial_coordinates", "blend", "body_volume",
+           "boundary_faces", "box_tetrahedra", "canonical_surface", "check_animation",
+           "check_replaceable", "check_rest_cells", "default_cache_dir", "distance_weights",
+           "dof_matrix", "element_adjacency", "embed_points", "joint_cells", "load_animation",
+           "load_surface", "normalized_points", "read_animation", "read_kept_mesh",
+           "read_run_mesh", "rectangle_triangles", "rig_description", "rig_lines",
            "segment_distances", "signed_volumes", "skeleton_drive", "surface_drive",
-           "tetrahedralize", "write_animation", "write_obj", "write_run_mesh"]
+           "tetrahedralize", "tetrahedralize_canonical", "welded_surface", "write_animation",
+           "write_obj", "write_run_mesh"]

@@ -72,3 +72,77 @@ def test_a_file_that_is_not_a_run_mesh_is_one_line(tmp_path):
     with pytest.raises(MeshError, match=r"mesh.npz is not a torchfit run mesh") as info:
         read_run_mesh(tmp_path / "mesh.npz")
     assert "\n" not in str(info.value)
+
+
+def test_the_same_body_from_another_file_gets_the_kept_mesh_mapped(tmp_path):
+    """A run's mesh made in canonical form serves the same surface from another file (turned,
+    re-ordered, seam-split, float32), mapped into its coordinates, with the grid's frame;
+    a copy scaled by 100 in the same unit and another shape are refused in one line."""
+    from tests.helpers.canonical_surfaces import permuted, seam_split, tapered_capsule, turned
+    from torchfit.problems.body.frame import body_surface, tetrahedralize_in_frame
+
+    vertices, faces = tapered_capsule()
+    options = TetOptions(edge_length_fac=0.2)
+    tet = tetrahedralize_in_frame(vertices, faces, None, options, tmp_path / "cache")
+    frame = (np.array([0.1, 0.2, 0.3]), np.eye(3)[[1, 2, 0]])
+    write_run_mesh(tmp_path / "mesh.npz", tet, options, vertices, faces, None, frame)
+    kept = KeptMesh(read_run_mesh(tmp_path / "mesh.npz"), required=True)
+    moved, (_, R, t) = turned(vertices, scale=1.0)
+    v, f = seam_split(*permuted(moved, faces))
+    v = v.astype(np.float32)
+    surface = body_surface(v, f, None)
+    mesh = kept.mesh_for(v, f, options, surface)
+    np.testing.assert_array_equal(mesh.cells, tet.cells)
+    assert mesh.key == tet.key and mesh.canonical is surface
+    assert np.abs(mesh.points - (tet.points @ R.T + t)).max() < 1e-6 * np.ptp(tet.points)
+    origin, axes = kept.frame_for(v, f, options, surface)
+    assert np.abs(origin - (frame[0] @ R.T + t)).max() < 1e-6
+    assert np.abs(axes - frame[1] @ R.T).max() < 1e-6
+    same = kept.mesh_for(vertices, faces, options, body_surface(vertices, faces, None))
+    assert same.points is kept.stored.points                   # the file itself: as kept
+    big = 100.0 * v
+    with pytest.raises(MeshError, match=r"^not the fitted body: its rest surface is the "
+                                        r"fitted body's scaled by 100 \(in metres"):
+        kept.mesh_for(big, f, options, body_surface(big, f, None))
+    other = v.copy()
+    other[:, 0] *= 1.1
+    with pytest.raises(MeshError, match=r"^not the fitted body: not the fitted body's surface "
+                                        r"in any axes, order or seams: its surface differs in "
+                                        r"shape \(a vertex 0\.0\d+ of the body's radius"):
+        kept.mesh_for(other, f, options, body_surface(other, f, None))
+    assert kept.frame_for(other, f, options, body_surface(other, f, None)) is None
+
+
+def test_a_round_body_turned_by_another_shot_s_motion_still_gets_the_kept_mesh(tmp_path):
+    """A round body's canonical frame is settled by its motion: another shot from another
+    file can turn it about the body's axis, so the canonical surfaces differ; the kept
+    welded vertices moved rigidly onto the file's (in their order) still match, and the
+    mesh is mapped by that motion. Another shape still does not."""
+    from scipy.spatial.transform import Rotation
+
+    from tests.helpers.canonical_surfaces import seam_split, tapered_capsule, turned
+    from torchfit.mesh import canonical_surface
+    from torchfit.problems.body.frame import body_surface, tetrahedralize_in_frame
+
+    vertices, faces = tapered_capsule()
+    options = TetOptions(edge_length_fac=0.2)
+    tet = tetrahedralize_in_frame(vertices, faces, None, options, tmp_path / "cache")
+    frame = (np.array([0.1, 0.2, 0.3]), np.eye(3))
+    write_run_mesh(tmp_path / "mesh.npz", tet, options, vertices, faces, None, frame)
+    kept = KeptMesh(read_run_mesh(tmp_path / "mesh.npz"), required=True)
+    moved, (_, R, t) = turned(vertices, scale=1.0)
+    v, f = seam_split(moved.astype(np.float32), faces)
+    own = body_surface(v, f, None).placement
+    spin = Rotation.from_rotvec([0.0, 0.0, 0.7]).as_matrix()    # about a2: the motion's choice
+    surface = canonical_surface(v, f, own.origin, spin @ own.axes)
+    assert kept.stored.canonical_surface().difference(surface) != ""
+    mesh = kept.mesh_for(v, f, options, surface)
+    assert np.abs(mesh.points - (tet.points @ R.T + t)).max() < 1e-6 * np.ptp(tet.points)
+    origin, axes = kept.frame_for(v, f, options, surface)
+    assert np.abs(origin - (frame[0] @ R.T + t)).max() < 1e-6
+    assert np.abs(axes - frame[1] @ R.T).max() < 1e-6
+    other = v.copy()
+    other[:, 2] *= 1.05
+    with pytest.raises(MeshError, match="^not the fitted body: not the fitted body's surface"):
+        kept.mesh_for(other, f, options, canonical_surface(other, f, own.origin,
+                                                           spin @ own.axes))

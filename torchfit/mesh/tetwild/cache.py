@@ -71,10 +71,10 @@ def read_entry(path: Path, key: str) -> tuple[np.ndarray, np.ndarray, float]:
 
 def write_entry(path: Path, key: str, points: np.ndarray, cells: np.ndarray,
                  build_seconds: float, options: TetOptions, version: str,
-                 overwrite: bool) -> bool | None:
-    """Store an entry atomically. ``True``: stored; ``False``: another writer's entry was
-    already there (kept, never overwritten unless ``overwrite``); ``None``: the cache is
-    not writable (warned)."""
+                 overwrite: bool, extra: dict[str, np.ndarray] | None = None) -> bool | None:
+    """Store an entry atomically (``extra``: more named arrays, e.g. the canonical
+    surface). ``True``: stored; ``False``: another writer's entry was already there (kept,
+    never overwritten unless ``overwrite``); ``None``: the cache is not writable (warned)."""
     tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -83,7 +83,7 @@ def write_entry(path: Path, key: str, points: np.ndarray, cells: np.ndarray,
             np.savez(out, points=points, cells=cells, key=np.str_(key),
                      build_seconds=np.float64(build_seconds),
                      options=np.str_(json.dumps(options.as_dict(), sort_keys=True)),
-                     pytetwild=np.str_(version))
+                     pytetwild=np.str_(version), **(extra or {}))
             out.flush()
             os.fsync(out.fileno())
         if overwrite:
@@ -111,5 +111,3 @@ def write_entry(path: Path, key: str, points: np.ndarray, cells: np.ndarray,
             except OSError:
                 pass
 
-
-# what a run's own copy of its mesh (store.py) matches against

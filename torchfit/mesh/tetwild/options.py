@@ -106,6 +106,9 @@ class TetMesh:
         build_seconds: wall time pytetwild took when the mesh was built (s; stored in the
             cache).
         path: the cache file, or ``None`` when the cache was not used.
+        canonical: the :class:`~.canonical.CanonicalSurface` the mesh was made of (its
+            placement maps canonical coordinates to ``points``' frame), or ``None`` (a
+            mesh of the surface as given, :func:`~.tetrahedralize.tetrahedralize`).
     """
 
     points: np.ndarray
@@ -115,6 +118,7 @@ class TetMesh:
     seconds: float
     build_seconds: float
     path: Path | None
+    canonical: Any = None
 
     @property
     def volumes(self) -> np.ndarray:

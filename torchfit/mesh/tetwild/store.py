@@ -8,9 +8,22 @@ it to the body's build as a :class:`KeptMesh`, whose :func:`tetrahedralize_kept`
 it for its own surface and options before the cache is looked at; a ``required`` one
 (``simulate``) refuses any other surface or options instead of tetrahedralising them.
 
+**The same body from another file** (other axes, units, format, dtype, vertex or face
+order, seams) is the same surface: where the mesh was made in canonical form
+(:mod:`.canonical`) the file keeps that form's placement, and a surface handed over with
+its own canonical form (``surface=``) matches when the two canonical surfaces are one
+(:meth:`~.canonical.CanonicalSurface.difference`), or its welded vertices in their order
+are the kept ones moved rigidly (a round body turned by another shot's motion), and their
+sizes agree within
+:data:`SCALE_MATCH` (the kept mesh is a physical body: a rescaled copy in the same unit is
+another body, refused); the kept tetrahedra and the grid's frame are then mapped into the
+new file's coordinates. Any other surface is refused in one line naming what differs.
+
 ``mesh.npz`` holds ``points`` ``(n, 3)`` float64, ``cells`` ``(m, 4)`` int64, ``regions``
 ``(m,)`` int64 (``-1`` everywhere without region labels), ``surface_vertices`` and
-``surface_faces`` (the rest surface that was tetrahedralised), and ``meta`` (JSON: the cache
+``surface_faces`` (the rest surface that was tetrahedralised), ``frame_origin`` and
+``frame_axes`` (the grid's frame, where given), ``canonical_origin``, ``canonical_axes``,
+``canonical_scale`` (the canonical form's placement, where the mesh was made in one), and ``meta`` (JSON: the cache
 ``key``, the pytetwild ``version`` it was built with, the ``options``
 (:meth:`~.tetrahedralize.TetOptions.as_dict`), ``build_seconds``). It is written atomically
 (a temporary file, then a rename). Nothing here solves anything.
@@ -28,11 +41,14 @@ from pathlib import Path
 import numpy as np
 
 from ..simplicial import MeshError
+from .canonical import MATCH, CanonicalSurface, Placement, canonical_surface, welded_surface
 from .tetrahedralize import TetMesh, TetOptions, pytetwild_version, tetrahedralize
 
 #: The file a run keeps its mesh in.
 RUN_MESH_FILE = "mesh.npz"
 _FORMAT = "torchfit-run-mesh-1"
+#: the kept body and a new file's agree in size within this (relative): float32 is 6e-8
+SCALE_MATCH = 1e-6
 
 
 @dataclasses.dataclass(eq=False)
@@ -52,17 +68,86 @@ class StoredMesh:
     #: the body's frame the run's grid was laid in, ``(origin (3,), axes (3, 3))``, or
     #: ``None`` (not recorded): a new animation of the body keeps the fitted grid
     frame: tuple[np.ndarray, np.ndarray] | None = None
+    #: where the canonical form of the surface sat in the fitted file (module doc), or
+    #: ``None`` (a mesh of the surface as given: matched on its exact surface only)
+    placement: Placement | None = None
 
-    def matches(self, vertices: np.ndarray, faces: np.ndarray, options: TetOptions) -> bool:
+    def matches(self, vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
+                surface: CanonicalSurface | None = None) -> bool:
         """Whether this mesh was built from the rest surface ``vertices``, ``faces`` with
-        ``options`` (compared as given: a body tetrahedralised in its own frame is matched
-        on its surface, not on the frame's cache key)."""
-        return self.difference(vertices, faces, options) == ""
+        ``options``: the same arrays, or (``surface``: their canonical form) the same body
+        from another file (module doc)."""
+        return self.difference(vertices, faces, options, surface) == ""
 
-    def difference(self, vertices: np.ndarray, faces: np.ndarray, options: TetOptions) -> str:
+    def difference(self, vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
+                   surface: CanonicalSurface | None = None) -> str:
         """What differs between this mesh's input and ``vertices``/``faces``/``options``
-        (one phrase; ``""``: nothing)."""
+        (one phrase; ``""``: nothing); with ``surface`` (their canonical form) the same
+        body from another file matches too (:meth:`placement_for`)."""
+        return self.placement_for(vertices, faces, options, surface)[1]
+
+    def placement_for(self, vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
+                      surface: CanonicalSurface | None = None
+                      ) -> tuple[Placement | None, str]:
+        """``(placement, why)``: where this mesh's canonical coordinates sit in the file of
+        ``vertices``, ``faces`` (``None``: the kept file itself, nothing to map), and ``""``;
+        or ``(None, what differs)``. Another file matches (``surface``: its canonical form)
+        where the canonical surfaces are one, or else (a round body whose frame its motion
+        settles, turned by another shot's motion) where its welded vertices, in their
+        order, are the kept ones moved rigidly (within the canonical match) with the same
+        faces; in both cases at the same size (:data:`SCALE_MATCH`)."""
+        exact = self._exact_difference(vertices, faces, options)
+        if not exact or surface is None or self.placement is None or \
+                exact.startswith("tetrahedralisation options"):
+            return None, exact
+        ours = self.canonical_surface()
+        shape = ours.difference(surface)
+        placement = surface.placement
+        if shape:
+            placement = self._moved_rigidly(vertices, faces)
+            if placement is None:
+                return None, f"not the fitted body's surface in any axes, order or seams: {shape}"
+        ratio = placement.scale / self.placement.scale
+        if abs(ratio - 1.0) > SCALE_MATCH:
+            return None, (f"its rest surface is the fitted body's scaled by {ratio:.6g} (in "
+                          "metres: check the file's unit, e.g. USD metersPerUnit)")
+        return placement, ""
+
+    def _moved_rigidly(self, vertices: np.ndarray, faces: np.ndarray) -> Placement | None:
+        """The kept placement carried by the similarity ``y = s x R^T + t`` that takes the
+        kept welded vertices onto ``vertices``' in their order, where it fits within
+        :data:`~.canonical.MATCH` of the radius and the faces are the same; else ``None``."""
+        _, x, x_faces = welded_surface(self.surface_vertices, self.surface_faces)
+        _, y, y_faces = welded_surface(vertices, faces)
+        if x.shape != y.shape or not np.array_equal(x_faces, y_faces):
+            return None
+        x_mean, y_mean = x.mean(axis=0), y.mean(axis=0)
+        u, sigma, vt = np.linalg.svd((y - y_mean).T @ (x - x_mean))
+        if np.linalg.det(u @ vt) < 0:                              # a mirror image
+            return None
+        rotation = u @ vt
+        scale = float(sigma.sum() / ((x - x_mean) ** 2).sum())
+        shift = y_mean - scale * x_mean @ rotation.T
+        radius = float(np.linalg.norm(y - y_mean, axis=1).max())
+        if np.abs(scale * x @ rotation.T + shift - y).max() > MATCH * radius:
+            return None
+        kept = self.placement
+        return Placement(scale * kept.origin @ rotation.T + shift, kept.axes @ rotation.T,
+                         scale * kept.scale)
+
+    def canonical_surface(self) -> CanonicalSurface:
+        """The canonical form of the kept rest surface at its recorded placement."""
+        return canonical_surface(self.surface_vertices, self.surface_faces,
+                                 self.placement.origin, self.placement.axes)
+
+    def _exact_difference(self, vertices: np.ndarray, faces: np.ndarray,
+                          options: TetOptions) -> str:
         v, f = np.asarray(vertices, dtype=np.float64), np.asarray(faces)
+        ours = options.as_dict()
+        changed = sorted(k for k in ours if ours[k] != self.options.get(k))
+        if changed:
+            return "tetrahedralisation options differ (" + ", ".join(
+                f"{k}: {self.options.get(k)!r} fitted, {ours[k]!r} now" for k in changed) + ")"
         if v.shape != self.surface_vertices.shape or f.shape != self.surface_faces.shape:
             return (f"its rest surface has {len(v)} vertices and {len(f)} faces, the fitted "
                     f"body's {len(self.surface_vertices)} and {len(self.surface_faces)}")
@@ -72,16 +157,27 @@ class StoredMesh:
             moved = float(np.abs(v - self.surface_vertices).max())
             return (f"its rest surface's vertices differ from the fitted body's (by up to "
                     f"{moved:.3g})")
-        ours = options.as_dict()
-        changed = sorted(k for k in ours if ours[k] != self.options.get(k))
-        if changed:
-            return "tetrahedralisation options differ (" + ", ".join(
-                f"{k}: {self.options.get(k)!r} fitted, {ours[k]!r} now" for k in changed) + ")"
         return ""
 
-    def tet_mesh(self, seconds: float) -> TetMesh:
-        return TetMesh(self.points, self.cells, self.key, True, seconds, self.build_seconds,
-                       self.path)
+    def tet_mesh(self, seconds: float, surface: CanonicalSurface | None = None,
+                 placement: Placement | None = None) -> TetMesh:
+        """The kept mesh (made of ``surface``, a matching canonical form); with
+        ``placement`` (:meth:`placement_for`: another file) its points mapped into that
+        file's coordinates."""
+        if placement is None or self.placement is None:
+            return TetMesh(self.points, self.cells, self.key, True, seconds,
+                           self.build_seconds, self.path, surface)
+        points = placement.to_file(self.placement.from_file(self.points))
+        return TetMesh(points, self.cells, self.key, True, seconds, self.build_seconds,
+                       self.path, surface)
+
+    def frame_in(self, placement: Placement | None) -> tuple[np.ndarray, np.ndarray]:
+        """The grid's frame, mapped into another file by ``placement``
+        (:meth:`placement_for`; ``None``: as kept)."""
+        if placement is None or self.placement is None:
+            return self.frame
+        origin = placement.to_file(self.placement.from_file(self.frame[0]))
+        return origin, self.placement.directions_to(placement, self.frame[1])
 
 
 def write_run_mesh(path: str | Path, tet: TetMesh, options: TetOptions,
@@ -103,6 +199,11 @@ def write_run_mesh(path: str | Path, tet: TetMesh, options: TetOptions,
     if frame is not None:
         arrays["frame_origin"] = np.asarray(frame[0], dtype=np.float64)
         arrays["frame_axes"] = np.asarray(frame[1], dtype=np.float64)
+    if tet.canonical is not None:
+        placement = tet.canonical.placement
+        arrays["canonical_origin"] = np.asarray(placement.origin, dtype=np.float64)
+        arrays["canonical_axes"] = np.asarray(placement.axes, dtype=np.float64)
+        arrays["canonical_scale"] = np.float64(placement.scale)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.0.tmp")   # a stale one is removed
     # by the run that next holds the directory (reporting.results.remove_stale_temporaries)
     # an .npz with fixed time stamps: the same mesh gives the same bytes
@@ -135,6 +236,10 @@ def read_run_mesh(path: str | Path) -> StoredMesh:
                                                      "surface_vertices", "surface_faces")}
             frame = (np.array(data["frame_origin"]), np.array(data["frame_axes"])) \
                 if "frame_axes" in data.files else None
+            placement = Placement(np.array(data["canonical_origin"]),
+                                  np.array(data["canonical_axes"]),
+                                  float(data["canonical_scale"])) \
+                if "canonical_axes" in data.files else None
     except Exception as e:  # noqa: BLE001  (a truncated, foreign or corrupt file)
         first = (str(e).strip().splitlines() or [type(e).__name__])[0][:160]
         raise MeshError(f"{path} is not a torchfit run mesh ({first})") from None
@@ -143,7 +248,7 @@ def read_run_mesh(path: str | Path) -> StoredMesh:
                         f"cells {arrays['cells'].shape})")
     return StoredMesh(**arrays, key=str(meta["key"]), version=str(meta["version"]),
                       options=dict(meta["options"]), build_seconds=float(meta["build_seconds"]),
-                      path=path, frame=frame)
+                      path=path, frame=frame, placement=placement)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -158,27 +263,33 @@ class KeptMesh:
     stored: StoredMesh
     required: bool = False
 
-    def mesh_for(self, vertices: np.ndarray, faces: np.ndarray, options: TetOptions
-                 ) -> TetMesh | None:
-        """The kept mesh where ``vertices``, ``faces`` and ``options`` are its own, else
-        ``None``; raises :class:`~..simplicial.MeshError` naming what differs where the mesh
-        is ``required``."""
+    def mesh_for(self, vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
+                 surface: CanonicalSurface | None = None) -> TetMesh | None:
+        """The kept mesh where ``vertices``, ``faces`` and ``options`` are its own, or
+        (``surface``: their canonical form) the same body from another file, mapped into
+        its coordinates (module doc); else ``None``; raises
+        :class:`~..simplicial.MeshError` naming what differs where the mesh is
+        ``required``."""
         start = time.perf_counter()
-        if self.stored.matches(vertices, faces, options):
-            return self.stored.tet_mesh(time.perf_counter() - start)
+        placement, why = self.stored.placement_for(vertices, faces, options, surface)
+        if not why:
+            return self.stored.tet_mesh(time.perf_counter() - start, surface, placement)
         if self.required:
-            why = self.stored.difference(vertices, faces, options) or "its cache key differs"
             raise MeshError(f"not the fitted body: {why}; the fitted material applies to "
                             "animations of the same rest surface")
         return None
 
-    def frame_for(self, vertices: np.ndarray, faces: np.ndarray, options: TetOptions
+    def frame_for(self, vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
+                  surface: CanonicalSurface | None = None
                   ) -> tuple[np.ndarray, np.ndarray] | None:
         """The body frame recorded with the kept mesh, where the surface and options are
-        its own (a new animation of the body keeps the fitted grid), else ``None``."""
-        if self.stored.frame is not None and self.stored.matches(vertices, faces, options):
-            return self.stored.frame
-        return None
+        its own (a new animation of the body keeps the fitted grid), mapped into the file
+        of ``surface`` (their canonical form) where that is the same body from another
+        file; else ``None``."""
+        if self.stored.frame is None:
+            return None
+        placement, why = self.stored.placement_for(vertices, faces, options, surface)
+        return None if why else self.stored.frame_in(placement)
 
 
 def read_kept_mesh(run_dir: str | Path, required: bool = False) -> KeptMesh | None:

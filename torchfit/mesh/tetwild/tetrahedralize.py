@@ -7,7 +7,8 @@ fTetWild is robust to imperfect surfaces but not deterministic (its output chang
 run to run and with the number of threads); the cache is what makes "the same input gives
 the same fit" true: the first call stores the mesh under a key that hashes the input
 (vertex and face bytes), the options and the pytetwild version, and every later call
-returns the stored arrays bit for bit.
+returns the stored arrays bit for bit. A body's surface goes through its canonical form
+instead (:mod:`.canonical`: one mesh whatever its axes, units, dtype, order or seams).
 
 Conventions: ``points`` ``(n, 3)`` float64 in the unit of the surface's vertices, ``cells``
 ``(m, 4)`` int64, positively oriented (``det([p1 - p0, p2 - p0, p3 - p0]) > 0``), every
@@ -93,12 +94,7 @@ def tetrahedralize(vertices: np.ndarray, faces: np.ndarray,
     start = time.perf_counter()
     vertices, faces = _check_surface(vertices, faces)
     options.check()
-    size = f"edge length {options.edge_length_abs:.3g} (absolute)" if options.edge_length_abs \
-        is not None else f"edge length {options.edge_length_fac:.3g} of the diagonal"
-    if options.count is not None:
-        size = f"about {count(options.count)} tetrahedra"
-    with step(f"tetrahedralising a surface of {count(len(faces))} faces (pytetwild: {size}"
-              f"{'' if options.count else f', envelope {options.epsilon:.3g}'})") as progress:
+    with step(step_line(len(faces), options)) as progress:
         mesh = _cached_or_built(vertices, faces, options, cache_dir, warn, use_cache, start,
                                 progress)
         where = ("read from the cache " if mesh.from_cache else "built and cached in ") + \
@@ -106,6 +102,16 @@ def tetrahedralize(vertices: np.ndarray, faces: np.ndarray,
         progress.result = (f"{count(len(mesh.cells))} tetrahedra, {count(len(mesh.points))} "
                            f"vertices, {where}")
     return mesh
+
+
+def step_line(n_faces: int, options: TetOptions) -> str:
+    """The progress line of a tetrahedralisation: the face count and the size asked for."""
+    size = f"edge length {options.edge_length_abs:.3g} (absolute)" if options.edge_length_abs \
+        is not None else f"edge length {options.edge_length_fac:.3g} of the diagonal"
+    if options.count is not None:
+        size = f"about {count(options.count)} tetrahedra"
+    return (f"tetrahedralising a surface of {count(n_faces)} faces (pytetwild: {size}"
+            f"{'' if options.count else f', envelope {options.epsilon:.3g}'})")
 
 
 def _cached_or_built(vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
@@ -134,14 +140,14 @@ def _cached_or_built(vertices: np.ndarray, faces: np.ndarray, options: TetOption
                                build_seconds, path)
 
     if options.count is None:
-        points, cells, build_seconds = _build(vertices, faces, options, progress)
+        points, cells, build_seconds = build_surface(vertices, faces, options, progress)
         made = options
     else:
         points, cells, build_seconds, made = build_for_count(
-            lambda trial: _build(vertices, faces, trial, progress), vertices, faces, options,
+            lambda trial: build_surface(vertices, faces, trial, progress), vertices, faces, options,
             progress)
         progress.beat(f"kept edge length {made.edge_length_fac:.3g}, envelope {made.epsilon:.3g}")
-    _check_volume(points, cells, surface, problems)
+    check_volume(points, cells, surface, problems)
     from_cache = False
     if path is not None:
         stored = write_entry(path, key, points, cells, build_seconds, made, version,
@@ -221,8 +227,8 @@ def _run_worker(folder: Path, progress: step | None) -> tuple[np.ndarray, np.nda
         return mesh["points"], mesh["cells"]
 
 
-def _build(vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
-           progress: step | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+def build_surface(vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
+                  progress: step | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """fTetWild in a child process and a temporary working directory; unreferenced
     vertices dropped."""
     thickness, diagonal = _flatness(vertices, faces)
@@ -260,8 +266,8 @@ def _build(vertices: np.ndarray, faces: np.ndarray, options: TetOptions,
     return points, cells, seconds
 
 
-def _check_volume(points: np.ndarray, cells: np.ndarray, surface: trimesh.Trimesh,
-                  problems: list[str]) -> None:
+def check_volume(points: np.ndarray, cells: np.ndarray, surface: trimesh.Trimesh,
+                 problems: list[str]) -> None:
     """The tetrahedra fill about what the surface encloses (see :func:`tetrahedralize`)."""
     volume = float(signed_volumes(points, cells).sum())
     enclosed = surface_volume(surface)

@@ -13,28 +13,29 @@ x a0`` (right-handed). Every rule is rotation-equivariant; only a body symmetric
 *and* motion is left to the eigen-solver's choice.
 
 **Tetrahedralisation** (:func:`tetrahedralize_in_frame`): fTetWild's mesh depends on the
-orientation of its input and changes from run to run (the cache is what makes it
-repeatable: :mod:`torchfit.mesh.tetwild.tetrahedralize`). The rest surface is therefore turned into
-its principal frame, its coordinates rounded to a power-of-two grid (``2^-30`` of the
-body's radius, so a rotated copy gives the same bytes), tetrahedralised there (and cached
-under that key) and turned back: a body and its rotated copy get the same tetrahedra,
-rotated (docs/notes/axes.md).
+orientation, order and round-off of its input and changes from build to build (even with one
+thread); the canonical cache is what fixes it. The rest surface is welded (a seam's copies
+are one vertex, their motion the mean), its principal frame found
+(:func:`body_surface`), and it is handed over in canonical form
+(:func:`torchfit.mesh.tetwild.canonical.canonical_surface`: in that frame, divided by its
+radius, rounded, in canonical order) to the canonical cache, which returns the stored
+tetrahedra mapped back into the file's coordinates. So one surface gets one mesh whatever
+its axes, units, format, dtype, vertex or face order or seams (docs/notes/axes.md: what
+is and is not invariant; the promise is the cache's, :mod:`torchfit.mesh.tetwild.canonical`).
 """
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
 
-from ...mesh import TetMesh, TetOptions, tetrahedralize
+from ...mesh import (CanonicalSurface, TetMesh, TetOptions, canonical_surface,
+                     tetrahedralize_canonical, welded_surface)
 
 #: two second moments closer than this (relative) are one round group (shape says nothing)
 ROUND = 0.1
 #: a standardised third moment below this is a symmetric body along that axis
 SYMMETRIC = 0.02
-#: the rounding of the surface in its frame: this power of two below the body's radius
-ROUNDING_BITS = 30
 
 
 def principal_frame(points: np.ndarray, cells: np.ndarray,
@@ -106,17 +107,29 @@ def _round_groups(moments: np.ndarray) -> list[list[int]]:
     return [g for g in groups if len(g) > 1]
 
 
+def body_surface(rest: np.ndarray, faces: np.ndarray,
+                 displacement: np.ndarray | None) -> CanonicalSurface:
+    """The canonical form of the rest surface ``rest`` ``(V, 3)``, ``faces`` in the
+    principal frame of its welded surface (module doc); ``displacement`` ``(F, V, 3)``
+    (averaged over a seam's copies) settles round shapes."""
+    groups, vertices, welded_faces = welded_surface(rest, faces)
+    motion = None
+    if displacement is not None:
+        moved = np.asarray(displacement, dtype=np.float64)
+        moved = moved.reshape(-1, moved.shape[-2], 3)
+        n = len(vertices)
+        motion = np.zeros((len(moved), n, 3))
+        np.add.at(motion, (slice(None), groups), moved)
+        motion /= np.bincount(groups, minlength=n)[None, :, None]
+    origin, axes = principal_frame(vertices, welded_faces, motion)
+    return canonical_surface(vertices, welded_faces, origin, axes)
+
+
 def tetrahedralize_in_frame(rest: np.ndarray, faces: np.ndarray,
                             displacement: np.ndarray | None, options: TetOptions,
-                            cache_dir: str | Path | None, warn: bool = False) -> TetMesh:
-    """:func:`~torchfit.mesh.tetwild.tetrahedralize.tetrahedralize` of the surface ``rest``
-    ``(V, 3)``, ``faces`` in its principal frame (module doc), the points turned back into
-    the surface's coordinates; ``displacement`` ``(F, V, 3)`` settles round shapes."""
-    rest = np.asarray(rest, dtype=np.float64)
-    origin, axes = principal_frame(rest, faces, displacement)
-    local = (rest - origin) @ axes.T
-    radius = float(np.linalg.norm(local, axis=1).max())
-    unit = 2.0 ** (np.floor(np.log2(max(radius, 1e-300))) - ROUNDING_BITS)
-    rounded = np.round(local / unit) * unit + 0.0          # + 0.0: no -0.0 in the bytes
-    mesh = tetrahedralize(rounded, faces, options, cache_dir=cache_dir, warn=warn)
-    return dataclasses.replace(mesh, points=mesh.points @ axes + origin)
+                            cache_dir: str | Path | None) -> TetMesh:
+    """The tetrahedral mesh of the surface ``rest`` ``(V, 3)``, ``faces`` from the canonical
+    cache (:func:`body_surface`, :func:`~torchfit.mesh.tetwild.canonical.tetrahedralize_canonical`),
+    in the surface's coordinates; ``displacement`` ``(F, V, 3)`` settles round shapes."""
+    return tetrahedralize_canonical(body_surface(rest, faces, displacement), options,
+                                    cache_dir=cache_dir)

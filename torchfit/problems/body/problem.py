@@ -325,7 +325,8 @@ class RiggedBody(InverseProblem):
         self.tet_regions, self.region_names = self.regions(cfg)
         self.full_bend_frame = self.reference_frame()
         kept_frame = None if self.kept_mesh is None else self.kept_mesh.frame_for(
-            animation.rest_vertices, animation.faces, self.tet_options)    # a run's own
+            animation.rest_vertices, animation.faces, self.tet_options,
+            self.tet.canonical)                                   # a run's own (any file)
         self.grid = body_grid(points, cells, self.motion, cfg.grid_nodes, cfg.grid, kept_frame)
         self.grid_shape = self.grid.shape
         up, source = picture_up(animation.up, animation.skeleton, self.grid.axes[2])

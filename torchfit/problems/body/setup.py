@@ -21,10 +21,10 @@ from typing import Any, Iterator
 from ...mesh import MeshError
 from ...mesh import (Animation, AnimationError, KeptMesh, RigReport, Skeleton, TetMesh,
                      TetOptions, check_animation, default_cache_dir, rig_description,
-                     rig_lines)
+                     rig_lines, tetrahedralize_canonical)
 from ...physics import newton_progress
 from ...steps import SETUP_LOGGER, count, step
-from .frame import tetrahedralize_in_frame
+from .frame import body_surface
 from ..config import ProblemConfigError, require_setting
 
 #: seconds between two progress lines of the first simulation (at most one per iteration)
@@ -129,18 +129,21 @@ def tet_options(cfg: Any) -> TetOptions:
 def tet_mesh(cfg: Any, animation: Animation, motion: Any = None,
              kept: KeptMesh | None = None) -> TetMesh:
     """The rest surface tetrahedralised with the ``tet_*`` settings (``tet_count``: a
-    target count, :mod:`torchfit.mesh.tetwild.size`) in the body's principal frame
-    (:func:`.frame.tetrahedralize_in_frame`; ``motion`` ``(F, V, 3)`` settles a round
+    target count, :mod:`torchfit.mesh.tetwild.size`) in canonical form, in the body's
+    principal frame (:func:`.frame.body_surface`; ``motion`` ``(F, V, 3)`` settles a round
     body's frame), cached in ``cache_dir``; the run's own mesh ``kept`` comes first where it
-    is this surface's (:class:`torchfit.mesh.tetwild.store.KeptMesh`)."""
+    is this surface's, from this file or another
+    (:class:`torchfit.mesh.tetwild.store.KeptMesh`). The mesh's ``canonical`` is the
+    canonical surface (for :meth:`~torchfit.mesh.tetwild.store.KeptMesh.frame_for`)."""
     options = tet_options(cfg)
     cache = Path(cfg.cache_dir).expanduser() / "tetmesh" if cfg.cache_dir else \
         default_cache_dir()
     try:
+        surface = body_surface(animation.rest_vertices, animation.faces, motion)
         mesh = None if kept is None else kept.mesh_for(animation.rest_vertices,
-                                                       animation.faces, options)
+                                                       animation.faces, options, surface)
         # the surface's warnings were given once, with the animation's name
-        return mesh if mesh is not None else tetrahedralize_in_frame(
-            animation.rest_vertices, animation.faces, motion, options, cache)
+        return mesh if mesh is not None else tetrahedralize_canonical(surface, options,
+                                                                      cache_dir=cache)
     except MeshError as err:
         raise ProblemConfigError(f"{animation.path}: {err}") from err
