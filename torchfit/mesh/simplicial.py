@@ -241,3 +241,19 @@ def normalized_points(points: np.ndarray,
     lo = np.array([e[0] for e in extent])
     hi = np.array([e[1] for e in extent])
     return (np.asarray(points, dtype=np.float64) - lo) / (hi - lo)
+
+
+def pair_groups(pairs: np.ndarray, n: int) -> np.ndarray:
+    """``(n,)`` the group of each of ``n`` points joined by ``pairs`` ``(k, 2)`` (transitively:
+    the connected components), numbered in order of their first point, so that points no
+    pair joins keep their order (the welding of seams and of a canonical surface)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    _, first = np.unique(labels, return_index=True)
+    rank = np.empty(len(first), dtype=np.int64)
+    rank[np.argsort(first)] = np.arange(len(first))
+    return rank[labels]

@@ -101,6 +101,29 @@ def _theta(run: Path) -> torch.Tensor:
     return torch.load(run / "params.pt", weights_only=False)["theta"]
 
 
+def _kill_rank_in_iteration_1(run: Path, settings: list[str], rank: int
+                              ) -> tuple[subprocess.Popen, str, str]:
+    """A 2-rank fit into ``run`` whose process of ``rank`` gets SIGKILL once iteration 1 is
+    logged; returns the finished torchrun process, its stdout and stderr."""
+    proc = subprocess.Popen([str(TORCHRUN), "--standalone", "--nproc_per_node=2",
+                             "experiments/fit.py", f"hydra.run.dir={run}", *settings],
+                            cwd=REPO, env=_env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    killed = False
+    deadline = time.monotonic() + 300
+    while proc.poll() is None and time.monotonic() < deadline and not killed:
+        log = run / "fit.log"
+        if log.is_file() and re.search(r"progress\]\[INFO\] - +1 ", log.read_text()):
+            pid = _rank_pid(run, rank)
+            assert pid is not None
+            os.kill(pid, signal.SIGKILL)
+            killed = True
+        time.sleep(0.02)
+    out, err = proc.communicate(timeout=300)
+    assert killed, err[-3000:]
+    return proc, out, err
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="finds rank 1 in /proc")
 def test_rank_1_killed_mid_fit_is_one_line_with_the_resume_command(tmp_path):
@@ -115,22 +138,7 @@ def test_rank_1_killed_mid_fit_is_one_line_with_the_resume_command(tmp_path):
                           timeout=600)
     assert full.returncode == 0, full.stderr[-3000:]
     run = tmp_path / "killed"
-    proc = subprocess.Popen([str(TORCHRUN), "--standalone", "--nproc_per_node=2",
-                             "experiments/fit.py", f"hydra.run.dir={run}", *settings],
-                            cwd=REPO, env=_env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    killed = False
-    deadline = time.monotonic() + 300
-    while proc.poll() is None and time.monotonic() < deadline and not killed:
-        log = run / "fit.log"
-        if log.is_file() and re.search(r"progress\]\[INFO\] - +1 ", log.read_text()):
-            pid = _rank_pid(run, 1)
-            assert pid is not None
-            os.kill(pid, signal.SIGKILL)
-            killed = True
-        time.sleep(0.02)
-    out, err = proc.communicate(timeout=300)
-    assert killed, err[-3000:]
+    proc, out, err = _kill_rank_in_iteration_1(run, settings, rank=1)
     assert proc.returncode == 1         # torchrun's, for any failed rank
     lines = [line for line in err.splitlines() if line.startswith("error:")]
     assert len(lines) == 1, err[-3000:]
@@ -164,22 +172,7 @@ def test_rank_0_killed_mid_fit_leaves_rank_1_one_line_with_the_resume_command(tm
     printed command resumes the run."""
     settings = _settings(tmp_path)
     run = tmp_path / "killed"
-    proc = subprocess.Popen([str(TORCHRUN), "--standalone", "--nproc_per_node=2",
-                             "experiments/fit.py", f"hydra.run.dir={run}", *settings],
-                            cwd=REPO, env=_env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    killed = False
-    deadline = time.monotonic() + 300
-    while proc.poll() is None and time.monotonic() < deadline and not killed:
-        log = run / "fit.log"
-        if log.is_file() and re.search(r"progress\]\[INFO\] - +1 ", log.read_text()):
-            pid = _rank_pid(run, 0)
-            assert pid is not None
-            os.kill(pid, signal.SIGKILL)
-            killed = True
-        time.sleep(0.02)
-    out, err = proc.communicate(timeout=300)
-    assert killed, err[-3000:]
+    _, _, err = _kill_rank_in_iteration_1(run, settings, rank=0)
     lines = [line for line in err.splitlines() if line.startswith("error:")]
     assert len(lines) <= 1, err[-3000:]
     assert "Connection reset" not in err and "gloo" not in " ".join(lines).lower()

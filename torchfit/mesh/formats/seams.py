@@ -23,11 +23,10 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ..animation import Animation
+from ..simplicial import pair_groups
 
 #: copies closer than this fraction of the rest bounding box's diagonal are one vertex
 TOLERANCE = 1e-6
@@ -47,14 +46,8 @@ def seam_groups(rest: np.ndarray, frames: np.ndarray, tolerance: float = TOLERAN
     pairs = pairs[apart <= radius]
     if not len(pairs):
         return None
-    n = len(rest)
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
-    # number the groups in order of their first vertex, so an unwelded surface keeps its order
-    _, first = np.unique(labels, return_index=True)
-    rank = np.empty(len(first), dtype=np.int64)
-    rank[np.argsort(first)] = np.arange(len(first))
-    return rank[labels]
+    # numbered in order of their first vertex, so an unwelded surface keeps its order
+    return pair_groups(pairs, len(rest))
 
 
 def weld_seams(animation: Animation, tolerance: float = TOLERANCE) -> Animation:

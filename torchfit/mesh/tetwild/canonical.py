@@ -49,11 +49,10 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from ...steps import count, step
+from ..simplicial import pair_groups
 from .cache import default_cache_dir, write_entry
 from .options import TetMesh, TetOptions, TetrahedralizationError
 from .size import build_for_count
@@ -184,14 +183,8 @@ def canonical_options(options: TetOptions, scale: float) -> TetOptions:
 def weld_groups(vertices: np.ndarray, tolerance: float) -> np.ndarray:
     """``(V,)`` the welded vertex of each vertex: those within ``tolerance`` (absolute) of
     one another (transitively) are one, numbered in order of their first vertex."""
-    pairs = cKDTree(vertices).query_pairs(tolerance, output_type="ndarray")
-    n = len(vertices)
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
-    _, first = np.unique(labels, return_index=True)
-    rank = np.empty(len(first), dtype=np.int64)
-    rank[np.argsort(first)] = np.arange(len(first))
-    return rank[labels]
+    return pair_groups(cKDTree(vertices).query_pairs(tolerance, output_type="ndarray"),
+                       len(vertices))
 
 
 def welded_surface(vertices: np.ndarray, faces: np.ndarray, tolerance: float = WELD
