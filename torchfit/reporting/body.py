@@ -51,8 +51,8 @@ from .evaluation import Evaluation
 from .figures import colorize, frame_errors_figure, save_png
 from .guard import PlotGuard
 from .progress import PROGRESS_LOGGER
-from .body_files import (FRAMES_DIR, VTU_FILE, file_surface, vtu_cell_data, write_body_vtu,
-                         write_obj_sequence, write_usd)
+from .body_files import (FRAMES_DIR, VTU_FILE, file_surface, fitted_damping, vtu_cell_data,
+                         write_body_vtu, write_obj_sequence, write_usd)
 from .results import write_folder, write_json
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -317,7 +317,8 @@ class BodyOutputs:
     def _write_usd(self, x: Tensor, field: Tensor, theta: Tensor) -> list[Path]:
         return write_usd(self.run_dir, self.problem, _numpy(self.problem.observation.surface(x)),
                          _numpy(field), self.problem.poses.material_density(
-                             self.problem.simulation_input(theta)))
+                             self.problem.simulation_input(theta)),
+                         fitted_damping(self.problem, theta))
 
     def _write_regions(self, field: Tensor) -> list[Path]:
         problem = self.problem
