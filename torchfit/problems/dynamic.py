@@ -11,6 +11,11 @@ damping's truth, metrics and description added to the problem's. Inertia fixes t
 stiffness scale: never scale-free. Problems whose frames are independent have
 :data:`QUASISTATIC`.
 
+The damping's physical bounds (:class:`DampingBand`): the damping ratio ``zeta(w) = alpha /
+(2 w) + beta w / 2`` at most :data:`ZETA_MAX` at the lowest mode ``w1`` (at the start's
+material) and at ``pi x`` the frame rate; a start outside them is refused, the fitted
+damping reported against them (:meth:`TimeIntegration.damping_report`).
+
 :class:`DynamicSettings` holds the settings every dynamic problem has (mixed into the
 problem's config, so the keys are ``problem.dt``, ``problem.scheme``, ...);
 :func:`check_dynamic_settings` checks them (:func:`check_dynamic_flag`: each class refuses

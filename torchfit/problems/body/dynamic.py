@@ -29,7 +29,9 @@ Moduli are pascals (inertia fixes the scale: not scale-free): with ``problem.E0_
 (the default) ``E0``, ``E_blocks``, ``E_regions`` (and absolute bounds) are factors of
 ``problem.E_reference``, with ``E0_unit=Pa`` pascals. Parameters: the body's field
 parameterisation and the two damping coefficients (:class:`~torchfit.params.FieldAndScalars`,
-``theta = [field..., alpha, beta]``). Data: the observed surface at the fitted frames.
+``theta = [field..., alpha, beta]``), the damping within its physical bounds
+(:class:`~torchfit.problems.dynamic.DampingBand` at ``E0`` and ``pi x fps``: a start outside
+them refused, the solver kept inside them where ``problem.bounds`` holds). Data: the observed surface at the fitted frames.
 ``problem.init_field`` starts the field from a material layer in pascals (its stated unit,
 :mod:`.init_field`). Validation: ``problem.validation_frames`` must be a later window than every fitted frame (the
 held-out future; :func:`dynamic_split`); ``validation_every`` is refused.
