@@ -362,6 +362,14 @@ def test_fit_and_simulate_apps_in_time(root, tmp_path):
     assert settings_used["checkpoint_every"] == 0
     stage = Usd.Stage.Open(str(tmp_path / "sim" / "usd" / "frames.usda"))
     assert stage.GetTimeCodesPerSecond() == 30.0
+    # the fitted damping beside the modulus, in the fit's layers and the simulation's
+    from torchfit.mesh.formats.usd import read_damping
+    fitted = (summary["alpha_damping"], summary["beta_damping"])
+    for layer in (fit / "usd" / "body.usda", fit / "usd" / "material.usda",
+                  tmp_path / "sim" / "usd" / "body.usda"):
+        damping = read_damping(layer)
+        assert (damping["alpha"], damping["beta"]) == ((fitted[0], "1/s"), (fitted[1], "s"))
+        assert damping["w1"][0] == pytest.approx(summary["problem"]["damping_band"]["w1"])
     assert stage.GetEndTimeCode() == len(ANGLES) - 1
 
 
