@@ -452,6 +452,7 @@ def test_a_time_step_the_integrator_cannot_take_is_refused_in_one_line(root, tmp
     assert not still.exists()
 
 
+@pytest.mark.slow
 def test_the_body_in_time_bounds_its_damping_by_the_physics(root, tmp_path):
     """The capsule's band: w1 at E0 (the lowest mode of K0 u = w^2 M u with the rig's
     vertices held, against scipy's dense generalised eigenproblem), w_frames = pi x 24 fps;
@@ -493,6 +494,13 @@ def test_the_body_in_time_bounds_its_damping_by_the_physics(root, tmp_path):
     assert report["note"].startswith("the damping rather than the material explains the motion")
     assert not problem.time.damping_report(problem.simulation_input(problem.theta0))[
         "explains_motion"]
+    # the integration error against the fitted error: a warning above half of it
+    start = problem.simulation_input(problem.theta0)
+    estimate = problem.time.report(start)["error_estimate"]
+    assert "warnings" not in problem.time.report(start, {"surface_err_mean": 2.5 * estimate})
+    warnings = problem.time.report(start, {"surface_err_mean": 1.5 * estimate})["warnings"]
+    assert len(warnings) == 1 and warnings[0].startswith("the integration error (about ") \
+        and warnings[0].endswith("raise problem.substeps"), warnings
     run = tmp_path / "fit"
     done = run_fit_app(run, "problem=animation", f"problem.path={capsule(root)}",
                        f"problem.cache_dir={root / 'cache'}", "problem.tet_count=600",
