@@ -24,8 +24,8 @@ Residual norms are per frame, in force units. Round-off floor: a frame that miss
 tolerance (``rtol`` x its start's residual, at least ``atol``) but whose residual is within
 the rounding error of evaluating it (:meth:`NewtonSolver.roundoff_floor`: ``(n_row + 1) eps
 ||(|K| |x|)_free||``) is converged: the tolerance asked for more than the arithmetic can
-give, and the point is an equilibrium to working precision. Counted work: one factorisation per active
-frame and iteration (one for all when the tangent is shared), one more per frame whose
+give, and the point is an equilibrium to working precision. Counted work: one
+factorisation per active frame and iteration (one for all when the tangent is shared), one more per frame whose
 exact step is redone with the projected tangent, and one per frame at ``x*``.
 """
 from __future__ import annotations
