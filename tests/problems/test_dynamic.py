@@ -163,13 +163,15 @@ def test_dynamic_settings_are_checked_one_line_each():
 
 
 def test_a_true_material_or_start_the_integrator_cannot_step_is_refused_naming_it(tmp_path):
-    """A synthetic target whose true material the step cannot take (alpha = 1e12: Newton
-    stalls in the first step) is a ProblemConfigError naming the true-material settings; a
-    start that cannot be simulated (alpha0 = 1e12) is refused by the fit app in one line
-    naming the start's settings, exit 2, nothing written."""
+    """A synthetic target whose true material the step cannot take (one Newton iteration per
+    step; alpha = 1e12 no longer serves: its steps converge to their round-off floor) is a
+    ProblemConfigError naming the true-material settings; a
+    start with unphysical damping (alpha0 = 1e12, far past critical damping at the sheet's
+    lowest mode) is refused by the fit app in one line naming the setting, the bound and
+    the damping ratio it gives, exit 2, nothing written."""
     sheet = {"dynamic": True, "nx": 16, "ny": 4, "duration": 0.2}
     with pytest.raises(ProblemConfigError) as info:
-        build_problem("membrane2d", {**sheet, "alpha": 1e12})
+        build_problem("membrane2d", {**sheet, "newton_max_iter": 1})
     text = str(info.value)
     assert text.startswith("problem.E_background, problem.E_ink, problem.alpha, problem.beta: "
                            "the synthetic target cannot be simulated") and "\n" not in text
@@ -178,10 +180,53 @@ def test_a_true_material_or_start_the_integrator_cannot_step_is_refused_naming_i
                        "problem.alpha0=1e12", "solver.max_iter=1", timeout=600)
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr[-2000:]
-    assert lines[0].startswith("error: the fit's start cannot be simulated") and \
-        lines[0].endswith("the start is set by problem.E0, problem.alpha0, problem.beta0 (or "
-                          "init=)"), lines[0]
+    assert lines[0].startswith("error: problem.alpha0=1000000000000.0: gives the damping "
+                               "ratio zeta = alpha / (2 w1) = ") and \
+        "alpha must be at most 2 ZETA_MAX w1 = " in lines[0], lines[0]
     assert not run.exists()
+
+
+def test_damping_band_bounds_and_refusal_of_absurd_starts():
+    """The chain's band: w1 of the held chain at k0 (shift-invert against the dense
+    generalised eigenproblem), w_frames = pi / (output interval); the bounds alpha_max = 2
+    w1, beta_max = 2 / max(w1, w_frames) give zeta = 1 by each term alone at the band's
+    ends; a start past either is refused in one line; the ratios are metrics."""
+    import math
+
+    import numpy as np
+    import scipy.linalg
+
+    from torchfit.problems.dynamic import ZETA_MAX, DampingBand, damping_ratio
+
+    problem = build_problem("spring1d", SMALL_CHAIN)
+    band = problem.time.band
+    system = problem.system
+    free = system.free_dofs.numpy()
+    k0 = torch.full((system.n_field,), float(problem.cfg.k0), dtype=torch.float64)
+    stiffness = system.elastic.tangent_pattern.to_scipy(
+        system.elastic.tangent_pattern.assemble(system.rest_stiffness_contributions(k0)))
+    dense = stiffness.toarray()[np.ix_(free, free)]
+    lowest = scipy.linalg.eigh(dense, np.diag(system.mass.numpy()[free]), eigvals_only=True)[0]
+    assert band.w1 == pytest.approx(math.sqrt(lowest), rel=1e-9)
+    assert band.w_frames == pytest.approx(math.pi / 0.1, rel=1e-12)     # 20 frames in 2 s
+    assert ZETA_MAX == 1.0
+    assert band.alpha_max == pytest.approx(2 * band.w1, rel=1e-12)
+    assert band.beta_max == pytest.approx(2 / max(band.w1, band.w_frames), rel=1e-12)
+    assert damping_ratio(band.alpha_max, 0.0, band.w1) == pytest.approx(1.0)
+    assert damping_ratio(0.0, band.beta_max, band.w_high) == pytest.approx(1.0)
+    metrics = problem.metrics(problem.theta0)
+    assert metrics["damping_ratio_w1"] == pytest.approx(
+        0.5 / (2 * band.w1) + 2e-3 * band.w1 / 2, rel=1e-12)
+    # a body stiffer than the frames show: beta bounded at w1, not at the frame rate
+    assert DampingBand(100.0, 10.0).beta_max == pytest.approx(0.02)
+    assert DampingBand(None, 10.0).alpha_max == math.inf
+    for key, value, needle in (("beta0", 1e12, "beta must be at most 2 ZETA_MAX / w"),
+                               ("alpha0", 1e3, "alpha must be at most 2 ZETA_MAX w1")):
+        with pytest.raises(ProblemConfigError) as info:
+            build_problem("spring1d", {**SMALL_CHAIN, key: value})
+        text = str(info.value)
+        assert text.startswith(f"problem.{key}={value}: gives the damping ratio zeta = ") \
+            and needle in text and "\n" not in text, text
 
 
 def test_identity_transform_negative_damping_at_a_trial_point_is_a_simulation_error():

@@ -146,3 +146,36 @@ def test_rig_json_is_the_problems_rig_or_nothing(tmp_path):
     assert json.loads((tmp_path / RIG_FILE).read_text()) == description
     assert write_rig(tmp_path / "none", SimpleNamespace(rig_description=None)) == []
     assert not (tmp_path / "none").exists()
+
+
+def test_a_body_in_time_writes_its_damping_beside_the_modulus(tmp_path):
+    """The fitted Rayleigh damping in both layers (``body.usda``'s TetMesh and
+    ``material.usda``'s mesh), next to ``primvars:youngsModulus``, each a double with its
+    unit; read back with pxr and with :func:`~torchfit.mesh.formats.usd.read_damping`. A
+    quasistatic body writes none."""
+    pytest.importorskip("pxr")
+    from pxr import Sdf, Usd
+
+    from torchfit.mesh.formats.usd import read_damping
+
+    problem = _problem(tmp_path / "anim", ["a", "b", "c"])
+    problem.animation.rest_vertices = POINTS[:4]
+    problem.animation.file_values = lambda values: values
+    problem.animation.prim = ""
+    problem.embedding = SimpleNamespace(cells=np.array([0, 0, 0, 1]),
+                                        weights=np.eye(4))
+    damping = {"alpha": 3.5, "beta": 0.0125, "zeta_w1": 0.25, "w1": 20.5}
+    files = write_usd(tmp_path / "run", problem, _surface(), np.array([1.5, 0.25]),
+                      damping=damping)
+    for path in files[1:]:                    # body.usda, material.usda
+        stage = Usd.Stage.Open(str(path))
+        prim = stage.GetDefaultPrim()
+        alpha = prim.GetAttribute("torchfit:rayleighAlpha")
+        assert alpha.GetTypeName() == Sdf.ValueTypeNames.Double and alpha.Get() == 3.5
+        assert alpha.GetCustomDataByKey("torchfit:units") == "1/s"
+        assert prim.GetAttribute("torchfit:rayleighBeta").Get() == 0.0125
+        assert read_damping(path) == {"alpha": (3.5, "1/s"), "beta": (0.0125, "s"),
+                                      "zeta_w1": (0.25, "1 (dimensionless)"),
+                                      "w1": (20.5, "rad/s")}
+    quasistatic = write_usd(tmp_path / "static", problem, _surface(), np.array([1.5, 0.25]))
+    assert all(read_damping(path) is None for path in quasistatic[1:])

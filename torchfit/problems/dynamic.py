@@ -11,6 +11,11 @@ damping's truth, metrics and description added to the problem's. Inertia fixes t
 stiffness scale: never scale-free. Problems whose frames are independent have
 :data:`QUASISTATIC`.
 
+The damping's physical bounds (:class:`DampingBand`): the damping ratio ``zeta(w) = alpha /
+(2 w) + beta w / 2`` at most :data:`ZETA_MAX` at the lowest mode ``w1`` (at the start's
+material) and at ``pi x`` the frame rate; a start outside them is refused, the fitted
+damping reported against them (:meth:`TimeIntegration.damping_report`).
+
 :class:`DynamicSettings` holds the settings every dynamic problem has (mixed into the
 problem's config, so the keys are ``problem.dt``, ``problem.scheme``, ...);
 :func:`check_dynamic_settings` checks them (:func:`check_dynamic_flag`: each class refuses
@@ -62,6 +67,98 @@ class OdeMethod(Choice):
 
 _DAMPING = ("alpha", "beta")
 
+#: The largest damping ratio ``zeta(w) = alpha / (2 w) + beta w / 2`` the Rayleigh damping may
+#: give at the body's lowest mode ``w1`` and at the highest frequency the frames show: 1,
+#: critical damping. Past it that mode no longer oscillates, it only creeps back toward the
+#: rig (the quasistatic body, which the static fit models with no damping to fit); damping
+#: that large explains any motion by slowing it, not by the material (issue 47: started at
+#: beta0 = 1e12 the body followed its skinned pose and the misfit fell 10x).
+ZETA_MAX = 1.0
+
+
+def damping_ratio(alpha: float, beta: float, omega: float) -> float:
+    """``zeta(w) = alpha / (2 w) + beta w / 2`` of Rayleigh damping ``C = alpha M + beta K``
+    at angular frequency ``omega`` (rad/s; alpha in 1/s, beta in s)."""
+    return alpha / (2.0 * omega) + beta * omega / 2.0
+
+
+@dataclasses.dataclass(frozen=True)
+class DampingBand:
+    """The frequencies the Rayleigh damping is judged at and the bounds they give.
+
+    ``w1`` (rad/s): the lowest angular frequency of ``K0(k0) u = w^2 M u`` at the start's
+    homogeneous material with the Dirichlet dofs held
+    (:meth:`~torchfit.physics.dynamics.DynamicSystem.lowest_frequency`; ``None`` where
+    nothing holds the body); ``w_frames`` (rad/s): ``pi x`` the frame rate (``pi / dt`` of
+    the shortest interval between output times), the highest frequency the frames can show.
+    The band is ``[w1, w_high]``, ``w_high = max(w1, w_frames)`` (a body stiffer than the
+    frames can show has no mode below ``w1``).
+
+    ``zeta(w)`` is convex in ``w`` (the mass term falls, the stiffness term grows), so the
+    bounds ``alpha <= alpha_max = 2 ZETA_MAX w1`` (the mass term at ``w1``) and ``beta <=
+    beta_max = 2 ZETA_MAX / w_high`` (the stiffness term at ``w_high``) keep every mode of
+    the band at most ``ZETA_MAX`` damped by each term alone, both together at most ``2
+    ZETA_MAX``. Units: 1/s and s."""
+
+    w1: float | None
+    w_frames: float
+
+    @property
+    def w_high(self) -> float:
+        return self.w_frames if self.w1 is None else max(self.w1, self.w_frames)
+
+    @property
+    def alpha_max(self) -> float:
+        return math.inf if self.w1 is None else 2.0 * ZETA_MAX * self.w1
+
+    @property
+    def beta_max(self) -> float:
+        return 2.0 * ZETA_MAX / self.w_high
+
+    @classmethod
+    def of(cls, system: DynamicSystem, start_field: float, frame_interval: float) -> "DampingBand":
+        """The band of ``system`` at the homogeneous field ``start_field`` (``w1`` scales
+        as its square root) for frames ``frame_interval`` seconds apart."""
+        field = torch.full((system.n_field,), float(start_field), dtype=torch.float64)
+        return cls(system.lowest_frequency(field), math.pi / float(frame_interval))
+
+    def ratios(self, alpha: float, beta: float) -> dict[str, float]:
+        """``zeta`` at ``w1`` (where known) and at ``w_high``."""
+        out = {"zeta_w_high": damping_ratio(alpha, beta, self.w_high)}
+        if self.w1 is not None:
+            out["zeta_w1"] = damping_ratio(alpha, beta, self.w1)
+        return out
+
+    def describe(self) -> dict[str, float | None]:
+        """``w1``, ``w_frames``, ``w_high`` (rad/s), ``alpha_max`` (1/s), ``beta_max`` (s),
+        ``zeta_max``."""
+        return {"w1": self.w1, "w_frames": self.w_frames, "w_high": self.w_high,
+                "alpha_max": None if self.w1 is None else self.alpha_max,
+                "beta_max": self.beta_max, "zeta_max": ZETA_MAX}
+
+    def check_start(self, cfg: Any, alpha: float, beta: float,
+                    keys: tuple[str, str] = ("alpha0", "beta0"),
+                    frames: str = "the frames") -> None:
+        """Refuse (one line naming the setting, the bound and the ratio it gives) damping
+        ``alpha``, ``beta`` outside ``[0, alpha_max] x [0, beta_max]``. ``frames``: where
+        the frame rate comes from (for the message)."""
+        if alpha > self.alpha_max:
+            zeta = damping_ratio(alpha, 0.0, self.w1)
+            raise setting_error(keys[0], getattr(cfg, keys[0]), (
+                f"gives the damping ratio zeta = alpha / (2 w1) = {zeta:.3g} at the body's "
+                f"lowest mode w1 = {self.w1:.4g} rad/s, above {ZETA_MAX:g} (critical damping, "
+                f"ZETA_MAX): alpha must be at most 2 ZETA_MAX w1 = {self.alpha_max:.4g} 1/s; "
+                f"start lower, e.g. problem.{keys[0]}={self.alpha_max / 10:.3g}"))
+        if beta > self.beta_max:
+            zeta = damping_ratio(0.0, beta, self.w_high)
+            where = f"pi x {self.w_frames / math.pi:.4g} frames/s of {frames}, the highest " \
+                "frequency they show" if self.w_high == self.w_frames else "the body's lowest mode"
+            raise setting_error(keys[1], getattr(cfg, keys[1]), (
+                f"gives the damping ratio zeta = beta w / 2 = {zeta:.3g} at w = "
+                f"{self.w_high:.4g} rad/s ({where}), above {ZETA_MAX:g} (critical damping, "
+                f"ZETA_MAX): beta must be at most 2 ZETA_MAX / w = {self.beta_max:.4g} s; start "
+                f"lower, e.g. problem.{keys[1]}={self.beta_max / 10:.3g}"))
+
 
 @dataclasses.dataclass
 class DynamicSettings:
@@ -102,6 +199,14 @@ def check_dynamic_flag(problem: Any, cfg: Any, dynamic: bool) -> None:
     require_setting(bool(cfg.dynamic) == dynamic, cfg, "dynamic",
                     f"{type(problem).__name__} is the {'dynamic' if dynamic else 'static'} "
                     "problem; build_problem picks the class that matches problem.dynamic")
+
+
+#: a fitted coefficient within this fraction of its bound is on it
+ON_BOUND_RTOL = 1e-3
+
+#: the integration error above which, as a fraction of the fitted error, a fit warns: the
+#: misfit then holds as much of the step's error as of the material's
+INTEGRATION_ERROR_FRACTION = 0.5
 
 
 #: bytes of one implicit step of the step grid (its time, coefficients and index: Python objects)
@@ -271,27 +376,43 @@ class TimeIntegration:
         output_times: ``(K,)`` seconds.
         dim: components per node of the state.
         scalars: the scalars beside the field.
+        band: the frequencies the damping is judged at (:class:`DampingBand`), or ``None``.
+        has_truth: the target is simulated from a known truth (the ``*_err_rel`` metrics
+            exist only then).
     """
 
     in_time = True
 
     def __init__(self, cfg: Any, system: DynamicSystem, integrator: Any, output_times: Tensor,
-                 dim: int, scalars: Scalars) -> None:
+                 dim: int, scalars: Scalars, band: DampingBand | None = None,
+                 has_truth: bool = True) -> None:
         self.cfg, self.system, self.integrator = cfg, system, integrator
         self.output_times, self.dim, self.scalar_spec = output_times, int(dim), scalars
+        self.band, self.has_truth = band, bool(has_truth)
 
     @classmethod
     def from_settings(cls, cfg: Any, system: DynamicSystem, dim: int, backend: str,
-                      newton: NewtonOptions | None = None) -> "TimeIntegration":
+                      newton: NewtonOptions | None = None,
+                      start_field: float | None = None) -> "TimeIntegration":
         """The integration :class:`DynamicSettings` describe (``problem.integrator``,
-        ``scheme``, ``ode_method``, ``dt``, tolerances, output times), damping fitted."""
+        ``scheme``, ``ode_method``, ``dt``, tolerances, output times), damping fitted.
+        With ``start_field`` (the start's homogeneous field) the damping's
+        :class:`DampingBand` at it, the frames the output times (``pi / dt`` of their
+        shortest interval): a start ``alpha0``, ``beta0`` outside its bounds is refused."""
         times = output_times(cfg)
+        band = None
+        if start_field is not None:
+            interval = float(torch.diff(torch.cat([times.new_zeros(1), times])).min())
+            band = DampingBand.of(system, start_field, interval)
+            band.check_start(cfg, float(cfg.alpha0), float(cfg.beta0),
+                             frames=f"the output times (their shortest interval {interval:.4g} s)")
         integrator = make_integrator(
             cfg.integrator.value, system, times, dt=cfg.dt, method=cfg.ode_method.value,
             scheme=cfg.scheme.value, rtol=cfg.ode_rtol, atol=cfg.ode_atol, backend=backend,
             newton=newton, checkpoint_every=cfg.checkpoint_every,
             trial_factor=cfg.ode_trial_factor)
-        return cls(cfg, system, integrator, times, dim, Scalars.damping(cfg))
+        return cls(cfg, system, integrator, times, dim, Scalars.damping(cfg), band,
+                   getattr(cfg, "targets", None) is None)
 
     # -- the time model ------------------------------------------------------------------
     def parameterization(self, field: Parameterization) -> FieldAndScalars:
@@ -317,27 +438,75 @@ class TimeIntegration:
         return [f"problem.{name}0" for name in _DAMPING]
 
     def metric_names(self) -> list[str]:
-        names = ["alpha_damping", "beta_damping", "alpha_damping_err_rel",
-                 "beta_damping_err_rel"]
+        names = ["alpha_damping", "beta_damping"]
+        if self.band is not None:
+            names += ["damping_ratio_w_high"] + \
+                (["damping_ratio_w1"] if self.band.w1 is not None else [])
+        if self.has_truth:
+            names += ["alpha_damping_err_rel", "beta_damping_err_rel"]
         if "density_scale" in self.scalar_spec.names:
-            names += ["density_scale", "density_scale_err_rel"]
+            names += ["density_scale"] + (["density_scale_err_rel"] if self.has_truth else [])
         return names
 
     def metrics(self, physical: Tensor) -> dict[str, float]:
-        """The fitted damping and its relative error to the truth (the absolute value where
-        the truth is 0); a fitted density scale and its relative error."""
+        """The fitted damping (``alpha_damping`` 1/s, ``beta_damping`` s), the damping ratios
+        it gives (``damping_ratio_w1``, ``damping_ratio_w_high``: :class:`DampingBand`) and,
+        where a truth exists (a synthetic target), its relative error to it (the absolute
+        value where the truth is 0); a fitted density scale and its relative error."""
         fitted, truths = self.scalars(physical.detach()), self.scalar_spec.truths
         out: dict[str, float] = {}
         for i, name in enumerate(_DAMPING):
             truth = torch.tensor(truths[i], dtype=fitted.dtype, device=fitted.device)
             out[f"{name}_damping"] = float(fitted[i])
-            out[f"{name}_damping_err_rel"] = float(abs(fitted[i] - truth) / abs(truth)) \
-                if float(truth) != 0 else float(abs(fitted[i]))
+            if self.has_truth:
+                out[f"{name}_damping_err_rel"] = float(abs(fitted[i] - truth) / abs(truth)) \
+                    if float(truth) != 0 else float(abs(fitted[i]))
+        if self.band is not None:
+            ratios = self.band.ratios(float(fitted[0]), float(fitted[1]))
+            out["damping_ratio_w_high"] = ratios["zeta_w_high"]
+            if "zeta_w1" in ratios:
+                out["damping_ratio_w1"] = ratios["zeta_w1"]
         if "density_scale" in self.scalar_spec.names:
             scale = float(fitted[self.scalar_spec.names.index("density_scale")])
             out["density_scale"] = scale
-            out["density_scale_err_rel"] = abs(
-                scale / float(truths[self.scalar_spec.names.index("density_scale")]) - 1)
+            if self.has_truth:
+                out["density_scale_err_rel"] = abs(
+                    scale / float(truths[self.scalar_spec.names.index("density_scale")]) - 1)
+        return out
+
+    def damping_report(self, physical: Tensor) -> dict[str, Any] | None:
+        """The fitted damping against its band (``None`` without a band): ``alpha`` (1/s),
+        ``beta`` (s), the band (:meth:`DampingBand.describe`), the ratios ``zeta_w1``,
+        ``zeta_w_high``, ``on_bound`` (the coefficients within :data:`ON_BOUND_RTOL` of
+        their bound) and ``explains_motion``: a coefficient on its bound or ``zeta_w1``
+        above 1 (the lowest mode overdamped), where the damping rather than the material
+        explains the motion; ``note``: the summary line then."""
+        if self.band is None:
+            return None
+        fitted = self.scalars(physical.detach())
+        alpha, beta = float(fitted[0]), float(fitted[1])
+        band = self.band
+        on_bound = [name for name, value, bound in (("alpha", alpha, band.alpha_max),
+                                                    ("beta", beta, band.beta_max))
+                    if math.isfinite(bound) and value >= bound * (1 - ON_BOUND_RTOL)]
+        ratios = band.ratios(alpha, beta)
+        overdamped = ratios.get("zeta_w1", 0.0) > 1.0
+        out: dict[str, Any] = {"alpha": alpha, "beta": beta, **band.describe(), **ratios,
+                               "on_bound": on_bound,
+                               "explains_motion": bool(on_bound) or overdamped}
+        if out["explains_motion"]:
+            why = " and ".join(
+                ([f"{', '.join(on_bound)} on {'its' if len(on_bound) == 1 else 'their'} "
+                  f"bound{'s' if len(on_bound) > 1 else ''} (alpha <= {band.alpha_max:.3g} 1/s, "
+                  f"beta <= {band.beta_max:.3g} s: zeta <= {ZETA_MAX:g} at w1 and the frame "
+                  "rate)"] if on_bound else []) +
+                ([f"zeta = {ratios['zeta_w1']:.3g} at the lowest mode (overdamped)"]
+                 if overdamped else []))
+            out["note"] = (f"the damping rather than the material explains the motion: the "
+                           f"fitted damping alpha = {alpha:.3g} 1/s, beta = {beta:.3g} s has "
+                           f"{why}; the frames show no oscillation the damping must match, so "
+                           "the material is better fitted quasistatically (problem.dynamic="
+                           "false)")
         return out
 
     def describe(self) -> dict[str, Any]:
@@ -345,6 +514,8 @@ class TimeIntegration:
         out: dict[str, Any] = {"dynamic": True, "integrator": integrator.name,
                                "output_times": int(self.output_times.numel()),
                                "stored_states": int(integrator.stored_states)}
+        if self.band is not None:
+            out["damping_band"] = self.band.describe()
         if integrator.name == "implicit":
             out.update({"scheme": integrator.scheme, "steps": int(integrator.n_steps),
                         "checkpoint_every": int(integrator.checkpoint_every)})
@@ -399,7 +570,8 @@ class TimeIntegration:
     def frame_names(self) -> list[str]:
         return [f"t = {float(t):.3g} s" for t in self.output_times]
 
-    def report(self, physical: Tensor) -> dict[str, Any]:
+    def report(self, physical: Tensor, metrics: dict[str, Any] | None = None
+               ) -> dict[str, Any]:
         """How the motion at ``physical`` is integrated and how accurately: ``integrator``,
         ``scheme`` (implicit) or ``method`` (torchdiffeq), ``steps`` and ``dt`` (s) of the
         implicit step; its error at the outputs estimated by step halving
@@ -408,10 +580,21 @@ class TimeIntegration:
         displacement from the start, ``reference_steps``); torchdiffeq's adaptive methods
         report their tolerances (``rtol``, ``atol``: the error they control) instead.
         Costs one integration with twice the steps (implicit). ``result.json``'s
-        ``time_integration``."""
+        ``time_integration``. Also the fitted damping against its band (``damping``:
+        :meth:`damping_report`) and ``warnings``: summary lines where the damping explains
+        the motion, or where the integration error is not small against the fitted error
+        (``metrics``' ``surface_err_mean``: above :data:`INTEGRATION_ERROR_FRACTION` of it)."""
         integrator = self.integrator
         physical = physical.detach()
         out: dict[str, Any] = {"integrator": integrator.name}
+        warnings: list[str] = []
+        damping = self.damping_report(physical)
+        if damping is not None:
+            out["damping"] = damping
+            if damping["explains_motion"]:
+                warnings.append(damping["note"])
+        if warnings:
+            out["warnings"] = warnings
         if integrator.name != "implicit":
             out.update({"method": integrator.method, "rtol": float(self.cfg.ode_rtol),
                         "atol": float(self.cfg.ode_atol)})
@@ -428,4 +611,13 @@ class TimeIntegration:
                     "error_estimate_rel": estimate["estimate"] / largest if largest > 0 else 0.0,
                     "largest_displacement": largest,
                     "reference_steps": estimate["reference_steps"]})
+        fitted = None if metrics is None else metrics.get("surface_err_mean")
+        if fitted is not None and math.isfinite(float(fitted)) and \
+                estimate["estimate"] > INTEGRATION_ERROR_FRACTION * float(fitted):
+            warnings.append(
+                f"the integration error (about {1e3 * estimate['estimate']:.3g} mm, estimated "
+                f"against {estimate['reference_steps']} steps) is not small against the fitted "
+                f"error ({1e3 * float(fitted):.3g} mm mean): the fitted material partly fits the "
+                "time step's error; raise problem.substeps")
+            out["warnings"] = warnings
         return out

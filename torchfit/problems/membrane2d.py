@@ -403,7 +403,8 @@ class DynamicMembrane2D(Membrane2D):
         newton = NewtonOptions(max_iter=cfg.newton_max_iter, rtol=cfg.newton_rtol,
                                atol=cfg.newton_atol)
         self.time = TimeIntegration.from_settings(
-            cfg, self.system, 2, resolve_backend(cfg.backend, self.device, 2), newton)
+            cfg, self.system, 2, resolve_backend(cfg.backend, self.device, 2), newton,
+            start_field=float(cfg.E0))
         self.output_times, self.integrator = self.time.output_times, self.time.integrator
         self.n_frames = int(self.output_times.numel())
 

@@ -222,7 +222,8 @@ class DynamicSpring1D(Spring1D):
             KeyedMotion(torch.as_tensor(cfg.load_times, dtype=dtype), end_load),
             torch.full((n + 1,), cfg.gravity, dtype=dtype, device=device), rest, vertex_dim=1)
         self.time = TimeIntegration.from_settings(cfg, self.system, 1,
-                                                  resolve_backend(cfg.backend, self.device, 1))
+                                                  resolve_backend(cfg.backend, self.device, 1),
+                                                  start_field=float(cfg.k0))
         self.output_times, self.integrator = self.time.output_times, self.time.integrator
         self.n_frames = int(self.output_times.numel())
 

@@ -12,7 +12,7 @@ Nothing here simulates or computes anything a solver needs, and nothing imports
 ``simulate`` (:mod:`.simulation`) and the run directory's files (:mod:`.results`).
 """
 from .body import BodyOutputs, frame_spans
-from .body_files import modulus_units
+from .body_files import fitted_damping, modulus_units
 from .evaluation import Evaluation
 from .field_snapshots import FieldSnapshots
 from .figures import field_is_chain, write_run_pngs
@@ -28,6 +28,6 @@ from .tensorboard import TensorBoardLogger, event_files
 __all__ = ["BodyOutputs", "CHECKPOINT_FILE", "Evaluation", "FieldSnapshots", "MotionOutputs",
            "PARAMS_FILE", "PROGRESS_LOGGER", "PlotGuard", "ProgressPrinter", "RESULT_FILE",
            "TensorBoardLogger", "atomic_write", "comparison_picture", "ensure_progress_visible",
-           "event_files", "field_is_chain", "frame_spans", "jsonable", "modulus_units",
+           "event_files", "field_is_chain", "fitted_damping", "frame_spans", "jsonable", "modulus_units",
            "remove_stale_temporaries", "save_params", "save_torch", "write_frames",
            "write_identifiability", "write_json", "write_run_pngs"]

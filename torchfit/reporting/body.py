@@ -61,8 +61,8 @@ from .evaluation import Evaluation
 from .figures import colorize, frame_errors_figure, save_png
 from .guard import PlotGuard
 from .progress import PROGRESS_LOGGER
-from .body_files import (FRAMES_DIR, VTU_FILE, file_surface, vtu_cell_data, write_body_vtu,
-                         write_obj_sequence, write_rig, write_usd)
+from .body_files import (FRAMES_DIR, VTU_FILE, file_surface, fitted_damping, vtu_cell_data,
+                         write_body_vtu, write_obj_sequence, write_rig, write_usd)
 from .results import write_folder, write_json
 
 #: the per-frame errors of every recorded iteration (module docstring)
@@ -369,7 +369,8 @@ class BodyOutputs:
     def _write_usd(self, x: Tensor, field: Tensor, theta: Tensor) -> list[Path]:
         return write_usd(self.run_dir, self.problem, _numpy(self.problem.observation.surface(x)),
                          _numpy(field), self.problem.poses.material_density(
-                             self.problem.simulation_input(theta)), kept_start=self.kept_start)
+                             self.problem.simulation_input(theta)),
+                         fitted_damping(self.problem, theta), kept_start=self.kept_start)
 
     def _write_regions(self, field: Tensor) -> list[Path]:
         problem = self.problem

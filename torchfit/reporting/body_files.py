@@ -111,13 +111,15 @@ def _frame_times(names: Sequence[str]) -> list[float] | None:
 
 
 def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarray,
-              density: tuple[float, str] | None = None, kept_start: bool = False) -> list[Path]:
+              density: tuple[float, str] | None = None,
+              damping: dict[str, Any] | None = None, kept_start: bool = False) -> list[Path]:
     """``usd/frames.usda`` and ``usd/body.usda`` (module docstring); nothing, with a log
     line, where ``usd-core`` is not installed. ``density``: the material's density (kg/m^3)
     and where it comes from (the problem's :meth:`material_density`); ``None``: the assumed
-    :data:`DENSITY`. ``kept_start``: the data determine no material and ``field`` is the
-    fit's start, said on every material attribute (``customData`` ``torchfit:determined``,
-    :data:`NOT_DETERMINED`)."""
+    :data:`DENSITY`. ``damping``: a body in time's fitted damping (:func:`fitted_damping`),
+    written beside the modulus (:func:`write_damping_attributes`). ``kept_start``: the data
+    determine no material and ``field`` is the fit's start, said on every material attribute
+    (``customData`` ``torchfit:determined``, :data:`NOT_DETERMINED`)."""
     if importlib.util.find_spec("pxr") is None:
         progress.info("no USD output: install the extra torchfit[usd] (usd-core) for it")
         return []
@@ -159,11 +161,65 @@ def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarra
                                    over=over, prim=animation.prim if over is not None else "",
                                    rest=animation.file_points(animation.rest_vertices),
                                    faces=faces, custom=custom, units=labels)
+        if damping is not None:
+            write_damping_attributes([partial / "body.usda"] + (
+                [partial / MATERIAL_FILE] if per_vertex is not None else []), damping)
 
     folder = run_dir / USD_DIR
     write_folder(folder, fill)
     return [folder / "frames.usda", folder / "body.usda"] + (
         [folder / MATERIAL_FILE] if per_vertex is not None else [])
+
+
+#: the damping attributes written beside the modulus: (attribute, key of the damping report,
+#: unit, what it is). The OpenUSD deformable-physics draft names no damping, so they are
+#: torchfit's own (docs/guide/dcc.md).
+DAMPING_ATTRIBUTES = (
+    ("torchfit:rayleighAlpha", "alpha", "1/s",
+     "Rayleigh mass damping alpha of C = alpha M + beta K (fitted)"),
+    ("torchfit:rayleighBeta", "beta", "s",
+     "Rayleigh stiffness damping beta of C = alpha M + beta K (fitted)"),
+    ("torchfit:dampingRatioLowestMode", "zeta_w1", "1 (dimensionless)",
+     "damping ratio alpha / (2 w1) + beta w1 / 2 at the body's lowest mode w1"),
+    ("torchfit:lowestAngularFrequency", "w1", "rad/s",
+     "w1: lowest angular frequency of K u = w^2 M u at the start's homogeneous material"),
+)
+
+
+def fitted_damping(problem: Any, theta: Any) -> dict[str, Any] | None:
+    """The fitted damping of a problem in time at ``theta`` (its time model's
+    ``damping_report``: alpha, beta, the band and ratios), ``None`` for frames independent
+    of each other or where no band is known."""
+    report = getattr(problem.time, "damping_report", None)
+    if report is None:
+        return None
+    return report(problem.simulation_input(theta))
+
+
+def write_damping_attributes(paths: Sequence[Path], damping: dict[str, Any]) -> None:
+    """Add the fitted Rayleigh damping (:data:`DAMPING_ATTRIBUTES`: ``alpha`` in 1/s,
+    ``beta`` in s, the damping ratio at the lowest mode and that mode's angular frequency)
+    to every prim carrying ``primvars:youngsModulus`` in the layers ``paths`` (written
+    just before: ``body.usda``'s TetMesh, ``material.usda``'s mesh), each attribute a
+    ``double`` with its unit in ``customData`` (``torchfit:units``) and its meaning in
+    ``documentation``. A value that is not known (no lowest mode) is left out."""
+    from pxr import Sdf, Usd, UsdGeom
+
+    for path in paths:
+        layer = Sdf.Layer.FindOrOpen(str(path))
+        stage = Usd.Stage.Open(layer)
+        for prim in stage.Traverse():
+            if not UsdGeom.PrimvarsAPI(prim).GetPrimvar("youngsModulus"):
+                continue
+            for name, key, unit, meaning in DAMPING_ATTRIBUTES:
+                value = damping.get(key)
+                if value is None:
+                    continue
+                attribute = prim.CreateAttribute(name, Sdf.ValueTypeNames.Double, custom=True)
+                attribute.Set(float(value))
+                attribute.SetCustomDataByKey("torchfit:units", unit)
+                attribute.SetDocumentation(f"{meaning}, in {unit}")
+        layer.Save()
 
 
 @dataclasses.dataclass(frozen=True)

@@ -45,11 +45,13 @@ def _numpy(x: Tensor) -> np.ndarray:
 
 
 def write_frames(run_dir: Path, problem: Any, x: Tensor, field: Tensor,
-                 density: tuple[float, str] | None = None) -> list[Path]:
+                 density: tuple[float, str] | None = None,
+                 damping: dict[str, Any] | None = None) -> list[Path]:
     """Every output of the simulated frames ``x`` ``(F, n, 3)`` (tet vertex positions) of a
     body problem with ``field`` per tetrahedron: the OBJ sequence, ``body.vtu``,
     ``frames.npz`` and the USD files (:mod:`.body_files`; ``density``: as for
-    :func:`~.body_files.write_usd`); returns the files written."""
+    :func:`~.body_files.write_usd`; ``damping``: a body in time's fitted damping, for the
+    USD layers); returns the files written."""
     surface = _numpy(problem.observation.surface(x))
     positions = _numpy(x)
     cell_data = vtu_cell_data(problem, _numpy(field))
@@ -58,7 +60,7 @@ def write_frames(run_dir: Path, problem: Any, x: Tensor, field: Tensor,
                            problem.mesh.cells, positions, cell_data),
             _write_npz(run_dir / FRAMES_NPZ, problem, positions,
                        file_surface(problem, surface)[0], _numpy(field)),
-            *write_usd(run_dir, problem, surface, _numpy(field), density)]
+            *write_usd(run_dir, problem, surface, _numpy(field), density, damping)]
 
 
 def _write_npz(path: Path, problem: Any, positions: np.ndarray, surface: np.ndarray,

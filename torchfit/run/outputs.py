@@ -131,7 +131,8 @@ class RunOutputs:
         summary = result_dict(problem, result, self.config)
         if isinstance(problem, MotionProblem):
             try:
-                timing = problem.time.report(problem.simulation_input(final.theta))
+                timing = problem.time.report(problem.simulation_input(final.theta),
+                                             result.metrics)
             except Exception as error:  # noqa: BLE001  (an estimate; the fit stands)
                 timing = None
                 progress.warning("could not estimate the integration error at the fitted "
@@ -141,6 +142,9 @@ class RunOutputs:
                 summary["time_integration"] = timing
                 result.highlights.insert(0, time_integration_text(
                     timing, metres=isinstance(problem, BodyProblem)))
+                for line in timing.get("warnings", []):   # the damping, the step's error
+                    progress.warning("%s", line)
+                    result.highlights.insert(1, f"warning: {line}")
         if isinstance(problem, BodyProblem):
             summary["modulus_units"] = modulus_units(problem).as_dict()
         if comparison:

@@ -40,8 +40,8 @@ from ..linalg import set_threads
 from ..problems import PROBLEMS, RiggedBody, build_problem
 from ..problems.body import RUN_MESH_FILE, fitted_mesh, read_run_mesh
 from ..reporting import (CHECKPOINT_FILE, PARAMS_FILE, PROGRESS_LOGGER, RESULT_FILE,
-                         comparison_picture, ensure_progress_visible, modulus_units, write_frames,
-                         write_json)
+                         comparison_picture, ensure_progress_visible, fitted_damping,
+                         modulus_units, write_frames, write_json)
 from .directory import check_writable
 from .lock import hold
 from .options import FitConfigError
@@ -232,7 +232,8 @@ def simulate(run: str | Path, settings: Mapping[str, Any] | None = None,
             run_path.mkdir(parents=True, exist_ok=True)
             result.files = write_frames(run_path, problem, state, field,
                                         problem.poses.material_density(
-                                            problem.simulation_input(theta)))
+                                            problem.simulation_input(theta)),
+                                        fitted_damping(problem, theta))
             worst = int(np.argmax(errors["surface_err_mean"]))
             result.files.append(comparison_picture(run_path, problem, state, worst,
                                                    problem.frame_names()))

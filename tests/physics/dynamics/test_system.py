@@ -76,3 +76,39 @@ def test_sparse_operators_are_the_element_sums(make):
     loop = system.scatter_elements(forces[:, :, None] * V[:, None, :])
     product = torch.sparse.mm(system.element_matrix(forces), V)
     assert torch.allclose(product, loop, rtol=1e-12, atol=1e-12)
+
+
+def test_lowest_frequency_of_a_spring_chain_is_its_closed_form():
+    """A chain of n springs of stiffness k held at both ends, mass m at each of its n - 1
+    inner nodes: w_j = 2 sqrt(k / m) sin(j pi / (2 n)), the lowest j = 1 (shift-invert
+    Lanczos against the closed form); w1 scales as sqrt(k); a chain held nowhere has a rigid
+    mode (None)."""
+    import math
+
+    n, k, m = 40, 250.0, 0.02
+    nodes = torch.arange(n + 1)
+    springs = ScalarSpringNetwork(torch.stack([nodes[:-1], nodes[1:]], 1),
+                                  torch.full((n,), 1.0 / n, dtype=torch.float64),
+                                  torch.zeros(1, n + 1, dtype=torch.float64))
+    rest = nodes.to(torch.float64) / n
+
+    def chain(fixed):
+        return DynamicSystem(springs, n, torch.full((n + 1,), m, dtype=torch.float64),
+                             torch.tensor(fixed), KeyedMotion(torch.zeros(1, dtype=torch.float64),
+                                                              rest[fixed][None]),
+                             None, torch.zeros(n + 1, dtype=torch.float64), rest)
+
+    system = chain([0, n])
+    field = torch.full((n,), k, dtype=torch.float64)
+    w1 = system.lowest_frequency(field)
+    assert w1 == pytest.approx(2 * math.sqrt(k / m) * math.sin(math.pi / (2 * n)), rel=1e-10)
+    assert system.lowest_frequency(4 * field) == pytest.approx(2 * w1, rel=1e-10)
+    # below the highest mode, which the power iteration finds: 2 sqrt(k / m) sin((n-1) pi / 2n)
+    assert system.max_frequency(field, iterations=2000) == pytest.approx(
+        2 * math.sqrt(k / m) * math.sin((n - 1) * math.pi / (2 * n)), rel=1e-3)
+    free = DynamicSystem(springs, n, torch.full((n + 1,), m, dtype=torch.float64),
+                         torch.zeros(0, dtype=torch.long),
+                         KeyedMotion(torch.zeros(1, dtype=torch.float64),
+                                     torch.zeros(1, 0, dtype=torch.float64)),
+                         None, torch.zeros(n + 1, dtype=torch.float64), rest)
+    assert free.lowest_frequency(field) is None

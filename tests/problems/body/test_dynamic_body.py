@@ -362,6 +362,14 @@ def test_fit_and_simulate_apps_in_time(root, tmp_path):
     assert settings_used["checkpoint_every"] == 0
     stage = Usd.Stage.Open(str(tmp_path / "sim" / "usd" / "frames.usda"))
     assert stage.GetTimeCodesPerSecond() == 30.0
+    # the fitted damping beside the modulus, in the fit's layers and the simulation's
+    from torchfit.mesh.formats.usd import read_damping
+    fitted = (summary["alpha_damping"], summary["beta_damping"])
+    for layer in (fit / "usd" / "body.usda", fit / "usd" / "material.usda",
+                  tmp_path / "sim" / "usd" / "body.usda"):
+        damping = read_damping(layer)
+        assert (damping["alpha"], damping["beta"]) == ((fitted[0], "1/s"), (fitted[1], "s"))
+        assert damping["w1"][0] == pytest.approx(summary["problem"]["damping_band"]["w1"])
     assert stage.GetEndTimeCode() == len(ANGLES) - 1
 
 
@@ -442,3 +450,66 @@ def test_a_time_step_the_integrator_cannot_take_is_refused_in_one_line(root, tmp
                                "converge") and lines[0].endswith(
         "the start is set by problem.E0, problem.init_field (or init=)"), lines[0]
     assert not still.exists()
+
+
+@pytest.mark.slow
+def test_the_body_in_time_bounds_its_damping_by_the_physics(root, tmp_path):
+    """The capsule's band: w1 at E0 (the lowest mode of K0 u = w^2 M u with the rig's
+    vertices held, against scipy's dense generalised eigenproblem), w_frames = pi x 24 fps;
+    the solver's bounds on log alpha, log beta are log(2 w1), log(2 / max(w1, w_frames));
+    a rig target reports the damping and its ratios but no *_err_rel (no truth); the fit
+    app refuses problem.beta0=1e12 in one line naming the bound and the ratio, exit 2,
+    nothing written."""
+    import math
+
+    import numpy as np
+    import scipy.linalg
+
+    from helpers.fit_app import run_fit_app
+
+    problem = build_problem("animation", settings(root, frames=[0, 1, 2, 3]))
+    band, system = problem.time.band, problem.time.system
+    free = system.free_dofs.numpy()
+    field = torch.full((system.n_field,), float(problem.cfg.E0), dtype=torch.float64)
+    pattern = system.elastic.tangent_pattern
+    stiffness = pattern.to_scipy(pattern.assemble(system.rest_stiffness_contributions(field)))
+    lowest = scipy.linalg.eigh(stiffness.toarray()[np.ix_(free, free)],
+                               np.diag(system.mass.numpy()[free]), eigvals_only=True,
+                               subset_by_index=[0, 0])[0]
+    assert band.w1 == pytest.approx(math.sqrt(lowest), rel=1e-8)
+    assert band.w_frames == pytest.approx(math.pi * 24.0, rel=1e-12)
+    lower, upper = problem.theta_bounds()
+    assert float(upper[-2]) == pytest.approx(math.log(2 * band.w1), rel=1e-12)
+    assert float(upper[-1]) == pytest.approx(math.log(2 / band.w_high), rel=1e-12)
+    assert float(lower[-1]) == -math.inf
+    metrics = problem.metrics(problem.theta0)
+    assert metrics["beta_damping"] == pytest.approx(0.008)
+    assert metrics["damping_ratio_w1"] == pytest.approx(1.0 / (2 * band.w1) + 0.004 * band.w1)
+    assert not any(k.endswith("_err_rel") and "damping" in k for k in metrics), metrics
+    # on the bound: the summary line says the damping explains the motion
+    at_bound = problem.simulation_input(problem.theta0).clone()
+    at_bound[-1] = band.beta_max
+    report = problem.time.damping_report(at_bound)
+    assert report["on_bound"] == ["beta"] and report["explains_motion"]
+    assert report["note"].startswith("the damping rather than the material explains the motion")
+    assert not problem.time.damping_report(problem.simulation_input(problem.theta0))[
+        "explains_motion"]
+    # the integration error against the fitted error: a warning above half of it
+    start = problem.simulation_input(problem.theta0)
+    estimate = problem.time.report(start)["error_estimate"]
+    assert "warnings" not in problem.time.report(start, {"surface_err_mean": 2.5 * estimate})
+    warnings = problem.time.report(start, {"surface_err_mean": 1.5 * estimate})["warnings"]
+    assert len(warnings) == 1 and warnings[0].startswith("the integration error (about ") \
+        and warnings[0].endswith("raise problem.substeps"), warnings
+    run = tmp_path / "fit"
+    done = run_fit_app(run, "problem=animation", f"problem.path={capsule(root)}",
+                       f"problem.cache_dir={root / 'cache'}", "problem.tet_count=600",
+                       "problem.dynamic=true", "problem.substeps=2", "problem.grid=[2,2,3]",
+                       "problem.beta0=1e12", "solver.max_iter=1")
+    lines = [ln for ln in done.stderr.splitlines() if ln.strip()]
+    assert done.returncode == 2 and len(lines) == 1, done.stderr[-2000:]
+    assert lines[0].startswith("error: problem.beta0=1000000000000.0: gives the damping ratio "
+                               "zeta = beta w / 2 = ") and "(pi x 24 frames/s of the " \
+        "animation, the highest frequency they show), above 1 (critical damping, ZETA_MAX): " \
+        "beta must be at most 2 ZETA_MAX / w = " in lines[0], lines[0]
+    assert not run.exists()

@@ -24,7 +24,10 @@ from __future__ import annotations
 import math
 from typing import Any, Callable
 
+import numpy as np
+import scipy.sparse as sp
 import torch
+from scipy.sparse.linalg import eigsh
 from torch import Tensor
 
 from ...linalg import csr_matrix
@@ -439,6 +442,36 @@ class DynamicSystem:
                 value = float(torch.dot(u, w))
                 u = w
             return math.sqrt(max(value, 0.0))
+
+    def lowest_frequency(self, field: Tensor) -> float | None:
+        """The lowest angular frequency ``w1`` (rad/s) of ``K0(k) u = w^2 M u`` on the free
+        dofs (the Dirichlet dofs held: the body's slowest free oscillation about its rest
+        shape, at the mass of ``problem.density``, a density scale of 1): shift-invert
+        Lanczos at 0 (one sparse LU of ``K0_ff``, a few solves with it). ``None`` where
+        ``K0_ff`` is singular (nothing holds the body: a rigid mode at ``w = 0``) or there
+        is no free dof. Costs about one factorisation of the stiffness; no graph."""
+        free = self.free_dofs.cpu().numpy()
+        if free.size == 0:
+            return None
+        with torch.no_grad():
+            field = field.detach().to(torch.float64).cpu()
+            pattern = self.elastic.tangent_pattern
+            values = pattern.assemble(self.rest_stiffness_contributions(field))
+            stiffness = pattern.to_scipy(values).tocsc()[free][:, free]
+            stiffness = (0.5 * (stiffness + stiffness.T)).tocsc()
+            mass = self.mass.detach().to(torch.float64).cpu().numpy()[free]
+        if free.size <= 3:     # eigsh needs more rows than modes: the dense problem
+            dense = stiffness.toarray() / np.sqrt(np.outer(mass, mass))
+            lowest = float(np.linalg.eigvalsh(dense)[0])
+        else:
+            try:
+                lowest = float(eigsh(stiffness, k=1, M=sp.diags(mass).tocsc(), sigma=0.0,
+                                     which="LM", return_eigenvectors=False)[0])
+            except (RuntimeError, ValueError):   # a singular K0_ff: a rigid mode
+                return None
+        if not math.isfinite(lowest) or lowest <= 0:
+            return None
+        return math.sqrt(lowest)
 
     def start_at(self, x0: Tensor) -> None:
         """Start from positions ``x0`` ``(n_dofs,)`` (a state computed after the system, as

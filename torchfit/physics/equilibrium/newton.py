@@ -20,8 +20,12 @@ projected one. With an energy the line search accepts a step that decreases the 
 iterations (with the energy not decreasing) stops Newton with
 :class:`NewtonConvergenceError`, except once per frame close to equilibrium (a saddle at a
 fold): that frame then finishes with the exact tangent and a line search on ``||R||`` alone.
-Residual norms are per frame, in force units. Counted work: one factorisation per active
-frame and iteration (one for all when the tangent is shared), one more per frame whose
+Residual norms are per frame, in force units. Round-off floor: a frame that missed its
+tolerance (``rtol`` x its start's residual, at least ``atol``) but whose residual is within
+the rounding error of evaluating it (:meth:`NewtonSolver.roundoff_floor`: ``(n_row + 1) eps
+||(|K| |x|)_free||``) is converged: the tolerance asked for more than the arithmetic can
+give, and the point is an equilibrium to working precision. Counted work: one
+factorisation per active frame and iteration (one for all when the tangent is shared), one more per frame whose
 exact step is redone with the projected tangent, and one per frame at ``x*``.
 """
 from __future__ import annotations
@@ -370,6 +374,10 @@ class NewtonSolver:
             report = _PROGRESS.get()
             if report is not None:
                 report(len(history) - 1, int((norms <= targets).sum()), n_frames)
+        if bool((norms > targets).any()) and bool(torch.isfinite(norms).all()):
+            # A tolerance below what the arithmetic can resolve is not a failure: a frame
+            # whose residual is at its round-off floor is an equilibrium (module docstring).
+            targets = torch.maximum(targets, self.roundoff_floor(x, params))
         if bool((norms > targets).any()) or not torch.isfinite(norms).all():
             frame = int(torch.argmax(torch.nan_to_num(norms / targets, nan=math.inf)))
             why = (f"its residual stopped decreasing (not halved in {opts.stall_iter} iterations)"
@@ -381,6 +389,29 @@ class NewtonSolver:
         # The adjoint needs the exact tangent at the solution itself.
         factors = self.reduction.factorize(x, params)
         return Solution(params, fixed_values, x, factors, iterations, reference)
+
+    def roundoff_floor(self, x: Tensor, params: Tensor) -> Tensor:
+        """The residual norm per frame ``(F,)`` below which ``||R(x)||`` is round-off:
+        ``(n_row + 1) eps || (|K| |x|)_free ||`` with ``K`` the exact tangent at ``x``,
+        ``n_row`` the most entries in one of its rows and ``eps`` the dtype's machine
+        epsilon.
+
+        Why this: a residual that is (locally) ``K x - b`` is evaluated with an error of at
+        most ``gamma_n |K| |x|`` per component (Higham, *Accuracy and Stability of Numerical
+        Algorithms*, 2nd ed., eq. 3.11, ``gamma_n = n eps / (1 - n eps)``, ``n`` the terms
+        summed per row), and the positions themselves are known to ``eps |x|``, which moves
+        ``R`` by ``K eps |x|``: a residual within that bound cannot be told from zero, and
+        no Newton step can lower it. It scales with the positions, the stiffness and the
+        step's inertia and damping terms (a large ``beta`` lifts it), which a fixed
+        ``newton.rtol`` x the start's residual does not. One tangent assembly, paid only
+        when a frame missed its tolerance."""
+        with torch.no_grad():
+            pattern = self.model.tangent_pattern
+            values = pattern.assemble(self.reduction.tangent(x, params)).abs()
+            size = pattern.matvec(values, x.abs())[:, self.reduction.free_dofs.to(x.device)]
+            per_row = int((pattern.crow_indices[1:] - pattern.crow_indices[:-1]).max())
+            eps = torch.finfo(x.dtype).eps
+            return (per_row + 1) * eps * torch.linalg.vector_norm(size, dim=1)
 
     def _energy(self, x: Tensor, params: Tensor) -> Tensor:
         """The model's energy per frame ``(F,)`` (the Dirichlet dofs' part is constant)."""

@@ -68,6 +68,23 @@ def theta_bounds(cfg: RiggedBodyConfig, n_params: int, like: Tensor
             torch.full((n_params,), high, dtype=like.dtype, device=like.device))
 
 
+def damping_theta_bounds(cfg: RiggedBodyConfig, band, n_scalars: int, like: Tensor
+                         ) -> tuple[Tensor, Tensor]:
+    """``(lower, upper)`` on the scalars' ``theta`` in time ``(n_scalars,)`` each: ``alpha
+    <= alpha_max``, ``beta <= beta_max`` of the damping's band (``band``: a
+    :class:`~torchfit.problems.dynamic.DampingBand`, or ``None``: unbounded above), in
+    ``log`` with ``transform=exp`` (below: ``-inf``) or as they are (below: 0); a density
+    scale unbounded. Where ``bounds_apply`` (rig targets by default) with the modulus'."""
+    exp = cfg.transform == Transform.exp
+    low = -math.inf if exp else 0.0
+    highs = [math.inf] * n_scalars
+    if band is not None:
+        for i, bound in enumerate((band.alpha_max, band.beta_max)):
+            highs[i] = (math.log(bound) if exp else bound) if math.isfinite(bound) else math.inf
+    return (torch.full((n_scalars,), low, dtype=like.dtype, device=like.device),
+            torch.tensor(highs, dtype=like.dtype, device=like.device))
+
+
 def add_parameter_fractions(summary: dict[str, dict[str, float]], basis: Optional[Tensor],
                             field: Tensor, labels, names: list[str],
                             bounds: Optional[tuple[float, float]]) -> None:

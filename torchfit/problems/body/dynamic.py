@@ -29,7 +29,9 @@ Moduli are pascals (inertia fixes the scale: not scale-free): with ``problem.E0_
 (the default) ``E0``, ``E_blocks``, ``E_regions`` (and absolute bounds) are factors of
 ``problem.E_reference``, with ``E0_unit=Pa`` pascals. Parameters: the body's field
 parameterisation and the two damping coefficients (:class:`~torchfit.params.FieldAndScalars`,
-``theta = [field..., alpha, beta]``). Data: the observed surface at the fitted frames.
+``theta = [field..., alpha, beta]``), the damping within its physical bounds
+(:class:`~torchfit.problems.dynamic.DampingBand` at ``E0`` and ``pi x fps``: a start outside
+them refused, the solver kept inside them where ``problem.bounds`` holds). Data: the observed surface at the fitted frames.
 ``problem.init_field`` starts the field from a material layer in pascals (its stated unit,
 :mod:`.init_field`). Validation: ``problem.validation_frames`` must be a later window than every fitted frame (the
 held-out future; :func:`dynamic_split`); ``validation_every`` is refused.
@@ -50,10 +52,10 @@ from ...physics import NewtonConvergenceError, NewtonOptions
 from ...physics.dynamics import DynamicSystem, SplineMotion, UnstableStepError, make_integrator
 from ..base import NO_WARM_STARTS
 from ..config import ProblemConfigError, Transform, require_setting, setting_error
-from ..dynamic import (IMPLICIT_STEP_BYTES, Integrator, Scalars, TimeIntegration,
+from ..dynamic import (IMPLICIT_STEP_BYTES, DampingBand, Integrator, Scalars, TimeIntegration,
                        stored_states)
 from ..protocols import WarmStarts
-from .config import ModulusUnit, RiggedBodyConfig
+from .config import ModulusUnit, RiggedBodyConfig, Target
 from .held_out import FrameSplit
 
 _DAMPING = ("alpha", "beta")
@@ -164,10 +166,12 @@ class BodyInTime(TimeIntegration):
     warm_starts: WarmStarts = NO_WARM_STARTS
 
     def __init__(self, cfg: RiggedBodyConfig, system: DynamicSystem, integrator: Any,
-                 output_times: Tensor, fps: float, dt: float, shot_frames: int) -> None:
+                 output_times: Tensor, fps: float, dt: float, shot_frames: int,
+                 band: DampingBand | None = None) -> None:
         super().__init__(cfg, system, integrator, output_times, 3, Scalars(
             scalar_names(cfg), scalar_starts(cfg), (cfg.alpha, cfg.beta, *(
-                (cfg.density_scale,) if cfg.fit_density else ())), cfg.transform.value))
+                (cfg.density_scale,) if cfg.fit_density else ())), cfg.transform.value),
+            band, cfg.target == Target.synthetic)
         self.fps, self.dt, self.shot_frames = fps, dt, int(shot_frames)
 
     @classmethod
@@ -212,6 +216,11 @@ class BodyInTime(TimeIntegration):
             gravity.repeat(n), initial_pose().reshape(-1),
             rig.velocity(key_times[:1])[0], vertex_dim=3, rest=rest.reshape(-1),
             reference_velocity=rig.velocity, density_scaled=cfg.fit_density)
+        # the damping's bounds: zeta <= ZETA_MAX at the lowest mode at E0 and at pi fps; a
+        # start outside them refused before anything is integrated
+        band = DampingBand.of(system, float(cfg.E0), 1.0 / fps)
+        band.check_start(cfg, float(cfg.alpha0), float(cfg.beta0),
+                         frames="the animation")
         output_times = torch.as_tensor(frame_numbers, dtype=torch.float64) / fps
         newton = NewtonOptions(max_iter=cfg.newton_max_iter, rtol=cfg.newton_rtol,
                                atol=cfg.newton_atol)
@@ -240,7 +249,7 @@ class BodyInTime(TimeIntegration):
                     "the body (a larger attach radius, torchfit:attachRadius) or set "
                     "problem.gravity=null") from error
             system.start_at(rest_under_gravity)
-        return cls(cfg, system, integrator, output_times, fps, dt, drive.shape[0])
+        return cls(cfg, system, integrator, output_times, fps, dt, drive.shape[0], band)
 
     # -- the body's simulation -----------------------------------------------------------
     def simulate(self, physical: Tensor) -> Tensor:
@@ -277,10 +286,11 @@ class BodyInTime(TimeIntegration):
                                                  f"scale {scale:.6g}")
 
     # -- what it adds to the body's reports ------------------------------------------------
-    def report(self, physical: Tensor) -> dict[str, Any]:
+    def report(self, physical: Tensor, metrics: dict[str, Any] | None = None
+               ) -> dict[str, Any]:
         """The dynamic problems' report (positions in metres) with the frame rate and the
         substeps."""
-        out = super().report(physical)
+        out = super().report(physical, metrics)
         out.update({"fps": self.fps, "substeps": int(self.cfg.substeps)})
         return out
 

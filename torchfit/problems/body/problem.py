@@ -56,13 +56,14 @@ from .setup import (animation_summary, check_rig, check_tet_settings, report_rig
                     tet_options)
 from .report import (BODY_METRICS, body_metrics, describe_body, frame_report,
                      inverted_counts, min_volume_ratios, volume_change)
-from ..config import (Backend, ProblemConfigError, Transform, check_newton_settings,
+from ..config import (Backend, ProblemConfigError, check_newton_settings,
                       make_config, require_setting, resolve_backend, setting_error)
 from .dynamic import BodyInTime, check_body_dynamics, dynamic_split, in_pascals
 from .energy import body_energy
 from .held_out import NO_VALIDATION, FrameSplit, split_frames
 from .model_comparison import ModelComparison
-from .bounds import bounds_warning, check_bounds, modulus_bounds, region_report, theta_bounds
+from .bounds import (bounds_warning, check_bounds, damping_theta_bounds, modulus_bounds,
+                     region_report, theta_bounds)
 from .observation import SurfaceObservation
 from .poses import FramePoses
 from .repeated_poses import distinct_poses
@@ -540,15 +541,12 @@ class RiggedBody(InverseProblem):
 
     def theta_bounds(self) -> tuple[Tensor, Tensor] | None:
         """``problem.E_min`` / ``E_max`` on the field's ``theta`` (:mod:`.bounds`); the
-        scalars in time unbounded (the damping positive by ``exp``; ``>= 0`` with
-        ``identity``)."""
+        damping in time at most its band's bounds (:func:`.bounds.damping_theta_bounds`)."""
         scalars = self.parameterization.n_scalars if self.time.in_time else 0
         bounds = theta_bounds(self.cfg, self.parameterization.n_params - scalars, self.theta0)
         if bounds is None or not scalars:
             return bounds
-        low = -math.inf if self.cfg.transform == Transform.exp else 0.0
-        tail = torch.tensor([[low] * scalars, [math.inf] * scalars], dtype=self.theta0.dtype,
-                            device=self.theta0.device)
+        tail = damping_theta_bounds(self.cfg, self.time.band, scalars, self.theta0)
         return torch.cat([bounds[0], tail[0]]), torch.cat([bounds[1], tail[1]])
 
     def describe(self) -> dict[str, Any]:

@@ -1,5 +1,8 @@
 """A material layer from a DCC: per-vertex or per-tetrahedron ``youngsModulus`` (the extra ``usd``).
 
+:func:`read_damping` reads back the Rayleigh damping a fit in time wrote beside the modulus
+(``torchfit:rayleighAlpha`` in 1/s, ``torchfit:rayleighBeta`` in s, ...).
+
 ``problem.init_field=<file>.usd[a|c|z]`` starts a fit from a field an artist painted, or one
 torchfit wrote (``usd/material.usda``, ``usd/body.usda`` of a run). :func:`read_modulus_layer`
 reads the stage's first prim (depth first) that carries one of
@@ -111,6 +114,38 @@ def read_modulus_layer(path: str | Path) -> ModulusLayer:
                                 _unit(primvar.GetAttr(), prim))
     raise AnimationError(f"{path}: no prim carries primvars:youngsModulus (per vertex of a "
                          "mesh or per tetrahedron of a TetMesh)")
+
+
+#: the damping a run in time writes beside the modulus (torchfit's own attributes: the
+#: deformable-physics draft names none; docs/guide/dcc.md): attribute -> key
+DAMPING_KEYS = {"torchfit:rayleighAlpha": "alpha", "torchfit:rayleighBeta": "beta",
+                "torchfit:dampingRatioLowestMode": "zeta_w1",
+                "torchfit:lowestAngularFrequency": "w1"}
+
+
+def read_damping(path: str | Path) -> dict[str, tuple[float, str]] | None:
+    """The fitted Rayleigh damping a run in time wrote into the layer at ``path``
+    (``usd/material.usda`` or ``usd/body.usda``): ``{key: (value, unit)}`` for the
+    attributes of :data:`DAMPING_KEYS` on the first prim that carries
+    ``torchfit:rayleighAlpha`` (``alpha`` in 1/s, ``beta`` in s, ``zeta_w1`` the damping ratio
+    at the lowest mode, ``w1`` in rad/s), the unit from the attribute's ``customData``
+    (``torchfit:units``); ``None`` where no prim carries it (a quasistatic fit)."""
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(Path(path).expanduser()))
+    if stage is None:
+        raise AnimationError(f"{path}: cannot open it as a USD stage")
+    for prim in stage.Traverse():
+        if not prim.HasAttribute("torchfit:rayleighAlpha"):
+            continue
+        out = {}
+        for name, key in DAMPING_KEYS.items():
+            attribute = prim.GetAttribute(name)
+            if attribute and attribute.HasAuthoredValue():
+                out[key] = (float(attribute.Get()),
+                            str(attribute.GetCustomDataByKey("torchfit:units") or ""))
+        return out
+    return None
 
 
 def _unit(attribute, prim) -> str:
