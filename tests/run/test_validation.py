@@ -97,7 +97,9 @@ def test_the_tracker_continues_exactly_from_its_state():
 @pytest.fixture(scope="module")
 def tube(tmp_path_factory):
     root = tmp_path_factory.mktemp("tube")
-    return {"path": str(write_tube(root / "tube")), "tet_edge_length": 0.3, "grid": [2, 2, 2],
+    # 0.2, not 0.3: on one fresh mesh in five the 0.3 tube's 3-iteration fit reduced nothing
+    # (1.00x), and a fit the verdict calls undetermined keeps its start (issue 47)
+    return {"path": str(write_tube(root / "tube")), "tet_edge_length": 0.2, "grid": [2, 2, 2],
             "cache_dir": str(root / "cache"), "frames": [0, 2, 6]}
 
 

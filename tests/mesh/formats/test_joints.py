@@ -208,3 +208,21 @@ def test_coinciding_or_misplaced_joints_are_refused_naming_them():
                                     np.concatenate([0 * weights[:, :1], weights], 1),
                                     ["root"] + names, None, rest, "limb.usda")
     assert skeleton.names[0] == "root" and skeleton.n_bones == 4
+
+
+def test_siblings_may_share_a_point_but_a_bone_may_not_have_no_length():
+    """Two thighs and a spine from one hip share a point: a rig. A weighted joint on its
+    weighted parent's point: a bone of no length, refused naming both."""
+    from torchfit.mesh.formats.joints import check_joint_placement
+
+    rest = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    hip = np.zeros(3)
+    positions = np.array([hip, hip, hip, hip, [0, 0, 0.5]])      # root, 3 siblings, a knee
+    parents = np.array([-1, 0, 0, 0, 1])
+    weights = np.zeros((4, 5))
+    weights[:, [1, 2, 3, 4]] = 0.25
+    names = ["root", "thigh_l", "thigh_r", "spine", "knee_l"]
+    check_joint_placement(positions, parents, weights, rest, names, "figure")   # accepted
+    positions[4] = hip                                                         # knee on hip
+    with pytest.raises(AnimationError, match=r"figure: joints thigh_l, knee_l coincide"):
+        check_joint_placement(positions, parents, weights, rest, names, "figure")

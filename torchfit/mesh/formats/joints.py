@@ -130,7 +130,7 @@ def skeleton_from_joints(joint_positions: np.ndarray, parents: np.ndarray,
     weights = normalized_weights(joint_weights, source)
     positions = np.asarray(joint_positions, dtype=np.float64)
     rest = np.asarray(rest_vertices, dtype=np.float64)
-    check_joint_placement(positions, weights, rest, joint_names, source)
+    check_joint_placement(positions, np.asarray(parents), weights, rest, joint_names, source)
     used = weights.max(axis=0) > 0
     joint_of_bone, child_of_bone = [], []
     for j in range(len(parents)):
@@ -260,34 +260,37 @@ COINCIDENT = 1e-6
 FAR_FROM_FLESH = 0.25
 
 
-def check_joint_placement(positions: np.ndarray, weights: np.ndarray,
+def check_joint_placement(positions: np.ndarray, parents: np.ndarray, weights: np.ndarray,
                           rest_vertices: np.ndarray, names: list[str], source: str) -> None:
-    """Refuse (one :class:`~..animation.AnimationError` line) joints with weight that
-    coincide (``COINCIDENT``). Such a stage can skin its frames exactly (the skinning needs
-    only the bind transforms), but the bones that hold the material have no length and no
-    place in the body (:func:`check_bone_placement` refuses bones away from it).
+    """Refuse (one :class:`~..animation.AnimationError` line) weighted joints that coincide
+    with their parent joint (``COINCIDENT``): the bone between them has no length. Such a
+    stage can skin its frames exactly (the skinning needs only the bind transforms), but the
+    bones that hold the material have no length and no place in the body
+    (:func:`check_bone_placement` refuses bones away from it). Siblings that share a point
+    (two thighs and a spine from one hip) are a rig, not a fault.
 
     Args:
-        positions: ``(J, 3)`` rest joint positions (metres); weights ``(V, J)`` normalised;
-            rest_vertices ``(V, 3)``; names ``J``.
+        positions: ``(J, 3)`` rest joint positions (metres); parents ``(J,)`` (``-1``: a
+            root); weights ``(V, J)`` normalised; rest_vertices ``(V, 3)``; names ``J``.
     """
     size = float(np.linalg.norm(rest_vertices.max(axis=0) - rest_vertices.min(axis=0)))
-    weighted = np.flatnonzero(weights.max(axis=0) > 0)
-    if weighted.size > 1:
-        # weighted joints that coincide (a weightless root on its first joint moves nothing)
-        placed = positions[weighted]
-        gap = np.linalg.norm(placed[:, None] - placed[None], axis=-1)
-        np.fill_diagonal(gap, np.inf)
-        close = gap <= COINCIDENT * max(size, 1e-300)
-        if close.any():
-            together = [int(j) for j in weighted[close.any(axis=1)]]
-            where = positions[together[0]]
-            raise AnimationError(
-                f"{source}: joints {_named(names, together)} coincide (all at "
-                f"({where[0]:.4g}, {where[1]:.4g}, {where[2]:.4g}) m in the rest pose), so "
-                "their bones have no length and hold no flesh; the skinning may still "
-                "reproduce the frames, but the bind transforms must place each joint where "
-                "it bends (in the DCC: apply the armature's rest pose and re-export)")
+    parents = np.asarray(parents, dtype=np.int64)
+    weighted = weights.max(axis=0) > 0
+    child = np.flatnonzero(parents >= 0)
+    parent = parents[child]
+    # a weightless root on its first joint moves nothing: only pairs weighted on both sides
+    short = np.linalg.norm(positions[child] - positions[parent], axis=-1) <= \
+        COINCIDENT * max(size, 1e-300)
+    short &= weighted[child] & weighted[parent]
+    if short.any():
+        together = sorted({int(j) for pair in zip(parent[short], child[short]) for j in pair})
+        where = positions[together[0]]
+        raise AnimationError(
+            f"{source}: joints {_named(names, together)} coincide (all at "
+            f"({where[0]:.4g}, {where[1]:.4g}, {where[2]:.4g}) m in the rest pose), so "
+            "their bones have no length and hold no flesh; the skinning may still "
+            "reproduce the frames, but the bind transforms must place each joint where "
+            "it bends (in the DCC: apply the armature's rest pose and re-export)")
 
 
 def check_bone_placement(heads: np.ndarray, tails: np.ndarray, joint_of_bone: np.ndarray,

@@ -85,7 +85,9 @@ def initial_field_theta(problem: Any, cfg: Any, unitless: float | None = None) -
         dense = (basis.to_dense() if basis.layout != torch.strided else basis).to(target)
         values = torch.linalg.lstsq(dense, target[:, None]).solution[:, 0]
     values = torch.clamp(values, min=FLOOR * float(target.mean()))
-    bounds = modulus_bounds(cfg)
+    # quasistatic only: there the layer's values and the bounds share the unit of problem.E0;
+    # in time the values are pascals (the bounds' unit conversion is the body in time's)
+    bounds = modulus_bounds(cfg) if unitless is None else None
     if bounds is not None:
         outside = (values < bounds[0]) | (values > bounds[1])
         if bool(outside.any()):
