@@ -37,6 +37,10 @@ MATERIAL_FILE = "material.usda"
 DENSITY = 1000.0
 DENSITY_SOURCE = "assumed 1000 kg/m^3 (water): a quasistatic fit does not determine it"
 FRAMES_DIR = "frames"
+#: what the per-tetrahedron uncertainty of the modulus in ``body.usda`` is
+BAND_UNITS = ("factor, 1 (dimensionless): the modulus lies within [E / factor, E * factor] "
+              "at two standard deviations (Gauss-Newton posterior at the fitted point); inf: "
+              "the data do not determine it")
 USD_DIR = "usd"
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
@@ -105,11 +109,14 @@ def _frame_times(names: Sequence[str]) -> list[float] | None:
 
 
 def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarray,
-              density: tuple[float, str] | None = None) -> list[Path]:
+              density: tuple[float, str] | None = None,
+              band: np.ndarray | None = None) -> list[Path]:
     """``usd/frames.usda`` and ``usd/body.usda`` (module docstring); nothing, with a log
     line, where ``usd-core`` is not installed. ``density``: the material's density (kg/m^3)
     and where it comes from (the problem's :meth:`material_density`); ``None``: the assumed
-    :data:`DENSITY`."""
+    :data:`DENSITY`. ``band``: ``(m,)`` the modulus' two-sigma band per tetrahedron (the
+    fit's uncertainty: :data:`BAND_UNITS`), written to ``body.usda`` as
+    ``primvars:torchfit:youngs_modulus_band``."""
     if importlib.util.find_spec("pxr") is None:
         progress.info("no USD output: install the extra torchfit[usd] (usd-core) for it")
         return []
@@ -131,7 +138,10 @@ def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarra
     if problem.tet_regions is not None:
         fields["region"] = np.asarray(problem.tet_regions, dtype=np.int32)
     labels = {"youngs_modulus": units.unit, "youngsModulus": units.unit,
-              "poissonsRatio": "1 (dimensionless)", "density": "kg/m^3"}
+              "poissonsRatio": "1 (dimensionless)", "density": "kg/m^3",
+              "youngs_modulus_band": BAND_UNITS}
+    if band is not None:
+        fields["youngs_modulus_band"] = np.asarray(band, dtype=np.float64)
     density_value, density_source = (DENSITY, DENSITY_SOURCE) if density is None else density
     material = {"youngsModulus": field, "poissonsRatio": np.full(len(cells), problem.cfg.nu),
                 "density": np.full(len(cells), float(density_value))}
