@@ -65,6 +65,12 @@ def test_a_gauge_is_projected_out_the_covariance_is_the_pseudo_inverse():
     closed = 0.25 * torch.linalg.pinv(J.T @ J, hermitian=True)
     assert torch.allclose(L @ L.T, closed, rtol=1e-8, atol=1e-12)
     assert float((L.T @ ones).abs().max()) < 1e-12
+    # held by an anchor instead (a weighted mean of theta): Cov = P C P^T, P = I - g a^T / a^T g
+    anchor = torch.tensor([1.0, 2.0, 0.0, 0.5, 3.0], dtype=torch.float64)
+    La, _, _, _ = covariance_factor(J, sigma=0.5, gauge=ones, anchor=anchor)
+    P = torch.eye(n, dtype=torch.float64) - ones[:, None] * anchor[None, :] / float(anchor @ ones)
+    assert torch.allclose(La @ La.T, P @ closed @ P.T, rtol=1e-8, atol=1e-12)
+    assert float((anchor @ La).abs().max()) < 1e-12
 
 
 def test_a_parameter_on_a_bound_is_held_there():
@@ -129,3 +135,14 @@ def test_a_matrix_free_fit_of_many_parameters_says_not_computed():
     report = Uncertainty(False, reason="3969 parameters, matrix-free")
     assert report.summary() == {"computed": False, "reason": "3969 parameters, matrix-free"}
     assert report.text() == "uncertainty not computed (3969 parameters, matrix-free)"
+
+
+def test_a_fit_stopped_short_of_its_minimum_says_the_band_does_not_hold():
+    problem = build_problem("spring1d", {"noise": 1e-3})
+    result = fit(problem, {"name": "levenberg_marquardt", "max_iter": 1}, options=QUIET)
+    report = result.uncertainty
+    assert report.short_of_minimum > 10
+    # the step that remains is the linearised minimum's: one Gauss-Newton step closer
+    moved = np.abs(report.step) > report.sd
+    assert int(moved.sum()) == report.short_of_minimum
+    assert "stopped short of its minimum" in result.summary()

@@ -14,8 +14,13 @@ Gauss-Newton Hessian of the negative log posterior, ``Cov = sigma^2 (J^T J + R)^
   infinite (``null`` in JSON), and so is that of every cell and region it touches. Weakly
   determined directions are kept, so their standard deviations are large, not hidden.
 * **The gauge.** A scale-free problem (only prescribed displacements) never fixes the overall
-  scale: its scale direction is projected out of ``J`` first, and every number is *up to the
-  overall scale* (``gauge: true``): the spread of the field's shape, not of its level.
+  scale: its scale direction ``g`` is projected out of ``J`` first, and every number is *up to
+  the overall scale* (``gauge: true``): the spread of the field's shape, not of its level.
+  Which shape is meant is fixed by an anchor: the field's volume-weighted mean ``log E``
+  (the weights ``a = B^T volumes``, the volume each parameter carries) is held, so
+  ``Cov = P C P^T`` with ``P = I - g a^T / (a^T g)``. (Holding the plain mean of ``theta``
+  instead would mix the huge spread of grid nodes that barely touch the body into every
+  other parameter's.)
 * **Bounds.** A parameter on a bound the solver keeps is held there (its column is left
   out; its standard deviation is ``null``, counted in ``on_bound``): the Laplace
   approximation does not hold at the edge of the box.
@@ -31,6 +36,13 @@ Gauss-Newton Hessian of the negative log posterior, ``Cov = sigma^2 (J^T J + R)^
   body's labels, else one region ``body``, as :mod:`.identifiability` defines them): the
   variance of the region's volume-weighted mean modulus ``Ebar``, ``g^T Cov g`` with
   ``g = d log Ebar / d theta`` (relative; ``identity``: absolute).
+
+**At a minimum only.** The posterior is centred on the least-squares minimum; a fit stopped
+short of it (``max_iter``) carries an error the noise does not explain. The Gauss-Newton
+step that remains, ``step = -Cov J^T r / sigma^2`` (from the same factor, no product), says
+how far: ``short_of_minimum`` counts the parameters it would move by more than one standard
+deviation, and the summary line says that the band then does not hold (fit longer, or
+``init=`` this run).
 
 Where the Jacobian comes from (``source``): the dense Jacobian of the solver's last
 accepted point (Levenberg-Marquardt and Gauss-Newton on the dense path: no simulation, no
@@ -94,6 +106,9 @@ class Uncertainty:
         on_bound, undetermined: parameter counts.
         cost: ``seconds``, ``products`` (``J e_j``), ``factorizations`` (always 0).
         mesh_check: per region the fit on a second mesh (:func:`compare_meshes`), or ``None``.
+        gauge_direction, anchor: ``(n,)`` with a gauge, ``g`` and ``a`` (module docstring).
+        step: ``(n,)`` the Gauss-Newton step that remains; ``short_of_minimum`` the
+            parameters it moves by more than one ``sd`` (module docstring).
     """
 
     computed: bool
@@ -112,6 +127,10 @@ class Uncertainty:
     undetermined: int = 0
     cost: dict[str, float] = dataclasses.field(default_factory=dict)
     mesh_check: dict[str, Any] | None = None
+    gauge_direction: np.ndarray | None = None
+    anchor: np.ndarray | None = None
+    step: np.ndarray | None = None
+    short_of_minimum: int = 0
 
     @property
     def relative(self) -> bool:
@@ -129,15 +148,16 @@ class Uncertainty:
                  ) -> tuple[float, int]:
         """The fraction of the parameters (``among``, default every one with a finite ``sd``)
         whose ``truth`` lies within ``SIGMAS`` standard deviations of ``theta``, and their
-        count; with a gauge (``exp``) both are compared up to the overall scale: the mean
-        difference over the parameters with a finite ``sd`` removed, as the covariance
-        removes the scale direction."""
+        count; with a gauge both are compared up to the overall scale, as the covariance
+        holds it: the error ``e`` taken as ``P e`` (module docstring)."""
         assert self.sd is not None
         finite = self.finite()
         chosen = finite if among is None else np.asarray(among, bool) & finite
         error = (theta.detach().double().cpu() - truth.detach().double().cpu()).numpy()
-        if self.gauge and finite.any():
-            error = error - error[finite].mean()
+        if self.gauge and self.gauge_direction is not None:
+            g = self.gauge_direction
+            a = g if self.anchor is None else self.anchor
+            error = error - g * float(a @ error) / float(a @ g)
         inside = np.abs(error[chosen]) <= SIGMAS * self.sd[chosen]
         return (float(inside.mean()) if inside.size else math.nan), int(inside.size)
 
@@ -153,7 +173,7 @@ class Uncertainty:
             "meaning": "sd of log E; factor = exp(2 sd): E within [E/factor, E*factor]"
             if self.relative else "sd of the field, absolute; band = 2 sd",
             "parameters_with_sd": int(finite.sum()), "undetermined": self.undetermined,
-            "on_bound": self.on_bound,
+            "on_bound": self.on_bound, "short_of_minimum": self.short_of_minimum,
             "sd_median": float(np.median(sd)) if sd.size else None,
             "factor_median": float(self.factor(np.median(sd))) if sd.size else None,
             "regions": self.regions, "cost": self.cost}
@@ -167,6 +187,8 @@ class Uncertainty:
         if self.sd is not None:
             out["parameters"] = {"sd": [float(v) if math.isfinite(v) else None
                                         for v in self.sd]}
+        if self.step is not None:
+            out["parameters"]["remaining_step"] = [float(v) for v in self.step]
         return out
 
     def text(self) -> str | None:
@@ -183,6 +205,10 @@ class Uncertainty:
         scale = ", up to the overall scale" if self.gauge else ""
         text = (f"2-sigma band {median} (median of {int(finite.sum())} parameters, "
                 f"sigma from the {self.sigma_source}{scale}); per region {', '.join(parts)}")
+        if self.short_of_minimum:
+            text += (f"; the fit stopped short of its minimum (one more Gauss-Newton step "
+                     f"moves {self.short_of_minimum} parameters by more than their sd), so "
+                     f"the band does not hold yet")
         if self.mesh_check is not None and self.mesh_check.get("regions"):
             text += "; on a second mesh " + ", ".join(
                 f"{name} {100 * values['difference']:+.1f} %"
@@ -198,8 +224,8 @@ def _band(factor: float | None, relative: bool) -> str:
 
 # -- the numbers ----------------------------------------------------------------------------
 def covariance_factor(J: Tensor, sigma: float | None = None, gauge: Tensor | None = None,
-                      free: Tensor | None = None, residual: Tensor | None = None
-                      ) -> tuple[Tensor, Tensor, float, int]:
+                      free: Tensor | None = None, residual: Tensor | None = None,
+                      anchor: Tensor | None = None) -> tuple[Tensor, Tensor, float, int]:
     """``L`` ``(n, k)`` with ``Cov = L L^T`` (module docstring), the per-parameter
     ``(n,)`` undetermined fraction ``||V_null^T e_j||^2`` (1 where not ``free``), ``sigma``
     and the rank ``k``.
@@ -210,6 +236,8 @@ def covariance_factor(J: Tensor, sigma: float | None = None, gauge: Tensor | Non
         gauge: ``(n,)`` the unit direction the data never fix (projected out), or ``None``.
         free: ``(n,)`` bool, the parameters not held on a bound (default all).
         residual: ``(m,)`` the residual at the fitted point (with ``sigma=None``).
+        anchor: ``(n,)`` with a gauge, the weights ``a`` whose weighted sum of ``theta`` is
+            held (module docstring); ``None``: the orthogonal projection (``a = g``).
     """
     J = J.detach().double().cpu()
     m, n = J.shape
@@ -238,6 +266,10 @@ def covariance_factor(J: Tensor, sigma: float | None = None, gauge: Tensor | Non
     null[cols] = (1.0 - kept).clamp_min(0.0)
     if gauge is not None and float(g.norm()) > 0:
         null[cols] = (null[cols] - g ** 2).clamp_min(0.0)    # the gauge is not a nullspace
+        if anchor is not None:
+            a = anchor.detach().double().cpu()[cols]
+            if float(a @ g) > 0:
+                L[cols] = L[cols] - g[:, None] * (a @ L[cols])[None, :] / float(a @ g)
     return L, null, sigma, rank
 
 
@@ -274,9 +306,10 @@ def estimate(problem: InverseProblem, lin: Any, theta: Tensor,
     if free is None:
         free = off_bounds(problem, theta)
     gauge = problem.parameterization.scale_direction(theta) if problem.scale_free else None
+    anchor = None if gauge is None else parameter_volumes(problem, n)
     noise = problem.noise_level
     sigma = noise / math.sqrt(data.numel()) if noise else None
-    L, null, sigma, rank = covariance_factor(J, sigma, gauge, free, lin.r)
+    L, null, sigma, rank = covariance_factor(J, sigma, gauge, free, lin.r, anchor)
     undetermined = (null > NULL_COMPONENT) & free.cpu()
     sd = (L ** 2).sum(1).sqrt().numpy()
     sd[undetermined.numpy()] = math.inf
@@ -285,6 +318,13 @@ def estimate(problem: InverseProblem, lin: Any, theta: Tensor,
                          sigma_source="noise level" if noise else "residual",
                          m=int(data.numel()), rank=rank, gauge=gauge is not None, sd=sd,
                          on_bound=int((~free).sum()), undetermined=int(undetermined.sum()))
+    if gauge is not None:
+        report.gauge_direction = gauge.detach().double().cpu().numpy()
+        report.anchor = None if anchor is None else anchor.numpy()
+    Jd = J.detach().double().cpu()
+    step = -(L @ (L.T @ (Jd.T @ lin.r.detach().double().cpu()))) / sigma ** 2
+    report.step = step.numpy()
+    report.short_of_minimum = int((np.abs(report.step) > sd)[np.isfinite(sd)].sum())
     _per_cell(problem, theta, L, np.isinf(sd), report)
     report.cost = {"seconds": time.perf_counter() - start, "products": products,
                    "factorizations": 0}
@@ -304,6 +344,31 @@ def off_bounds(problem: InverseProblem, theta: Tensor) -> Tensor:
     return free & ~near_low & ~near_high
 
 
+def parameter_volumes(problem: InverseProblem, n: int) -> Tensor | None:
+    """``(n,)`` the volume each parameter carries, ``B^T volumes`` (the field elements'
+    volumes: a body's tetrahedra, else 1 each), or ``None`` where the parameterisation has
+    no plain basis."""
+    B = _basis(problem, n)
+    if B is None:
+        return None
+    volumes, _, _ = _cell_geometry(problem, B.shape[0])
+    return torch.sparse.mm(B.t(), torch.as_tensor(volumes, dtype=torch.float64)[:, None])[:, 0]
+
+
+def _basis(problem: InverseProblem, n: int) -> Tensor | None:
+    """The parameterisation's basis ``B`` ``(n_field, n)`` as a sparse COO float64 tensor
+    on the CPU (the identity without one), or ``None`` where it has no plain basis."""
+    parameterization = problem.parameterization
+    basis = getattr(parameterization, "basis", None)
+    n_field = int(getattr(parameterization, "n_field", -1))
+    if basis is None and n_field == n:
+        return torch.eye(n, dtype=torch.float64).to_sparse()
+    if isinstance(basis, Tensor) and tuple(basis.shape) == (n_field, n):
+        return (basis.to_sparse() if basis.layout == torch.strided else basis
+                ).to_sparse_coo().coalesce().cpu().double()
+    return None
+
+
 def _cell_geometry(problem: InverseProblem, n_field: int
                    ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Volumes ``(n_field,)``, region labels and names of the field elements (the body's
@@ -321,19 +386,13 @@ def _per_cell(problem: InverseProblem, theta: Tensor, L: Tensor, infinite: np.nd
               report: Uncertainty) -> None:
     """Per field element and per region (module docstring); nothing where the
     parameterisation has no plain basis."""
-    parameterization = problem.parameterization
     n = int(theta.numel())
-    basis = getattr(parameterization, "basis", None)
-    n_field = int(getattr(parameterization, "n_field", -1))
     t = theta.detach().double().cpu()
     effect = t.exp() if report.relative else torch.ones_like(t)   # d transform / d theta
-    if basis is None and n_field == n:
-        B = torch.eye(n, dtype=torch.float64).to_sparse()
-    elif isinstance(basis, Tensor) and tuple(basis.shape) == (n_field, n):
-        B = (basis.to_sparse() if basis.layout == torch.strided else basis
-             ).to_sparse_coo().coalesce().cpu().double()
-    else:
+    B = _basis(problem, n)
+    if B is None:
         return
+    n_field = int(B.shape[0])
     # d field_c / d theta_j = B_cj effect_j; the cells' field values
     field = torch.sparse.mm(B, (t.exp() if report.relative else t)[:, None])[:, 0]
     BL = torch.sparse.mm(B, effect[:, None] * L)                        # (n_field, k)
@@ -417,4 +476,4 @@ def _body_mean(problem: BodyProblem, field: Tensor) -> float:
 
 __all__ = ["MATRIX_FREE_MAX_PARAMS", "MESH_CHECK_EDGE", "NULL_COMPONENT", "RANK_TOLERANCE", "SIGMAS",
            "Uncertainty", "compare_meshes", "covariance_factor", "estimate", "off_bounds",
-           "second_mesh_settings"]
+           "parameter_volumes", "second_mesh_settings"]
