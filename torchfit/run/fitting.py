@@ -203,7 +203,8 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
         result.validation["failed_iterations"] = [i for i, _ in evaluator.validation_failures]
     result.identifiability = identify(problem, getattr(solver, "lin", None), solved.theta)
     # every number with its uncertainty (uncertainty.py), from the same linearisation
-    result.uncertainty = estimate(problem, getattr(solver, "lin", None), solved.theta)
+    result.uncertainty = estimate(problem, getattr(solver, "lin", None), solved.theta,
+                                  determined=result.identifiability.parameter_determined)
     if isinstance(problem, BodyProblem) and getattr(problem.cfg, "mesh_check", False) and \
             result.identifiability.determined:
         result.uncertainty.mesh_check = mesh_check(problem, solver, options, result)

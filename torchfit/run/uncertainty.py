@@ -6,13 +6,19 @@ hIPPYlib (``GaussianLRPosterior``): the posterior covariance is the inverse of t
 Gauss-Newton Hessian of the negative log posterior, ``Cov = sigma^2 (J^T J + R)^-1``.
 
 * **No prior.** Our fits are plain least squares (``R = 0``), so ``J^T J`` is inverted on the
-  subspace the data determine: the SVD ``J = U S V^T`` of the Jacobian at the fitted point
-  (free parameters only), its singular values ``s_k >= RANK_TOLERANCE * s_max`` (the
-  numerical rank: below it a direction is not seen beyond the Jacobian's own accuracy) give
-  ``Cov = sigma^2 V_k S_k^-2 V_k^T``. A parameter with more than ``NULL_COMPONENT`` of its
-  unit vector in the remaining directions is *undetermined*: its standard deviation is
-  infinite (``null`` in JSON), and so is that of every cell and region it touches. Weakly
-  determined directions are kept, so their standard deviations are large, not hidden.
+  subspace the data determine. The parameters the identifiability report calls not
+  determined (:mod:`.identifiability`: their column is under 1 % of the strongest; in a
+  fitted grid, typically nodes driven to moduli where the data no longer see them, whose
+  columns are ``1e-7`` to ``1e-10`` of the largest) are *undetermined*: their standard
+  deviation is infinite (``null`` in JSON) and they are held at their fitted values (the
+  covariance of the others is conditional on them). On the rest, the SVD
+  ``J = U S V^T`` (free parameters only), its singular values
+  ``s_k >= RANK_TOLERANCE * s_max`` (the numerical rank) give
+  ``Cov = sigma^2 V_k S_k^-2 V_k^T``; a parameter with more than ``NULL_COMPONENT`` of its
+  unit vector in the remaining directions is undetermined too. A cell or region whose
+  field the undetermined parameters make more than ``HELD_SHARE`` of is undetermined.
+  Weakly determined directions are kept, so their standard deviations are large, not
+  hidden.
 * **The gauge.** A scale-free problem (only prescribed displacements) never fixes the overall
   scale: its scale direction ``g`` is projected out of ``J`` first, and every number is *up to
   the overall scale* (``gauge: true``): the spread of the field's shape, not of its level.
@@ -78,6 +84,9 @@ RANK_TOLERANCE = 1e-6
 #: a parameter with more than this (squared) fraction of its unit vector in the nullspace is
 #: undetermined
 NULL_COMPONENT = 1e-6
+#: a cell (region) whose field the undetermined parameters make more than this share of is
+#: undetermined; below it they are held at their fitted values
+HELD_SHARE = 0.5
 #: the band reported: the modulus within ``SIGMAS`` standard deviations
 SIGMAS = 2.0
 #: matrix-free, the Jacobian is formed from ``n`` products ``J e_j`` up to this many parameters
@@ -274,13 +283,14 @@ def covariance_factor(J: Tensor, sigma: float | None = None, gauge: Tensor | Non
 
 
 def estimate(problem: InverseProblem, lin: Any, theta: Tensor,
-             free: Tensor | None = None) -> Uncertainty:
+             free: Tensor | None = None, determined: np.ndarray | None = None) -> Uncertainty:
     """The uncertainty of ``problem`` at its fitted ``theta`` (module docstring).
 
     ``lin``: the solver's last linearisation (``solver.lin``) or ``None``; used where it is
     at ``theta`` and linearises the problem's own residual (as :func:`.identify` does).
     ``free``: ``(n,)`` bool, the parameters off the bounds (default: from
-    ``problem.theta_bounds()``).
+    ``problem.theta_bounds()``). ``determined``: ``(n,)`` bool, the parameters the data
+    determine (the identifiability report's); the others are held (module docstring).
     """
     start = time.perf_counter()
     theta = theta.detach()
@@ -305,12 +315,15 @@ def estimate(problem: InverseProblem, lin: Any, theta: Tensor,
                            transform=transform)
     if free is None:
         free = off_bounds(problem, theta)
+    free = free.cpu().bool()
+    held = torch.zeros(n, dtype=torch.bool) if determined is None else \
+        torch.as_tensor(~np.asarray(determined, bool)) & free
     gauge = problem.parameterization.scale_direction(theta) if problem.scale_free else None
     anchor = None if gauge is None else parameter_volumes(problem, n)
     noise = problem.noise_level
     sigma = noise / math.sqrt(data.numel()) if noise else None
-    L, null, sigma, rank = covariance_factor(J, sigma, gauge, free, lin.r, anchor)
-    undetermined = (null > NULL_COMPONENT) & free.cpu()
+    L, null, sigma, rank = covariance_factor(J, sigma, gauge, free & ~held, lin.r, anchor)
+    undetermined = ((null > NULL_COMPONENT) & free) | held
     sd = (L ** 2).sum(1).sqrt().numpy()
     sd[undetermined.numpy()] = math.inf
     sd[~free.cpu().numpy()] = math.nan
@@ -396,8 +409,11 @@ def _per_cell(problem: InverseProblem, theta: Tensor, L: Tensor, infinite: np.nd
     # d field_c / d theta_j = B_cj effect_j; the cells' field values
     field = torch.sparse.mm(B, (t.exp() if report.relative else t)[:, None])[:, 0]
     BL = torch.sparse.mm(B, effect[:, None] * L)                        # (n_field, k)
-    touches = torch.sparse.mm(B, torch.as_tensor(
-        infinite, dtype=torch.float64)[:, None])[:, 0].numpy() > 0      # an undetermined one
+    # the share of each cell's field that undetermined parameters make (held at their value)
+    held = torch.sparse.mm(B, (effect * torch.as_tensor(infinite, dtype=torch.float64))[:, None]
+                           )[:, 0]
+    total = torch.sparse.mm(B, effect[:, None])[:, 0].clamp_min(torch.finfo(torch.float64).tiny)
+    touches = (held / total).numpy() > HELD_SHARE
     if report.relative:
         BL = BL / field.abs().clamp_min(torch.finfo(torch.float64).tiny)[:, None]
     cell_sd = (BL ** 2).sum(1).sqrt().numpy()
@@ -414,7 +430,7 @@ def _per_cell(problem: InverseProblem, theta: Tensor, L: Tensor, infinite: np.nd
         g = (weights[:, None] * BL * (field.abs()[:, None] if report.relative else 1.0)
              ).sum(0) / float(weights.sum())
         sd = float(g.norm()) / (abs(mean) if report.relative and mean else 1.0)
-        if bool(torch.as_tensor(touches)[cells].any()):
+        if float(weights @ held) / max(float(weights @ total), 1e-300) > HELD_SHARE:
             sd = math.inf
         report.regions[name] = {"volume_mean": mean,
                                 "sd": sd if math.isfinite(sd) else None,
@@ -474,6 +490,6 @@ def _body_mean(problem: BodyProblem, field: Tensor) -> float:
     return float(volumes @ field.detach().double().cpu().numpy() / volumes.sum())
 
 
-__all__ = ["MATRIX_FREE_MAX_PARAMS", "MESH_CHECK_EDGE", "NULL_COMPONENT", "RANK_TOLERANCE", "SIGMAS",
+__all__ = ["HELD_SHARE", "MATRIX_FREE_MAX_PARAMS", "MESH_CHECK_EDGE", "NULL_COMPONENT", "RANK_TOLERANCE", "SIGMAS",
            "Uncertainty", "compare_meshes", "covariance_factor", "estimate", "off_bounds",
            "parameter_volumes", "second_mesh_settings"]
