@@ -306,3 +306,44 @@ def test_the_comparison_picture_of_a_fit_has_the_fitted_models_range(validated_r
     assert picture["colour_max_mm"] == pytest.approx(max(own))
     (label, (low, high)), = colour_bars(drawn["frame_comparison.png"])
     assert label == "surface error (mm)" and high == pytest.approx(picture["colour_max_mm"])
+
+
+def test_regions_and_the_usd_layer_carry_the_fits_uncertainty(capsule_run):
+    problem, result, run, _ = capsule_run
+    report = result.uncertainty
+    assert report.computed and report.gauge      # rig targets: up to the overall scale
+    regions = json.loads((run / "regions.json").read_text())["uncertainty"]
+    assert regions["sigma_source"] == "residual" and regions["gauge"]
+    body = regions["regions"]["body"]
+    assert body == pytest.approx(report.regions["body"])
+    if body["sd"] is not None:
+        assert body["factor"] == pytest.approx(np.exp(2 * body["sd"]))
+    pytest.importorskip("pxr")
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(run / "usd" / "body.usda"))
+    primvar = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/Body")).GetPrimvar(
+        "torchfit:youngs_modulus_band")
+    band = np.array(primvar.Get(), dtype=np.float64)
+    assert band.shape == (len(problem.mesh.cells),)
+    assert np.allclose(band, np.exp(2 * report.cell_sd), rtol=1e-12)
+    assert "two standard deviations" in primvar.GetAttr().GetCustomDataByKey("torchfit:units")
+
+
+@pytest.mark.slow
+def test_mesh_check_fits_a_second_mesh_and_reports_the_regions_difference(tmp_path):
+    folder = write_capsule(tmp_path / "capsule", "skeleton", "npz")
+    problem = build_problem("animation", {"path": str(folder), "cache_dir": str(tmp_path / "c"),
+                                          "tet_edge_length": 0.12, "grid": [2, 2, 3],
+                                          "mesh_check": True})
+    result = fit(problem, {"name": "levenberg_marquardt", "max_iter": 2, "max_step": 1.0},
+                 run_dir=tmp_path / "run")
+    check = result.uncertainty.mesh_check
+    assert check["tets"][0] == len(problem.mesh.cells) and check["tets"][1] != check["tets"][0]
+    assert check["setting"]["tet_edge_length"] == pytest.approx(0.108)
+    body = check["regions"]["body"]
+    # the scale-free body: the second field scaled to the first's mean over the body
+    assert body["second"] == pytest.approx(body["first"], rel=1e-9)
+    regions = json.loads((tmp_path / "run" / "regions.json").read_text())["uncertainty"]
+    assert regions["mesh_check"]["tets"] == check["tets"]
+    assert "on a second mesh body" in result.summary()

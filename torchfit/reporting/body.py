@@ -15,7 +15,9 @@ into the run directory
     the rig the body was attached with (:func:`.body_files.write_rig`);
 ``regions.json``
     the fitted field summarised per region (tets, volume, mean, min, max, volume-weighted
-    mean), and the truth's for synthetic targets;
+    mean), and the truth's for synthetic targets; ``uncertainty``, where the run made one
+    (:mod:`torchfit.run.uncertainty`): per region the standard deviation and two-sigma band
+    of the volume-weighted mean modulus, and the fit on a second mesh (``mesh_check``);
 ``model_comparison.json`` and ``frame_comparison.png``
     the same field, rig and frames with the ``linear`` model beside the fitted model (the
     states the run simulated for it, :meth:`BodyOutputs.comparison_models`): per-frame mean
@@ -244,6 +246,10 @@ class BodyOutputs:
         self.kept_start = False
         #: one line per file worth pointing a user at, once :meth:`compare` wrote it
         self.highlights: list[str] = []
+        #: the fit's uncertainty, set by the run before :meth:`finish`: ``regions`` (added to
+        #: ``regions.json`` as ``uncertainty``) and ``cell_band`` ``(m,)`` (the modulus'
+        #: two-sigma band per tetrahedron, written to ``usd/body.usda``); ``None``: none
+        self.uncertainty: dict[str, Any] | None = None
 
     def __call__(self, evaluation: Evaluation) -> None:
         assert evaluation.record is not None, "an observer reads the evaluation of a record"
@@ -367,10 +373,12 @@ class BodyOutputs:
                                problem.mesh.cells, _numpy(x), cell_data)]
 
     def _write_usd(self, x: Tensor, field: Tensor, theta: Tensor) -> list[Path]:
+        band = None if self.uncertainty is None else self.uncertainty.get("cell_band")
         return write_usd(self.run_dir, self.problem, _numpy(self.problem.observation.surface(x)),
                          _numpy(field), self.problem.poses.material_density(
                              self.problem.simulation_input(theta)),
-                         fitted_damping(self.problem, theta), kept_start=self.kept_start)
+                         fitted_damping(self.problem, theta), band=band,
+                         kept_start=self.kept_start)
 
     def _write_regions(self, field: Tensor) -> list[Path]:
         problem = self.problem
@@ -382,6 +390,8 @@ class BodyOutputs:
             a = float(f @ t / (f @ f)) if float(f @ f) > 0 else 1.0
             out["alignment_scale"] = a
             out["fitted_aligned"] = problem.report.region_summary(field * a)
+        if self.uncertainty is not None and self.uncertainty.get("regions") is not None:
+            out["uncertainty"] = self.uncertainty["regions"]
         path = self.run_dir / REGIONS_JSON
         write_json(path, out)
         return [path]

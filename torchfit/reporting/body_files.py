@@ -43,6 +43,10 @@ FRAMES_DIR = "frames"
 NOT_DETERMINED = ("false: the data determine no material; this is the field the fit started "
                   "from, not a fitted one (identifiability.json)")
 RIG_FILE = "rig.json"
+#: what the per-tetrahedron uncertainty of the modulus in ``body.usda`` is
+BAND_UNITS = ("factor, 1 (dimensionless): the modulus lies within [E / factor, E * factor] "
+              "at two standard deviations (Gauss-Newton posterior at the fitted point); inf: "
+              "the data do not determine it")
 USD_DIR = "usd"
 USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
@@ -112,14 +116,17 @@ def _frame_times(names: Sequence[str]) -> list[float] | None:
 
 def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarray,
               density: tuple[float, str] | None = None,
-              damping: dict[str, Any] | None = None, kept_start: bool = False) -> list[Path]:
+              damping: dict[str, Any] | None = None, band: np.ndarray | None = None,
+              kept_start: bool = False) -> list[Path]:
     """``usd/frames.usda`` and ``usd/body.usda`` (module docstring); nothing, with a log
     line, where ``usd-core`` is not installed. ``density``: the material's density (kg/m^3)
     and where it comes from (the problem's :meth:`material_density`); ``None``: the assumed
     :data:`DENSITY`. ``damping``: a body in time's fitted damping (:func:`fitted_damping`),
-    written beside the modulus (:func:`write_damping_attributes`). ``kept_start``: the data
-    determine no material and ``field`` is the fit's start, said on every material attribute
-    (``customData`` ``torchfit:determined``, :data:`NOT_DETERMINED`)."""
+    written beside the modulus (:func:`write_damping_attributes`). ``band``: ``(m,)`` the
+    modulus' two-sigma band per tetrahedron (the fit's uncertainty: :data:`BAND_UNITS`),
+    written to ``body.usda`` as ``primvars:torchfit:youngs_modulus_band``. ``kept_start``:
+    the data determine no material and ``field`` is the fit's start, said on every material
+    attribute (``customData`` ``torchfit:determined``, :data:`NOT_DETERMINED`)."""
     if importlib.util.find_spec("pxr") is None:
         progress.info("no USD output: install the extra torchfit[usd] (usd-core) for it")
         return []
@@ -141,7 +148,10 @@ def write_usd(run_dir: Path, problem: Any, surface: np.ndarray, field: np.ndarra
     if problem.tet_regions is not None:
         fields["region"] = np.asarray(problem.tet_regions, dtype=np.int32)
     labels = {"youngs_modulus": units.unit, "youngsModulus": units.unit,
-              "poissonsRatio": "1 (dimensionless)", "density": "kg/m^3"}
+              "poissonsRatio": "1 (dimensionless)", "density": "kg/m^3",
+              "youngs_modulus_band": BAND_UNITS}
+    if band is not None:
+        fields["youngs_modulus_band"] = np.asarray(band, dtype=np.float64)
     density_value, density_source = (DENSITY, DENSITY_SOURCE) if density is None else density
     material = {"youngsModulus": field, "poissonsRatio": np.full(len(cells), problem.cfg.nu),
                 "density": np.full(len(cells), float(density_value))}

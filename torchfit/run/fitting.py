@@ -16,10 +16,11 @@ iteration is thus in the checkpoint before TensorBoard shows it. The end of the 
 the last evaluation (:meth:`~.evaluator.Evaluator.final`) and reports what the data
 determine (:mod:`.identifiability`, from the solver's last linearisation; one warning line
 where they determine no material, whose outputs then keep the starting field and do not say
-converged), and warns in one line where many parameters ended on a bound.
+converged) and the posterior spread of the fitted numbers (:mod:`.uncertainty`), and warns in one line where many parameters ended on a bound.
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
@@ -39,6 +40,7 @@ from .checkpoint import (Checkpointer, check_fresh_start, checkpointed_solve,
 from .directory import check_writable
 from .evaluator import Evaluator
 from .identifiability import identify
+from .uncertainty import compare_meshes, estimate
 from .lock import hold
 from .options import FitConfigError, FitOptions, plain_settings
 from .outputs import RunOutputs
@@ -202,6 +204,12 @@ def _fit(problem: InverseProblem, solver: Solver, run_path: Path | None,
     # init= an earlier fit: its misfit reduction from the start proves nothing
     result.identifiability = identify(problem, getattr(solver, "lin", None), solved.theta,
                                       final.metrics, rows, own_start=start is None)
+    # every number with its uncertainty (uncertainty.py), from the same linearisation
+    result.uncertainty = estimate(problem, getattr(solver, "lin", None), solved.theta,
+                                  determined=result.identifiability.parameter_determined)
+    if isinstance(problem, BodyProblem) and getattr(problem.cfg, "mesh_check", False) and \
+            result.identifiability.determined:
+        result.uncertainty.mesh_check = mesh_check(problem, solver, options, result)
     if not result.identifiability.determined:
         log.warning("%s", result.identifiability.warning())
         final = keep_the_start(result, evaluator, problem.theta0 if start is None else start)
@@ -236,6 +244,24 @@ def keep_the_start(result: FitResult, evaluator: Evaluator, start: Tensor) -> An
     result.converged = False
     result.kept_start = True
     return final
+
+
+def mesh_check(problem: BodyProblem, solver: Solver, options: FitOptions,
+               result: FitResult) -> dict[str, Any]:
+    """``problem.mesh_check``: the same fit on a second mesh of the surface, no files
+    (:func:`.uncertainty.compare_meshes`); one log line with its regions and cost."""
+    def refit(other: InverseProblem) -> tuple[Tensor, dict[str, Any]]:
+        log.info("mesh check: the fit again on a second mesh (%d tetrahedra)",
+                 len(other.mesh.cells))
+        again = fit(other, solver.config, options=dataclasses.replace(options, progress=False))
+        return again.field, {"wall_s": again.wall_s, "iterations": again.iterations,
+                             "factorizations": again.factorizations, "solves": again.solves}
+
+    check = compare_meshes(problem, result.field, refit)
+    log.info("mesh check (%d against %d tetrahedra, %.1f s): %s", *check["tets"],
+             check["cost"]["seconds"], ", ".join(
+                 f"{name} {100 * v['difference']:+.1f} %" for name, v in check["regions"].items()))
+    return check
 
 
 def bound_warning(problem: InverseProblem, rows: list[dict[str, Any]]) -> str | None:

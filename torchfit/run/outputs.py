@@ -6,7 +6,8 @@ and field (byte-identical for identical runs; ``init=`` of a later run starts fr
 ``params.pt``); ``tb/``, TensorBoard events (:mod:`torchfit.reporting.tensorboard`; a
 resumed run adds the steps lost with the killed process and never repeats one);
 ``field.png``, ``error_curves.png``, ``identifiability.json`` / ``.vtu`` / ``.png``
-(:mod:`torchfit.reporting.identifiability`) and what the problem's own outputs write:
+(:mod:`torchfit.reporting.identifiability`), ``uncertainty.json`` (the posterior spread of
+every parameter and region, :mod:`.uncertainty`) and what the problem's own outputs write:
 ``snapshots.png``, ``frame_errors.png``, ``sheet_frame<f>.png`` for 2-D fields
 (:class:`~torchfit.reporting.field_snapshots.FieldSnapshots`), ``frames.npz`` for meshes,
 the files of a 3-D body (:class:`~torchfit.reporting.body.BodyOutputs`) and of a dynamic
@@ -38,9 +39,13 @@ from .checkpoint import Resume
 from .evaluator import Evaluator
 from .options import FitOptions
 from .result import FitResult, result_dict, time_integration_text
+from .uncertainty import Uncertainty
 from .validation import result_values
 
 progress = logging.getLogger(PROGRESS_LOGGER)
+
+#: the fit's uncertainty (:mod:`.uncertainty`), per parameter
+UNCERTAINTY_FILE = "uncertainty.json"
 
 
 class RunOutputs:
@@ -108,6 +113,7 @@ class RunOutputs:
         comparison: dict[str, Any] = {}
         if self.body is not None:
             self.body.kept_start = result.kept_start     # its USD material says not fitted
+            self.body.uncertainty = body_uncertainty(result.uncertainty)
             files.extend(self.body.finish(final))
             states = self.guard.run("model comparison", self._comparison_states, final)
             if states is not None:
@@ -154,6 +160,9 @@ class RunOutputs:
                     name: {k: v for k, v in values.items() if not k.endswith("_per_frame")}
                     for name, values in comparison[material].items()}
         write_json(run_dir / RESULT_FILE, summary)
+        if result.uncertainty is not None:
+            write_json(run_dir / UNCERTAINTY_FILE, result.uncertainty.as_json())
+            files.append(run_dir / UNCERTAINTY_FILE)
         if result.identifiability is not None:
             report = result.identifiability
             mesh = problem.mesh if isinstance(problem, MeshProblem) else None
@@ -181,6 +190,24 @@ class RunOutputs:
                              for model in self.body.comparison_models()}
                   for material, evaluation in (("homogeneous", baseline), ("fitted", final))}
         return baseline, others
+
+
+def body_uncertainty(report: Uncertainty | None) -> dict[str, Any] | None:
+    """What a body's files carry of the uncertainty: ``regions`` (for ``regions.json``,
+    with the second mesh's fit where ``problem.mesh_check``) and ``cell_band`` (the
+    two-sigma factor per tetrahedron, ``exp`` transform only, for ``usd/body.usda``)."""
+    if report is None:
+        return None
+    if not report.computed:
+        return {"regions": {"computed": False, "reason": report.reason}}
+    regions: dict[str, Any] = {"meaning": report.summary()["meaning"], "sigma": report.sigma,
+                               "sigma_source": report.sigma_source, "gauge": report.gauge,
+                               "regions": report.regions}
+    if report.mesh_check is not None:
+        regions["mesh_check"] = report.mesh_check
+    band = report.factor(report.cell_sd) if report.relative and report.cell_sd is not None \
+        else None
+    return {"regions": regions, "cell_band": band}
 
 
 def _save_frames(path: Path, problem: Any, final: Evaluation) -> None:

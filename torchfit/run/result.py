@@ -7,6 +7,7 @@
 adds ``model_comparison``. ``determined`` (whether the data determine the material at all)
 and ``identifiability`` (its summary, :mod:`.identifiability`) where the run made the report
 (``fitted_field`` says that the outputs keep the starting field where it is false);
+``uncertainty`` (the posterior spread's summary, :mod:`.uncertainty`) where the run made one;
 a 3-D body adds ``modulus_units`` (what its written moduli are:
 :class:`~torchfit.reporting.body_files.ModulusUnits`);
 a run with frames held out of the fit adds ``validation_iteration``,
@@ -54,6 +55,8 @@ class FitResult:
         kept_start: the data determine no material, so ``theta``, ``field`` and
             ``metrics`` are the start's, not where the solver stopped (and ``converged``
             is false).
+        uncertainty: the posterior spread of the fitted numbers
+            (:class:`~.uncertainty.Uncertainty`), ``None`` where none was made.
     """
 
     theta: Tensor
@@ -75,6 +78,7 @@ class FitResult:
     identifiability: Any = None
     validation: dict[str, Any] | None = None
     kept_start: bool = False
+    uncertainty: Any = None
 
     @property
     def determined(self) -> bool | None:
@@ -121,7 +125,14 @@ class FitResult:
             "surface_err_mean" in self.metrics else ""
         return (f"{told}{verdict}; stopped by {self.stop_reason} after {self.iterations} "
                 f"iterations ({stop}) in {self.wall_s:.1f} s, {self.factorizations} "
-                f"factorizations, {self.solves} solves{misfit}")
+                f"factorizations, {self.solves} solves{misfit}{self._uncertainty_text()}")
+
+    def _uncertainty_text(self) -> str:
+        """The summary's piece on the uncertainty (:meth:`.uncertainty.Uncertainty.text`):
+        none where no report was made or the outputs keep the start."""
+        if self.uncertainty is None or self.kept_start:
+            return ""
+        return f"; {self.uncertainty.text()}"
 
 
 def time_integration_text(report: Mapping[str, Any], metres: bool = False) -> str:
@@ -165,6 +176,8 @@ def result_dict(problem: InverseProblem, result: FitResult,
     if result.identifiability is not None:
         out["determined"] = result.determined
         out["identifiability"] = result.identifiability.summary()
+    if result.uncertainty is not None:
+        out["uncertainty"] = result.uncertainty.summary()
     if result.kept_start:
         out["fitted_field"] = ("the starting field: the data determine no material, so the "
                                "outputs keep where the fit started (identifiability.json)")

@@ -117,6 +117,10 @@ class RiggedBodyConfig(ProblemConfig):
     # median distance per frame and bone at most rig_tolerance (a fraction of the rest's
     # bounding-box diagonal); torchfit/mesh/rig_check.py
     rig_check: bool = True
+    # repeat the fit on a second tetrahedralisation of the same surface (the edge length
+    # x0.9, a fresh mesh) and report per region how far the fitted moduli move: the spread
+    # the mesh causes (regions.json, the summary); costs a second fit; torchfit/run/uncertainty.py
+    mesh_check: bool = False
     rig_tolerance: float = 0.05
     # tet meshes (and the arm's animation): "" is $TORCHFIT_CACHE_DIR or ~/.cache/torchfit
     cache_dir: str = ""
