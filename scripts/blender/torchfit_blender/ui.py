@@ -225,7 +225,7 @@ def modulus_material(low: float, high: float) -> bpy.types.Material:
 
 
 def import_result(context, run: Path, mesh_name: str, with_material: bool = True) -> list:
-    """``/Simulated`` of ``run/usd/frames.usda`` as ``<mesh> simulated`` (a Mesh Sequence
+    """``/Simulated`` of the run's ``usd/frames.usda`` as ``<mesh> simulated`` (a Mesh Sequence
     Cache), and with ``with_material`` the rest mesh of ``usd/material.usda`` as
     ``<mesh> modulus`` with its ``youngsModulus`` attribute and the colour material (also
     on the simulated copy). Nothing is left in the scene if any step fails."""
@@ -507,6 +507,36 @@ class TORCHFIT_OT_import_result(bpy.types.Operator):
         return {"FINISHED"}
 
 
+class TORCHFIT_OT_modulus_to_mesh(bpy.types.Operator):
+    """Copy the imported modulus (<mesh> modulus) onto the selected mesh's youngsModulus point
+    attribute, to paint it and fit again from it"""
+
+    bl_idname = "torchfit.modulus_to_mesh"
+    bl_label = "Modulus to mesh"
+    bl_options = {"REGISTER", "UNDO"}
+
+    def execute(self, context):
+        try:
+            mesh, _ = _rig(context)
+            source = bpy.data.objects.get(f"{mesh.name} modulus")
+            if source is None or ATTRIBUTE not in source.data.attributes:
+                raise TorchfitError(f"no imported '{mesh.name} modulus': fit or Import result first")
+            if len(source.data.vertices) != len(mesh.data.vertices):
+                raise TorchfitError(f"'{source.name}' has {len(source.data.vertices)} points, "
+                                    f"{mesh.name} {len(mesh.data.vertices)}: not this mesh's result")
+        except TorchfitError as error:
+            _settings(context).error = str(error)
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        values = [0.0] * len(source.data.vertices)
+        source.data.attributes[ATTRIBUTE].data.foreach_get("value", values)
+        target = mesh.data.attributes.get(ATTRIBUTE) or \
+            mesh.data.attributes.new(ATTRIBUTE, "FLOAT", "POINT")
+        target.data.foreach_set("value", values)
+        mesh.data.update()
+        return {"FINISHED"}
+
+
 class VIEW3D_PT_torchfit(bpy.types.Panel):
     bl_label = "torchfit"
     bl_space_type = "VIEW_3D"
@@ -550,6 +580,7 @@ class VIEW3D_PT_torchfit(bpy.types.Panel):
             layout.label(text=f"modulus {settings.modulus_min:.3g} .. {settings.modulus_max:.3g} "
                               f"({settings.modulus_unit})", icon="COLOR")
         layout.operator("torchfit.import_result", icon="IMPORT")
+        layout.operator("torchfit.modulus_to_mesh", icon="BRUSH_DATA")
         layout.operator("torchfit.fit", text="Fit from painted modulus",
                         icon="BRUSH_DATA").from_paint = True
         layout.prop(settings, "simulate_action")
@@ -557,7 +588,8 @@ class VIEW3D_PT_torchfit(bpy.types.Panel):
 
 
 CLASSES = (TorchfitPreferences, TorchfitSettings, TORCHFIT_OT_fit, TORCHFIT_OT_simulate,
-           TORCHFIT_OT_watch, TORCHFIT_OT_cancel, TORCHFIT_OT_import_result, VIEW3D_PT_torchfit)
+           TORCHFIT_OT_watch, TORCHFIT_OT_cancel, TORCHFIT_OT_import_result,
+           TORCHFIT_OT_modulus_to_mesh, VIEW3D_PT_torchfit)
 
 
 def register() -> None:

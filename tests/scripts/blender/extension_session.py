@@ -74,7 +74,8 @@ def main(job_file: str) -> None:
     out["package"] = package
     out["classes"] = [name for name in ("TORCHFIT_OT_fit", "TORCHFIT_OT_cancel",
                                         "TORCHFIT_OT_simulate", "TORCHFIT_OT_import_result",
-                                        "TORCHFIT_OT_watch", "VIEW3D_PT_torchfit")
+                                        "TORCHFIT_OT_watch", "TORCHFIT_OT_modulus_to_mesh",
+                                        "VIEW3D_PT_torchfit")
                       if hasattr(bpy.types, name)]
     ui = sys.modules[package + ".ui"]
     prefs = bpy.context.preferences.addons[package].preferences
@@ -170,9 +171,13 @@ def main(job_file: str) -> None:
     out["simulate_new"] = [[o.name, [m.type for m in o.modifiers]] for o in new]
     out["action_kept"] = arm.animation_data.action == first_action
 
-    # fit again from a painted attribute (the imported modulus, doubled, on the user's mesh)
-    painted = [2.0 * v for v in out["attribute"]]
-    body.data.attributes.new("youngsModulus", "FLOAT", "POINT").data.foreach_set("value", painted)
+    # fit again from a painted attribute: the imported modulus onto the user's mesh, then
+    # "painted" (doubled)
+    bpy.context.view_layer.objects.active = body
+    out["to_mesh_status"] = sorted(bpy.ops.torchfit.modulus_to_mesh())
+    out["on_mesh"] = attribute(body, "youngsModulus")
+    painted = [2.0 * v for v in out["on_mesh"]]
+    body.data.attributes["youngsModulus"].data.foreach_set("value", painted)
     settings.iterations = 1
     out["paint_status"] = sorted(bpy.ops.torchfit.fit(wait=True, from_paint=True))
     out["paint_error"] = settings.error

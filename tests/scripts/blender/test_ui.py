@@ -50,7 +50,8 @@ def test_the_extension_installs_from_its_zip_and_registers(session):
     assert session["package"] == "bl_ext.user_default.torchfit"
     assert set(session["classes"]) == {"TORCHFIT_OT_fit", "TORCHFIT_OT_cancel",
                                        "TORCHFIT_OT_simulate", "TORCHFIT_OT_import_result",
-                                       "TORCHFIT_OT_watch", "VIEW3D_PT_torchfit"}
+                                       "TORCHFIT_OT_watch", "TORCHFIT_OT_modulus_to_mesh",
+                                       "VIEW3D_PT_torchfit"}
 
 
 def test_each_error_is_one_line_and_leaves_the_scene_as_it_was(session):
@@ -109,6 +110,8 @@ def test_simulate_a_second_action_and_fit_from_a_painted_attribute(session):
     ((name, modifiers),) = session["simulate_new"]
     assert name.startswith("Limb simulated") and modifiers == ["MESH_SEQUENCE_CACHE"]
     assert session["action_kept"]
+    assert session["to_mesh_status"] == ["FINISHED"]
+    assert np.array_equal(session["on_mesh"], session["layer"])
     assert session["paint_status"] == ["FINISHED"] and session["paint_error"] == ""
     # the painted attribute reached torchfit's layer as painted, and the fit read it
     assert np.allclose(session["paint_layer"], session["painted"], rtol=1e-6)
