@@ -185,6 +185,24 @@ def main(job_file: str) -> None:
     out["paint_layer"] = layer_values(str(paint_run.parent / "painted.usda"))
     out["painted"] = painted
     out["paint_log_names_layer"] = "painted.usda" in (paint_run / "fit.log").read_text()
+
+    # the hand: a palm bone branching into two fingers of two bones each (end bones)
+    for o in list(bpy.data.objects):
+        bpy.data.objects.remove(o)
+    hand, _ = blender_rigs._hand(bpy, {"frames": 3, "bend": 50.0})
+    bpy.ops.object.select_all(action="DESELECT")
+    hand.select_set(True)
+    bpy.context.view_layer.objects.active = hand
+    settings.job_folder, settings.iterations, settings.held_out = "", 2, "3"
+    bpy.ops.wm.save_as_mainfile(filepath=str(folder / "hand.blend"))
+    start = time.perf_counter()
+    out["hand_status"] = sorted(bpy.ops.torchfit.fit(wait=True))
+    out["hand_seconds"] = time.perf_counter() - start
+    out["hand_summary"] = settings.summary
+    out["hand_run"] = settings.last_run
+    out["hand_points"] = evaluated_points(bpy, bpy.data.objects["Hand simulated"], [1, 2])
+    out["hand_attribute"] = attribute(bpy.data.objects["Hand modulus"], "youngsModulus")
+    out["hand_layer"] = layer_values(str(Path(settings.last_run) / "usd" / "material.usda"))
     Path(job_file).with_suffix(".result.json").write_text(json.dumps(out))
 
 

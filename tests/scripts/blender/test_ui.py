@@ -116,3 +116,13 @@ def test_simulate_a_second_action_and_fit_from_a_painted_attribute(session):
     # the painted attribute reached torchfit's layer as painted, and the fit read it
     assert np.allclose(session["paint_layer"], session["painted"], rtol=1e-6)
     assert session["paint_log_names_layer"]
+
+
+def test_the_hand_with_branching_fingers_fits_from_the_panel(session):
+    assert session["hand_status"] == ["FINISHED"]
+    run = Path(session["hand_run"])
+    objs = np.stack([trimesh.load(str(run / "frames" / f"frame_{f:03d}.obj"), process=False,
+                                  maintain_order=True).vertices for f in range(2)])
+    assert np.abs(np.array(session["hand_points"]) - objs).max() < 1e-6
+    assert np.array_equal(session["hand_attribute"], session["hand_layer"])
+    assert "below the homogeneous material" in session["hand_summary"]
