@@ -432,6 +432,25 @@ class TORCHFIT_OT_simulate(bpy.types.Operator):
         return _launch(self, context, job, "simulate", mesh.name, self.wait)
 
 
+def poll_running(operator, context) -> bool:
+    """One look at the scene's running process (the watch operator's timer step): the
+    panel's progress from its files; when it has ended, :func:`finish` (errors reported
+    through ``operator``). Whether it still runs."""
+    entry = _RUNNING.get(context.scene.name)
+    if entry is None:
+        return False
+    job, kind, mesh_name = entry
+    if kind == "fit":
+        _show_progress(_settings(context), job.run, _settings(context).iterations)
+    if job.running:
+        return True
+    del _RUNNING[context.scene.name]
+    error = finish(context, job, kind, mesh_name)
+    if error and operator is not None:
+        operator.report({"ERROR"}, error)
+    return False
+
+
 class TORCHFIT_OT_watch(bpy.types.Operator):
     """Poll the running torchfit process (a modal timer: the UI stays responsive)"""
 
@@ -449,21 +468,10 @@ class TORCHFIT_OT_watch(bpy.types.Operator):
     def modal(self, context, event):
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
-        entry = _RUNNING.get(context.scene.name)
-        if entry is None:
-            return self._stop(context)
-        job, kind, mesh_name = entry
-        if kind == "fit":
-            _show_progress(_settings(context), job.run, _settings(context).iterations)
-        if job.running:
-            for area in context.screen.areas if context.screen else []:
-                area.tag_redraw()
-            return {"PASS_THROUGH"}
-        del _RUNNING[context.scene.name]
-        error = finish(context, job, kind, mesh_name)
-        if error:
-            self.report({"ERROR"}, error)
-        return self._stop(context)
+        running = poll_running(self, context)
+        for area in context.screen.areas if context.screen else []:
+            area.tag_redraw()
+        return {"PASS_THROUGH"} if running else self._stop(context)
 
     def _stop(self, context):
         context.window_manager.event_timer_remove(self._timer)

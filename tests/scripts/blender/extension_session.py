@@ -150,7 +150,19 @@ def main(job_file: str) -> None:
     bpy.ops.torchfit.cancel()
     out["cancel_status"] = running.poll()
     out["cancel_state"] = settings.state
-    out["resume_status"] = sorted(bpy.ops.torchfit.fit(wait=True))
+    # the resumed run as the watch operator follows it (its timer step, called here)
+    out["resume_status"] = sorted(bpy.ops.torchfit.fit(wait=False))
+    seen = []
+    while ui.poll_running(None, bpy.context):
+        shown = settings.iteration
+        rows = [json.loads(x) for x in (running.run / "history.jsonl").read_text().splitlines()
+                if x.endswith("}")]
+        seen.append([shown, settings.misfit, rows[shown]["misfit"] if shown >= 0 else None,
+                     rows[-1]["iteration"]])
+        time.sleep(0.2)
+    out["resume_seen"] = seen
+    out["resume_state"], out["resume_panel_iteration"] = settings.state, settings.iteration
+    out["resume_imported"] = "Limb simulated.001" in bpy.data.objects
     out["resume_console"] = (running.console.read_text())[-2000:]
     out["resumed_iterations"] = json.loads((running.run / "result.json").read_text())["iterations"]
     out["resumed_log_says_resume"] = "resum" in (running.run / "fit.log").read_text().lower()

@@ -103,6 +103,16 @@ def test_cancel_then_fit_resumes_the_run(session):
     assert session["cancel_state"].startswith("cancelled")
     assert session["resume_status"] == ["FINISHED"]
     assert session["resumed_iterations"] == 4 and session["resumed_log_says_resume"]
+    # followed by the watch operator's timer step: while it ran, the panel showed rows of
+    # history.jsonl (an iteration's misfit is its row's), never ahead of the file
+    seen = session["resume_seen"]
+    assert seen
+    for shown, misfit, row_misfit, last in seen:
+        assert shown <= last
+        if shown >= 0:
+            assert misfit == pytest.approx(row_misfit, rel=1e-6)
+    assert session["resume_state"] == "done" and session["resume_panel_iteration"] == 4
+    assert session["resume_imported"]
 
 
 def test_simulate_a_second_action_and_fit_from_a_painted_attribute(session):
