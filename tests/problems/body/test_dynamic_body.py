@@ -204,6 +204,9 @@ def test_validation_is_a_later_window(root):
     # accepted before: Newton then took no step (the sweep in time, 2026-12-02)
     ({"newton_rtol": 1e12}, r"problem.newton_rtol=1000000000000.0: must be in \[0, 1\)"),
     ({"density": -1000.0}, "problem.density=-1000.0: must be > 0"),
+    # accepted before (issue 50): a poor fit, called determined
+    ({"density": 1e12}, r"problem.density=1000000000000.0: is not a density a body has: give "
+                        r"kg/m\^3 within \[1, 100000\]"),
     ({"integrator": "torchdiffeq"}, "torchdiffeq does not apply to a body"),
     ({"validation_every": 2}, "hold out a later window"),
     ({"E_reference": 0.0}, "problem.E_reference=0.0: must be a positive"),

@@ -61,6 +61,9 @@ from .held_out import FrameSplit
 _DAMPING = ("alpha", "beta")
 
 
+#: the densities a body may have (kg/m^3): from a foam's to beyond the densest metal's
+DENSITY_RANGE = (1.0, 1.0e5)
+
 def in_pascals(cfg: RiggedBodyConfig) -> RiggedBodyConfig:
     """``cfg`` with its moduli in pascals (``E0_unit=Pa``): with ``E0_unit=relative`` every
     modulus setting times ``E_reference``; with ``Pa`` as it is."""
@@ -90,6 +93,12 @@ def check_body_dynamics(cfg: RiggedBodyConfig) -> None:
     require_setting(math.isfinite(cfg.density) and cfg.density > 0, cfg, "density",
                     "must be > 0 (kg/m^3; soft tissue 1000): every vertex needs a positive "
                     "lumped mass")
+    # a density no solid has (1e12 was accepted, and a poor fit called determined): below
+    # aerogel's, above osmium's (22,590) by a margin
+    low, high = DENSITY_RANGE
+    require_setting(low <= cfg.density <= high, cfg, "density", f"is not a density a body "
+                    f"has: give kg/m^3 within [{low:g}, {high:g}] (soft tissue about 1000, "
+                    "bone about 1900)")
     require_setting(isinstance(cfg.fit_density, bool), cfg, "fit_density", "must be true or "
                     "false (a density scale among the parameters)")
     require_setting(isinstance(cfg.density_scale, (int, float))
