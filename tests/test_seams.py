@@ -24,6 +24,9 @@ PROCESS_STATE = {
     # the run-directory locks this process holds (a re-entrant count, and the directories
     # made for them): the state of lock files, released at exit
     "torchfit/run/lock.py:_held", "torchfit/run/lock.py:_created",
+    # the torchfit child processes this Blender session started, one per scene: a process
+    # handle cannot be a Blender property, and unregister stops every one of them
+    "scripts/blender/torchfit_blender/ui.py:_RUNNING",
 }
 
 
