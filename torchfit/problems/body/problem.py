@@ -58,7 +58,7 @@ from .report import (BODY_METRICS, body_metrics, describe_body, frame_report,
 from ..config import (Backend, ProblemConfigError, Transform, check_newton_settings,
                       make_config, require_setting, resolve_backend, setting_error)
 from .dynamic import BodyInTime, check_body_dynamics, dynamic_split, in_pascals
-from .energy import body_energy
+from .energy import body_energy, check_contact_settings
 from .held_out import NO_VALIDATION, FrameSplit, split_frames
 from .model_comparison import ModelComparison
 from .bounds import bounds_warning, check_bounds, modulus_bounds, region_report, theta_bounds
@@ -189,6 +189,7 @@ class RiggedBody(InverseProblem):
         require_setting(cfg.rig_tolerance > 0, cfg, "rig_tolerance", "must be positive")
         check_tet_settings(cfg)
         check_newton_settings(cfg)
+        check_contact_settings(cfg)
         check_bounds(cfg)
         require_setting(cfg.frames is None or len(cfg.frames) >= 1, cfg, "frames",
                         "must list at least one frame (or be null for all)")
@@ -274,7 +275,9 @@ class RiggedBody(InverseProblem):
         points, cells = self.tet.points, self.tet.cells
         self.mesh = SimplexMesh(points, cells)
         # the energy every simulation of the body sees (energy.py: where a term joins)
-        self.model = body_energy(points, cells, cfg.model.value, cfg.nu, self.dtype, self.device)
+        self.model = body_energy(points, cells, cfg.model.value, cfg.nu, self.dtype, self.device,
+                                 contact_dhat=cfg.contact_dhat if cfg.contact else None,
+                                 modulus=cfg.E0)
         diagonal = float(np.linalg.norm(points.max(0) - points.min(0)))
         try:
             with step(f"embedding {count(animation.n_vertices)} surface vertices in "
