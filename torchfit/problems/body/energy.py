@@ -29,10 +29,16 @@ MAX_CONTACT_DHAT = 0.1
 
 
 def check_contact_settings(cfg: Any) -> None:
-    """``problem.contact_dhat`` in ``(0, MAX_CONTACT_DHAT]`` (one line naming the setting)."""
+    """``problem.contact_dhat`` in ``(0, MAX_CONTACT_DHAT]``, and no contact in time yet (one
+    line naming the setting)."""
     require_setting(0 < cfg.contact_dhat <= MAX_CONTACT_DHAT, cfg, "contact_dhat",
                     f"must be in (0, {MAX_CONTACT_DHAT:g}]: the contact distance as a fraction of "
                     "the body's diagonal (1e-3 reaches 1 mm on a 1 m body)")
+    # the body in time reads the elastic tangent's element blocks (DynamicSystem) and its
+    # step's Newton has no collision-free cap yet
+    require_setting(not (cfg.contact and getattr(cfg, "dynamic", False)), cfg, "contact",
+                    "is not yet available with problem.dynamic=true (the body in time); set "
+                    "problem.contact=false")
 
 
 def body_energy(points: np.ndarray, cells: np.ndarray, model: str, nu: float,
