@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from ...linalg import SparsePattern
-from .barrier import SelfContact
+from .barrier import ContactInputError, SelfContact
 
 
 class ElasticityWithContact:
@@ -119,6 +119,40 @@ class ElasticityWithContact:
     def collision_free_step(self, x0: Tensor, x1: Tensor) -> Tensor:
         """The largest step ``(F,)`` in ``[0, 1]`` from ``x0`` towards ``x1`` free of contact."""
         return self.contact.collision_free_step(x0, x1)
+
+    def collision_free_start(self, start: Tensor, fixed_dofs: Tensor,
+                             frame_names: list | None = None) -> Tensor:
+        """Newton's starts ``(F, n_dofs)`` that do not pass through themselves: ``start``
+        where its surface is free, else the rest shape with the Dirichlet dofs ``fixed_dofs``
+        moved to ``start``'s, carried towards ``start`` as far as no contact is crossed (a
+        skinned pose often passes through itself at a fold, and IPC's line search must
+        start from a state without intersections).
+
+        Raises :class:`~.barrier.ContactInputError` naming the frames (``frame_names``, else
+        their indices) where that moved rest shape passes through itself too: no start
+        without intersections is known there (stepping the Dirichlet data from a free frame
+        is not built yet)."""
+        crossed = self.contact.intersecting_frames(start)
+        if not crossed:
+            return start
+        frames = torch.as_tensor(crossed, device=start.device)
+        target = start[frames]
+        moved = self.elastic.rest.points.reshape(1, -1).to(target).expand_as(target).clone()
+        fixed = torch.as_tensor(fixed_dofs, device=start.device)
+        moved[:, fixed] = target[:, fixed]
+        stuck = self.contact.intersecting_frames(moved)
+        if stuck:
+            names = [crossed[i] if frame_names is None else frame_names[crossed[i]]
+                     for i in stuck]
+            raise ContactInputError(
+                f"frame(s) {', '.join(map(str, names))}: Newton's start (the animated pose) "
+                "passes through itself at a fold and no start without intersections was found "
+                "(the rest shape with the driven vertices moved crosses too); leave those "
+                "frames out (problem.frames) or set problem.contact=false")
+        alpha = self.contact.collision_free_step(moved, target).to(target)
+        out = start.clone()
+        out[frames] = moved + alpha[:, None] * (target - moved)
+        return out
 
     def after_step(self, x: Tensor) -> None:
         """Adapt the barrier stiffness after a Newton iteration (IPC's rule)."""

@@ -45,6 +45,7 @@ from ...mesh import (Animation, AnimationError, Embedding, KeptMesh, body_volume
                      joint_cells, read_animation, skeleton_drive, surface_drive)
 from ...params import Parameterization, per_element, per_region
 from ...physics import NewtonOptions
+from ...physics.contact import ContactInputError, ElasticityWithContact
 from ...physics.dynamics import UnstableStepError
 from ...physics.elasticity import QuasistaticElasticity, SimplicialElasticity
 from ...steps import count, quiet, step
@@ -304,6 +305,17 @@ class RiggedBody(InverseProblem):
         self.dirichlet_positions = torch.as_tensor(drive.positions, dtype=self.dtype,
                                                    device=self.device)
         self.start_positions = torch.as_tensor(drive.start, dtype=self.dtype, device=self.device)
+        if isinstance(self.model, ElasticityWithContact):   # problem.contact: Newton's line
+            # search needs starts that do not pass through themselves (the skinned pose may)
+            shape = self.start_positions.shape
+            fixed = (torch.as_tensor(np.asarray(dirichlet))[:, None] * 3
+                     + torch.arange(3)).reshape(-1)
+            try:
+                self.start_positions = self.model.collision_free_start(
+                    self.start_positions.reshape(shape[0], -1), fixed,
+                    self.frame_numbers()).reshape(shape)
+            except ContactInputError as error:
+                raise ProblemConfigError(str(error)) from None
         # warm starts (the last solution, at the solver's next point) keep going rather than
         # fall back to the animated pose: near full bend that cold start needs far more
         # Newton iterations (folds and inverted elements at the inner elbow)
