@@ -17,6 +17,11 @@ PUSHES = (0.0, 0.004, 0.012)   # the upper block's top pressed down (m), gap 1 m
 
 @pytest.fixture(scope="module")
 def pressed():
+    return build()
+
+
+def build():
+    """``(model, quasistatic, Dirichlet positions of the PUSHES frames, E)``."""
     points, tets, bottom, top = blocks()
     elastic = SimplicialElasticity(torch.from_numpy(points), torch.from_numpy(tets),
                                    "stable_neo_hookean", nu=0.3)
@@ -76,3 +81,34 @@ def test_jacobian_with_contact_matches_finite_differences_and_adjoint(pressed):
     assert error < 1e-5, error
     # the contact matters: the Jacobian of the pressed frame differs from the elastic one's
     assert float(torch.linalg.vector_norm(jv[2])) > 0
+
+
+@pytest.mark.slow   # 38 s on 2 busy cores: 8 substeps of Newton with contact (notes/contact.md)
+def test_a_start_through_itself_is_reached_in_substeps():
+    """The animated pose moves the whole upper block 2 mm down, through the lower one (the
+    gap is 1 mm): its start is replaced by the equilibrium reached by moving the Dirichlet
+    dofs in substeps, each checked by CCD and solved with contact."""
+    model, qs, positions, E = build()
+    rest = model.elastic.rest.points.reshape(1, -1).clone()
+    target = rest.clone().reshape(-1, 3)
+    target[target[:, 2] > 0.1 + 1e-9, 2] -= 0.002
+    target = target.reshape(1, -1)
+    assert model.contact.intersecting_frames(target) == [0]
+    dirichlet = qs.dirichlet_vertices
+    fixed = (dirichlet[:, None] * 3 + torch.arange(3)).reshape(-1)
+    starts, stuck = model.collision_free_start(target, fixed)
+    assert model.contact.intersecting_frames(starts) == [] and stuck == []
+
+    # a solver of its own without warm starts: each substep starts where it is told
+    fresh = QuasistaticElasticity(model, dirichlet, backend="scipy", start="rest",
+                                  newton=NewtonOptions(rtol=1e-9, atol=1e-9))
+
+    def solve(x):
+        return fresh(E, x.reshape(1, -1, 3)[:, dirichlet],
+                     x_init=x.reshape(1, -1, 3)).reshape(1, -1)
+
+    x = model.stepped_start(solve, solve(rest), rest, target, fixed)
+    assert model.contact.intersecting_frames(x) == []
+    torch.testing.assert_close(x[:, fixed], target[:, fixed], rtol=0, atol=1e-12)
+    assert 0 < model.contact.minimum_distance(x) < model.contact.dhat
+    assert model.start_substeps == 8

@@ -19,6 +19,8 @@ stiffness as IPC does after each Newton iteration.
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -45,6 +47,7 @@ class ElasticityWithContact:
         self.dim = elastic.dim
         self.pairs = np.zeros((0, 2), dtype=np.int64)    # sorted by (a, b), a and b both ways
         self.pattern_builds = 0
+        self.start_substeps = 0       # equilibria solved by stepped_start
         self.tangent_pattern: SparsePattern = elastic.tangent_pattern
 
     def __getattr__(self, name: str):
@@ -120,39 +123,63 @@ class ElasticityWithContact:
         """The largest step ``(F,)`` in ``[0, 1]`` from ``x0`` towards ``x1`` free of contact."""
         return self.contact.collision_free_step(x0, x1)
 
-    def collision_free_start(self, start: Tensor, fixed_dofs: Tensor,
-                             frame_names: list | None = None) -> Tensor:
+    def collision_free_start(self, start: Tensor, fixed_dofs: Tensor) -> tuple[Tensor, list[int]]:
         """Newton's starts ``(F, n_dofs)`` that do not pass through themselves: ``start``
         where its surface is free, else the rest shape with the Dirichlet dofs ``fixed_dofs``
         moved to ``start``'s, carried towards ``start`` as far as no contact is crossed (a
         skinned pose often passes through itself at a fold, and IPC's line search must
-        start from a state without intersections).
-
-        Raises :class:`~.barrier.ContactInputError` naming the frames (``frame_names``, else
-        their indices) where that moved rest shape passes through itself too: no start
-        without intersections is known there (stepping the Dirichlet data from a free frame
-        is not built yet)."""
+        start from a state without intersections). Also returns the frames where that moved
+        rest shape passes through itself too (their start is left as it was): for
+        :meth:`stepped_start`."""
         crossed = self.contact.intersecting_frames(start)
         if not crossed:
-            return start
+            return start, []
         frames = torch.as_tensor(crossed, device=start.device)
         target = start[frames]
         moved = self.elastic.rest.points.reshape(1, -1).to(target).expand_as(target).clone()
         fixed = torch.as_tensor(fixed_dofs, device=start.device)
         moved[:, fixed] = target[:, fixed]
-        stuck = self.contact.intersecting_frames(moved)
-        if stuck:
-            names = [crossed[i] if frame_names is None else frame_names[crossed[i]]
-                     for i in stuck]
-            raise ContactInputError(
-                f"frame(s) {', '.join(map(str, names))}: Newton's start (the animated pose) "
-                "passes through itself at a fold and no start without intersections was found "
-                "(the rest shape with the driven vertices moved crosses too); leave those "
-                "frames out (problem.frames) or set problem.contact=false")
         alpha = self.contact.collision_free_step(moved, target).to(target)
         out = start.clone()
         out[frames] = moved + alpha[:, None] * (target - moved)
-        return out
+        stuck = self.contact.intersecting_frames(moved)
+        for i in stuck:
+            out[crossed[i]] = start[crossed[i]]
+        return out, [crossed[i] for i in stuck]
+
+    def stepped_start(self, solve: Callable[[Tensor], Tensor], free_state: Tensor,
+                      free_pose: Tensor, target_pose: Tensor, fixed_dofs: Tensor,
+                      substeps: int = 8, max_substeps: int = 256) -> Tensor:
+        """A start without intersections for a frame whose animated pose ``target_pose``
+        ``(1, n_dofs)`` passes through itself: from ``free_state`` (an equilibrium without
+        intersections of the frame whose animated pose is ``free_pose``), the Dirichlet dofs
+        ``fixed_dofs`` follow the animated motion ``target_pose - free_pose`` in substeps (the
+        free dofs start where the last equilibrium left them: moving them with the animation
+        pushes them into the barrier, and Newton creeps out); each substep's move is checked
+        by CCD (halved where it would cross a contact) and then solved to equilibrium with
+        contact by ``solve(x_start) -> x`` (the Dirichlet dofs as ``x_start``'s; a solved
+        substep lets the next one grow back). Returns the
+        last equilibrium (its Dirichlet dofs are ``target_pose``'s). Raises
+        :class:`~.barrier.ContactInputError` when a substep below ``1 / max_substeps`` of
+        the motion still crosses."""
+        fixed = torch.as_tensor(fixed_dofs, device=target_pose.device)
+        delta = torch.zeros_like(target_pose)
+        delta[:, fixed] = target_pose[:, fixed] - free_pose[:, fixed]
+        x, done, h = free_state, 0.0, 1.0 / substeps
+        while done < 1.0 - 1e-12:
+            h = min(h, 1.0 - done)
+            candidate = x + h * delta
+            if float(self.contact.collision_free_step(x, candidate)[0]) < 1.0:
+                h /= 2
+                if h < 1.0 / max_substeps:
+                    raise ContactInputError("no start without intersections: the animated "
+                                            "motion crosses a contact")
+                continue
+            x = solve(candidate)
+            done += h
+            self.start_substeps += 1
+            h = min(2 * h, 1.0 / substeps)      # the barrier reopened the gap: longer again
+        return x
 
     def after_step(self, x: Tensor) -> None:
         """Adapt the barrier stiffness after a Newton iteration (IPC's rule)."""
