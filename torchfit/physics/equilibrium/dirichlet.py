@@ -47,9 +47,9 @@ class DirichletReduction:
         self.free_positions[self.free_dofs] = torch.arange(self.free_dofs.numel())
         if self.free_dofs.numel() == 0:
             raise ValueError("every degree of freedom is fixed; nothing to solve")
-        # Reduced (free-free) tangent pattern and the slots it takes, built once.
-        self.free_pattern, self.free_slots = model.tangent_pattern.submatrix(
-            self.free_dofs, self.free_dofs)
+        # Reduced (free-free) tangent pattern and the slots it takes, built once per model
+        # pattern (a contact term's union pattern grows when new pairs touch: free_pattern)
+        self._pattern_of_free = None
         self.extensions = ModelExtensions.of(model)
         self.use_backend(backend)
 
@@ -62,6 +62,23 @@ class DirichletReduction:
                            getattr(self.backend, "set_near_nullspace", None))
         if callable(modes) and callable(register):
             register(self.free_pattern, modes()[self.free_dofs])
+
+    @property
+    def free_pattern(self):
+        """The free-free pattern of the model's current tangent pattern."""
+        return self._free_submatrix()[0]
+
+    @property
+    def free_slots(self) -> Tensor:
+        """The slots of :attr:`free_pattern`'s entries in the model's pattern."""
+        return self._free_submatrix()[1]
+
+    def _free_submatrix(self):
+        pattern = self.model.tangent_pattern
+        if self._pattern_of_free is not pattern:
+            self._free = pattern.submatrix(self.free_dofs, self.free_dofs)
+            self._pattern_of_free = pattern
+        return self._free
 
     @property
     def n_fixed(self) -> int:

@@ -213,7 +213,19 @@ class NewtonSolver:
             factors = [reduction.factorize_values(v[reduction.free_slots.to(v.device)])
                        for v in values]
             dx[:, free] = -reduction.solve(factors, (residual + coupling).expand(n_frames, -1))
+            return self._collision_free_start(x_ref, dx, fixed)
+
+    def _collision_free_start(self, x_ref: Tensor, dx: Tensor, fixed: Tensor) -> Tensor:
+        """``x_ref + dx``; for a model with a contact term, the free dofs go only as far
+        along ``dx`` as no contact is crossed from ``x_ref`` with the Dirichlet dofs moved
+        (the linear step ignores the barrier and could pass through a fold)."""
+        limit = getattr(self.model, "collision_free_step", None)
+        if limit is None:
             return x_ref + dx
+        moved = x_ref.expand_as(dx).clone()
+        moved[:, fixed] += dx[:, fixed]
+        alpha = limit(moved, x_ref + dx).to(dx)
+        return moved + alpha[:, None] * (x_ref + dx - moved)
 
     def cold_start(self, params: Tensor, fixed_values: Tensor,
                    x_init: Tensor | Callable[[], Tensor] | None) -> Tensor:
@@ -330,7 +342,7 @@ class NewtonSolver:
             x_a, step_a, norms_a = x[frames], step[frames], norms[frames]
             slope_a, targets_a, fixed_a = slope[frames], targets[frames], fixed_values[frames]
             energy_a = energy[frames] if energy is not None else None
-            alpha = torch.ones(frames.numel(), dtype=x.dtype, device=x.device)
+            alpha = self._collision_free_step(x_a, step_a, fixed_a)
             energy_trial = energy_a
             for _ in range(opts.max_backtracks):
                 x_trial = self.reduction.full(x_a[:, free] + alpha[:, None] * step_a, fixed_a)
@@ -371,6 +383,7 @@ class NewtonSolver:
             norms = norms.clone()
             norms[frames] = torch.where(finite, norms_trial, norms_a)
             history.append(norms)
+            self._after_step(x)
             report = _PROGRESS.get()
             if report is not None:
                 report(len(history) - 1, int((norms <= targets).sum()), n_frames)
@@ -412,6 +425,23 @@ class NewtonSolver:
             per_row = int((pattern.crow_indices[1:] - pattern.crow_indices[:-1]).max())
             eps = torch.finfo(x.dtype).eps
             return (per_row + 1) * eps * torch.linalg.vector_norm(size, dim=1)
+
+    def _collision_free_step(self, x_a: Tensor, step_a: Tensor, fixed_a: Tensor) -> Tensor:
+        """The line search's first step per active frame ``(F_a,)``: 1, or, for a model
+        with a contact term (``collision_free_step(x0, x1)``), the largest step whose
+        straight path passes through no contact (IPC's continuous collision detection)."""
+        limit = getattr(self.model, "collision_free_step", None)
+        if limit is None:
+            return torch.ones(x_a.shape[0], dtype=x_a.dtype, device=x_a.device)
+        free = self.reduction.free_dofs.to(x_a.device)
+        return limit(x_a, self.reduction.full(x_a[:, free] + step_a, fixed_a)).to(x_a)
+
+    def _after_step(self, x: Tensor) -> None:
+        """Let a model with ``after_step(x)`` (the contact term: IPC's barrier stiffness
+        update) see the positions after each Newton iteration."""
+        after = getattr(self.model, "after_step", None)
+        if after is not None:
+            after(x)
 
     def _energy(self, x: Tensor, params: Tensor) -> Tensor:
         """The model's energy per frame ``(F,)`` (the Dirichlet dofs' part is constant)."""

@@ -124,6 +124,11 @@ class RiggedBodyConfig(ProblemConfig):
     rig_tolerance: float = 0.05
     # tet meshes (and the arm's animation): "" is $TORCHFIT_CACHE_DIR or ~/.cache/torchfit
     cache_dir: str = ""
+    # self-contact of the body's surface (IPC, ipctk; torchfit/physics/contact, docs/guide/
+    # contact.md): off until its price on the arm is measured (docs/notes/contact.md);
+    # contact_dhat: the barrier's reach, a fraction of the rest bounding box's diagonal
+    contact: bool = False
+    contact_dhat: float = 1e-3
     newton_rtol: float = 1e-10
     newton_atol: float = 1e-12
     newton_max_iter: int = 300

@@ -44,7 +44,8 @@ from ...mesh import MeshError, SimplexMesh, element_adjacency
 from ...mesh import (Animation, AnimationError, Embedding, KeptMesh, body_volume, embed_points,
                      joint_cells, read_animation, skeleton_drive, surface_drive)
 from ...params import Parameterization, per_element, per_region
-from ...physics import NewtonOptions
+from ...physics import NewtonConvergenceError, NewtonOptions
+from ...physics.contact import ContactInputError, ElasticityWithContact
 from ...physics.dynamics import UnstableStepError
 from ...physics.elasticity import QuasistaticElasticity, SimplicialElasticity
 from ...steps import count, quiet, step
@@ -59,7 +60,7 @@ from .report import (BODY_METRICS, body_metrics, describe_body, frame_report,
 from ..config import (Backend, ProblemConfigError, check_newton_settings,
                       make_config, require_setting, resolve_backend, setting_error)
 from .dynamic import BodyInTime, check_body_dynamics, dynamic_split, in_pascals
-from .energy import body_energy
+from .energy import body_energy, check_contact_settings
 from .held_out import NO_VALIDATION, FrameSplit, split_frames
 from .model_comparison import ModelComparison
 from .bounds import (bounds_warning, check_bounds, damping_theta_bounds, modulus_bounds,
@@ -191,6 +192,7 @@ class RiggedBody(InverseProblem):
         require_setting(cfg.rig_tolerance > 0, cfg, "rig_tolerance", "must be positive")
         check_tet_settings(cfg)
         check_newton_settings(cfg)
+        check_contact_settings(cfg)
         check_bounds(cfg)
         require_setting(cfg.frames is None or len(cfg.frames) >= 1, cfg, "frames",
                         "must list at least one frame (or be null for all)")
@@ -278,7 +280,9 @@ class RiggedBody(InverseProblem):
         points, cells = self.tet.points, self.tet.cells
         self.mesh = SimplexMesh(points, cells)
         # the energy every simulation of the body sees (energy.py: where a term joins)
-        self.model = body_energy(points, cells, cfg.model.value, cfg.nu, self.dtype, self.device)
+        self.model = body_energy(points, cells, cfg.model.value, cfg.nu, self.dtype, self.device,
+                                 contact_dhat=cfg.contact_dhat if cfg.contact else None,
+                                 modulus=cfg.E0)
         diagonal = float(np.linalg.norm(points.max(0) - points.min(0)))
         try:
             with step(f"embedding {count(animation.n_vertices)} surface vertices in "
@@ -313,6 +317,10 @@ class RiggedBody(InverseProblem):
         newton = NewtonOptions(max_iter=cfg.newton_max_iter, rtol=cfg.newton_rtol,
                                atol=cfg.newton_atol, warm_max_iter=cfg.newton_max_iter)
         self.backend = resolve_backend(cfg.backend, self.device, 3)
+        if isinstance(self.model, ElasticityWithContact):
+            self.start_positions = contact_starts(self.model, cfg, dirichlet,
+                                                  self.start_positions, self.frame_numbers(),
+                                                  self.backend, newton)
         quasistatic = QuasistaticElasticity(self.model, dirichlet, backend=self.backend,
                                             newton=newton, start="rest", warm_start=cfg.warm_start)
         # frames repeating a pose share one simulation (repeated_poses.py); a pose met again
@@ -590,3 +598,45 @@ def initial_pose(cfg: RiggedBodyConfig, model: SimplicialElasticity, driven: Any
     E0 = torch.full((model.n_cells,), float(cfg.E0), dtype=drive0.dtype, device=drive0.device)
     with torch.no_grad(), quasistatic.equilibrium.independent():
         return quasistatic(E0, drive0[None], x_init=skinned0[None])[0]
+
+
+def contact_starts(model: ElasticityWithContact, cfg: RiggedBodyConfig, dirichlet: Any,
+                   start: Tensor, frame_numbers: list[int], backend: Any,
+                   newton: NewtonOptions) -> Tensor:
+    """Newton's starts ``(F, n, 3)`` without intersections for a body with contact: the
+    skinned pose where it is free, else the rest shape with the driven vertices moved and
+    carried towards it by CCD, else the equilibrium for ``E0`` reached by adding the
+    animated motion from the nearest frame whose start is free in substeps
+    (:meth:`~torchfit.physics.contact.ElasticityWithContact.stepped_start`). A frame with
+    none of these is one :class:`ProblemConfigError` line naming it."""
+    shape = start.shape
+    vertices = torch.as_tensor(np.asarray(dirichlet))
+    fixed = (vertices[:, None] * 3 + torch.arange(3)).reshape(-1)
+    flat = start.reshape(shape[0], -1)
+    starts, stuck = model.collision_free_start(flat, fixed)
+    if not stuck:
+        return starts.reshape(shape)
+    free = [f for f in range(shape[0]) if f not in stuck]
+    solver = QuasistaticElasticity(model, vertices, backend=backend, newton=newton,
+                                   start="rest", warm_start=False)
+    E0 = torch.full((model.n_cells,), float(cfg.E0), dtype=flat.dtype, device=flat.device)
+
+    def solve(x: Tensor) -> Tensor:
+        positions = x.reshape(1, -1, 3)[:, vertices.to(x.device)]
+        return solver(E0, positions, x_init=x.reshape(1, -1, 3)).reshape(1, -1)
+
+    try:
+        if not free:
+            raise ContactInputError("no frame's animated pose is free of intersections")
+        for f in stuck:
+            g = min(free, key=lambda k: abs(k - f))
+            state = solve(starts[g:g + 1])
+            starts[f] = model.stepped_start(solve, state, flat[g:g + 1], flat[f:f + 1],
+                                              fixed)[0]
+    except (ContactInputError, NewtonConvergenceError) as error:
+        names = ", ".join(str(frame_numbers[f]) for f in stuck)
+        raise ProblemConfigError(
+            f"frame(s) {names}: Newton's start (the animated pose) passes through itself at a "
+            f"fold and no start without intersections was found ({str(error).split(';')[0]}); "
+            "leave those frames out (problem.frames) or set problem.contact=false") from None
+    return starts.reshape(shape)
