@@ -13,7 +13,7 @@ import torch
 
 from torchfit import build_problem, fit
 from torchfit.run import FitOptions
-from torchfit.run.uncertainty import SIGMAS, Uncertainty, covariance_factor
+from torchfit.run.uncertainty import SIGMAS, Uncertainty, covariance_factor, held_parameters
 
 QUIET = FitOptions(progress=False, threads=1)
 
@@ -81,6 +81,33 @@ def test_a_parameter_on_a_bound_is_held_there():
     assert torch.allclose((L @ L.T)[keep][:, keep],
                           torch.linalg.inv(J[:, keep].T @ J[:, keep]), rtol=1e-10)
     assert float(L[2].abs().max()) == 0.0 and float(null[2]) == 1.0
+
+
+def test_an_undetermined_parameter_the_data_see_is_marginalised_an_invisible_one_held():
+    # parameter 3: a column 1e-3 of the others' and nearly parallel to parameter 0's (the
+    # identifiability report's "not determined", but seen); parameter 4: 1e-9 (invisible)
+    J = random_jacobian(m=60, n=5, seed=3)
+    J[:, 3] = 1e-3 * (J[:, 0] + 0.1 * random_jacobian(m=60, n=1, seed=4)[:, 0])
+    J[:, 4] = 1e-9 * J[:, 4]
+    free = torch.ones(5, dtype=torch.bool)
+    not_determined = torch.tensor([False, False, False, True, True])
+    held = held_parameters(J, free, not_determined)
+    assert held.tolist() == [False, False, False, False, True]
+    L, _, _, rank = covariance_factor(J, sigma=1.0, free=free & ~held)
+    assert rank == 4 and float(L[4].abs().max()) == 0.0
+    seen = [0, 1, 2, 3]
+    marginal = torch.linalg.inv(J[:, seen].T @ J[:, seen])
+    assert torch.allclose((L @ L.T)[:4, :4], marginal, rtol=1e-8)
+    # held instead (conditional on parameter 3), parameter 0's variance would be 100x too
+    # small: with parameter 3 fitted too, the estimate of 0 scatters by the marginal one
+    conditional = torch.linalg.inv(J[:, :3].T @ J[:, :3])
+    assert float(marginal[0, 0]) > 50 * float(conditional[0, 0])
+    generator = torch.Generator().manual_seed(5)
+    noise = torch.randn(3000, 60, generator=generator, dtype=torch.float64)
+    estimates = torch.linalg.lstsq(J[:, seen], noise.T).solution.T     # (draws, 4)
+    assert float(estimates[:, 0].std()) == pytest.approx(float(marginal[0, 0].sqrt()), rel=0.05)
+    # nothing determined, nothing free: nothing held
+    assert not held_parameters(J, torch.zeros(5, dtype=torch.bool), not_determined).any()
 
 
 def test_monte_carlo_spread_of_linear_least_squares_matches_the_band():
