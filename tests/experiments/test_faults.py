@@ -57,11 +57,12 @@ def _same_result(run_dir: Path, reference: Path) -> None:
     result = json.loads((run_dir / "result.json").read_text())
     expected = json.loads((reference / "result.json").read_text())
     # every metric, count and the stop (wall time aside), to the last digit; the
-    # identifiability report's figures too (where it took its Jacobian may differ: outputs
-    # written again from a checkpoint have no linearisation of the solver's to reuse)
-    provenance = ("source", "extra_products")
+    # identifiability report's and the uncertainty's figures too (where they took their
+    # Jacobian, and its seconds, may differ: outputs written again from a checkpoint have no
+    # linearisation of the solver's to reuse)
+    provenance = ("source", "extra_products", "cost")
     for key, value in expected.items():
-        if key == "identifiability":
+        if key in ("identifiability", "uncertainty"):
             assert {k: v for k, v in result[key].items() if k not in provenance} == \
                 {k: v for k, v in value.items() if k not in provenance}
         elif key not in ("wall_s", "resumed_from_iteration", "config", "history"):

@@ -115,7 +115,7 @@ def test_a_rebuilt_tet_mesh_cache_entry_is_named_on_resume(tmp_path, cache):  # 
     Checkpointer(tmp_path, problem, solver, []).commit(0, problem.theta0, {})
     (tmp_path / "history.jsonl").write_text(json.dumps({"iteration": 0}) + "\n")
     assert read_checkpoint(tmp_path, problem, solver).iteration == 0
-    (entry,) = (Path(cache) / "tetmesh").glob("*.npz")
+    (entry,) = (Path(cache) / "tetmesh").rglob("*.npz")     # canonical/<key>/<digest>.npz
     with np.load(entry) as saved:
         arrays = dict(saved)
     arrays["points"] = arrays["points"] * 1.001        # the entry rebuilt into another mesh

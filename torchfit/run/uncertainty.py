@@ -58,7 +58,8 @@ deviation, and the summary line says that the band then does not hold (fit longe
 Where the Jacobian comes from (``source``): the dense Jacobian of the solver's last
 accepted point (Levenberg-Marquardt and Gauss-Newton on the dense path: no simulation, no
 solve), or ``n`` products ``J e_j`` at the solver's last linearisation where
-``n <= MATRIX_FREE_MAX_PARAMS`` (one solve per frame and parameter, no factorisation);
+``n <= MATRIX_FREE_MAX_PARAMS`` (one solve per frame and parameter, no factorisation; where
+the solver holds none at the fitted point, a new one there: one simulation);
 otherwise the uncertainty is **not computed** (``computed: false`` with the reason): a
 low-rank (Lanczos) estimate of ``J^T J`` would give the well-determined directions only,
 and without a prior it says nothing of the rest, so no number is better than a
@@ -308,14 +309,18 @@ def estimate(problem: InverseProblem, lin: Any, theta: Tensor,
     products = 0
     if usable and getattr(lin, "dense", False):
         J, source = lin.jacobian(), "dense Jacobian of the last iteration"
-    elif usable and n <= MATRIX_FREE_MAX_PARAMS:
+    elif n <= MATRIX_FREE_MAX_PARAMS:
+        # where the solver holds none at the fitted point (outputs written again from a
+        # checkpoint), a new linearisation there, as the identifiability report makes
+        where = "the last linearisation" if usable else "a new linearisation (one simulation)"
+        if not usable:
+            lin = problem.residual().linearize(theta)
         products = n
-        J, source = lin.jacobian(), f"{n} products J e_j at the last linearisation"
+        J, source = lin.jacobian(), f"{n} products J e_j at {where}"
     else:
-        why = "the solver holds no linearisation at the fitted point" if not usable else \
-            (f"{n} parameters, matrix-free (no dense Jacobian; more than "
-             f"{MATRIX_FREE_MAX_PARAMS} products J e_j)")
-        return Uncertainty(False, reason=why, transform=transform)
+        return Uncertainty(False, reason=f"{n} parameters, matrix-free (no dense Jacobian; "
+                           f"more than {MATRIX_FREE_MAX_PARAMS} products J e_j)",
+                           transform=transform)
     if not isinstance(J, Tensor):      # rows kept on the ranks of a distributed run
         return Uncertainty(False, reason="the Jacobian's rows are kept on their ranks",
                            transform=transform)
