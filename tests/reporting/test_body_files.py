@@ -106,20 +106,26 @@ def test_usd_frames_over_the_users_stage_in_its_units_and_times(tmp_path):
     np.testing.assert_allclose(np.asarray(points.Get(105.0)), surface[2] / 0.01, rtol=1e-6)
 
 
+def _embedded_problem(tmp_path, weights: np.ndarray) -> SimpleNamespace:
+    """The two-tetrahedron body whose 4 surface vertices are embedded in tets 0, 0, 0, 1 with
+    ``weights`` ``(4, 4)``."""
+    problem = _problem(tmp_path / "anim", ["a", "b", "c"])
+    problem.animation.rest_vertices = POINTS[:4]
+    problem.animation.file_values = lambda values: values
+    problem.animation.prim = ""
+    problem.embedding = SimpleNamespace(cells=np.array([0, 0, 0, 1]), weights=weights)
+    return problem
+
+
 def test_an_embedded_body_writes_its_material_on_the_users_vertices(tmp_path):
     """The per-vertex layer (``usd/material.usda``): the field averaged at the tet vertices
     by volume, then interpolated with each surface vertex's embedding weights."""
     pytest.importorskip("pxr")
     from pxr import Usd, UsdGeom
 
-    problem = _problem(tmp_path / "anim", ["a", "b", "c"])
-    problem.animation.rest_vertices = POINTS[:4]
-    problem.animation.file_values = lambda values: values
-    problem.animation.prim = ""
     # vertex 0 sits at tet 0's corner 0; vertex 3 halfway between corners 3 and 4 of tet 1
-    problem.embedding = SimpleNamespace(cells=np.array([0, 0, 0, 1]),
-                                        weights=np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0],
-                                                          [0, 0, 1.0, 0], [0, 0, 0.5, 0.5]]))
+    problem = _embedded_problem(tmp_path, np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0],
+                                                    [0, 0, 1.0, 0], [0, 0, 0.5, 0.5]]))
     field = np.array([1.5, 0.25])
     files = write_usd(tmp_path / "run", problem, _surface(), field)
     assert [f.name for f in files] == ["frames.usda", "body.usda", "material.usda"]
@@ -158,12 +164,7 @@ def test_a_body_in_time_writes_its_damping_beside_the_modulus(tmp_path):
 
     from torchfit.mesh.formats.usd import read_damping
 
-    problem = _problem(tmp_path / "anim", ["a", "b", "c"])
-    problem.animation.rest_vertices = POINTS[:4]
-    problem.animation.file_values = lambda values: values
-    problem.animation.prim = ""
-    problem.embedding = SimpleNamespace(cells=np.array([0, 0, 0, 1]),
-                                        weights=np.eye(4))
+    problem = _embedded_problem(tmp_path, np.eye(4))
     damping = {"alpha": 3.5, "beta": 0.0125, "zeta_w1": 0.25, "w1": 20.5}
     files = write_usd(tmp_path / "run", problem, _surface(), np.array([1.5, 0.25]),
                       damping=damping)
