@@ -78,7 +78,7 @@ RELATIVE_THRESHOLD = 1e-2
 #: one parameter) changes the data by less than this fraction of the start's misfit
 EFFECT_THRESHOLD = 1e-3
 #: a fit reduced nothing when its error is not ``1 + NO_REDUCTION`` times below the baseline's
-NO_REDUCTION = 0.02
+NO_REDUCTION = 0.05
 #: targets are a rigid motion of the rest when their RMS distance from the best rigid
 #: motion is below this fraction of the rest's bounding-box diagonal
 RIGID_THRESHOLD = 1e-6
