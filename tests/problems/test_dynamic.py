@@ -196,7 +196,7 @@ def test_damping_band_bounds_and_refusal_of_absurd_starts():
     import numpy as np
     import scipy.linalg
 
-    from torchfit.problems.dynamic import ZETA_MAX, DampingBand, damping_ratio
+    from torchfit.problems.damping import ZETA_MAX, DampingBand, damping_ratio
 
     problem = build_problem("spring1d", SMALL_CHAIN)
     band = problem.time.band

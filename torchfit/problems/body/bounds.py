@@ -72,7 +72,7 @@ def damping_theta_bounds(cfg: RiggedBodyConfig, band, n_scalars: int, like: Tens
                          ) -> tuple[Tensor, Tensor]:
     """``(lower, upper)`` on the scalars' ``theta`` in time ``(n_scalars,)`` each: ``alpha
     <= alpha_max``, ``beta <= beta_max`` of the damping's band (``band``: a
-    :class:`~torchfit.problems.dynamic.DampingBand`, or ``None``: unbounded above), in
+    :class:`~torchfit.problems.damping.DampingBand`, or ``None``: unbounded above), in
     ``log`` with ``transform=exp`` (below: ``-inf``) or as they are (below: 0); a density
     scale unbounded. Where ``bounds_apply`` (rig targets by default) with the modulus'."""
     exp = cfg.transform == Transform.exp

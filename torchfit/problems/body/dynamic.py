@@ -30,7 +30,7 @@ Moduli are pascals (inertia fixes the scale: not scale-free): with ``problem.E0_
 ``problem.E_reference``, with ``E0_unit=Pa`` pascals. Parameters: the body's field
 parameterisation and the two damping coefficients (:class:`~torchfit.params.FieldAndScalars`,
 ``theta = [field..., alpha, beta]``), the damping within its physical bounds
-(:class:`~torchfit.problems.dynamic.DampingBand` at ``E0`` and ``pi x fps``: a start outside
+(:class:`~torchfit.problems.damping.DampingBand` at ``E0`` and ``pi x fps``: a start outside
 them refused, the solver kept inside them where ``problem.bounds`` holds). Data: the observed surface at the fitted frames.
 ``problem.init_field`` starts the field from a material layer in pascals (its stated unit,
 :mod:`.init_field`). Validation: ``problem.validation_frames`` must be a later window than every fitted frame (the
@@ -52,8 +52,8 @@ from ...physics import NewtonConvergenceError, NewtonOptions
 from ...physics.dynamics import DynamicSystem, SplineMotion, UnstableStepError, make_integrator
 from ..base import NO_WARM_STARTS
 from ..config import ProblemConfigError, Transform, require_setting, setting_error
-from ..dynamic import (IMPLICIT_STEP_BYTES, DampingBand, Integrator, Scalars, TimeIntegration,
-                       stored_states)
+from ..damping import DampingBand
+from ..dynamic import IMPLICIT_STEP_BYTES, Integrator, Scalars, TimeIntegration, stored_states
 from ..protocols import WarmStarts
 from .config import ModulusUnit, RiggedBodyConfig, Target
 from .held_out import FrameSplit
